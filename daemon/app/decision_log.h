@@ -1,0 +1,40 @@
+#pragma once
+
+#include <cstdio>
+#include <deque>
+#include <string>
+
+#include "app/options.h"
+#include "core/selector.h"
+
+namespace keyframed {
+
+// One row per frame, in frame order. Rows since the last keyframe are held back
+// until they are final, because a later frame can promote an earlier candidate
+// to keyframe (Reason::GapFill) and its row must then say so.
+class DecisionLog {
+ public:
+  DecisionLog() = default;
+  DecisionLog(const DecisionLog&) = delete;
+  DecisionLog& operator=(const DecisionLog&) = delete;
+  ~DecisionLog();
+
+  bool open(const std::string& path, DecisionFormat format, std::string& error);
+  // Adds a decision; returns false on a write error.
+  bool add(const Decision& d, std::string& error);
+  bool close(std::string& error);
+
+  static std::string header();
+  static std::string csvRow(const Decision& d);
+  static std::string jsonRow(const Decision& d);
+
+ private:
+  bool flushPending(std::string& error);
+
+  std::FILE* file_ = nullptr;
+  DecisionFormat format_ = DecisionFormat::Csv;
+  std::deque<Decision> pending_;
+  std::string path_;
+};
+
+}  // namespace keyframed

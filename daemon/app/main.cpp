@@ -1,0 +1,39 @@
+#include <cstdio>
+#include <exception>
+#include <string>
+#include <vector>
+
+#include "app/select_command.h"
+
+namespace {
+
+constexpr const char* kUsage = R"(usage: keyframed <command> [options]
+
+commands:
+  select VIDEO --out DIR   pick keyframes from a video file (see: keyframed select --help)
+  version                  print the version
+)";
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string> args(argv + 1, argv + argc);
+  if (args.empty() || args[0] == "-h" || args[0] == "--help" || args[0] == "help") {
+    std::fputs(kUsage, args.empty() ? stderr : stdout);
+    return args.empty() ? 2 : 0;
+  }
+  const std::string command = args[0];
+  args.erase(args.begin());
+  try {
+    if (command == "select") return keyframed::selectMain(args);
+    if (command == "version" || command == "--version") {
+      std::puts("keyframed " KEYFRAMED_VERSION);
+      return 0;
+    }
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "keyframed: %s\n", e.what());
+    return 1;
+  }
+  std::fprintf(stderr, "keyframed: unknown command '%s' (see keyframed --help)\n", command.c_str());
+  return 2;
+}

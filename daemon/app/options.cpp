@@ -1,0 +1,181 @@
+#include "app/options.h"
+
+#include <cerrno>
+#include <cmath>
+#include <cstdlib>
+#include <functional>
+#include <map>
+
+namespace keyframed {
+namespace {
+
+bool parseDouble(const std::string& s, double& out) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  errno = 0;
+  out = std::strtod(s.c_str(), &end);
+  return errno == 0 && end == s.c_str() + s.size() && std::isfinite(out);
+}
+
+bool parseInt(const std::string& s, std::int64_t& out) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  errno = 0;
+  out = std::strtoll(s.c_str(), &end, 10);
+  return errno == 0 && end == s.c_str() + s.size();
+}
+
+bool parsePair(const std::string& s, std::string& a, std::string& b) {
+  const auto comma = s.find(',');
+  if (comma == std::string::npos) return false;
+  a = s.substr(0, comma);
+  b = s.substr(comma + 1);
+  return true;
+}
+
+}  // namespace
+
+std::string selectUsage() {
+  return R"(usage: keyframed select VIDEO --out DIR [options]
+
+Reads VIDEO, keeps sharp frames that overlap the previous keyframe by the
+target amount, writes them to DIR as NNNNNN.jpg (zero-based frame index),
+DIR/decisions.csv (one row per frame) and DIR/summary.json.
+
+selection:
+  --mode geometric|paper     overlap test (default geometric)
+  --target F                 overlap to keep a frame at, 0..1 (default 0.70)
+  --band LO,HI               overlap band for fallbacks (default 0.60,0.85)
+  --analysis-width PX        overlap analysis width, 0 = full (default 640)
+  --orb-features N           paper mode: ORB features (default 2500)
+  --paper-threshold T        paper mode: mean Hamming distance to keep (default 50)
+  --max-tracks N             geometric mode: tracked points (default 300)
+blur:
+  --blur-mode adaptive|absolute   (default adaptive)
+  --blur-threshold V         absolute mode threshold on Laplacian variance (default 100)
+  --blur-floor V             adaptive mode: absolute floor (default 10)
+  --blur-ratio R             adaptive mode: fraction of the recent quantile (default 0.55)
+  --blur-quantile Q          adaptive mode: quantile of recent scores (default 0.75)
+  --blur-window N            adaptive mode: recent frames considered (default 90)
+  --blur-step R,C            sample every R-th row, C-th column (default 2,3)
+  --blur-width PX            score at reduced width, 0 = full (default 0)
+output:
+  --decisions csv|jsonl      decisions file format (default csv)
+  --jpeg-quality Q           1..100 (default 92)
+  --max-frames N             stop after N frames
+  --progress | --no-progress progress line on stderr (default: when a terminal)
+  --quiet                    no summary on stdout
+  -h, --help                 this text
+)";
+}
+
+ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptions& o) {
+  ParseResult r;
+  auto fail = [&r](std::string msg) {
+    r.error = std::move(msg);
+    return r;
+  };
+  SelectorConfig& c = o.selector;
+  using Handler = std::function<std::string(const std::string&)>;
+  auto number = [](double& dst, double lo, double hi) -> Handler {
+    return [&dst, lo, hi](const std::string& v) -> std::string {
+      double d = 0;
+      if (!parseDouble(v, d)) return "not a number: '" + v + "'";
+      if (d < lo || d > hi) return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]";
+      dst = d;
+      return {};
+    };
+  };
+  auto integer = [](auto& dst, std::int64_t lo, std::int64_t hi) -> Handler {
+    return [&dst, lo, hi](const std::string& v) -> std::string {
+      std::int64_t n = 0;
+      if (!parseInt(v, n)) return "not an integer: '" + v + "'";
+      if (n < lo || n > hi) return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]";
+      dst = static_cast<std::remove_reference_t<decltype(dst)>>(n);
+      return {};
+    };
+  };
+  std::map<std::string, Handler> withValue = {
+      {"--out", [&](const std::string& v) -> std::string { if (v.empty()) return "empty directory"; o.outDir = v; return {}; }},
+      {"--mode", [&](const std::string& v) -> std::string {
+         if (v == "geometric") c.overlap.mode = OverlapMode::Geometric;
+         else if (v == "paper") c.overlap.mode = OverlapMode::Paper;
+         else return "unknown mode '" + v + "' (geometric or paper)";
+         return {}; }},
+      {"--target", number(c.target, 0.01, 0.99)},
+      {"--band", [&](const std::string& v) -> std::string {
+         std::string a, b;
+         if (!parsePair(v, a, b)) return "expected LO,HI";
+         double lo = 0, hi = 0;
+         if (!parseDouble(a, lo) || !parseDouble(b, hi)) return "expected two numbers LO,HI";
+         if (!(lo > 0 && lo < hi && hi < 1)) return "band must satisfy 0 < LO < HI < 1";
+         c.bandLow = lo; c.bandHigh = hi; return {}; }},
+      {"--analysis-width", integer(c.analysisWidth, 0, 16384)},
+      {"--orb-features", integer(c.overlap.orbFeatures, 50, 50000)},
+      {"--paper-threshold", number(c.overlap.paperThreshold, 1, 256)},
+      {"--max-tracks", integer(c.overlap.maxTracks, 20, 5000)},
+      {"--blur-mode", [&](const std::string& v) -> std::string {
+         if (v == "adaptive") c.blur.mode = BlurMode::Adaptive;
+         else if (v == "absolute") c.blur.mode = BlurMode::Absolute;
+         else return "unknown blur mode '" + v + "' (adaptive or absolute)";
+         return {}; }},
+      {"--blur-threshold", number(c.blur.absoluteThreshold, 0, 1e9)},
+      {"--blur-floor", number(c.blur.floor, 0, 1e9)},
+      {"--blur-ratio", number(c.blur.ratio, 0.01, 2)},
+      {"--blur-quantile", number(c.blur.quantile, 0, 1)},
+      {"--blur-window", integer(c.blur.window, 1, 10000)},
+      {"--blur-step", [&](const std::string& v) -> std::string {
+         std::string a, b;
+         std::int64_t rs = 0, cs = 0;
+         if (!parsePair(v, a, b) || !parseInt(a, rs) || !parseInt(b, cs)) return "expected R,C";
+         if (rs < 1 || rs > 16 || cs < 1 || cs > 16) return "steps must be 1..16";
+         c.blur.rowStep = static_cast<int>(rs); c.blur.colStep = static_cast<int>(cs); return {}; }},
+      {"--blur-width", integer(c.blur.analysisWidth, 0, 16384)},
+      {"--decisions", [&](const std::string& v) -> std::string {
+         if (v == "csv") o.decisions = DecisionFormat::Csv;
+         else if (v == "jsonl") o.decisions = DecisionFormat::JsonLines;
+         else return "unknown decisions format '" + v + "' (csv or jsonl)";
+         return {}; }},
+      {"--jpeg-quality", integer(o.jpegQuality, 1, 100)},
+      {"--max-frames", integer(o.maxFrames, 1, std::int64_t{1} << 40)},
+  };
+
+  for (std::size_t i = 0; i < args.size(); ++i) {
+    std::string a = args[i];
+    if (a == "-h" || a == "--help") {
+      r.help = true;
+      r.ok = true;
+      return r;
+    }
+    if (a == "--progress") { o.progress = true; continue; }
+    if (a == "--no-progress") { o.progress = false; continue; }
+    if (a == "--quiet") { o.quiet = true; continue; }
+    if (a.rfind("--", 0) == 0) {
+      std::string value;
+      bool inlineValue = false;
+      if (const auto eq = a.find('='); eq != std::string::npos) {
+        value = a.substr(eq + 1);
+        a = a.substr(0, eq);
+        inlineValue = true;
+      }
+      const auto it = withValue.find(a);
+      if (it == withValue.end()) return fail("unknown option " + a + " (see keyframed select --help)");
+      if (!inlineValue) {
+        if (i + 1 >= args.size()) return fail("option " + a + " needs a value");
+        value = args[++i];
+      }
+      if (std::string e = it->second(value); !e.empty()) return fail(a + ": " + e);
+      continue;
+    }
+    if (a.size() > 1 && a[0] == '-') return fail("unknown option " + a + " (see keyframed select --help)");
+    if (!o.video.empty()) return fail("more than one video given: '" + o.video + "' and '" + a + "'");
+    o.video = a;
+  }
+  if (o.video.empty()) return fail("no video given (usage: keyframed select VIDEO --out DIR)");
+  if (o.outDir.empty()) return fail("--out DIR is required");
+  if (std::string e = c.validate(); !e.empty()) return fail(e);
+  r.ok = true;
+  return r;
+}
+
+}  // namespace keyframed

@@ -1,0 +1,239 @@
+#include "app/select_command.h"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <csignal>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include <opencv2/core/utils/logger.hpp>
+
+#include "app/decision_log.h"
+#include "app/jpeg_writer.h"
+#include "capture/file_source.h"
+
+namespace keyframed {
+namespace {
+
+class SteadyClock final : public Clock {
+ public:
+  [[nodiscard]] std::int64_t nowNs() const override {
+    return std::chrono::duration_cast<std::chrono::nanoseconds>(
+               std::chrono::steady_clock::now().time_since_epoch())
+        .count();
+  }
+};
+
+std::string jsonEscape(const std::string& s) {
+  std::string out;
+  for (char ch : s) {
+    if (ch == '"' || ch == '\\') out += '\\';
+    if (static_cast<unsigned char>(ch) < 0x20) continue;
+    out += ch;
+  }
+  return out;
+}
+
+bool writeSummary(const std::string& path, const SelectOptions& o, const SourceInfo& info,
+                  const SelectSummary& s, std::string& error) {
+  const SelectorConfig& c = o.selector;
+  char buf[4096];
+  std::snprintf(
+      buf, sizeof buf,
+      "{\n  \"video\": \"%s\",\n  \"width\": %d,\n  \"height\": %d,\n  \"source_fps\": %.3f,\n"
+      "  \"frames_read\": %lld,\n  \"kept\": %lld,\n  \"rejected_blur\": %lld,\n"
+      "  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n  \"seconds\": %.3f,\n"
+      "  \"frames_per_second\": %.2f,\n  \"analysis_ms_mean\": %.3f,\n  \"truncated\": %s,\n"
+      "  \"interrupted\": %s,\n  \"error\": \"%s\",\n  \"settings\": {\n    \"mode\": \"%s\",\n"
+      "    \"target\": %.3f,\n    \"band\": [%.3f, %.3f],\n    \"analysis_width\": %d,\n"
+      "    \"blur_mode\": \"%s\",\n    \"blur_threshold\": %.3f,\n    \"blur_floor\": %.3f,\n"
+      "    \"blur_ratio\": %.3f,\n    \"blur_quantile\": %.3f,\n    \"blur_window\": %d,\n"
+      "    \"blur_step\": [%d, %d],\n    \"blur_width\": %d,\n    \"orb_features\": %d,\n"
+      "    \"paper_threshold\": %.3f\n  }\n}\n",
+      jsonEscape(o.video).c_str(), info.width, info.height, info.fps,
+      static_cast<long long>(s.framesRead), static_cast<long long>(s.kept),
+      static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
+      static_cast<long long>(s.promoted), s.seconds, s.framesPerSecond, s.analysisMsMean,
+      s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(),
+      toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
+      c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
+      c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
+      c.blur.analysisWidth, c.overlap.orbFeatures, c.overlap.paperThreshold);
+  const std::string tmp = path + ".tmp";
+  {
+    std::ofstream f(tmp, std::ios::trunc);
+    f << buf;
+    f.flush();
+    if (!f) {
+      error = "cannot write " + tmp;
+      return false;
+    }
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) {
+    error = "cannot rename " + tmp + ": " + ec.message();
+    return false;
+  }
+  return true;
+}
+
+std::atomic<bool> gStop{false};
+extern "C" void onSignal(int) { gStop.store(true); }
+
+}  // namespace
+
+SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress,
+                           const std::atomic<bool>* stop) {
+  SelectSummary s;
+  cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
+  std::string error;
+  auto source = FileSource::open(opts.video, error);
+  if (!source) {
+    s.error = error;
+    return s;
+  }
+  std::error_code ec;
+  std::filesystem::create_directories(opts.outDir, ec);
+  if (ec || !std::filesystem::is_directory(opts.outDir, ec)) {
+    s.error = "cannot create output directory " + opts.outDir;
+    return s;
+  }
+  const std::string ext = opts.decisions == DecisionFormat::Csv ? "csv" : "jsonl";
+  s.decisionsPath = opts.outDir + "/decisions." + ext;
+  s.summaryPath = opts.outDir + "/summary.json";
+
+  DecisionLog log;
+  if (!log.open(s.decisionsPath, opts.decisions, error)) {
+    s.error = error;
+    return s;
+  }
+  JpegWriter jpeg(opts.outDir, opts.jpegQuality);
+  SteadyClock clock;
+  KeyframeSelector selector(opts.selector, &clock);
+  cv::Mat candidate;  // pixels of the current fallback candidate (buffer reused)
+  std::int64_t candidateIndex = -1;
+  double analysisNs = 0.0;
+
+  const auto start = std::chrono::steady_clock::now();
+  auto lastProgress = start;
+  Frame frame;
+  while (true) {
+    if (stop != nullptr && stop->load()) {
+      s.interrupted = true;
+      break;
+    }
+    if (opts.maxFrames > 0 && s.framesRead >= opts.maxFrames) {
+      s.interrupted = true;
+      break;
+    }
+    const ReadStatus st = source->next(frame, error);
+    if (st == ReadStatus::End) break;
+    if (st == ReadStatus::Error) {
+      s.error = error;
+      s.truncated = source->truncated();
+      break;
+    }
+    ++s.framesRead;
+    const Decision d = selector.process(frame);
+    analysisNs += static_cast<double>(d.times.totalNs);
+    const cv::Mat bgr(frame.height, frame.width, CV_8UC3, const_cast<std::uint8_t*>(frame.data),
+                      static_cast<size_t>(frame.stride));
+    if (d.promotedIndex >= 0) {
+      if (d.promotedIndex == candidateIndex && !candidate.empty() &&
+          !jpeg.write(candidate, candidateIndex, error)) {
+        s.error = error;
+        break;
+      }
+      ++s.kept;
+      ++s.promoted;
+      candidateIndex = -1;
+    }
+    if (d.kept) {
+      if (!jpeg.write(bgr, d.index, error)) {
+        s.error = error;
+        break;
+      }
+      ++s.kept;
+      candidateIndex = -1;
+    } else if (d.candidate) {
+      bgr.copyTo(candidate);
+      candidateIndex = d.index;
+    }
+    if (!d.kept && !d.candidate) {
+      if (d.reason == Reason::Blurry || d.reason == Reason::Lost) ++s.rejectedBlur;
+      else ++s.rejectedOverlap;
+    } else if (d.candidate) {
+      ++s.rejectedOverlap;  // counted as redundant unless promoted later (below)
+    }
+    if (d.promotedIndex >= 0) --s.rejectedOverlap;
+    if (!log.add(d, error)) {
+      s.error = error;
+      break;
+    }
+    const auto now = std::chrono::steady_clock::now();
+    if (progress && now - lastProgress > std::chrono::milliseconds(250)) {
+      lastProgress = now;
+      const double el = std::chrono::duration<double>(now - start).count();
+      progress(s.framesRead, source->info().frameCount, s.kept,
+               el > 0 ? static_cast<double>(s.framesRead) / el : 0.0);
+    }
+  }
+  if (!log.close(error) && s.error.empty()) s.error = error;
+  s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;
+  s.analysisMsMean = s.framesRead > 0 ? analysisNs / static_cast<double>(s.framesRead) / 1e6 : 0.0;
+  if (progress) progress(s.framesRead, source->info().frameCount, s.kept, s.framesPerSecond);
+  if (!writeSummary(s.summaryPath, opts, source->info(), s, error) && s.error.empty()) s.error = error;
+  return s;
+}
+
+int selectMain(const std::vector<std::string>& args) {
+  SelectOptions opts;
+  const ParseResult pr = parseSelectOptions(args, opts);
+  if (!pr.ok) {
+    std::fprintf(stderr, "keyframed select: %s\n", pr.error.c_str());
+    return 2;
+  }
+  if (pr.help) {
+    std::fputs(selectUsage().c_str(), stdout);
+    return 0;
+  }
+  std::signal(SIGINT, onSignal);
+  std::signal(SIGTERM, onSignal);
+  const bool showProgress = opts.progress.value_or(isatty(STDERR_FILENO) != 0);
+  ProgressFn progress;
+  if (showProgress) {
+    progress = [](std::int64_t n, std::int64_t total, std::int64_t kept, double fps) {
+      if (total > 0)
+        std::fprintf(stderr, "\r  frame %lld/%lld  kept %lld  %.1f fps   ", static_cast<long long>(n),
+                     static_cast<long long>(total), static_cast<long long>(kept), fps);
+      else
+        std::fprintf(stderr, "\r  frame %lld  kept %lld  %.1f fps   ", static_cast<long long>(n),
+                     static_cast<long long>(kept), fps);
+      std::fflush(stderr);
+    };
+  }
+  const SelectSummary s = runSelection(opts, progress, &gStop);
+  if (showProgress) std::fputs("\n", stderr);
+  if (!opts.quiet && s.framesRead > 0) {
+    std::printf(
+        "frames read %lld, kept %lld (gap fills %lld), rejected: blur %lld, overlap %lld; "
+        "%.1f frames/s (selection %.2f ms/frame)\n"
+        "keyframes: %s/\ndecisions: %s\nsummary:   %s\n",
+        static_cast<long long>(s.framesRead), static_cast<long long>(s.kept),
+        static_cast<long long>(s.promoted), static_cast<long long>(s.rejectedBlur),
+        static_cast<long long>(s.rejectedOverlap), s.framesPerSecond, s.analysisMsMean,
+        opts.outDir.c_str(), s.decisionsPath.c_str(), s.summaryPath.c_str());
+  }
+  if (!s.error.empty()) {
+    std::fprintf(stderr, "keyframed select: %s\n", s.error.c_str());
+    return 3;
+  }
+  if (gStop.load()) return 130;
+  return 0;
+}
+
+}  // namespace keyframed

@@ -1,0 +1,40 @@
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "app/options.h"
+
+namespace keyframed {
+
+struct SelectSummary {
+  std::int64_t framesRead = 0;
+  std::int64_t kept = 0;
+  std::int64_t rejectedBlur = 0;     // Reason::Blurry or Lost, never promoted
+  std::int64_t rejectedOverlap = 0;  // Reason::Redundant, never promoted
+  std::int64_t promoted = 0;         // kept later as gap fills (included in kept)
+  double seconds = 0.0;              // wall time of the run
+  double framesPerSecond = 0.0;
+  double analysisMsMean = 0.0;       // selector time per frame (no decode, no JPEG)
+  bool truncated = false;            // the video ended before its announced length
+  bool interrupted = false;          // stopped by a signal or --max-frames
+  std::string error;                 // non-empty: the run failed (one line)
+  std::string summaryPath;
+  std::string decisionsPath;
+};
+
+using ProgressFn = std::function<void(std::int64_t framesRead, std::int64_t totalFrames,
+                                      std::int64_t kept, double fps)>;
+
+// Runs selection over a video file and writes keyframes, decisions and summary
+// into opts.outDir. Keyframes already written are never lost: on a read error
+// the outputs up to that frame are complete and the error is reported.
+SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress = {},
+                           const std::atomic<bool>* stop = nullptr);
+
+// `keyframed select ...`: returns the process exit code.
+int selectMain(const std::vector<std::string>& args);
+
+}  // namespace keyframed

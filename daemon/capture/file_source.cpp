@@ -1,0 +1,83 @@
+#include "capture/file_source.h"
+
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <system_error>
+
+namespace keyframed {
+
+std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::string& error) {
+  std::error_code ec;
+  if (!std::filesystem::exists(path, ec)) {
+    error = "no such file: " + path;
+    return nullptr;
+  }
+  if (std::filesystem::is_directory(path, ec)) {
+    error = "is a directory, not a video: " + path;
+    return nullptr;
+  }
+  // FFmpeg's own log lines would interleave with ours; errors are reported once
+  // below. A user-set OPENCV_FFMPEG_LOGLEVEL wins.
+  setenv("OPENCV_FFMPEG_LOGLEVEL", "-8", 0);
+  std::unique_ptr<FileSource> src(new FileSource());
+  src->path_ = path;
+  if (!src->capture_.open(path, cv::CAP_FFMPEG) || !src->capture_.isOpened()) {
+    error = "not a readable video: " + path;
+    return nullptr;
+  }
+  // Probe: a file that opens but yields no picture is not a video either.
+  if (!src->capture_.read(src->bgr_) || src->bgr_.empty() || src->bgr_.type() != CV_8UC3) {
+    error = "not a readable video (no decodable frame): " + path;
+    return nullptr;
+  }
+  src->primed_ = true;
+  SourceInfo& info = src->info_;
+  info.width = src->bgr_.cols;
+  info.height = src->bgr_.rows;
+  info.fps = src->capture_.get(cv::CAP_PROP_FPS);
+  if (!(info.fps > 0.0 && info.fps < 1000.0)) info.fps = 0.0;
+  const double count = src->capture_.get(cv::CAP_PROP_FRAME_COUNT);
+  info.frameCount = count > 0 && std::isfinite(count) ? static_cast<std::int64_t>(count) : -1;
+  info.description = "file:" + path;
+  return src;
+}
+
+ReadStatus FileSource::next(Frame& frame, std::string& error) {
+  if (!primed_) {
+    bool ok = false;
+    try {
+      ok = capture_.read(bgr_);
+    } catch (const cv::Exception& e) {
+      error = "decoding failed at frame " + std::to_string(index_) + ": " + e.what();
+      return ReadStatus::Error;
+    }
+    if (!ok || bgr_.empty()) {
+      // Allow a little slack: container frame counts are estimates for some formats.
+      if (info_.frameCount > 0 && index_ + 1 < info_.frameCount) {
+        truncated_ = true;
+        error = "video ended early: read " + std::to_string(index_) + " of " +
+                std::to_string(info_.frameCount) + " frames (truncated or corrupt): " + path_;
+        return ReadStatus::Error;
+      }
+      return ReadStatus::End;
+    }
+    if (bgr_.cols != info_.width || bgr_.rows != info_.height || bgr_.type() != CV_8UC3) {
+      error = "frame size changed mid-stream at frame " + std::to_string(index_);
+      return ReadStatus::Error;
+    }
+  }
+  primed_ = false;
+  double ms = capture_.get(cv::CAP_PROP_POS_MSEC);
+  std::int64_t ts = 0;
+  if (std::isfinite(ms) && ms >= 0.0 && !(index_ > 0 && ms == 0.0)) {
+    ts = static_cast<std::int64_t>(std::llround(ms * 1e6));
+  } else if (info_.fps > 0.0) {
+    ts = static_cast<std::int64_t>(std::llround(static_cast<double>(index_) * 1e9 / info_.fps));
+  }
+  frame = Frame::ofBgr(bgr_, index_, ts);
+  ++index_;
+  return ReadStatus::Frame;
+}
+
+}  // namespace keyframed

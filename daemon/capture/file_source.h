@@ -1,0 +1,39 @@
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include <opencv2/core/mat.hpp>
+#include <opencv2/videoio.hpp>
+
+#include "capture/frame_source.h"
+
+namespace keyframed {
+
+// A video file decoded by OpenCV's FFmpeg backend, frame by frame, as fast as
+// the reader asks. Timestamps are the container's presentation times.
+class FileSource final : public FrameSource {
+ public:
+  // Returns nullptr and a one-line error when the file is missing or is not a
+  // readable video.
+  static std::unique_ptr<FileSource> open(const std::string& path, std::string& error);
+
+  [[nodiscard]] const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame& frame, std::string& error) override;
+  // True when the stream ended before the frame count its header announced.
+  [[nodiscard]] bool truncated() const { return truncated_; }
+  [[nodiscard]] std::int64_t framesRead() const { return index_; }
+
+ private:
+  FileSource() = default;
+
+  cv::VideoCapture capture_;
+  cv::Mat bgr_;
+  SourceInfo info_;
+  std::string path_;
+  std::int64_t index_ = 0;
+  bool primed_ = false;  // bgr_ holds the first frame, read while probing
+  bool truncated_ = false;
+};
+
+}  // namespace keyframed

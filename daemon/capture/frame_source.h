@@ -1,0 +1,31 @@
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "core/frame.h"
+
+namespace keyframed {
+
+struct SourceInfo {
+  int width = 0;
+  int height = 0;
+  double fps = 0.0;
+  std::int64_t frameCount = -1;  // -1 when unknown (live cameras)
+  std::string description;
+};
+
+enum class ReadStatus { Frame, End, Error };
+
+// Where frames come from: cameras, files, replays. One small interface; each
+// backend lives in its own file.
+class FrameSource {
+ public:
+  virtual ~FrameSource() = default;
+  [[nodiscard]] virtual const SourceInfo& info() const = 0;
+  // The next frame. Its pixels stay valid until the next call. On Error,
+  // `error` holds a one-line reason.
+  virtual ReadStatus next(Frame& frame, std::string& error) = 0;
+};
+
+}  // namespace keyframed

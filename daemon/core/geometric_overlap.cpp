@@ -1,0 +1,173 @@
+#include "core/geometric_overlap.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/video/tracking.hpp>
+
+#include "core/polygon.h"
+
+namespace keyframed {
+namespace {
+constexpr int kGridCols = 16;
+constexpr int kGridRows = 9;
+}  // namespace
+
+GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
+    : config_(config),
+      cellCount_(kGridCols * kGridRows, 0),
+      fast_(cv::FastFeatureDetector::create(config.fastThreshold, true)) {
+  const auto n = static_cast<std::size_t>(config.maxTracks);
+  prevPts_.reserve(n);
+  curPts_.reserve(n);
+  goodPrev_.reserve(n);
+  goodCur_.reserve(n);
+  status_.reserve(n);
+  err_.reserve(n);
+  inlierMask_.reserve(n);
+  keypoints_.reserve(8192);
+}
+
+OverlapResult GeometricOverlap::observe(GrayView gray) {
+  const cv::Mat img = gray.mat();
+  const cv::Size win(config_.lkWindow, config_.lkWindow);
+  if (img.size() != size_) {
+    // A new stream or a resolution change: start over.
+    size_ = img.size();
+    havePrev_ = false;
+    haveReference_ = false;
+    haveCandidate_ = false;
+    prevPts_.clear();
+  }
+  cv::buildOpticalFlowPyramid(img, curPyr_, win, config_.lkLevels, true);
+
+  bool tracked = false;
+  lastTracked_ = 0;
+  lastInliers_ = 0;
+  curPts_.clear();
+  if (havePrev_ && static_cast<int>(prevPts_.size()) >= config_.minInliers) {
+    cv::calcOpticalFlowPyrLK(
+        prevPyr_, curPyr_, prevPts_, curPts_, status_, err_, win, config_.lkLevels,
+        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 0.03));
+    goodPrev_.clear();
+    goodCur_.clear();
+    const float w = static_cast<float>(size_.width);
+    const float h = static_cast<float>(size_.height);
+    for (std::size_t i = 0; i < prevPts_.size(); ++i) {
+      const cv::Point2f p = curPts_[i];
+      if (status_[i] && p.x >= 0 && p.y >= 0 && p.x < w && p.y < h) {
+        goodPrev_.push_back(prevPts_[i]);
+        goodCur_.push_back(p);
+      }
+    }
+    lastTracked_ = static_cast<int>(goodCur_.size());
+    if (lastTracked_ >= config_.minInliers) {
+      const cv::Mat hMat = cv::findHomography(goodPrev_, goodCur_, cv::RANSAC, config_.ransacPixels,
+                                              inlierMask_, 2000, 0.995);
+      if (!hMat.empty()) {
+        curPts_.clear();
+        for (std::size_t i = 0; i < goodCur_.size(); ++i)
+          if (inlierMask_[i]) curPts_.push_back(goodCur_[i]);
+        lastInliers_ = static_cast<int>(curPts_.size());
+        if (lastInliers_ >= config_.minInliers) {
+          const cv::Matx33d step(hMat);
+          refToCur_ = step * refToCur_;
+          refToCur_ *= 1.0 / refToCur_(2, 2);
+          tracked = true;
+        }
+      }
+    }
+    if (!tracked) curPts_.clear();
+  }
+
+  if (!tracked) {
+    // The chain from the reference is broken: overlap is unknown from here on.
+    haveReference_ = false;
+    haveCandidate_ = false;
+  }
+  if (static_cast<int>(curPts_.size()) < config_.minTracks) replenish(img);
+
+  std::swap(prevPyr_, curPyr_);
+  std::swap(prevPts_, curPts_);
+  havePrev_ = true;
+
+  OverlapResult r = overlapNow();
+  r.features = static_cast<int>(prevPts_.size());
+  r.matches = lastTracked_;
+  r.inliers = lastInliers_;
+  return r;
+}
+
+OverlapResult GeometricOverlap::overlapNow() const {
+  OverlapResult r;
+  if (!haveReference_) return r;
+  cv::Matx33d curToRef = refToCur_.inv();
+  const double f = visibleFraction(curToRef, size_.width, size_.height);
+  if (f < 0.0) return r;  // degenerate mapping: treat as lost
+  r.valid = true;
+  r.overlap = std::clamp(f, 0.0, 1.0);
+  return r;
+}
+
+void GeometricOverlap::replenish(const cv::Mat& gray) {
+  std::fill(cellCount_.begin(), cellCount_.end(), 0);
+  const double cw = static_cast<double>(size_.width) / kGridCols;
+  const double ch = static_cast<double>(size_.height) / kGridRows;
+  auto cellOf = [&](cv::Point2f p) {
+    const int cx = std::clamp(static_cast<int>(p.x / cw), 0, kGridCols - 1);
+    const int cy = std::clamp(static_cast<int>(p.y / ch), 0, kGridRows - 1);
+    return cy * kGridCols + cx;
+  };
+  for (const cv::Point2f& p : curPts_) ++cellCount_[static_cast<std::size_t>(cellOf(p))];
+  const int perCell = std::max(1, (config_.maxTracks + kGridCols * kGridRows - 1) /
+                                      (kGridCols * kGridRows));
+  keypoints_.clear();
+  fast_->detect(gray, keypoints_);
+  std::sort(keypoints_.begin(), keypoints_.end(),
+            [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
+  // Keep away from the border where the LK window would not fit.
+  const float margin = static_cast<float>(config_.lkWindow) / 2.0f;
+  for (const cv::KeyPoint& k : keypoints_) {
+    if (static_cast<int>(curPts_.size()) >= config_.maxTracks) break;
+    const cv::Point2f p = k.pt;
+    if (p.x < margin || p.y < margin || p.x > static_cast<float>(size_.width) - margin ||
+        p.y > static_cast<float>(size_.height) - margin)
+      continue;
+    int& count = cellCount_[static_cast<std::size_t>(cellOf(p))];
+    if (count >= perCell) continue;
+    ++count;
+    curPts_.push_back(p);
+  }
+}
+
+void GeometricOverlap::setReferenceToCurrent() {
+  refToCur_ = cv::Matx33d::eye();
+  haveReference_ = havePrev_;
+  haveCandidate_ = false;
+}
+
+void GeometricOverlap::markCandidate() {
+  if (!haveReference_) return;
+  refToCandidate_ = refToCur_;
+  haveCandidate_ = true;
+}
+
+OverlapResult GeometricOverlap::setReferenceToCandidate() {
+  if (!haveReference_ || !haveCandidate_) return {};
+  refToCur_ = refToCur_ * refToCandidate_.inv();  // candidate -> current
+  refToCur_ *= 1.0 / refToCur_(2, 2);
+  haveCandidate_ = false;
+  OverlapResult r = overlapNow();
+  r.features = static_cast<int>(prevPts_.size());
+  r.matches = lastTracked_;
+  r.inliers = lastInliers_;
+  return r;
+}
+
+void GeometricOverlap::reset() {
+  haveReference_ = false;
+  haveCandidate_ = false;
+}
+
+}  // namespace keyframed

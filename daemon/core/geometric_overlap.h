@@ -1,0 +1,55 @@
+#pragma once
+
+#include <vector>
+
+#include <opencv2/core/matx.hpp>
+#include <opencv2/features2d.hpp>
+
+#include "core/overlap.h"
+
+namespace keyframed {
+
+// Overlap as geometry: corners tracked frame to frame with pyramidal
+// Lucas-Kanade, a RANSAC homography per step, composed into the homography from
+// the reference keyframe to the current frame. The overlap is the fraction of
+// the reference image area that the current frame still shows. Composing steps
+// (instead of matching against the keyframe) keeps each step small and cheap,
+// and lets any past frame whose homography was remembered become the reference.
+class GeometricOverlap final : public OverlapEstimator {
+ public:
+  explicit GeometricOverlap(const OverlapConfig& config);
+
+  OverlapResult observe(GrayView gray) override;
+  void setReferenceToCurrent() override;
+  void markCandidate() override;
+  OverlapResult setReferenceToCandidate() override;
+  void reset() override;
+
+ private:
+  void replenish(const cv::Mat& gray);
+  OverlapResult overlapNow() const;
+
+  OverlapConfig config_;
+  cv::Size size_;
+  std::vector<cv::Mat> prevPyr_;
+  std::vector<cv::Mat> curPyr_;
+  std::vector<cv::Point2f> prevPts_;
+  std::vector<cv::Point2f> curPts_;
+  std::vector<cv::Point2f> goodPrev_;
+  std::vector<cv::Point2f> goodCur_;
+  std::vector<unsigned char> status_;
+  std::vector<float> err_;
+  std::vector<unsigned char> inlierMask_;
+  std::vector<cv::KeyPoint> keypoints_;
+  std::vector<int> cellCount_;
+  cv::Ptr<cv::FastFeatureDetector> fast_;
+  cv::Matx33d refToCur_ = cv::Matx33d::eye();
+  cv::Matx33d refToCandidate_ = cv::Matx33d::eye();
+  bool havePrev_ = false;
+  bool haveReference_ = false;
+  bool haveCandidate_ = false;
+  int lastTracked_ = 0;
+  int lastInliers_ = 0;
+};
+
+}  // namespace keyframed

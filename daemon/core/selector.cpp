@@ -1,0 +1,152 @@
+#include "core/selector.h"
+
+#include <cmath>
+
+#include <opencv2/imgproc.hpp>
+
+namespace keyframed {
+
+const char* toString(Reason reason) {
+  switch (reason) {
+    case Reason::First: return "first";
+    case Reason::OverlapTarget: return "overlap_target";
+    case Reason::PaperDistance: return "paper_distance";
+    case Reason::GapFill: return "gap_fill";
+    case Reason::Blurry: return "blurry";
+    case Reason::Redundant: return "redundant";
+    case Reason::Lost: return "lost";
+  }
+  return "unknown";
+}
+
+std::string SelectorConfig::validate() const {
+  if (auto e = blur.validate(); !e.empty()) return e;
+  if (auto e = overlap.validate(); !e.empty()) return e;
+  if (!(target > 0.0 && target < 1.0)) return "overlap target must be in (0, 1)";
+  if (!(bandLow > 0.0 && bandLow <= target)) return "overlap band low must be in (0, target]";
+  if (!(bandHigh >= target && bandHigh < 1.0)) return "overlap band high must be in [target, 1)";
+  if (analysisWidth < 0 || (analysisWidth > 0 && analysisWidth < 64))
+    return "analysis width must be 0 (full) or >= 64";
+  return {};
+}
+
+KeyframeSelector::KeyframeSelector(const SelectorConfig& config, const Clock* clock)
+    : config_(config),
+      clock_(clock),
+      sharpness_(config.blur),
+      overlap_(OverlapEstimator::create(config.overlap)) {}
+
+void KeyframeSelector::reconfigure(const SelectorConfig& config) {
+  config_ = config;
+  sharpness_ = SharpnessScorer(config.blur);
+  // A new estimator has no reference: the next sharp frame starts a new chain.
+  overlap_ = OverlapEstimator::create(config.overlap);
+  haveKeyframe_ = false;
+  candidateIndex_ = -1;
+}
+
+void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
+  d.kept = true;
+  d.reason = reason;
+  d.candidate = false;
+  overlap_->setReferenceToCurrent();
+  haveKeyframe_ = true;
+  candidateIndex_ = -1;
+  ++keyframes_;
+}
+
+bool KeyframeSelector::promoteCandidate(Decision& d) {
+  if (candidateIndex_ < 0) return false;
+  d.promotedIndex = candidateIndex_;
+  candidateIndex_ = -1;
+  ++keyframes_;
+  return true;
+}
+
+Decision KeyframeSelector::process(const Frame& frame) {
+  Decision d;
+  d.index = frame.index;
+  d.timestampNs = frame.timestampNs;
+  const std::int64_t t0 = now();
+
+  const GrayView gray = luma_.luma(frame);
+  const std::int64_t t1 = now();
+
+  const SharpnessScorer::Result blur = sharpness_.evaluate(gray);
+  d.sharpness = blur.score;
+  d.threshold = blur.threshold;
+  d.sharp = blur.sharp;
+  const std::int64_t t2 = now();
+
+  GrayView analysis = gray;
+  if (config_.analysisWidth > 0 && gray.width > config_.analysisWidth) {
+    const int h = static_cast<int>(
+        std::lround(static_cast<double>(gray.height) * config_.analysisWidth / gray.width));
+    cv::resize(gray.mat(), analysis_, cv::Size(config_.analysisWidth, h), 0, 0, cv::INTER_AREA);
+    analysis = GrayView::of(analysis_);
+  }
+  const std::int64_t t3 = now();
+
+  OverlapResult ov = overlap_->observe(analysis);
+  d.features = ov.features;
+  d.matches = ov.matches;
+  d.inliers = ov.inliers;
+  d.tracking = ov.valid;
+  d.overlap = ov.overlap;
+  d.paperDistance = ov.paperDistance;
+
+  const bool paper = config_.overlap.mode == OverlapMode::Paper;
+  if (!haveKeyframe_) {
+    if (d.sharp) keepCurrent(d, Reason::First);
+    else d.reason = Reason::Blurry;
+  } else if (!ov.valid) {
+    // Tracking lost: keep the best frame seen since the last keyframe so that no
+    // gap opens, then start a new chain at the next sharp frame.
+    promoteCandidate(d);
+    haveKeyframe_ = false;
+    overlap_->reset();
+    if (d.sharp) keepCurrent(d, Reason::First);
+    else d.reason = Reason::Lost;
+  } else if (paper) {
+    if (!d.sharp) d.reason = Reason::Blurry;
+    else if (ov.paperDistance >= config_.overlap.paperThreshold) keepCurrent(d, Reason::PaperDistance);
+    else d.reason = Reason::Redundant;
+  } else {
+    const double o = ov.overlap;
+    if (d.sharp && o <= config_.target) {
+      keepCurrent(d, Reason::OverlapTarget);
+    } else if (o < config_.bandLow) {
+      // About to leave the band with no sharp frame at the target: fall back to
+      // the sharpest frame since the last keyframe.
+      d.reason = Reason::Blurry;  // a sharp frame here was kept by the branch above
+      if (promoteCandidate(d)) {
+        const OverlapResult again = overlap_->setReferenceToCandidate();
+        d.overlap = again.overlap;
+        d.tracking = again.valid;
+        if (!again.valid) {
+          haveKeyframe_ = false;
+          overlap_->reset();
+        }
+      }
+    } else {
+      d.reason = d.sharp ? Reason::Redundant : Reason::Blurry;
+      if (d.sharp && o <= config_.bandHigh &&
+          (candidateIndex_ < 0 || d.sharpness > candidateSharpness_)) {
+        candidateIndex_ = d.index;
+        candidateSharpness_ = d.sharpness;
+        d.candidate = true;
+        overlap_->markCandidate();
+      }
+    }
+  }
+
+  const std::int64_t t4 = now();
+  d.times.lumaNs = t1 - t0;
+  d.times.blurNs = t2 - t1;
+  d.times.resizeNs = t3 - t2;
+  d.times.overlapNs = t4 - t3;
+  d.times.totalNs = t4 - t0;
+  return d;
+}
+
+}  // namespace keyframed

@@ -1,0 +1,111 @@
+#pragma once
+
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <string>
+
+#include <opencv2/core/mat.hpp>
+
+#include "core/frame.h"
+#include "core/overlap.h"
+#include "core/sharpness.h"
+
+namespace keyframed {
+
+// Why a frame was or was not kept.
+enum class Reason {
+  First,          // kept: the first sharp frame (or the first after tracking was lost)
+  OverlapTarget,  // kept: overlap with the last keyframe fell to the target
+  PaperDistance,  // kept: paper mode, match distance reached the threshold t
+  GapFill,        // kept later: the sharpest frame since the last keyframe, promoted
+                  //   because overlap was about to leave the band or tracking was lost
+  Blurry,         // dropped: sharpness under the threshold
+  Redundant,      // dropped: overlap still above the target (or distance under t)
+  Lost,           // dropped: tracking lost and the frame is not sharp
+};
+
+const char* toString(Reason reason);
+
+// Durations are measured by the caller's clock; core itself reads no clock.
+class Clock {
+ public:
+  virtual ~Clock() = default;
+  [[nodiscard]] virtual std::int64_t nowNs() const = 0;
+};
+
+struct StageTimes {
+  std::int64_t lumaNs = 0;
+  std::int64_t blurNs = 0;
+  std::int64_t resizeNs = 0;
+  std::int64_t overlapNs = 0;
+  std::int64_t totalNs = 0;
+};
+
+// The outcome for one frame. Every frame gets one.
+struct Decision {
+  std::int64_t index = 0;
+  std::int64_t timestampNs = 0;
+  bool kept = false;
+  Reason reason = Reason::Redundant;
+  // This frame is now the best fallback since the last keyframe: the caller must
+  // keep its pixels until a later decision promotes it or a keyframe supersedes it.
+  bool candidate = false;
+  // >= 0: that earlier candidate frame is a keyframe now (Reason::GapFill).
+  std::int64_t promotedIndex = -1;
+  double sharpness = 0.0;
+  double threshold = 0.0;
+  bool sharp = false;
+  double overlap = std::numeric_limits<double>::quiet_NaN();  // vs the last keyframe
+  double paperDistance = std::numeric_limits<double>::quiet_NaN();
+  bool tracking = false;
+  int features = 0;
+  int matches = 0;
+  int inliers = 0;
+  StageTimes times;
+};
+
+struct SelectorConfig {
+  SharpnessConfig blur;
+  OverlapConfig overlap;
+  double target = 0.70;    // keep a frame when overlap with the last keyframe falls to this
+  double bandLow = 0.60;   // never let overlap fall under this: promote the best candidate
+  double bandHigh = 0.85;  // frames above this are too redundant to be fallbacks
+  int analysisWidth = 640; // overlap analysis width in pixels (0: full resolution)
+
+  [[nodiscard]] std::string validate() const;
+};
+
+// Frame-selection policy: blur gate, then overlap against the last keyframe.
+class KeyframeSelector {
+ public:
+  explicit KeyframeSelector(const SelectorConfig& config = {}, const Clock* clock = nullptr);
+
+  // Decide for the next frame (frames in capture order).
+  Decision process(const Frame& frame);
+
+  // Apply new settings (SIGHUP); selection restarts at the next sharp frame.
+  void reconfigure(const SelectorConfig& config);
+
+  [[nodiscard]] const SelectorConfig& config() const { return config_; }
+  [[nodiscard]] std::int64_t keyframes() const { return keyframes_; }
+  [[nodiscard]] std::int64_t candidateIndex() const { return candidateIndex_; }
+
+ private:
+  [[nodiscard]] std::int64_t now() const { return clock_ ? clock_->nowNs() : 0; }
+  void keepCurrent(Decision& d, Reason reason);
+  bool promoteCandidate(Decision& d);
+
+  SelectorConfig config_;
+  const Clock* clock_;
+  LumaExtractor luma_;
+  SharpnessScorer sharpness_;
+  std::unique_ptr<OverlapEstimator> overlap_;
+  cv::Mat analysis_;
+  bool haveKeyframe_ = false;
+  std::int64_t keyframes_ = 0;
+  std::int64_t candidateIndex_ = -1;
+  double candidateSharpness_ = 0.0;
+};
+
+}  // namespace keyframed

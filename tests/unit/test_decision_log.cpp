@@ -1,0 +1,86 @@
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <gtest/gtest.h>
+
+#include "app/decision_log.h"
+
+namespace keyframed {
+namespace {
+
+std::vector<std::string> lines(const std::string& path) {
+  std::ifstream f(path);
+  std::vector<std::string> out;
+  for (std::string l; std::getline(f, l);) out.push_back(l);
+  return out;
+}
+
+TEST(DecisionLog, APromotedCandidateIsRewrittenAsKept) {
+  const std::string path = testing::TempDir() + "/decisions.csv";
+  DecisionLog log;
+  std::string err;
+  ASSERT_TRUE(log.open(path, DecisionFormat::Csv, err)) << err;
+  Decision d0;
+  d0.index = 0;
+  d0.kept = true;
+  d0.reason = Reason::First;
+  Decision d1;
+  d1.index = 1;
+  d1.candidate = true;
+  Decision d2;
+  d2.index = 2;
+  d2.reason = Reason::Blurry;
+  d2.promotedIndex = 1;
+  for (const Decision& d : {d0, d1, d2}) ASSERT_TRUE(log.add(d, err)) << err;
+  ASSERT_TRUE(log.close(err));
+  const auto l = lines(path);
+  ASSERT_EQ(l.size(), 4u);
+  EXPECT_EQ(l[0], DecisionLog::header());
+  EXPECT_EQ(l[2].rfind("1,0,1,gap_fill,", 0), 0u) << l[2];
+  EXPECT_EQ(l[3].rfind("2,0,0,blurry,0,1,", 0), 0u) << l[3];
+}
+
+TEST(DecisionLog, JsonLinesHaveOneObjectPerFrame) {
+  const std::string path = testing::TempDir() + "/decisions.jsonl";
+  DecisionLog log;
+  std::string err;
+  ASSERT_TRUE(log.open(path, DecisionFormat::JsonLines, err));
+  Decision d;
+  for (int i = 0; i < 3; ++i) {
+    d.index = i;
+    ASSERT_TRUE(log.add(d, err));
+  }
+  ASSERT_TRUE(log.close(err));
+  const auto l = lines(path);
+  ASSERT_EQ(l.size(), 3u);
+  EXPECT_EQ(l[1].rfind("{\"index\":1,", 0), 0u);
+  EXPECT_NE(l[1].find("\"overlap\":null"), std::string::npos);
+}
+
+TEST(DecisionLog, UnwritableDirectoryIsAnError) {
+  DecisionLog log;
+  std::string err;
+  EXPECT_FALSE(log.open("/nonexistent-dir/decisions.csv", DecisionFormat::Csv, err));
+  EXPECT_NE(err.find("cannot create"), std::string::npos);
+}
+
+TEST(DecisionLog, FullDiskIsReportedNotIgnored) {
+  if (!std::filesystem::exists("/dev/full")) GTEST_SKIP() << "no /dev/full on this system";
+  DecisionLog log;
+  std::string err;
+  ASSERT_TRUE(log.open("/dev/full", DecisionFormat::Csv, err) || !err.empty());
+  Decision d;
+  d.kept = true;
+  bool ok = true;
+  for (int i = 0; i < 2000 && ok; ++i) {
+    d.index = i;
+    ok = log.add(d, err);
+  }
+  if (ok) ok = log.close(err);
+  EXPECT_FALSE(ok);
+  EXPECT_NE(err.find("cannot"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace keyframed

@@ -1,0 +1,77 @@
+#include <filesystem>
+#include <fstream>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
+
+#include "capture/file_source.h"
+#include "photos.h"
+
+namespace keyframed {
+namespace {
+
+std::string writeVideo(const std::string& name, int frames) {
+  const std::string path = testing::TempDir() + "/" + name;
+  cv::VideoWriter w(path, cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), 30.0, cv::Size(320, 180));
+  EXPECT_TRUE(w.isOpened());
+  const cv::Mat strip = test::photoStrip();
+  for (int i = 0; i < frames; ++i) {
+    cv::Mat g = test::viewAt(strip, 100 + 4 * i, 320, 180), bgr;
+    cv::cvtColor(g, bgr, cv::COLOR_GRAY2BGR);
+    w.write(bgr);
+  }
+  return path;
+}
+
+TEST(FileSource, ReadsEveryFrameWithTimestamps) {
+  const std::string path = writeVideo("ok.avi", 20);
+  std::string err;
+  auto src = FileSource::open(path, err);
+  ASSERT_TRUE(src) << err;
+  EXPECT_EQ(src->info().width, 320);
+  EXPECT_NEAR(src->info().fps, 30.0, 0.01);
+  Frame f;
+  std::int64_t n = 0, lastTs = -1;
+  while (src->next(f, err) == ReadStatus::Frame) {
+    EXPECT_EQ(f.index, n);
+    EXPECT_GT(f.timestampNs, lastTs);
+    lastTs = f.timestampNs;
+    ++n;
+  }
+  EXPECT_EQ(n, 20);
+  EXPECT_NEAR(static_cast<double>(lastTs), 19 / 30.0 * 1e9, 2e6);
+}
+
+TEST(FileSource, MissingFileAndNonVideoAreClearErrors) {
+  std::string err;
+  EXPECT_FALSE(FileSource::open("/no/such/video.avi", err));
+  EXPECT_NE(err.find("no such file"), std::string::npos);
+  const std::string junk = testing::TempDir() + "/junk.avi";
+  std::ofstream(junk) << "this is not a video at all";
+  err.clear();
+  EXPECT_FALSE(FileSource::open(junk, err));
+  EXPECT_NE(err.find("not a readable video"), std::string::npos);
+}
+
+TEST(FileSource, TruncatedVideoEndsWithAnErrorAfterTheGoodFrames) {
+  const std::string path = writeVideo("full.avi", 60);
+  const std::string cut = testing::TempDir() + "/cut.avi";
+  std::filesystem::copy_file(path, cut, std::filesystem::copy_options::overwrite_existing);
+  std::filesystem::resize_file(cut, std::filesystem::file_size(path) / 2);
+  std::string err;
+  auto src = FileSource::open(cut, err);
+  ASSERT_TRUE(src) << err;
+  Frame f;
+  ReadStatus st;
+  std::int64_t n = 0;
+  while ((st = src->next(f, err)) == ReadStatus::Frame) ++n;
+  EXPECT_GT(n, 5);
+  EXPECT_LT(n, 60);
+  EXPECT_EQ(st, ReadStatus::Error);
+  EXPECT_TRUE(src->truncated());
+  EXPECT_NE(err.find("ended early"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace keyframed

@@ -1,0 +1,57 @@
+#include <gtest/gtest.h>
+
+#include "app/options.h"
+
+namespace keyframed {
+namespace {
+
+ParseResult parse(std::vector<std::string> a, SelectOptions& o) { return parseSelectOptions(a, o); }
+
+TEST(Options, ParsesEverySetting) {
+  SelectOptions o;
+  const auto r = parse({"v.avi", "--out", "d", "--mode", "paper", "--target=0.65", "--band", "0.55,0.8",
+                        "--blur-mode", "absolute", "--blur-threshold", "80", "--blur-step", "3,3",
+                        "--analysis-width", "480", "--orb-features", "1000", "--paper-threshold", "40",
+                        "--decisions", "jsonl", "--jpeg-quality", "85", "--blur-width", "960"},
+                       o);
+  ASSERT_TRUE(r.ok) << r.error;
+  EXPECT_EQ(o.video, "v.avi");
+  EXPECT_EQ(o.outDir, "d");
+  EXPECT_EQ(o.selector.overlap.mode, OverlapMode::Paper);
+  EXPECT_DOUBLE_EQ(o.selector.target, 0.65);
+  EXPECT_DOUBLE_EQ(o.selector.bandLow, 0.55);
+  EXPECT_DOUBLE_EQ(o.selector.bandHigh, 0.8);
+  EXPECT_EQ(o.selector.blur.mode, BlurMode::Absolute);
+  EXPECT_EQ(o.selector.blur.rowStep, 3);
+  EXPECT_EQ(o.selector.analysisWidth, 480);
+  EXPECT_EQ(o.selector.overlap.orbFeatures, 1000);
+  EXPECT_EQ(o.decisions, DecisionFormat::JsonLines);
+  EXPECT_EQ(o.jpegQuality, 85);
+  EXPECT_EQ(o.selector.blur.analysisWidth, 960);
+}
+
+TEST(Options, RejectsBadInputWithOneLine) {
+  const std::vector<std::vector<std::string>> bad = {
+      {"v.avi"},                                        // no --out
+      {"--out", "d"},                                   // no video
+      {"v.avi", "--out", "d", "--bogus"},               // unknown option
+      {"v.avi", "--out", "d", "--target", "1.5"},       // out of range
+      {"v.avi", "--out", "d", "--target", "abc"},       // not a number
+      {"v.avi", "--out", "d", "--mode", "magic"},       // unknown mode
+      {"v.avi", "--out", "d", "--band", "0.9,0.1"},     // inverted band
+      {"v.avi", "--out", "d", "--target", "0.5"},       // target under the band
+      {"v.avi", "--out", "d", "--jpeg-quality"},        // missing value
+      {"v.avi", "w.avi", "--out", "d"},                 // two videos
+      {"v.avi", "--out", "d", "--blur-step", "0,3"},    // bad step
+  };
+  for (const auto& args : bad) {
+    SelectOptions o;
+    const auto r = parse(args, o);
+    EXPECT_FALSE(r.ok);
+    EXPECT_FALSE(r.error.empty());
+    EXPECT_EQ(r.error.find('\n'), std::string::npos);
+  }
+}
+
+}  // namespace
+}  // namespace keyframed

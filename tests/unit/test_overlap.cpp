@@ -1,0 +1,102 @@
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
+
+#include "core/overlap.h"
+#include "photos.h"
+
+namespace keyframed {
+namespace {
+
+OverlapConfig geometric() {
+  OverlapConfig c;
+  c.mode = OverlapMode::Geometric;
+  return c;
+}
+
+TEST(GeometricOverlap, FollowsAPanAcrossRealPhotos) {
+  const cv::Mat strip = test::photoStrip();
+  ASSERT_FALSE(strip.empty());
+  auto est = OverlapEstimator::create(geometric());
+  const double step = 6.0;  // px per frame
+  const int w = 480;
+  for (int i = 0; i <= 40; ++i) {
+    const cv::Mat v = test::viewAt(strip, 200 + i * step, w);
+    const OverlapResult r = est->observe(GrayView::of(v));
+    if (i == 0) {
+      EXPECT_FALSE(r.valid);  // no reference yet
+      est->setReferenceToCurrent();
+      continue;
+    }
+    ASSERT_TRUE(r.valid) << "frame " << i;
+    const double truth = 1.0 - i * step / w;
+    EXPECT_NEAR(r.overlap, truth, 0.02) << "frame " << i;
+    EXPECT_GE(r.inliers, 15);
+  }
+}
+
+TEST(GeometricOverlap, AStillCameraStaysAtFullOverlap) {
+  const cv::Mat strip = test::photoStrip();
+  auto est = OverlapEstimator::create(geometric());
+  const cv::Mat v = test::viewAt(strip, 900);
+  est->observe(GrayView::of(v));
+  est->setReferenceToCurrent();
+  cv::RNG rng(3);
+  for (int i = 0; i < 150; ++i) {
+    cv::Mat noise(v.size(), CV_8UC1), f;
+    rng.fill(noise, cv::RNG::NORMAL, 0, 2);
+    cv::add(v, noise, f);
+    const OverlapResult r = est->observe(GrayView::of(f));
+    ASSERT_TRUE(r.valid);
+    EXPECT_GT(r.overlap, 0.97) << "drifted at frame " << i;
+  }
+}
+
+TEST(GeometricOverlap, CandidateBecomesTheReference) {
+  const cv::Mat strip = test::photoStrip();
+  auto est = OverlapEstimator::create(geometric());
+  for (int i = 0; i <= 30; ++i) {
+    const OverlapResult r = est->observe(GrayView::of(test::viewAt(strip, 300 + i * 5.0)));
+    if (i == 0) est->setReferenceToCurrent();
+    if (i == 10) {
+      ASSERT_TRUE(r.valid);
+      est->markCandidate();
+    }
+  }
+  // The current frame (30) is 20 steps of 5 px from the candidate (10).
+  const OverlapResult r = est->setReferenceToCandidate();
+  ASSERT_TRUE(r.valid);
+  EXPECT_NEAR(r.overlap, 1.0 - 100.0 / 480.0, 0.02);
+}
+
+TEST(GeometricOverlap, LosesTrackingOnAFeaturelessFrame) {
+  const cv::Mat strip = test::photoStrip();
+  auto est = OverlapEstimator::create(geometric());
+  est->observe(GrayView::of(test::viewAt(strip, 500)));
+  est->setReferenceToCurrent();
+  const cv::Mat flat(270, 480, CV_8UC1, cv::Scalar(90));
+  const OverlapResult r = est->observe(GrayView::of(flat));
+  EXPECT_FALSE(r.valid);
+}
+
+TEST(PaperOverlap, DistanceGrowsAsTheViewsPart) {
+  const cv::Mat strip = test::photoStrip();
+  OverlapConfig c;
+  c.mode = OverlapMode::Paper;
+  auto est = OverlapEstimator::create(c);
+  est->observe(GrayView::of(test::viewAt(strip, 200)));
+  est->setReferenceToCurrent();
+  const double d10 = est->observe(GrayView::of(test::viewAt(strip, 200 + 0.1 * 480))).paperDistance;
+  const double d50 = est->observe(GrayView::of(test::viewAt(strip, 200 + 0.5 * 480))).paperDistance;
+  EXPECT_LT(d10, d50);
+  EXPECT_GT(d50 - d10, 5.0);
+}
+
+TEST(Overlap, ConfigValidation) {
+  OverlapConfig c;
+  EXPECT_TRUE(c.validate().empty());
+  c.minTracks = c.maxTracks + 1;
+  EXPECT_FALSE(c.validate().empty());
+}
+
+}  // namespace
+}  // namespace keyframed

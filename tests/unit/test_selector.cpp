@@ -1,0 +1,139 @@
+#include <map>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
+
+#include "core/selector.h"
+#include "photos.h"
+
+namespace keyframed {
+namespace {
+
+struct PanRun {
+  std::vector<Decision> decisions;
+  std::vector<std::int64_t> keyframes;  // in the order they became keyframes
+};
+
+// Pans a camera along the photo strip with the given per-frame positions; frames
+// listed in `blurred` get a Gaussian blur.
+PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred = {},
+        SelectorConfig cfg = {}) {
+  const cv::Mat strip = test::photoStrip();
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  PanRun run;
+  cv::RNG rng(11);
+  for (std::size_t i = 0; i < xs.size(); ++i) {
+    cv::Mat v = test::viewAt(strip, xs[i]);
+    cv::Mat noise(v.size(), CV_8UC1);
+    rng.fill(noise, cv::RNG::NORMAL, 0, 1.5);
+    cv::add(v, noise, v);
+    if (auto it = blurred.find(static_cast<int>(i)); it != blurred.end())
+      cv::GaussianBlur(v, v, cv::Size(), it->second);
+    Decision d = sel.process(Frame::ofGray(v, static_cast<std::int64_t>(i), static_cast<std::int64_t>(i) * 33333333));
+    if (d.promotedIndex >= 0) run.keyframes.push_back(d.promotedIndex);
+    if (d.kept) run.keyframes.push_back(d.index);
+    run.decisions.push_back(d);
+  }
+  return run;
+}
+
+std::vector<double> linear(int n, double x0, double step) {
+  std::vector<double> xs;
+  for (int i = 0; i < n; ++i) xs.push_back(x0 + i * step);
+  return xs;
+}
+
+TEST(Selector, FirstSharpFrameIsAKeyframe) {
+  const PanRun r = pan(linear(5, 100, 0), {{0, 5.0}, {1, 5.0}});
+  ASSERT_FALSE(r.keyframes.empty());
+  EXPECT_EQ(r.keyframes[0], 2);
+  EXPECT_EQ(r.decisions[2].reason, Reason::First);
+}
+
+TEST(Selector, KeepsFramesAtTheTargetOverlap) {
+  // 8 px a frame over a 480 px view: 0.70 overlap every 18 frames.
+  const PanRun r = pan(linear(120, 100, 8.0));
+  ASSERT_GE(r.keyframes.size(), 5u);
+  for (std::size_t k = 1; k < r.keyframes.size(); ++k) {
+    const double dx = 8.0 * static_cast<double>(r.keyframes[k] - r.keyframes[k - 1]);
+    const double overlap = 1.0 - dx / 480.0;
+    EXPECT_GE(overlap, 0.60) << "pair " << k;
+    EXPECT_LE(overlap, 0.75) << "pair " << k;
+  }
+}
+
+TEST(Selector, HoveringAddsNoKeyframes) {
+  std::vector<double> xs = linear(30, 100, 8.0);
+  for (int i = 0; i < 120; ++i) xs.push_back(xs.back() + (i % 2 ? 0.3 : -0.3));
+  const PanRun r = pan(xs);
+  const std::int64_t kfBefore = std::count_if(r.keyframes.begin(), r.keyframes.end(),
+                                              [](std::int64_t k) { return k < 30; });
+  EXPECT_EQ(static_cast<std::int64_t>(r.keyframes.size()), kfBefore) << "keyframes added while hovering";
+}
+
+TEST(Selector, BlurryFramesAreNeverKept) {
+  std::map<int, double> blur;
+  for (int i = 10; i < 120; i += 4) blur[i] = 3.0;
+  const PanRun r = pan(linear(120, 100, 8.0), blur);
+  for (std::int64_t k : r.keyframes) EXPECT_EQ(blur.count(static_cast<int>(k)), 0u) << "kept blurry frame " << k;
+  for (int i : {10, 14, 50}) EXPECT_EQ(r.decisions[static_cast<std::size_t>(i)].reason, Reason::Blurry);
+}
+
+TEST(Selector, BlurAroundTheTargetFallsBackToTheSharpestCandidate) {
+  // Frames 12..40 are blurred: the target (frame 18) passes while blurred, and
+  // the band's lower edge (frame 24) comes before any sharp frame, so the
+  // sharpest candidate seen since the keyframe must be promoted.
+  std::map<int, double> blur;
+  for (int i = 12; i <= 40; ++i) blur[i] = 3.0;
+  const PanRun r = pan(linear(60, 100, 8.0), blur);
+  ASSERT_GE(r.keyframes.size(), 2u);
+  EXPECT_EQ(r.keyframes[0], 0);
+  const std::int64_t second = r.keyframes[1];
+  EXPECT_LT(second, 12);
+  const double overlap = 1.0 - 8.0 * static_cast<double>(second) / 480.0;
+  EXPECT_GE(overlap, 0.60);
+  EXPECT_LE(overlap, 0.86);
+  bool promoted = false;
+  for (const Decision& d : r.decisions) promoted |= d.promotedIndex == second;
+  EXPECT_TRUE(promoted);
+  for (std::int64_t k : r.keyframes) EXPECT_EQ(blur.count(static_cast<int>(k)), 0u);
+}
+
+TEST(Selector, PaperModeKeepsFramesAsTheDistanceGrows) {
+  SelectorConfig c;
+  c.overlap.mode = OverlapMode::Paper;
+  c.overlap.orbFeatures = 800;
+  const PanRun r = pan(linear(100, 100, 8.0), {}, c);
+  ASSERT_GE(r.keyframes.size(), 2u);
+  for (const Decision& d : r.decisions)
+    if (d.kept && d.reason == Reason::PaperDistance) {
+      EXPECT_GE(d.paperDistance, c.overlap.paperThreshold);
+    }
+}
+
+TEST(Selector, EveryFrameGetsADecisionWithScoresAndTimings) {
+  struct FakeClock final : Clock {
+    mutable std::int64_t t = 0;
+    std::int64_t nowNs() const override { return t += 1000; }
+  } clock;
+  const cv::Mat strip = test::photoStrip();
+  KeyframeSelector sel(SelectorConfig{}, &clock);
+  const cv::Mat v = test::viewAt(strip, 100);
+  const Decision d = sel.process(Frame::ofGray(v, 7, 42));
+  EXPECT_EQ(d.index, 7);
+  EXPECT_EQ(d.timestampNs, 42);
+  EXPECT_GT(d.sharpness, 0.0);
+  EXPECT_GT(d.features, 0);
+  EXPECT_EQ(d.times.totalNs, 4000);
+}
+
+TEST(Selector, ConfigValidation) {
+  SelectorConfig c;
+  EXPECT_TRUE(c.validate().empty());
+  c.bandLow = 0.8;  // above the target
+  EXPECT_NE(c.validate().find("band low"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace keyframed

@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# Idempotent set-up on Debian 12 (as root, or with sudo): apt packages, Python venv.
+# Safe to run again; does nothing that is already done.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${KEYFRAMED_VENV:-$ROOT/.venv}"
+STAMP_DIR="$ROOT/build/.setup"
+mkdir -p "$STAMP_DIR"
+
+APT_PACKAGES=(
+  build-essential cmake ninja-build pkg-config git
+  python3 python3-dev python3-venv
+  libopencv-dev opencv-doc
+  libcamera-dev libv4l-dev libexiv2-dev libturbojpeg0-dev libsystemd-dev
+  libtomlplusplus-dev libgtest-dev libbenchmark-dev
+  libimage-exiftool-perl
+)
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+
+missing_apt() {
+  local p out=()
+  for p in "${APT_PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || out+=("$p")
+  done
+  echo "${out[@]:-}"
+}
+
+MISSING="$(missing_apt)"
+if [ -n "$MISSING" ]; then
+  echo "setup: installing apt packages: $MISSING"
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get update -qq || true
+  # libsystemd-dev can upgrade systemd and leave dpkg half-configured (exit 100):
+  # repair and retry rather than fail.
+  for attempt in 1 2 3; do
+    if $SUDO apt-get install -y -qq --no-install-recommends $MISSING; then break; fi
+    echo "setup: apt-get install failed (attempt $attempt), repairing" >&2
+    $SUDO dpkg --configure -a || true
+    $SUDO apt-get -f install -y -qq || true
+    [ "$attempt" = 3 ] && { echo "setup: apt-get install failed" >&2; exit 1; }
+  done
+fi
+
+PY="${PYTHON:-python3}"
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "setup: creating venv $VENV"
+  "$PY" -m venv "$VENV"
+fi
+REQ="$ROOT/tools/requirements.txt"
+if ! cmp -s "$REQ" "$STAMP_DIR/requirements.txt"; then
+  echo "setup: installing Python packages"
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+  "$VENV/bin/python" -m pip install -q -r "$REQ"
+  cp "$REQ" "$STAMP_DIR/requirements.txt"
+fi
