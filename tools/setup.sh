@@ -13,7 +13,7 @@ APT_PACKAGES=(
   libopencv-dev opencv-doc
   libcamera-dev libv4l-dev libexiv2-dev libturbojpeg0-dev libsystemd-dev
   libtomlplusplus-dev libgtest-dev libbenchmark-dev
-  libimage-exiftool-perl
+  libimage-exiftool-perl clang-format
 )
 
 SUDO=""

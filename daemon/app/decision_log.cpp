@@ -14,7 +14,9 @@ std::string num(double v, int decimals) {
   return buf;
 }
 
-std::string ms(std::int64_t ns) { return num(static_cast<double>(ns) / 1e6, 3); }
+std::string ms(std::int64_t ns) {
+  return num(static_cast<double>(ns) / 1e6, 3);
+}
 
 std::string jnum(double v, int decimals) {
   const std::string s = num(v, decimals);
@@ -42,28 +44,27 @@ std::string DecisionLog::csvRow(const Decision& d) {
        (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "") + "," + num(d.sharpness, 3) +
        "," + num(d.threshold, 3) + "," + (d.sharp ? "1" : "0") + "," + num(d.overlap, 4) + "," +
        num(d.paperDistance, 3) + "," + (d.tracking ? "1" : "0") + "," + std::to_string(d.features) +
-       "," + std::to_string(d.matches) + "," + std::to_string(d.inliers) + "," + ms(d.times.lumaNs) +
-       "," + ms(d.times.blurNs) + "," + ms(d.times.resizeNs) + "," + ms(d.times.overlapNs) + "," +
-       ms(d.times.totalNs);
+       "," + std::to_string(d.matches) + "," + std::to_string(d.inliers) + "," +
+       ms(d.times.lumaNs) + "," + ms(d.times.blurNs) + "," + ms(d.times.resizeNs) + "," +
+       ms(d.times.overlapNs) + "," + ms(d.times.totalNs);
   return s;
 }
 
 std::string DecisionLog::jsonRow(const Decision& d) {
-  std::string s = "{\"index\":" + std::to_string(d.index) +
-                  ",\"timestamp_ns\":" + std::to_string(d.timestampNs) +
-                  ",\"kept\":" + (d.kept ? "true" : "false") + ",\"reason\":\"" + toString(d.reason) +
-                  "\",\"candidate\":" + (d.candidate ? "true" : "false") + ",\"promoted\":" +
-                  (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "null") +
-                  ",\"sharpness\":" + jnum(d.sharpness, 3) + ",\"threshold\":" + jnum(d.threshold, 3) +
-                  ",\"sharp\":" + (d.sharp ? "true" : "false") + ",\"overlap\":" + jnum(d.overlap, 4) +
-                  ",\"paper_distance\":" + jnum(d.paperDistance, 3) +
-                  ",\"tracking\":" + (d.tracking ? "true" : "false") +
-                  ",\"features\":" + std::to_string(d.features) +
-                  ",\"matches\":" + std::to_string(d.matches) +
-                  ",\"inliers\":" + std::to_string(d.inliers) + ",\"luma_ms\":" + ms(d.times.lumaNs) +
-                  ",\"blur_ms\":" + ms(d.times.blurNs) + ",\"resize_ms\":" + ms(d.times.resizeNs) +
-                  ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) +
-                  "}";
+  std::string s =
+      "{\"index\":" + std::to_string(d.index) +
+      ",\"timestamp_ns\":" + std::to_string(d.timestampNs) +
+      ",\"kept\":" + (d.kept ? "true" : "false") + ",\"reason\":\"" + toString(d.reason) +
+      "\",\"candidate\":" + (d.candidate ? "true" : "false") +
+      ",\"promoted\":" + (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "null") +
+      ",\"sharpness\":" + jnum(d.sharpness, 3) + ",\"threshold\":" + jnum(d.threshold, 3) +
+      ",\"sharp\":" + (d.sharp ? "true" : "false") + ",\"overlap\":" + jnum(d.overlap, 4) +
+      ",\"paper_distance\":" + jnum(d.paperDistance, 3) +
+      ",\"tracking\":" + (d.tracking ? "true" : "false") +
+      ",\"features\":" + std::to_string(d.features) + ",\"matches\":" + std::to_string(d.matches) +
+      ",\"inliers\":" + std::to_string(d.inliers) + ",\"luma_ms\":" + ms(d.times.lumaNs) +
+      ",\"blur_ms\":" + ms(d.times.blurNs) + ",\"resize_ms\":" + ms(d.times.resizeNs) +
+      ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) + "}";
   return s;
 }
 
@@ -92,7 +93,8 @@ bool DecisionLog::flushPending(std::string& error) {
     }
   }
   pending_.clear();
-  return std::fflush(file_) == 0 || (error = "cannot write " + path_ + ": " + std::strerror(errno), false);
+  return std::fflush(file_) == 0 ||
+         (error = "cannot write " + path_ + ": " + std::strerror(errno), false);
 }
 
 bool DecisionLog::add(const Decision& d, std::string& error) {

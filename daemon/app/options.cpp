@@ -81,7 +81,9 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     return [&dst, lo, hi](const std::string& v) -> std::string {
       double d = 0;
       if (!parseDouble(v, d)) return "not a number: '" + v + "'";
-      if (d < lo || d > hi) return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]";
+      if (d < lo || d > hi)
+        return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) +
+               "]";
       dst = d;
       return {};
     };
@@ -90,52 +92,82 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     return [&dst, lo, hi](const std::string& v) -> std::string {
       std::int64_t n = 0;
       if (!parseInt(v, n)) return "not an integer: '" + v + "'";
-      if (n < lo || n > hi) return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]";
+      if (n < lo || n > hi)
+        return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) +
+               "]";
       dst = static_cast<std::remove_reference_t<decltype(dst)>>(n);
       return {};
     };
   };
   std::map<std::string, Handler> withValue = {
-      {"--out", [&](const std::string& v) -> std::string { if (v.empty()) return "empty directory"; o.outDir = v; return {}; }},
-      {"--mode", [&](const std::string& v) -> std::string {
-         if (v == "geometric") c.overlap.mode = OverlapMode::Geometric;
-         else if (v == "paper") c.overlap.mode = OverlapMode::Paper;
-         else return "unknown mode '" + v + "' (geometric or paper)";
-         return {}; }},
+      {"--out",
+       [&](const std::string& v) -> std::string {
+         if (v.empty()) return "empty directory";
+         o.outDir = v;
+         return {};
+       }},
+      {"--mode",
+       [&](const std::string& v) -> std::string {
+         if (v == "geometric")
+           c.overlap.mode = OverlapMode::Geometric;
+         else if (v == "paper")
+           c.overlap.mode = OverlapMode::Paper;
+         else
+           return "unknown mode '" + v + "' (geometric or paper)";
+         return {};
+       }},
       {"--target", number(c.target, 0.01, 0.99)},
-      {"--band", [&](const std::string& v) -> std::string {
+      {"--band",
+       [&](const std::string& v) -> std::string {
          std::string a, b;
          if (!parsePair(v, a, b)) return "expected LO,HI";
          double lo = 0, hi = 0;
          if (!parseDouble(a, lo) || !parseDouble(b, hi)) return "expected two numbers LO,HI";
          if (!(lo > 0 && lo < hi && hi < 1)) return "band must satisfy 0 < LO < HI < 1";
-         c.bandLow = lo; c.bandHigh = hi; return {}; }},
+         c.bandLow = lo;
+         c.bandHigh = hi;
+         return {};
+       }},
       {"--analysis-width", integer(c.analysisWidth, 0, 16384)},
       {"--orb-features", integer(c.overlap.orbFeatures, 50, 50000)},
       {"--paper-threshold", number(c.overlap.paperThreshold, 1, 256)},
       {"--max-tracks", integer(c.overlap.maxTracks, 20, 5000)},
-      {"--blur-mode", [&](const std::string& v) -> std::string {
-         if (v == "adaptive") c.blur.mode = BlurMode::Adaptive;
-         else if (v == "absolute") c.blur.mode = BlurMode::Absolute;
-         else return "unknown blur mode '" + v + "' (adaptive or absolute)";
-         return {}; }},
+      {"--blur-mode",
+       [&](const std::string& v) -> std::string {
+         if (v == "adaptive")
+           c.blur.mode = BlurMode::Adaptive;
+         else if (v == "absolute")
+           c.blur.mode = BlurMode::Absolute;
+         else
+           return "unknown blur mode '" + v + "' (adaptive or absolute)";
+         return {};
+       }},
       {"--blur-threshold", number(c.blur.absoluteThreshold, 0, 1e9)},
       {"--blur-floor", number(c.blur.floor, 0, 1e9)},
       {"--blur-ratio", number(c.blur.ratio, 0.01, 2)},
       {"--blur-quantile", number(c.blur.quantile, 0, 1)},
       {"--blur-window", integer(c.blur.window, 1, 10000)},
-      {"--blur-step", [&](const std::string& v) -> std::string {
+      {"--blur-step",
+       [&](const std::string& v) -> std::string {
          std::string a, b;
          std::int64_t rs = 0, cs = 0;
          if (!parsePair(v, a, b) || !parseInt(a, rs) || !parseInt(b, cs)) return "expected R,C";
          if (rs < 1 || rs > 16 || cs < 1 || cs > 16) return "steps must be 1..16";
-         c.blur.rowStep = static_cast<int>(rs); c.blur.colStep = static_cast<int>(cs); return {}; }},
+         c.blur.rowStep = static_cast<int>(rs);
+         c.blur.colStep = static_cast<int>(cs);
+         return {};
+       }},
       {"--blur-width", integer(c.blur.analysisWidth, 0, 16384)},
-      {"--decisions", [&](const std::string& v) -> std::string {
-         if (v == "csv") o.decisions = DecisionFormat::Csv;
-         else if (v == "jsonl") o.decisions = DecisionFormat::JsonLines;
-         else return "unknown decisions format '" + v + "' (csv or jsonl)";
-         return {}; }},
+      {"--decisions",
+       [&](const std::string& v) -> std::string {
+         if (v == "csv")
+           o.decisions = DecisionFormat::Csv;
+         else if (v == "jsonl")
+           o.decisions = DecisionFormat::JsonLines;
+         else
+           return "unknown decisions format '" + v + "' (csv or jsonl)";
+         return {};
+       }},
       {"--jpeg-quality", integer(o.jpegQuality, 1, 100)},
       {"--max-frames", integer(o.maxFrames, 1, std::int64_t{1} << 40)},
   };
@@ -147,9 +179,18 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       r.ok = true;
       return r;
     }
-    if (a == "--progress") { o.progress = true; continue; }
-    if (a == "--no-progress") { o.progress = false; continue; }
-    if (a == "--quiet") { o.quiet = true; continue; }
+    if (a == "--progress") {
+      o.progress = true;
+      continue;
+    }
+    if (a == "--no-progress") {
+      o.progress = false;
+      continue;
+    }
+    if (a == "--quiet") {
+      o.quiet = true;
+      continue;
+    }
     if (a.rfind("--", 0) == 0) {
       std::string value;
       bool inlineValue = false;
@@ -159,7 +200,8 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
         inlineValue = true;
       }
       const auto it = withValue.find(a);
-      if (it == withValue.end()) return fail("unknown option " + a + " (see keyframed select --help)");
+      if (it == withValue.end())
+        return fail("unknown option " + a + " (see keyframed select --help)");
       if (!inlineValue) {
         if (i + 1 >= args.size()) return fail("option " + a + " needs a value");
         value = args[++i];
@@ -167,8 +209,10 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       if (std::string e = it->second(value); !e.empty()) return fail(a + ": " + e);
       continue;
     }
-    if (a.size() > 1 && a[0] == '-') return fail("unknown option " + a + " (see keyframed select --help)");
-    if (!o.video.empty()) return fail("more than one video given: '" + o.video + "' and '" + a + "'");
+    if (a.size() > 1 && a[0] == '-')
+      return fail("unknown option " + a + " (see keyframed select --help)");
+    if (!o.video.empty())
+      return fail("more than one video given: '" + o.video + "' and '" + a + "'");
     o.video = a;
   }
   if (o.video.empty()) return fail("no video given (usage: keyframed select VIDEO --out DIR)");

@@ -13,14 +13,14 @@ enum class DecisionFormat { Csv, JsonLines };
 
 // Everything `keyframed select` can be told. Each field names its flag.
 struct SelectOptions {
-  std::string video;                 // positional VIDEO
-  std::string outDir;                // --out DIR (required)
-  SelectorConfig selector;           // --mode, --target, --band, --blur-*, ...
+  std::string video;                               // positional VIDEO
+  std::string outDir;                              // --out DIR (required)
+  SelectorConfig selector;                         // --mode, --target, --band, --blur-*, ...
   DecisionFormat decisions = DecisionFormat::Csv;  // --decisions csv|jsonl
-  int jpegQuality = 92;              // --jpeg-quality 1..100
-  std::int64_t maxFrames = -1;       // --max-frames N (stop after N frames)
-  std::optional<bool> progress;      // --progress / --no-progress (default: when stderr is a TTY)
-  bool quiet = false;                // --quiet: no summary on stdout
+  int jpegQuality = 92;                            // --jpeg-quality 1..100
+  std::int64_t maxFrames = -1;                     // --max-frames N (stop after N frames)
+  std::optional<bool> progress;  // --progress / --no-progress (default: when stderr is a TTY)
+  bool quiet = false;            // --quiet: no summary on stdout
 };
 
 struct ParseResult {

@@ -81,7 +81,9 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
 }
 
 std::atomic<bool> gStop{false};
-extern "C" void onSignal(int) { gStop.store(true); }
+extern "C" void onSignal(int) {
+  gStop.store(true);
+}
 
 }  // namespace
 
@@ -163,8 +165,10 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       candidateIndex = d.index;
     }
     if (!d.kept && !d.candidate) {
-      if (d.reason == Reason::Blurry || d.reason == Reason::Lost) ++s.rejectedBlur;
-      else ++s.rejectedOverlap;
+      if (d.reason == Reason::Blurry || d.reason == Reason::Lost)
+        ++s.rejectedBlur;
+      else
+        ++s.rejectedOverlap;
     } else if (d.candidate) {
       ++s.rejectedOverlap;  // counted as redundant unless promoted later (below)
     }
@@ -186,7 +190,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;
   s.analysisMsMean = s.framesRead > 0 ? analysisNs / static_cast<double>(s.framesRead) / 1e6 : 0.0;
   if (progress) progress(s.framesRead, source->info().frameCount, s.kept, s.framesPerSecond);
-  if (!writeSummary(s.summaryPath, opts, source->info(), s, error) && s.error.empty()) s.error = error;
+  if (!writeSummary(s.summaryPath, opts, source->info(), s, error) && s.error.empty())
+    s.error = error;
   return s;
 }
 
@@ -208,8 +213,9 @@ int selectMain(const std::vector<std::string>& args) {
   if (showProgress) {
     progress = [](std::int64_t n, std::int64_t total, std::int64_t kept, double fps) {
       if (total > 0)
-        std::fprintf(stderr, "\r  frame %lld/%lld  kept %lld  %.1f fps   ", static_cast<long long>(n),
-                     static_cast<long long>(total), static_cast<long long>(kept), fps);
+        std::fprintf(stderr, "\r  frame %lld/%lld  kept %lld  %.1f fps   ",
+                     static_cast<long long>(n), static_cast<long long>(total),
+                     static_cast<long long>(kept), fps);
       else
         std::fprintf(stderr, "\r  frame %lld  kept %lld  %.1f fps   ", static_cast<long long>(n),
                      static_cast<long long>(kept), fps);

@@ -17,10 +17,10 @@ struct SelectSummary {
   std::int64_t promoted = 0;         // kept later as gap fills (included in kept)
   double seconds = 0.0;              // wall time of the run
   double framesPerSecond = 0.0;
-  double analysisMsMean = 0.0;       // selector time per frame (no decode, no JPEG)
-  bool truncated = false;            // the video ended before its announced length
-  bool interrupted = false;          // stopped by a signal or --max-frames
-  std::string error;                 // non-empty: the run failed (one line)
+  double analysisMsMean = 0.0;  // selector time per frame (no decode, no JPEG)
+  bool truncated = false;       // the video ended before its announced length
+  bool interrupted = false;     // stopped by a signal or --max-frames
+  std::string error;            // non-empty: the run failed (one line)
   std::string summaryPath;
   std::string decisionsPath;
 };

@@ -17,7 +17,8 @@ const char* toString(PixelFormat format) {
 
 cv::Mat GrayView::mat() const {
   // cv::Mat has no const header; callers only read through it.
-  return cv::Mat(height, width, CV_8UC1, const_cast<std::uint8_t*>(data), static_cast<size_t>(stride));
+  return cv::Mat(height, width, CV_8UC1, const_cast<std::uint8_t*>(data),
+                 static_cast<size_t>(stride));
 }
 
 GrayView GrayView::of(const cv::Mat& gray) {
@@ -28,13 +29,13 @@ GrayView GrayView::of(const cv::Mat& gray) {
 Frame Frame::ofBgr(const cv::Mat& bgr, std::int64_t index, std::int64_t timestampNs) {
   CV_Assert(bgr.type() == CV_8UC3);
   return Frame{PixelFormat::BGR24, bgr.data, bgr.cols, bgr.rows, static_cast<int>(bgr.step[0]),
-               timestampNs, index};
+               timestampNs,        index};
 }
 
 Frame Frame::ofGray(const cv::Mat& gray, std::int64_t index, std::int64_t timestampNs) {
   CV_Assert(gray.type() == CV_8UC1);
   return Frame{PixelFormat::Gray8, gray.data, gray.cols, gray.rows, static_cast<int>(gray.step[0]),
-               timestampNs, index};
+               timestampNs,        index};
 }
 
 GrayView LumaExtractor::luma(const Frame& frame) {

@@ -20,7 +20,9 @@ struct GrayView {
   int stride = 0;  // bytes between rows
 
   [[nodiscard]] bool empty() const { return data == nullptr || width <= 0 || height <= 0; }
-  [[nodiscard]] const std::uint8_t* row(int y) const { return data + static_cast<std::ptrdiff_t>(y) * stride; }
+  [[nodiscard]] const std::uint8_t* row(int y) const {
+    return data + static_cast<std::ptrdiff_t>(y) * stride;
+  }
   // A cv::Mat header on the same memory (no copy).
   [[nodiscard]] cv::Mat mat() const;
   static GrayView of(const cv::Mat& gray);
@@ -32,9 +34,9 @@ struct Frame {
   const std::uint8_t* data = nullptr;  // first plane
   int width = 0;
   int height = 0;
-  int stride = 0;                  // bytes per row of the first plane
-  std::int64_t timestampNs = 0;    // capture time on the source's clock
-  std::int64_t index = 0;          // zero-based frame number from the source
+  int stride = 0;                // bytes per row of the first plane
+  std::int64_t timestampNs = 0;  // capture time on the source's clock
+  std::int64_t index = 0;        // zero-based frame number from the source
 
   static Frame ofBgr(const cv::Mat& bgr, std::int64_t index, std::int64_t timestampNs);
   static Frame ofGray(const cv::Mat& gray, std::int64_t index, std::int64_t timestampNs);

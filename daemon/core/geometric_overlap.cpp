@@ -120,8 +120,8 @@ void GeometricOverlap::replenish(const cv::Mat& gray) {
     return cy * kGridCols + cx;
   };
   for (const cv::Point2f& p : curPts_) ++cellCount_[static_cast<std::size_t>(cellOf(p))];
-  const int perCell = std::max(1, (config_.maxTracks + kGridCols * kGridRows - 1) /
-                                      (kGridCols * kGridRows));
+  const int perCell =
+      std::max(1, (config_.maxTracks + kGridCols * kGridRows - 1) / (kGridCols * kGridRows));
   keypoints_.clear();
   fast_->detect(gray, keypoints_);
   std::sort(keypoints_.begin(), keypoints_.end(),

@@ -8,8 +8,8 @@
 namespace keyframed {
 
 struct MutualMatches {
-  int count = 0;             // mutual nearest neighbours (the cross-check)
-  double meanDistance = 0;   // their mean Hamming distance, bits
+  int count = 0;            // mutual nearest neighbours (the cross-check)
+  double meanDistance = 0;  // their mean Hamming distance, bits
 };
 
 // Brute-force Hamming matching of 32-byte binary descriptors (ORB), both ways

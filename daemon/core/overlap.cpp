@@ -11,7 +11,8 @@ const char* toString(OverlapMode mode) {
 
 std::string OverlapConfig::validate() const {
   if (orbFeatures < 50 || orbFeatures > 50000) return "ORB features must be 50..50000";
-  if (!(paperThreshold > 0.0 && paperThreshold <= 256.0)) return "paper threshold must be in (0, 256]";
+  if (!(paperThreshold > 0.0 && paperThreshold <= 256.0))
+    return "paper threshold must be in (0, 256]";
   if (paperMinMatches < 4) return "paper minimum matches must be >= 4";
   if (maxTracks < 20 || maxTracks > 5000) return "max tracks must be 20..5000";
   if (minTracks < 8 || minTracks > maxTracks) return "min tracks must be 8..max tracks";

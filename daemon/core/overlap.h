@@ -22,10 +22,10 @@ struct OverlapConfig {
   double paperThreshold = 50.0;  // keep when mean mutual-match distance >= t (bits)
   int paperMinMatches = 20;      // fewer mutual matches: the scene is lost
   // Geometric mode.
-  int maxTracks = 300;           // points tracked frame to frame
-  int minTracks = 120;           // replenish below this many
-  int minInliers = 15;           // fewer RANSAC inliers: tracking lost
-  double ransacPixels = 1.5;     // RANSAC reprojection threshold at analysis size
+  int maxTracks = 300;        // points tracked frame to frame
+  int minTracks = 120;        // replenish below this many
+  int minInliers = 15;        // fewer RANSAC inliers: tracking lost
+  double ransacPixels = 1.5;  // RANSAC reprojection threshold at analysis size
   int fastThreshold = 12;
   int lkWindow = 21;
   int lkLevels = 3;
@@ -35,7 +35,7 @@ struct OverlapConfig {
 
 struct OverlapResult {
   bool valid = false;  // false: no reference yet, or tracking lost
-  double overlap = std::numeric_limits<double>::quiet_NaN();  // 0..1 (geometric)
+  double overlap = std::numeric_limits<double>::quiet_NaN();        // 0..1 (geometric)
   double paperDistance = std::numeric_limits<double>::quiet_NaN();  // bits (paper)
   int features = 0;  // features detected or tracked in this frame
   int matches = 0;   // correspondences with the reference chain

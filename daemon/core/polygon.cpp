@@ -57,10 +57,10 @@ Polygon clipHalfPlane(const Polygon& in, double a, double b, double c) {
 }  // namespace
 
 Polygon clipToRectangle(const Polygon& poly, double w, double h) {
-  Polygon p = clipHalfPlane(poly, 1, 0, 0);   // x >= 0
-  p = clipHalfPlane(p, -1, 0, w);             // x <= w
-  p = clipHalfPlane(p, 0, 1, 0);              // y >= 0
-  return clipHalfPlane(p, 0, -1, h);          // y <= h
+  Polygon p = clipHalfPlane(poly, 1, 0, 0);  // x >= 0
+  p = clipHalfPlane(p, -1, 0, w);            // x <= w
+  p = clipHalfPlane(p, 0, 1, 0);             // y >= 0
+  return clipHalfPlane(p, 0, -1, h);         // y <= h
 }
 
 double visibleFraction(const cv::Matx33d& curToRef, double w, double h) {

@@ -97,20 +97,27 @@ Decision KeyframeSelector::process(const Frame& frame) {
 
   const bool paper = config_.overlap.mode == OverlapMode::Paper;
   if (!haveKeyframe_) {
-    if (d.sharp) keepCurrent(d, Reason::First);
-    else d.reason = Reason::Blurry;
+    if (d.sharp)
+      keepCurrent(d, Reason::First);
+    else
+      d.reason = Reason::Blurry;
   } else if (!ov.valid) {
     // Tracking lost: keep the best frame seen since the last keyframe so that no
     // gap opens, then start a new chain at the next sharp frame.
     promoteCandidate(d);
     haveKeyframe_ = false;
     overlap_->reset();
-    if (d.sharp) keepCurrent(d, Reason::First);
-    else d.reason = Reason::Lost;
+    if (d.sharp)
+      keepCurrent(d, Reason::First);
+    else
+      d.reason = Reason::Lost;
   } else if (paper) {
-    if (!d.sharp) d.reason = Reason::Blurry;
-    else if (ov.paperDistance >= config_.overlap.paperThreshold) keepCurrent(d, Reason::PaperDistance);
-    else d.reason = Reason::Redundant;
+    if (!d.sharp)
+      d.reason = Reason::Blurry;
+    else if (ov.paperDistance >= config_.overlap.paperThreshold)
+      keepCurrent(d, Reason::PaperDistance);
+    else
+      d.reason = Reason::Redundant;
   } else {
     const double o = ov.overlap;
     if (d.sharp && o <= config_.target) {

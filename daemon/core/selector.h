@@ -68,10 +68,10 @@ struct Decision {
 struct SelectorConfig {
   SharpnessConfig blur;
   OverlapConfig overlap;
-  double target = 0.70;    // keep a frame when overlap with the last keyframe falls to this
-  double bandLow = 0.60;   // never let overlap fall under this: promote the best candidate
-  double bandHigh = 0.85;  // frames above this are too redundant to be fallbacks
-  int analysisWidth = 640; // overlap analysis width in pixels (0: full resolution)
+  double target = 0.70;     // keep a frame when overlap with the last keyframe falls to this
+  double bandLow = 0.60;    // never let overlap fall under this: promote the best candidate
+  double bandHigh = 0.85;   // frames above this are too redundant to be fallbacks
+  int analysisWidth = 640;  // overlap analysis width in pixels (0: full resolution)
 
   [[nodiscard]] std::string validate() const;
 };

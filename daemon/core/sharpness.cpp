@@ -94,7 +94,7 @@ void SharpnessScorer::reset() {
 double SharpnessScorer::score(GrayView gray) {
   if (config_.analysisWidth > 0 && gray.width > config_.analysisWidth) {
     const int h = std::max(3, static_cast<int>(std::lround(static_cast<double>(gray.height) *
-                                                            config_.analysisWidth / gray.width)));
+                                                           config_.analysisWidth / gray.width)));
     cv::resize(gray.mat(), resized_, cv::Size(config_.analysisWidth, h), 0, 0, cv::INTER_AREA);
     gray = GrayView::of(resized_);
   }
@@ -105,8 +105,8 @@ double SharpnessScorer::threshold() const {
   if (config_.mode == BlurMode::Absolute) return config_.absoluteThreshold;
   if (filled_ < static_cast<std::size_t>(std::max(1, config_.warmup))) return config_.floor;
   std::copy_n(history_.begin(), filled_, scratch_.begin());
-  const auto k = static_cast<std::size_t>(
-      std::lround(config_.quantile * static_cast<double>(filled_ - 1)));
+  const auto k =
+      static_cast<std::size_t>(std::lround(config_.quantile * static_cast<double>(filled_ - 1)));
   std::nth_element(scratch_.begin(), scratch_.begin() + static_cast<std::ptrdiff_t>(k),
                    scratch_.begin() + static_cast<std::ptrdiff_t>(filled_));
   return std::max(config_.floor, config_.ratio * scratch_[k]);

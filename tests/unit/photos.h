@@ -18,8 +18,8 @@ inline cv::Mat photo(const std::string& name, int flags = cv::IMREAD_GRAYSCALE) 
 }
 
 inline std::vector<std::string> photoNames() {
-  return {"aero1.jpg", "aero3.jpg", "baboon.jpg", "building.jpg", "fruits.jpg",
-          "home.jpg",  "butterfly.jpg",  "messi5.jpg", "graf1.png",    "leuvenA.jpg"};
+  return {"aero1.jpg", "aero3.jpg",     "baboon.jpg", "building.jpg", "fruits.jpg",
+          "home.jpg",  "butterfly.jpg", "messi5.jpg", "graf1.png",    "leuvenA.jpg"};
 }
 
 }  // namespace keyframed::test

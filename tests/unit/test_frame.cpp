@@ -31,7 +31,8 @@ TEST(Frame, BgrIsConvertedOnceIntoAReusedBuffer) {
 TEST(Frame, YuyvLumaTakesEveryOtherByte) {
   cv::Mat yuyv(4, 4, CV_8UC2);
   for (int y = 0; y < 4; ++y)
-    for (int x = 0; x < 4; ++x) yuyv.at<cv::Vec2b>(y, x) = cv::Vec2b(static_cast<uchar>(y * 4 + x), 200);
+    for (int x = 0; x < 4; ++x)
+      yuyv.at<cv::Vec2b>(y, x) = cv::Vec2b(static_cast<uchar>(y * 4 + x), 200);
   Frame f{PixelFormat::YUYV, yuyv.data, 4, 4, static_cast<int>(yuyv.step[0]), 0, 0};
   LumaExtractor x;
   const GrayView v = x.luma(f);

@@ -5,14 +5,38 @@
 namespace keyframed {
 namespace {
 
-ParseResult parse(std::vector<std::string> a, SelectOptions& o) { return parseSelectOptions(a, o); }
+ParseResult parse(std::vector<std::string> a, SelectOptions& o) {
+  return parseSelectOptions(a, o);
+}
 
 TEST(Options, ParsesEverySetting) {
   SelectOptions o;
-  const auto r = parse({"v.avi", "--out", "d", "--mode", "paper", "--target=0.65", "--band", "0.55,0.8",
-                        "--blur-mode", "absolute", "--blur-threshold", "80", "--blur-step", "3,3",
-                        "--analysis-width", "480", "--orb-features", "1000", "--paper-threshold", "40",
-                        "--decisions", "jsonl", "--jpeg-quality", "85", "--blur-width", "960"},
+  const auto r = parse({"v.avi",
+                        "--out",
+                        "d",
+                        "--mode",
+                        "paper",
+                        "--target=0.65",
+                        "--band",
+                        "0.55,0.8",
+                        "--blur-mode",
+                        "absolute",
+                        "--blur-threshold",
+                        "80",
+                        "--blur-step",
+                        "3,3",
+                        "--analysis-width",
+                        "480",
+                        "--orb-features",
+                        "1000",
+                        "--paper-threshold",
+                        "40",
+                        "--decisions",
+                        "jsonl",
+                        "--jpeg-quality",
+                        "85",
+                        "--blur-width",
+                        "960"},
                        o);
   ASSERT_TRUE(r.ok) << r.error;
   EXPECT_EQ(o.video, "v.avi");
@@ -32,17 +56,17 @@ TEST(Options, ParsesEverySetting) {
 
 TEST(Options, RejectsBadInputWithOneLine) {
   const std::vector<std::vector<std::string>> bad = {
-      {"v.avi"},                                        // no --out
-      {"--out", "d"},                                   // no video
-      {"v.avi", "--out", "d", "--bogus"},               // unknown option
-      {"v.avi", "--out", "d", "--target", "1.5"},       // out of range
-      {"v.avi", "--out", "d", "--target", "abc"},       // not a number
-      {"v.avi", "--out", "d", "--mode", "magic"},       // unknown mode
-      {"v.avi", "--out", "d", "--band", "0.9,0.1"},     // inverted band
-      {"v.avi", "--out", "d", "--target", "0.5"},       // target under the band
-      {"v.avi", "--out", "d", "--jpeg-quality"},        // missing value
-      {"v.avi", "w.avi", "--out", "d"},                 // two videos
-      {"v.avi", "--out", "d", "--blur-step", "0,3"},    // bad step
+      {"v.avi"},                                      // no --out
+      {"--out", "d"},                                 // no video
+      {"v.avi", "--out", "d", "--bogus"},             // unknown option
+      {"v.avi", "--out", "d", "--target", "1.5"},     // out of range
+      {"v.avi", "--out", "d", "--target", "abc"},     // not a number
+      {"v.avi", "--out", "d", "--mode", "magic"},     // unknown mode
+      {"v.avi", "--out", "d", "--band", "0.9,0.1"},   // inverted band
+      {"v.avi", "--out", "d", "--target", "0.5"},     // target under the band
+      {"v.avi", "--out", "d", "--jpeg-quality"},      // missing value
+      {"v.avi", "w.avi", "--out", "d"},               // two videos
+      {"v.avi", "--out", "d", "--blur-step", "0,3"},  // bad step
   };
   for (const auto& args : bad) {
     SelectOptions o;

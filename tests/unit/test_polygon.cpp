@@ -5,7 +5,9 @@
 namespace keyframed {
 namespace {
 
-cv::Matx33d translate(double tx, double ty) { return {1, 0, tx, 0, 1, ty, 0, 0, 1}; }
+cv::Matx33d translate(double tx, double ty) {
+  return {1, 0, tx, 0, 1, ty, 0, 0, 1};
+}
 
 TEST(Polygon, IdentityIsFullOverlap) {
   EXPECT_NEAR(visibleFraction(cv::Matx33d::eye(), 640, 360), 1.0, 1e-12);

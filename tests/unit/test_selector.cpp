@@ -17,7 +17,7 @@ struct PanRun {
 // Pans a camera along the photo strip with the given per-frame positions; frames
 // listed in `blurred` get a Gaussian blur.
 PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred = {},
-        SelectorConfig cfg = {}) {
+           SelectorConfig cfg = {}) {
   const cv::Mat strip = test::photoStrip();
   cfg.analysisWidth = 0;
   KeyframeSelector sel(cfg);
@@ -30,7 +30,8 @@ PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred =
     cv::add(v, noise, v);
     if (auto it = blurred.find(static_cast<int>(i)); it != blurred.end())
       cv::GaussianBlur(v, v, cv::Size(), it->second);
-    Decision d = sel.process(Frame::ofGray(v, static_cast<std::int64_t>(i), static_cast<std::int64_t>(i) * 33333333));
+    Decision d = sel.process(
+        Frame::ofGray(v, static_cast<std::int64_t>(i), static_cast<std::int64_t>(i) * 33333333));
     if (d.promotedIndex >= 0) run.keyframes.push_back(d.promotedIndex);
     if (d.kept) run.keyframes.push_back(d.index);
     run.decisions.push_back(d);
@@ -67,17 +68,20 @@ TEST(Selector, HoveringAddsNoKeyframes) {
   std::vector<double> xs = linear(30, 100, 8.0);
   for (int i = 0; i < 120; ++i) xs.push_back(xs.back() + (i % 2 ? 0.3 : -0.3));
   const PanRun r = pan(xs);
-  const std::int64_t kfBefore = std::count_if(r.keyframes.begin(), r.keyframes.end(),
-                                              [](std::int64_t k) { return k < 30; });
-  EXPECT_EQ(static_cast<std::int64_t>(r.keyframes.size()), kfBefore) << "keyframes added while hovering";
+  const std::int64_t kfBefore =
+      std::count_if(r.keyframes.begin(), r.keyframes.end(), [](std::int64_t k) { return k < 30; });
+  EXPECT_EQ(static_cast<std::int64_t>(r.keyframes.size()), kfBefore)
+      << "keyframes added while hovering";
 }
 
 TEST(Selector, BlurryFramesAreNeverKept) {
   std::map<int, double> blur;
   for (int i = 10; i < 120; i += 4) blur[i] = 3.0;
   const PanRun r = pan(linear(120, 100, 8.0), blur);
-  for (std::int64_t k : r.keyframes) EXPECT_EQ(blur.count(static_cast<int>(k)), 0u) << "kept blurry frame " << k;
-  for (int i : {10, 14, 50}) EXPECT_EQ(r.decisions[static_cast<std::size_t>(i)].reason, Reason::Blurry);
+  for (std::int64_t k : r.keyframes)
+    EXPECT_EQ(blur.count(static_cast<int>(k)), 0u) << "kept blurry frame " << k;
+  for (int i : {10, 14, 50})
+    EXPECT_EQ(r.decisions[static_cast<std::size_t>(i)].reason, Reason::Blurry);
 }
 
 TEST(Selector, BlurAroundTheTargetFallsBackToTheSharpestCandidate) {

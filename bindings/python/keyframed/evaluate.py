@@ -1,0 +1,107 @@
+"""Score a keyframe selection against a synthetic flight's ground truth.
+
+    python -m keyframed.evaluate FLIGHT_DIR OUT_DIR [--band LO,HI] [--json]
+
+FLIGHT_DIR is what ``keyframed.synth`` wrote; OUT_DIR is what ``keyframed select``
+wrote (``decisions.csv`` or ``decisions.jsonl``). Reports the ground-truth
+overlap between consecutive keyframes, the share inside the band, kept frames
+labelled blurry, and keyframes added while hovering.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from .synth import load_flight
+
+
+@dataclass
+class Evaluation:
+    frames: int
+    keyframes: list[int]
+    pair_overlaps: list[float] = field(default_factory=list)
+    in_band: float = 0.0  # fraction of consecutive pairs inside the band
+    min_overlap: float = 1.0
+    blurry_kept: int = 0
+    blurry_kept_fraction: float = 0.0
+    hover_keyframes: int = 0  # keyframes inside a hover, after its first frame
+    band: tuple[float, float] = (0.60, 0.85)
+
+
+def read_decisions(out_dir: Path) -> list[dict[str, str]]:
+    csv_path = out_dir / "decisions.csv"
+    if csv_path.exists():
+        with csv_path.open(newline="") as f:
+            return list(csv.DictReader(f))
+    rows = []
+    with (out_dir / "decisions.jsonl").open() as f:
+        for line in f:
+            d = json.loads(line)
+            rows.append(
+                {k: ("1" if v is True else "0" if v is False else str(v)) for k, v in d.items()}
+            )
+    return rows
+
+
+def kept_frames(out_dir: Path) -> list[int]:
+    return sorted(int(r["index"]) for r in read_decisions(out_dir) if r["kept"] == "1")
+
+
+def evaluate(
+    flight_dir: Path, out_dir: Path, band: tuple[float, float] = (0.60, 0.85)
+) -> Evaluation:
+    flight = load_flight(flight_dir)
+    keys = kept_frames(out_dir)
+    ev = Evaluation(frames=len(flight.blurry), keyframes=keys, band=band)
+    ev.pair_overlaps = [float(flight.overlap(a, b)) for a, b in zip(keys, keys[1:], strict=False)]
+    if ev.pair_overlaps:
+        inside = [band[0] <= o <= band[1] for o in ev.pair_overlaps]
+        ev.in_band = sum(inside) / len(inside)
+        ev.min_overlap = min(ev.pair_overlaps)
+    ev.blurry_kept = sum(1 for k in keys if flight.blurry[k])
+    ev.blurry_kept_fraction = ev.blurry_kept / len(keys) if keys else 0.0
+    # A hover may need one keyframe as the vehicle arrives; more is redundancy.
+    hover = flight.hover
+    for k in keys:
+        if hover[k] and k > 0 and hover[k - 1]:
+            prev = [p for p in keys if p < k]
+            if prev and all(hover[i] for i in range(prev[-1], k + 1)):
+                ev.hover_keyframes += 1
+    return ev
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m keyframed.evaluate", description=__doc__)
+    p.add_argument("flight_dir", type=Path)
+    p.add_argument("out_dir", type=Path)
+    p.add_argument("--band", default="0.60,0.85")
+    p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
+    a = p.parse_args(argv)
+    try:
+        lo, hi = (float(x) for x in a.band.split(","))
+        ev = evaluate(a.flight_dir, a.out_dir, (lo, hi))
+    except (OSError, ValueError, KeyError) as e:
+        print(f"keyframed.evaluate: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        print(json.dumps(asdict(ev)))
+        return 0
+    ov = ev.pair_overlaps
+    median = sorted(ov)[len(ov) // 2] if ov else float("nan")
+    print(
+        f"{len(ev.keyframes)} keyframes from {ev.frames} frames; ground-truth overlap of "
+        f"consecutive keyframes: median {median:.2f}, min {ev.min_overlap:.2f}, "
+        f"{100 * ev.in_band:.0f}% inside {ev.band[0]:.2f}-{ev.band[1]:.2f}; "
+        f"blurry kept {ev.blurry_kept} ({100 * ev.blurry_kept_fraction:.1f}%); "
+        f"extra keyframes while hovering {ev.hover_keyframes}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,264 @@
+// Python bindings of the selection core (nanobind). Images are numpy uint8
+// arrays: (H, W) grey or (H, W, 3) BGR, as OpenCV's Python API uses.
+#include <cmath>
+#include <string>
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/optional.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+
+#include "app/select_command.h"
+#include "core/overlap.h"
+#include "core/selector.h"
+#include "core/sharpness.h"
+
+namespace nb = nanobind;
+using namespace nb::literals;
+
+namespace keyframed {
+namespace {
+
+using Image = nb::ndarray<const std::uint8_t, nb::device::cpu>;
+
+GrayView grayOf(const Image& a) {
+  if (a.ndim() != 2) throw nb::value_error("expected a 2-D uint8 grey image");
+  if (a.stride(1) != 1) throw nb::value_error("grey image rows must be contiguous");
+  return GrayView{a.data(), static_cast<int>(a.shape(1)), static_cast<int>(a.shape(0)),
+                  static_cast<int>(a.stride(0))};
+}
+
+Frame frameOf(const Image& a, std::int64_t index, std::int64_t ts) {
+  if (a.ndim() == 2) {
+    const GrayView g = grayOf(a);
+    return Frame{PixelFormat::Gray8, g.data, g.width, g.height, g.stride, ts, index};
+  }
+  if (a.ndim() == 3 && a.shape(2) == 3 && a.stride(2) == 1 && a.stride(1) == 3)
+    return Frame{PixelFormat::BGR24,
+                 a.data(),
+                 static_cast<int>(a.shape(1)),
+                 static_cast<int>(a.shape(0)),
+                 static_cast<int>(a.stride(0)),
+                 ts,
+                 index};
+  throw nb::value_error("expected a uint8 image of shape (H, W) or (H, W, 3) with contiguous rows");
+}
+
+void checkValid(const SelectorConfig& c) {
+  if (std::string e = c.validate(); !e.empty()) throw nb::value_error(e.c_str());
+}
+
+double nanToNone(double v) {
+  return v;
+}
+
+nb::dict decisionDict(const Decision& d) {
+  nb::dict r;
+  r["index"] = d.index;
+  r["timestamp_ns"] = d.timestampNs;
+  r["kept"] = d.kept;
+  r["reason"] = toString(d.reason);
+  r["candidate"] = d.candidate;
+  r["promoted"] = d.promotedIndex >= 0 ? nb::object(nb::int_(d.promotedIndex)) : nb::none();
+  r["sharpness"] = d.sharpness;
+  r["threshold"] = d.threshold;
+  r["sharp"] = d.sharp;
+  r["overlap"] = std::isfinite(d.overlap) ? nb::object(nb::float_(d.overlap)) : nb::none();
+  r["paper_distance"] =
+      std::isfinite(d.paperDistance) ? nb::object(nb::float_(d.paperDistance)) : nb::none();
+  r["tracking"] = d.tracking;
+  r["features"] = d.features;
+  r["matches"] = d.matches;
+  r["inliers"] = d.inliers;
+  r["total_ms"] = static_cast<double>(d.times.totalNs) / 1e6;
+  return r;
+}
+
+}  // namespace
+}  // namespace keyframed
+
+NB_MODULE(_core, m) {
+  using namespace keyframed;
+  m.doc() = "keyframed selection core";
+
+  m.def(
+      "sampled_laplacian_variance",
+      [](const Image& img, int rowStep, int colStep) {
+        return sampledLaplacianVariance(grayOf(img), rowStep, colStep).variance;
+      },
+      "gray"_a.noconvert(), "row_step"_a = 2, "col_step"_a = 3,
+      "The paper's one-pass variance of the Laplacian on a sampled grid (S9 by default).");
+  m.def(
+      "reference_laplacian_variance",
+      [](const Image& img) { return referenceLaplacianVariance(grayOf(img)).variance; }, "gray"_a.noconvert(),
+      "Exact two-pass variance of the Laplacian over every interior pixel.");
+
+  nb::class_<SelectorConfig>(m, "SelectorConfig")
+      .def(nb::init<>())
+      .def_prop_rw(
+          "mode", [](const SelectorConfig& c) { return std::string(toString(c.overlap.mode)); },
+          [](SelectorConfig& c, const std::string& v) {
+            if (v == "paper")
+              c.overlap.mode = OverlapMode::Paper;
+            else if (v == "geometric")
+              c.overlap.mode = OverlapMode::Geometric;
+            else
+              throw nb::value_error("mode must be 'geometric' or 'paper'");
+          })
+      .def_rw("target", &SelectorConfig::target)
+      .def_rw("band_low", &SelectorConfig::bandLow)
+      .def_rw("band_high", &SelectorConfig::bandHigh)
+      .def_rw("analysis_width", &SelectorConfig::analysisWidth)
+      .def_prop_rw(
+          "blur_mode",
+          [](const SelectorConfig& c) {
+            return std::string(c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute");
+          },
+          [](SelectorConfig& c, const std::string& v) {
+            if (v == "adaptive")
+              c.blur.mode = BlurMode::Adaptive;
+            else if (v == "absolute")
+              c.blur.mode = BlurMode::Absolute;
+            else
+              throw nb::value_error("blur_mode must be 'adaptive' or 'absolute'");
+          })
+#define KF_BLUR(name, field)                                      \
+  .def_prop_rw(                                                   \
+      name, [](const SelectorConfig& c) { return c.blur.field; }, \
+      [](SelectorConfig& c, decltype(SharpnessConfig::field) v) { c.blur.field = v; })
+#define KF_OVERLAP(name, field)                                      \
+  .def_prop_rw(                                                      \
+      name, [](const SelectorConfig& c) { return c.overlap.field; }, \
+      [](SelectorConfig& c, decltype(OverlapConfig::field) v) { c.overlap.field = v; })
+          KF_BLUR("blur_threshold", absoluteThreshold) KF_BLUR("blur_floor", floor) KF_BLUR(
+              "blur_ratio", ratio) KF_BLUR("blur_quantile", quantile) KF_BLUR("blur_window", window)
+              KF_BLUR("blur_row_step", rowStep) KF_BLUR("blur_col_step", colStep)
+                  KF_BLUR("blur_width", analysisWidth) KF_OVERLAP("orb_features", orbFeatures)
+                      KF_OVERLAP("paper_threshold", paperThreshold)
+                          KF_OVERLAP("max_tracks", maxTracks) KF_OVERLAP("min_tracks", minTracks)
+#undef KF_BLUR
+#undef KF_OVERLAP
+      .def(
+          "validate", [](const SelectorConfig& c) { return c.validate(); },
+          "Empty string when valid, else what is wrong.");
+
+  nb::class_<SharpnessScorer>(m, "SharpnessScorer")
+      .def(
+          "__init__",
+          [](SharpnessScorer* self, const SelectorConfig& c) {
+            checkValid(c);
+            new (self) SharpnessScorer(c.blur);
+          },
+          "config"_a = SelectorConfig{})
+      .def(
+          "evaluate",
+          [](SharpnessScorer& s, const Image& img) {
+            const auto r = s.evaluate(grayOf(img));
+            return std::make_tuple(r.score, r.threshold, r.sharp);
+          },
+          "gray"_a.noconvert(),
+          "Score a frame, judge it and add it to the running statistic: (score, threshold, sharp).")
+      .def(
+          "score", [](SharpnessScorer& s, const Image& img) { return s.score(grayOf(img)); },
+          "gray"_a.noconvert())
+      .def_prop_ro("threshold", &SharpnessScorer::threshold);
+
+  nb::class_<OverlapEstimator>(m, "OverlapEstimator")
+      .def_static(
+          "create",
+          [](const SelectorConfig& c) {
+            checkValid(c);
+            return OverlapEstimator::create(c.overlap);
+          },
+          "config"_a = SelectorConfig{})
+      .def(
+          "observe",
+          [](OverlapEstimator& e, const Image& img) {
+            const OverlapResult r = e.observe(grayOf(img));
+            nb::dict d;
+            d["valid"] = r.valid;
+            d["overlap"] =
+                std::isfinite(r.overlap) ? nb::object(nb::float_(r.overlap)) : nb::none();
+            d["paper_distance"] = std::isfinite(r.paperDistance)
+                                      ? nb::object(nb::float_(r.paperDistance))
+                                      : nb::none();
+            d["features"] = r.features;
+            d["matches"] = r.matches;
+            d["inliers"] = r.inliers;
+            return d;
+          },
+          "gray"_a.noconvert())
+      .def("set_reference_to_current", &OverlapEstimator::setReferenceToCurrent)
+      .def("mark_candidate", &OverlapEstimator::markCandidate)
+      .def("reset", &OverlapEstimator::reset);
+
+  nb::class_<KeyframeSelector>(m, "KeyframeSelector")
+      .def(
+          "__init__",
+          [](KeyframeSelector* self, const SelectorConfig& c) {
+            checkValid(c);
+            new (self) KeyframeSelector(c, nullptr);
+          },
+          "config"_a = SelectorConfig{})
+      .def(
+          "process",
+          [](KeyframeSelector& s, const Image& img, std::int64_t index, std::int64_t ts) {
+            const Frame f = frameOf(img, index, ts);
+            Decision d;
+            {
+              nb::gil_scoped_release release;
+              d = s.process(f);
+            }
+            return decisionDict(d);
+          },
+          "image"_a.noconvert(), "index"_a, "timestamp_ns"_a = 0,
+          "Decide for the next frame; returns the decision as a dict.")
+      .def_prop_ro("keyframes", &KeyframeSelector::keyframes);
+
+  m.def(
+      "select_video",
+      [](const std::string& video, const std::string& outDir, std::optional<SelectorConfig> config,
+         const std::string& decisions, int jpegQuality, std::int64_t maxFrames) {
+        SelectOptions o;
+        o.video = video;
+        o.outDir = outDir;
+        if (config) o.selector = *config;
+        checkValid(o.selector);
+        if (decisions == "csv")
+          o.decisions = DecisionFormat::Csv;
+        else if (decisions == "jsonl")
+          o.decisions = DecisionFormat::JsonLines;
+        else
+          throw nb::value_error("decisions must be 'csv' or 'jsonl'");
+        if (jpegQuality < 1 || jpegQuality > 100)
+          throw nb::value_error("jpeg_quality must be 1..100");
+        o.jpegQuality = jpegQuality;
+        o.maxFrames = maxFrames;
+        SelectSummary s;
+        {
+          nb::gil_scoped_release release;
+          s = runSelection(o);
+        }
+        if (!s.error.empty() && s.framesRead == 0) throw std::runtime_error(s.error);
+        nb::dict r;
+        r["frames_read"] = s.framesRead;
+        r["kept"] = s.kept;
+        r["rejected_blur"] = s.rejectedBlur;
+        r["rejected_overlap"] = s.rejectedOverlap;
+        r["gap_fills"] = s.promoted;
+        r["seconds"] = s.seconds;
+        r["frames_per_second"] = s.framesPerSecond;
+        r["analysis_ms_mean"] = s.analysisMsMean;
+        r["truncated"] = s.truncated;
+        r["error"] = s.error;
+        r["decisions_path"] = s.decisionsPath;
+        r["summary_path"] = s.summaryPath;
+        return r;
+      },
+      "video"_a, "out_dir"_a, "config"_a = nb::none(), "decisions"_a = "csv", "jpeg_quality"_a = 92,
+      "max_frames"_a = -1,
+      "Run selection over a video file, writing keyframes, decisions and summary into out_dir.\n"
+      "Raises RuntimeError when the video cannot be read at all; a video that breaks off\n"
+      "part-way returns the summary with 'error' and 'truncated' set.");
+}

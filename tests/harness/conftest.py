@@ -1,0 +1,53 @@
+"""Shared fixtures: the built binary, and small videos made from real photos."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PHOTOS = Path("/usr/share/doc/opencv-doc/examples/data")
+
+
+def keyframed_bin() -> Path:
+    path = Path(os.environ.get("KEYFRAMED_BIN", ROOT / "build/release/daemon/keyframed"))
+    if not path.exists():
+        pytest.fail(f"keyframed binary not found at {path}: run tools/build.sh")
+    return path
+
+
+@pytest.fixture(scope="session")
+def kf_bin() -> Path:
+    return keyframed_bin()
+
+
+def photo_strip() -> np.ndarray:
+    parts = []
+    for name in ("aero1.jpg", "aero3.jpg", "building.jpg", "baboon.jpg"):
+        img = cv2.imread(str(PHOTOS / name))
+        assert img is not None, f"missing {PHOTOS / name} (Debian package opencv-doc)"
+        h, w = img.shape[:2]
+        parts.append(cv2.resize(img, (w * 480 // h, 480), interpolation=cv2.INTER_AREA))
+    return np.hstack(parts)
+
+
+def write_pan_video(path: Path, frames: int = 90, step: float = 6.0, size=(480, 270)) -> Path:
+    """A camera panning along real photos at `step` px per frame, MJPG at 30 fps."""
+    strip = photo_strip()
+    w, h = size
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (w, h))
+    assert vw.isOpened()
+    for i in range(frames):
+        m = np.float32([[1, 0, -(50 + i * step)], [0, 1, -100]])
+        vw.write(cv2.warpAffine(strip, m, (w, h), borderMode=cv2.BORDER_REFLECT))
+    vw.release()
+    return path
+
+
+@pytest.fixture(scope="session")
+def pan_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_pan_video(tmp_path_factory.mktemp("pan") / "pan.avi")

@@ -1,0 +1,132 @@
+"""`keyframed select` from the outside: outputs, and every kind of bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+
+def run(kf_bin: Path, *args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(kf_bin), *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def assert_clean_failure(p: subprocess.CompletedProcess[str], needle: str) -> None:
+    assert p.returncode > 0, p  # an error exit, not success and not a signal
+    lines = [line for line in p.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one error line, got: {p.stderr!r}"
+    assert needle in lines[0], lines[0]
+
+
+def test_select_writes_keyframes_decisions_and_summary(kf_bin: Path, pan_video: Path, tmp_path):
+    out = tmp_path / "out"
+    p = run(kf_bin, "select", pan_video, "--out", out)
+    assert p.returncode == 0, p.stderr
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    assert [int(r["index"]) for r in rows] == list(range(90))
+    kept = [int(r["index"]) for r in rows if r["kept"] == "1"]
+    jpgs = sorted(int(f.stem) for f in out.glob("*.jpg"))
+    assert jpgs == kept
+    assert kept[0] == 0
+    assert len(kept) >= 3  # 6 px/frame over 480 px: 0.70 overlap every ~24 frames
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_read"] == 90
+    assert summary["kept"] == len(kept)
+    assert (
+        summary["kept"] + summary["rejected_blur"] + summary["rejected_overlap"]
+        == summary["frames_read"]
+    )
+    assert summary["frames_per_second"] > 0
+    assert "keyframes:" in p.stdout and str(out) in p.stdout
+    assert not list(out.glob("*.tmp"))
+
+
+def test_jsonl_decisions_and_paper_mode(kf_bin: Path, pan_video: Path, tmp_path):
+    out = tmp_path / "paper"
+    p = run(kf_bin, "select", pan_video, "--out", out, "--mode", "paper", "--decisions", "jsonl")
+    assert p.returncode == 0, p.stderr
+    rows = [json.loads(line) for line in (out / "decisions.jsonl").open()]
+    assert len(rows) == 90
+    assert all(r["paper_distance"] is not None for r in rows[1:])
+    assert rows[0]["kept"] and rows[0]["reason"] == "first"
+
+
+def test_missing_file(kf_bin: Path, tmp_path):
+    assert_clean_failure(
+        run(kf_bin, "select", tmp_path / "nope.avi", "--out", tmp_path / "o"), "no such file"
+    )
+
+
+def test_not_a_video(kf_bin: Path, tmp_path):
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"\x00\x01 definitely not a video " * 1000)
+    assert_clean_failure(
+        run(kf_bin, "select", junk, "--out", tmp_path / "o"), "not a readable video"
+    )
+
+
+def test_directory_instead_of_video(kf_bin: Path, tmp_path):
+    assert_clean_failure(run(kf_bin, "select", tmp_path, "--out", tmp_path / "o"), "directory")
+
+
+def test_truncated_video_keeps_what_was_read_and_fails(kf_bin: Path, pan_video: Path, tmp_path):
+    cut = tmp_path / "cut.avi"
+    data = pan_video.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "o"
+    p = run(kf_bin, "select", cut, "--out", out)
+    assert p.returncode == 3
+    assert "ended early" in p.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert 10 < summary["frames_read"] < 90
+    assert summary["truncated"] is True
+    # Every keyframe decided before the break is on disk.
+    kept = [r for r in csv.DictReader((out / "decisions.csv").open()) if r["kept"] == "1"]
+    assert len(kept) == len(list(out.glob("*.jpg"))) >= 1
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--bogus"], "unknown option --bogus"),
+        (["--target", "1.5"], "--target"),
+        (["--target", "x"], "not a number"),
+        (["--mode", "magic"], "unknown mode"),
+        (["--band", "0.9,0.2"], "band"),
+        (["--jpeg-quality", "0"], "--jpeg-quality"),
+        (["--blur-window"], "needs a value"),
+    ],
+)
+def test_bad_options(kf_bin: Path, pan_video: Path, tmp_path, args: list[str], needle: str):
+    p = run(kf_bin, "select", pan_video, "--out", tmp_path / "o", *args)
+    assert p.returncode == 2
+    assert_clean_failure(p, needle)
+
+
+def test_unknown_command_and_help(kf_bin: Path):
+    assert_clean_failure(run(kf_bin, "frobnicate"), "unknown command")
+    h = run(kf_bin, "select", "--help")
+    assert h.returncode == 0 and "--target" in h.stdout
+
+
+def test_unwritable_output(kf_bin: Path, pan_video: Path, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert_clean_failure(
+        run(kf_bin, "select", pan_video, "--out", blocker / "sub"), "cannot create"
+    )
+
+
+def test_full_disk_is_an_error_not_a_crash(kf_bin: Path, pan_video: Path, tmp_path):
+    # A tiny tmpfs is not available without privileges everywhere; /dev/full is.
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "decisions.csv").symlink_to("/dev/full")
+    p = run(kf_bin, "select", pan_video, "--out", out)
+    assert p.returncode == 3
+    assert "cannot" in p.stderr

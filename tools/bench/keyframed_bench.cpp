@@ -1,0 +1,200 @@
+// Per-stage cost of the selector on real decoded frames, one thread.
+//
+//   keyframed-bench VIDEO [--frames N] [--width W]
+//
+// Decodes N frames into memory first (decoding is not timed), then runs the
+// geometric and the paper mode over them and prints median and p99 per stage,
+// heap allocations per frame in steady state, CPU time and peak RSS.
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+#include <vector>
+
+#include <opencv2/core/utility.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
+
+#include "alloc_counter.h"
+#include "core/selector.h"
+
+using namespace keyframed;
+
+namespace {
+
+class SteadyClock final : public Clock {
+ public:
+  [[nodiscard]] std::int64_t nowNs() const override {
+    return std::chrono::duration_cast<std::chrono::nanoseconds>(
+               std::chrono::steady_clock::now().time_since_epoch())
+        .count();
+  }
+};
+
+struct Stat {
+  double median = 0;
+  double p99 = 0;
+};
+
+Stat stat(std::vector<double> v) {
+  if (v.empty()) return {};
+  std::sort(v.begin(), v.end());
+  const auto at = [&](double q) {
+    return v[std::min(v.size() - 1,
+                      static_cast<std::size_t>(q * static_cast<double>(v.size() - 1) + 0.5))];
+  };
+  return {at(0.5), at(0.99)};
+}
+
+double cpuSeconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return static_cast<double>(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
+         static_cast<double>(u.ru_utime.tv_usec + u.ru_stime.tv_usec) / 1e6;
+}
+
+long maxRssKb() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return u.ru_maxrss;
+}
+
+struct ModeResult {
+  std::string name;
+  Stat luma, blur, resize, overlap, total;
+  double allocsPerFrame = 0;
+  double fps = 0;
+  double cpuPerFrameMs = 0;
+  long kept = 0;
+};
+
+ModeResult run(const std::string& name, const SelectorConfig& cfg,
+               const std::vector<cv::Mat>& frames) {
+  SteadyClock clock;
+  KeyframeSelector sel(cfg, &clock);
+  std::vector<double> luma, blur, resize, overlap, total;
+  const std::size_t warm = std::min<std::size_t>(30, frames.size() / 4);
+  std::uint64_t allocStart = 0;
+  ModeResult r;
+  r.name = name;
+  const double cpu0 = cpuSeconds();
+  const auto t0 = std::chrono::steady_clock::now();
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    if (i == warm) {
+      allocStart = bench::allocations();
+      bench::setCounting(true);
+    }
+    const Decision d = sel.process(Frame::ofBgr(frames[i], static_cast<std::int64_t>(i),
+                                                static_cast<std::int64_t>(i) * 33'333'333));
+    if (d.kept) ++r.kept;
+    if (d.promotedIndex >= 0) ++r.kept;
+    if (i >= warm) {
+      luma.push_back(static_cast<double>(d.times.lumaNs) / 1e6);
+      blur.push_back(static_cast<double>(d.times.blurNs) / 1e6);
+      resize.push_back(static_cast<double>(d.times.resizeNs) / 1e6);
+      overlap.push_back(static_cast<double>(d.times.overlapNs) / 1e6);
+      total.push_back(static_cast<double>(d.times.totalNs) / 1e6);
+    }
+  }
+  bench::setCounting(false);
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const double cpu = cpuSeconds() - cpu0;
+  const double n = static_cast<double>(frames.size() - warm);
+  r.allocsPerFrame = static_cast<double>(bench::allocations() - allocStart) / n;
+  r.luma = stat(luma);
+  r.blur = stat(blur);
+  r.resize = stat(resize);
+  r.overlap = stat(overlap);
+  r.total = stat(total);
+  r.fps = static_cast<double>(frames.size()) / wall;
+  r.cpuPerFrameMs = cpu / static_cast<double>(frames.size()) * 1e3;
+  return r;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 2) {
+    std::fprintf(stderr, "usage: keyframed-bench VIDEO [--frames N] [--width W]\n");
+    return 2;
+  }
+  const std::string video = argv[1];
+  int maxFrames = 300;
+  int width = 1920;
+  for (int i = 2; i + 1 < argc; i += 2) {
+    const std::string a = argv[i];
+    if (a == "--frames")
+      maxFrames = std::atoi(argv[i + 1]);
+    else if (a == "--width")
+      width = std::atoi(argv[i + 1]);
+    else {
+      std::fprintf(stderr, "keyframed-bench: unknown option %s\n", a.c_str());
+      return 2;
+    }
+  }
+  cv::setNumThreads(1);  // one core, as on the companion's analysis thread
+  cv::VideoCapture cap(video, cv::CAP_FFMPEG);
+  if (!cap.isOpened()) {
+    std::fprintf(stderr, "keyframed-bench: cannot open %s\n", video.c_str());
+    return 3;
+  }
+  std::vector<cv::Mat> frames;
+  cv::Mat f;
+  while (static_cast<int>(frames.size()) < maxFrames && cap.read(f)) {
+    cv::Mat g;
+    if (f.cols != width) {
+      cv::resize(f, g, cv::Size(width, f.rows * width / f.cols), 0, 0, cv::INTER_LINEAR);
+    } else {
+      g = f.clone();
+    }
+    frames.push_back(g);
+  }
+  if (frames.size() < 40) {
+    std::fprintf(stderr, "keyframed-bench: need at least 40 frames, got %zu\n", frames.size());
+    return 3;
+  }
+  std::printf("keyframed-bench: %zu frames of %dx%d from %s, one thread (cv::setNumThreads(1))\n",
+              frames.size(), frames[0].cols, frames[0].rows, video.c_str());
+
+  SelectorConfig geometric;
+  SelectorConfig paper;
+  paper.overlap.mode = OverlapMode::Paper;
+  SelectorConfig paperFull = paper;
+  paperFull.analysisWidth = 0;
+  const std::vector<ModeResult> results = {run("geometric", geometric, frames),
+                                           run("paper@640", paper, frames),
+                                           run("paper@full", paperFull, frames)};
+
+  std::printf("\nper frame, ms (median / p99)   ");
+  for (const auto& r : results) std::printf("%-22s", r.name.c_str());
+  std::printf("paper's figures (i7)\n");
+  auto row = [&](const char* label, Stat ModeResult::*m, const char* paperFig) {
+    std::printf("  %-28s", label);
+    for (const auto& r : results) {
+      const Stat& s = r.*m;
+      char cell[32];
+      std::snprintf(cell, sizeof cell, "%.2f / %.2f", s.median, s.p99);
+      std::printf("%-22s", cell);
+    }
+    std::printf("%s\n", paperFig);
+  };
+  row("grey (luma)", &ModeResult::luma, "");
+  row("blur score (S9 Laplacian)", &ModeResult::blur, "13.5 Laplacian, 16.3 blur total");
+  row("resize to analysis width", &ModeResult::resize, "");
+  row("overlap (track/ORB+match)", &ModeResult::overlap, "16.8 ORB + up to 550 matching");
+  row("total decision", &ModeResult::total, "70-126 (14 Hz)");
+  std::printf("  %-28s", "frames/s (single thread)");
+  for (const auto& r : results) std::printf("%-22.1f", r.fps);
+  std::printf("\n  %-28s", "CPU ms/frame");
+  for (const auto& r : results) std::printf("%-22.2f", r.cpuPerFrameMs);
+  std::printf("\n  %-28s", "heap allocations/frame");
+  for (const auto& r : results) std::printf("%-22.1f", r.allocsPerFrame);
+  std::printf("\n  %-28s", "keyframes");
+  for (const auto& r : results) std::printf("%-22ld", r.kept);
+  std::printf("\n\npeak RSS %.1f MB (includes the %zu decoded frames held in memory)\n",
+              static_cast<double>(maxRssKb()) / 1024.0, frames.size());
+  return 0;
+}

@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# The whole test suite on a fresh Debian 12 machine (as root): set-up, builds,
+# C++ unit tests (release and AddressSanitizer+UBSan), style checks, Python and
+# end-to-end tests. Exit status is non-zero when anything fails.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+JOBS="${KEYFRAMED_JOBS:-2}"
+step() { printf '\n==> %s\n' "$*"; }
+
+step "set-up (apt packages, Python venv)"
+tools/setup.sh
+
+step "build (release, warnings as errors) and Python package"
+tools/build.sh
+
+step "C++ unit tests (release)"
+ctest --test-dir build/release --output-on-failure -j"$JOBS"
+
+step "C++ unit tests (AddressSanitizer + UBSan)"
+if [ ! -f build/asan/build.ninja ]; then
+  cmake -S . -B build/asan -G Ninja -DCMAKE_BUILD_TYPE=Debug -DKEYFRAMED_SANITIZE=ON \
+    -DKEYFRAMED_BUILD_BENCHMARKS=OFF -DKEYFRAMED_WERROR=ON
+fi
+ninja -C build/asan -j"$JOBS" keyframed_unit keyframed
+ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+  build/asan/tests/keyframed_unit --gtest_brief=1
+
+step "style (clang-format, ruff)"
+git ls-files -co --exclude-standard -- '*.cpp' '*.h' | xargs clang-format --dry-run --Werror
+.venv/bin/ruff check .
+.venv/bin/ruff format --check .
+
+step "Python and end-to-end tests (pytest)"
+set +e
+KEYFRAMED_BIN="$ROOT/build/release/daemon/keyframed" \
+KEYFRAMED_ASAN_BIN="$ROOT/build/asan/daemon/keyframed" \
+  .venv/bin/python -m pytest -q "$@"
+rc=$?
+set -e
+if [ "$rc" -eq 5 ]; then
+  echo "pytest collected no tests: treating as failure (the suite must have tests)" >&2
+  exit 1
+fi
+exit "$rc"
