@@ -91,8 +91,8 @@ NB_MODULE(_core, m) {
       "The paper's one-pass variance of the Laplacian on a sampled grid (S9 by default).");
   m.def(
       "reference_laplacian_variance",
-      [](const Image& img) { return referenceLaplacianVariance(grayOf(img)).variance; }, "gray"_a.noconvert(),
-      "Exact two-pass variance of the Laplacian over every interior pixel.");
+      [](const Image& img) { return referenceLaplacianVariance(grayOf(img)).variance; },
+      "gray"_a.noconvert(), "Exact two-pass variance of the Laplacian over every interior pixel.");
 
   nb::class_<SelectorConfig>(m, "SelectorConfig")
       .def(nb::init<>())
