@@ -54,9 +54,9 @@ blur:
   --blur-mode adaptive|absolute   (default adaptive)
   --blur-threshold V         absolute mode threshold on Laplacian variance (default 100)
   --blur-floor V             adaptive mode: absolute floor (default 10)
-  --blur-ratio R             adaptive mode: fraction of the recent quantile (default 0.55)
+  --blur-ratio R             adaptive mode: fraction of the recent quantile (default 0.8)
   --blur-quantile Q          adaptive mode: quantile of recent scores (default 0.75)
-  --blur-window N            adaptive mode: recent frames considered (default 90)
+  --blur-window N            adaptive mode: recent frames considered (default 150)
   --blur-step R,C            sample every R-th row, C-th column (default 2,3)
   --blur-width PX            score at reduced width, 0 = full (default 0)
 output:

@@ -16,7 +16,11 @@ constexpr int kGridRows = 9;
 
 GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
     : config_(config),
+      perCell_(
+          std::max(1, (config.maxTracks + kGridCols * kGridRows - 1) / (kGridCols * kGridRows))),
       cellCount_(kGridCols * kGridRows, 0),
+      cellBestCount_(kGridCols * kGridRows, 0),
+      cellBest_(static_cast<std::size_t>(kGridCols * kGridRows * perCell_)),
       fast_(cv::FastFeatureDetector::create(config.fastThreshold, true)) {
   const auto n = static_cast<std::size_t>(config.maxTracks);
   prevPts_.reserve(n);
@@ -120,24 +124,38 @@ void GeometricOverlap::replenish(const cv::Mat& gray) {
     return cy * kGridCols + cx;
   };
   for (const cv::Point2f& p : curPts_) ++cellCount_[static_cast<std::size_t>(cellOf(p))];
-  const int perCell =
-      std::max(1, (config_.maxTracks + kGridCols * kGridRows - 1) / (kGridCols * kGridRows));
+  const int perCell = perCell_;
   keypoints_.clear();
   fast_->detect(gray, keypoints_);
-  std::sort(keypoints_.begin(), keypoints_.end(),
-            [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
-  // Keep away from the border where the LK window would not fit.
+  // The strongest few corners of each cell that needs points: one linear pass
+  // over the detections, no sort.
+  const auto slots = static_cast<std::size_t>(perCell);
+  std::fill(cellBestCount_.begin(), cellBestCount_.end(), 0);
   const float margin = static_cast<float>(config_.lkWindow) / 2.0f;
   for (const cv::KeyPoint& k : keypoints_) {
-    if (static_cast<int>(curPts_.size()) >= config_.maxTracks) break;
     const cv::Point2f p = k.pt;
     if (p.x < margin || p.y < margin || p.x > static_cast<float>(size_.width) - margin ||
         p.y > static_cast<float>(size_.height) - margin)
       continue;
-    int& count = cellCount_[static_cast<std::size_t>(cellOf(p))];
-    if (count >= perCell) continue;
-    ++count;
-    curPts_.push_back(p);
+    const auto cell = static_cast<std::size_t>(cellOf(p));
+    const int room = perCell - cellCount_[cell];
+    if (room <= 0) continue;
+    cv::KeyPoint* best = &cellBest_[cell * slots];
+    int& n = cellBestCount_[cell];
+    if (n < room) {
+      best[n++] = k;
+      continue;
+    }
+    int weakest = 0;
+    for (int i = 1; i < n; ++i)
+      if (best[i].response < best[weakest].response) weakest = i;
+    if (k.response > best[weakest].response) best[weakest] = k;
+  }
+  for (std::size_t cell = 0; cell < cellBestCount_.size(); ++cell) {
+    for (int i = 0; i < cellBestCount_[cell]; ++i) {
+      if (static_cast<int>(curPts_.size()) >= config_.maxTracks) return;
+      curPts_.push_back(cellBest_[cell * slots + static_cast<std::size_t>(i)].pt);
+    }
   }
 }
 

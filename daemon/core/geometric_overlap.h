@@ -41,7 +41,10 @@ class GeometricOverlap final : public OverlapEstimator {
   std::vector<float> err_;
   std::vector<unsigned char> inlierMask_;
   std::vector<cv::KeyPoint> keypoints_;
-  std::vector<int> cellCount_;
+  int perCell_;                         // corners wanted per grid cell
+  std::vector<int> cellCount_;          // tracked corners per cell
+  std::vector<int> cellBestCount_;      // new corners held per cell
+  std::vector<cv::KeyPoint> cellBest_;  // perCell_ slots per cell
   cv::Ptr<cv::FastFeatureDetector> fast_;
   cv::Matx33d refToCur_ = cv::Matx33d::eye();
   cv::Matx33d refToCandidate_ = cv::Matx33d::eye();

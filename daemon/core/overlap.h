@@ -26,8 +26,8 @@ struct OverlapConfig {
   int minTracks = 120;        // replenish below this many
   int minInliers = 15;        // fewer RANSAC inliers: tracking lost
   double ransacPixels = 1.5;  // RANSAC reprojection threshold at analysis size
-  int fastThreshold = 12;
-  int lkWindow = 21;
+  int fastThreshold = 20;
+  int lkWindow = 15;
   int lkLevels = 3;
 
   [[nodiscard]] std::string validate() const;

@@ -82,8 +82,21 @@ Decision KeyframeSelector::process(const Frame& frame) {
   if (config_.analysisWidth > 0 && gray.width > config_.analysisWidth) {
     const int h = static_cast<int>(
         std::lround(static_cast<double>(gray.height) * config_.analysisWidth / gray.width));
-    cv::resize(gray.mat(), analysis_, cv::Size(config_.analysisWidth, h), 0, 0, cv::INTER_AREA);
-    analysis = GrayView::of(analysis_);
+    // Halve with INTER_AREA while that stays above the target (its fast 2x
+    // path), then one bilinear step: 0.4 ms for 1920 -> 640 against 3 ms for a
+    // direct INTER_AREA resize with a factor of 3.
+    cv::Mat src = gray.mat();
+    std::size_t level = 0;
+    while (src.cols / 2 >= config_.analysisWidth) {
+      if (halves_.size() <= level) halves_.emplace_back();
+      cv::resize(src, halves_[level], cv::Size(src.cols / 2, src.rows / 2), 0, 0, cv::INTER_AREA);
+      src = halves_[level++];
+    }
+    if (src.cols != config_.analysisWidth) {
+      cv::resize(src, analysis_, cv::Size(config_.analysisWidth, h), 0, 0, cv::INTER_LINEAR);
+      src = analysis_;
+    }
+    analysis = GrayView::of(src);
   }
   const std::int64_t t3 = now();
 
@@ -137,7 +150,10 @@ Decision KeyframeSelector::process(const Frame& frame) {
       }
     } else {
       d.reason = d.sharp ? Reason::Redundant : Reason::Blurry;
-      if (d.sharp && o <= config_.bandHigh &&
+      // The fallback is the sharpest frame inside the band, judged relative to
+      // its neighbours rather than to the threshold: when the scene's texture
+      // drops, every frame may score under a threshold learnt on richer ground.
+      if (o <= config_.bandHigh && d.sharpness >= config_.blur.floor &&
           (candidateIndex_ < 0 || d.sharpness > candidateSharpness_)) {
         candidateIndex_ = d.index;
         candidateSharpness_ = d.sharpness;

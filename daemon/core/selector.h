@@ -4,6 +4,7 @@
 #include <limits>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include <opencv2/core/mat.hpp>
 
@@ -101,6 +102,7 @@ class KeyframeSelector {
   LumaExtractor luma_;
   SharpnessScorer sharpness_;
   std::unique_ptr<OverlapEstimator> overlap_;
+  std::vector<cv::Mat> halves_;  // successive halvings of the luma
   cv::Mat analysis_;
   bool haveKeyframe_ = false;
   std::int64_t keyframes_ = 0;

@@ -51,3 +51,14 @@ def write_pan_video(path: Path, frames: int = 90, step: float = 6.0, size=(480, 
 @pytest.fixture(scope="session")
 def pan_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_pan_video(tmp_path_factory.mktemp("pan") / "pan.avi")
+
+
+def pytest_terminal_summary(terminalreporter) -> None:  # noqa: ANN001 - pytest hook
+    try:
+        from test_flights import write_report
+    except ImportError:
+        return
+    text = write_report()
+    if text:
+        terminalreporter.write_sep("-", "selection quality against ground truth")
+        terminalreporter.write(text)

@@ -1,6 +1,7 @@
 // Per-stage cost of the selector on real decoded frames, one thread.
 //
-//   keyframed-bench VIDEO [--frames N] [--width W]
+//   keyframed-bench VIDEO [--frames N] [--width W] [--gray] [--geometric-only]
+//                   [--max-tracks N] [--lk-window N] [--fast-threshold N] [--analysis-width W]
 //
 // Decodes N frames into memory first (decoding is not timed), then runs the
 // geometric and the paper mode over them and prints median and p99 per stage,
@@ -87,8 +88,11 @@ ModeResult run(const std::string& name, const SelectorConfig& cfg,
       allocStart = bench::allocations();
       bench::setCounting(true);
     }
-    const Decision d = sel.process(Frame::ofBgr(frames[i], static_cast<std::int64_t>(i),
-                                                static_cast<std::int64_t>(i) * 33'333'333));
+    const auto index = static_cast<std::int64_t>(i);
+    const Frame frame = frames[i].channels() == 1
+                            ? Frame::ofGray(frames[i], index, index * 33'333'333)
+                            : Frame::ofBgr(frames[i], index, index * 33'333'333);
+    const Decision d = sel.process(frame);
     if (d.kept) ++r.kept;
     if (d.promotedIndex >= 0) ++r.kept;
     if (i >= warm) {
@@ -124,13 +128,30 @@ int main(int argc, char** argv) {
   const std::string video = argv[1];
   int maxFrames = 300;
   int width = 1920;
-  for (int i = 2; i + 1 < argc; i += 2) {
+  bool grayInput = false;  // feed the Y plane, as a YUV camera would (no conversion)
+  bool geometricOnly = false;
+  SelectorConfig geometric;
+  for (int i = 2; i < argc; ++i) {
     const std::string a = argv[i];
-    if (a == "--frames")
-      maxFrames = std::atoi(argv[i + 1]);
-    else if (a == "--width")
-      width = std::atoi(argv[i + 1]);
-    else {
+    const bool hasValue = i + 1 < argc;
+    if (a == "--gray") {
+      grayInput = true;
+    } else if (a == "--geometric-only") {
+      geometricOnly = true;
+    } else if (a == "--frames" && hasValue) {
+      maxFrames = std::atoi(argv[++i]);
+    } else if (a == "--width" && hasValue) {
+      width = std::atoi(argv[++i]);
+    } else if (a == "--max-tracks" && hasValue) {
+      geometric.overlap.maxTracks = std::atoi(argv[++i]);
+      geometric.overlap.minTracks = geometric.overlap.maxTracks * 2 / 5;
+    } else if (a == "--lk-window" && hasValue) {
+      geometric.overlap.lkWindow = std::atoi(argv[++i]);
+    } else if (a == "--fast-threshold" && hasValue) {
+      geometric.overlap.fastThreshold = std::atoi(argv[++i]);
+    } else if (a == "--analysis-width" && hasValue) {
+      geometric.analysisWidth = std::atoi(argv[++i]);
+    } else {
       std::fprintf(stderr, "keyframed-bench: unknown option %s\n", a.c_str());
       return 2;
     }
@@ -150,23 +171,31 @@ int main(int argc, char** argv) {
     } else {
       g = f.clone();
     }
+    if (grayInput) cv::cvtColor(g, g, cv::COLOR_BGR2GRAY);
     frames.push_back(g);
   }
   if (frames.size() < 40) {
     std::fprintf(stderr, "keyframed-bench: need at least 40 frames, got %zu\n", frames.size());
     return 3;
   }
-  std::printf("keyframed-bench: %zu frames of %dx%d from %s, one thread (cv::setNumThreads(1))\n",
-              frames.size(), frames[0].cols, frames[0].rows, video.c_str());
+  std::printf(
+      "keyframed-bench: %zu frames of %dx%d %s from %s, one thread (cv::setNumThreads(1))\n",
+      frames.size(), frames[0].cols, frames[0].rows,
+      grayInput ? "grey (camera Y plane)" : "BGR (decoded file)", video.c_str());
 
-  SelectorConfig geometric;
+  if (std::string e = geometric.validate(); !e.empty()) {
+    std::fprintf(stderr, "keyframed-bench: %s\n", e.c_str());
+    return 2;
+  }
   SelectorConfig paper;
   paper.overlap.mode = OverlapMode::Paper;
   SelectorConfig paperFull = paper;
   paperFull.analysisWidth = 0;
-  const std::vector<ModeResult> results = {run("geometric", geometric, frames),
-                                           run("paper@640", paper, frames),
-                                           run("paper@full", paperFull, frames)};
+  std::vector<ModeResult> results = {run("geometric", geometric, frames)};
+  if (!geometricOnly) {
+    results.push_back(run("paper@640", paper, frames));
+    results.push_back(run("paper@full", paperFull, frames));
+  }
 
   std::printf("\nper frame, ms (median / p99)   ");
   for (const auto& r : results) std::printf("%-22s", r.name.c_str());
