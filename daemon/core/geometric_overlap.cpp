@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cmath>
 
-#include <opencv2/calib3d.hpp>
 #include <opencv2/video/tracking.hpp>
 
 #include "core/polygon.h"
@@ -67,16 +66,14 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
     }
     lastTracked_ = static_cast<int>(goodCur_.size());
     if (lastTracked_ >= config_.minInliers) {
-      const cv::Mat hMat = cv::findHomography(goodPrev_, goodCur_, cv::RANSAC, config_.ransacPixels,
-                                              inlierMask_, 2000, 0.995);
-      if (!hMat.empty()) {
+      const HomographyFit fit = ransac_.fit(goodPrev_, goodCur_, config_.ransacPixels, inlierMask_);
+      if (fit.ok) {
         curPts_.clear();
         for (std::size_t i = 0; i < goodCur_.size(); ++i)
           if (inlierMask_[i]) curPts_.push_back(goodCur_[i]);
         lastInliers_ = static_cast<int>(curPts_.size());
         if (lastInliers_ >= config_.minInliers) {
-          const cv::Matx33d step(hMat);
-          refToCur_ = step * refToCur_;
+          refToCur_ = fit.h * refToCur_;
           refToCur_ *= 1.0 / refToCur_(2, 2);
           tracked = true;
         }

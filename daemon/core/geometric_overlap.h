@@ -5,6 +5,7 @@
 #include <opencv2/core/matx.hpp>
 #include <opencv2/features2d.hpp>
 
+#include "core/homography.h"
 #include "core/overlap.h"
 
 namespace keyframed {
@@ -46,6 +47,7 @@ class GeometricOverlap final : public OverlapEstimator {
   std::vector<int> cellBestCount_;      // new corners held per cell
   std::vector<cv::KeyPoint> cellBest_;  // perCell_ slots per cell
   cv::Ptr<cv::FastFeatureDetector> fast_;
+  RansacHomography ransac_;
   cv::Matx33d refToCur_ = cv::Matx33d::eye();
   cv::Matx33d refToCandidate_ = cv::Matx33d::eye();
   bool havePrev_ = false;

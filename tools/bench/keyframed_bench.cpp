@@ -26,13 +26,25 @@ using namespace keyframed;
 
 namespace {
 
+// The selector reads this clock at each stage boundary (luma, blur, resize,
+// overlap); recording the allocation count there too attributes allocations to
+// stages.
 class SteadyClock final : public Clock {
  public:
   [[nodiscard]] std::int64_t nowNs() const override {
+    marks_[next_++ % 5] = bench::allocations();
     return std::chrono::duration_cast<std::chrono::nanoseconds>(
                std::chrono::steady_clock::now().time_since_epoch())
         .count();
   }
+  void beginFrame() const { next_ = 0; }
+  [[nodiscard]] std::uint64_t stageAllocs(int stage) const {
+    return marks_[stage + 1] - marks_[stage];
+  }
+
+ private:
+  mutable std::uint64_t marks_[5] = {};
+  mutable int next_ = 0;
 };
 
 struct Stat {
@@ -67,6 +79,7 @@ struct ModeResult {
   std::string name;
   Stat luma, blur, resize, overlap, total;
   double allocsPerFrame = 0;
+  double stageAllocs[4] = {};  // luma, blur, resize, overlap
   double fps = 0;
   double cpuPerFrameMs = 0;
   long kept = 0;
@@ -92,7 +105,11 @@ ModeResult run(const std::string& name, const SelectorConfig& cfg,
     const Frame frame = frames[i].channels() == 1
                             ? Frame::ofGray(frames[i], index, index * 33'333'333)
                             : Frame::ofBgr(frames[i], index, index * 33'333'333);
+    clock.beginFrame();
     const Decision d = sel.process(frame);
+    if (i >= warm)
+      for (int st = 0; st < 4; ++st)
+        r.stageAllocs[st] += static_cast<double>(clock.stageAllocs(st));
     if (d.kept) ++r.kept;
     if (d.promotedIndex >= 0) ++r.kept;
     if (i >= warm) {
@@ -108,6 +125,7 @@ ModeResult run(const std::string& name, const SelectorConfig& cfg,
   const double cpu = cpuSeconds() - cpu0;
   const double n = static_cast<double>(frames.size() - warm);
   r.allocsPerFrame = static_cast<double>(bench::allocations() - allocStart) / n;
+  for (double& a : r.stageAllocs) a /= n;
   r.luma = stat(luma);
   r.blur = stat(blur);
   r.resize = stat(resize);
@@ -221,6 +239,11 @@ int main(int argc, char** argv) {
   for (const auto& r : results) std::printf("%-22.2f", r.cpuPerFrameMs);
   std::printf("\n  %-28s", "heap allocations/frame");
   for (const auto& r : results) std::printf("%-22.1f", r.allocsPerFrame);
+  std::printf("\n  %-28s", "  of which overlap stage");
+  for (const auto& r : results) std::printf("%-22.1f", r.stageAllocs[3]);
+  std::printf("\n  %-28s", "  of which luma+blur+resize");
+  for (const auto& r : results)
+    std::printf("%-22.1f", r.stageAllocs[0] + r.stageAllocs[1] + r.stageAllocs[2]);
   std::printf("\n  %-28s", "keyframes");
   for (const auto& r : results) std::printf("%-22ld", r.kept);
   std::printf("\n\npeak RSS %.1f MB (includes the %zu decoded frames held in memory)\n",

@@ -1,0 +1,70 @@
+#include <gtest/gtest.h>
+#include <opencv2/calib3d.hpp>
+
+#include "core/homography.h"
+
+namespace keyframed {
+namespace {
+
+cv::Point2f apply(const cv::Matx33d& h, cv::Point2f p) {
+  const cv::Vec3d v = h * cv::Vec3d(p.x, p.y, 1);
+  return {static_cast<float>(v[0] / v[2]), static_cast<float>(v[1] / v[2])};
+}
+
+TEST(Homography, RecoversAProjectiveMapDespiteOutliers) {
+  const cv::Matx33d truth(1.02, 0.03, 12.5, -0.02, 0.99, -7.0, 1e-4, -5e-5, 1.0);
+  cv::RNG rng(5);
+  std::vector<cv::Point2f> src, dst;
+  for (int i = 0; i < 300; ++i) {
+    const cv::Point2f p(rng.uniform(0.f, 640.f), rng.uniform(0.f, 360.f));
+    cv::Point2f q = apply(truth, p);
+    q += cv::Point2f(static_cast<float>(rng.gaussian(0.3)), static_cast<float>(rng.gaussian(0.3)));
+    if (i % 5 == 0) q = {rng.uniform(0.f, 640.f), rng.uniform(0.f, 360.f)};  // 20 % outliers
+    src.push_back(p);
+    dst.push_back(q);
+  }
+  RansacHomography r;
+  std::vector<unsigned char> mask;
+  const HomographyFit fit = r.fit(src, dst, 1.5, mask);
+  ASSERT_TRUE(fit.ok);
+  EXPECT_GE(fit.inliers, 230);
+  EXPECT_LE(fit.inliers, 245);
+  for (int i = 0; i < 300; i += 5) EXPECT_EQ(mask[static_cast<std::size_t>(i)], 0) << i;
+  for (const cv::Point2f p : {cv::Point2f(0, 0), cv::Point2f(640, 360), cv::Point2f(320, 10)}) {
+    const cv::Point2f a = apply(fit.h, p), b = apply(truth, p);
+    EXPECT_NEAR(a.x, b.x, 0.3);
+    EXPECT_NEAR(a.y, b.y, 0.3);
+  }
+  // Agrees with OpenCV's estimator on the same data.
+  const cv::Matx33d cvH(cv::findHomography(src, dst, cv::RANSAC, 1.5));
+  const cv::Point2f a = apply(fit.h, {500, 300}), b = apply(cvH, {500, 300});
+  EXPECT_NEAR(a.x, b.x, 0.3);
+  EXPECT_NEAR(a.y, b.y, 0.3);
+}
+
+TEST(Homography, IsDeterministic) {
+  std::vector<cv::Point2f> src, dst;
+  cv::RNG rng(9);
+  for (int i = 0; i < 100; ++i) {
+    src.emplace_back(rng.uniform(0.f, 100.f), rng.uniform(0.f, 100.f));
+    dst.push_back(src.back() + cv::Point2f(3, 4));
+  }
+  RansacHomography r;
+  std::vector<unsigned char> m;
+  const auto a = r.fit(src, dst, 1.0, m);
+  const auto b = r.fit(src, dst, 1.0, m);
+  EXPECT_EQ(a.h, b.h);
+  EXPECT_NEAR(a.h(0, 2), 3.0, 1e-6);
+}
+
+TEST(Homography, DegenerateInputFails) {
+  std::vector<cv::Point2f> line, same;
+  for (int i = 0; i < 20; ++i) line.emplace_back(static_cast<float>(i), static_cast<float>(2 * i));
+  RansacHomography r;
+  std::vector<unsigned char> m;
+  EXPECT_FALSE(r.fit(line, line, 1.0, m).ok);
+  EXPECT_FALSE(r.fit({{0, 0}, {1, 1}}, {{0, 0}, {1, 1}}, 1.0, m).ok);
+}
+
+}  // namespace
+}  // namespace keyframed
