@@ -49,7 +49,7 @@ selection:
   --analysis-width PX        overlap analysis width, 0 = full (default 640)
   --orb-features N           paper mode: ORB features (default 2500)
   --paper-threshold T        paper mode: mean Hamming distance to keep (default 50)
-  --max-tracks N             geometric mode: tracked points (default 300)
+  --max-tracks N             geometric mode: tracked points (default 200)
 blur:
   --blur-mode adaptive|absolute   (default adaptive)
   --blur-threshold V         absolute mode threshold on Laplacian variance (default 100)

@@ -22,12 +22,12 @@ struct OverlapConfig {
   double paperThreshold = 50.0;  // keep when mean mutual-match distance >= t (bits)
   int paperMinMatches = 20;      // fewer mutual matches: the scene is lost
   // Geometric mode.
-  int maxTracks = 300;        // points tracked frame to frame
-  int minTracks = 120;        // replenish below this many
+  int maxTracks = 200;        // points tracked frame to frame
+  int minTracks = 80;         // replenish below this many
   int minInliers = 15;        // fewer RANSAC inliers: tracking lost
   double ransacPixels = 1.5;  // RANSAC reprojection threshold at analysis size
   int fastThreshold = 20;
-  int lkWindow = 15;
+  int lkWindow = 13;
   int lkLevels = 3;
 
   [[nodiscard]] std::string validate() const;

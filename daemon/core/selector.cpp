@@ -139,7 +139,12 @@ Decision KeyframeSelector::process(const Frame& frame) {
       // About to leave the band with no sharp frame at the target: fall back to
       // the sharpest frame since the last keyframe.
       d.reason = Reason::Blurry;  // a sharp frame here was kept by the branch above
-      if (promoteCandidate(d)) {
+      if (candidateIndex_ < 0 && d.sharpness >= config_.blur.floor) {
+        // Nothing in the band to fall back on: this frame is the last one that
+        // still overlaps by about the band's lower edge. Waiting for a sharp
+        // frame would open a gap, so keep it.
+        keepCurrent(d, Reason::GapFill);
+      } else if (promoteCandidate(d)) {
         const OverlapResult again = overlap_->setReferenceToCandidate();
         d.overlap = again.overlap;
         d.tracking = again.valid;

@@ -19,8 +19,10 @@ enum class Reason {
   First,          // kept: the first sharp frame (or the first after tracking was lost)
   OverlapTarget,  // kept: overlap with the last keyframe fell to the target
   PaperDistance,  // kept: paper mode, match distance reached the threshold t
-  GapFill,        // kept later: the sharpest frame since the last keyframe, promoted
-                  //   because overlap was about to leave the band or tracking was lost
+  GapFill,        // kept as a fallback: the sharpest frame in the band since the last
+                  //   keyframe, promoted later because overlap was about to leave the
+                  //   band or tracking was lost; or, with no such frame, the frame at
+                  //   the band's lower edge even though it is not sharp
   Blurry,         // dropped: sharpness under the threshold
   Redundant,      // dropped: overlap still above the target (or distance under t)
   Lost,           // dropped: tracking lost and the frame is not sharp

@@ -4,9 +4,79 @@
 #include <cmath>
 #include <string>
 
+#include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 
 namespace keyframed {
+
+namespace {
+
+struct RowSums {
+  std::int64_t sum = 0;
+  std::int64_t sumSq = 0;
+  std::int64_t n = 0;
+};
+
+// Laplacian at x = 1, 1 + step, ... of one row, exact integer sums.
+RowSums rowScalar(const std::uint8_t* up, const std::uint8_t* mid, const std::uint8_t* down, int x0,
+                  int width, int step) {
+  RowSums r;
+  for (int x = x0; x < width - 1; x += step) {
+    const int l = up[x] + down[x] + mid[x - 1] + mid[x + 1] - 4 * mid[x];
+    r.sum += l;
+    r.sumSq += static_cast<std::int64_t>(l) * l;
+    ++r.n;
+  }
+  return r;
+}
+
+#if CV_SIMD128
+// The same for step 3 (the paper's S9 columns), 16 samples at a time: a row
+// read as three interleaved channels puts x-1, x and x+1 of every sample in
+// channels 0, 1 and 2. OpenCV's universal intrinsics: SSE2 here, NEON on a Pi.
+RowSums rowStep3(const std::uint8_t* up, const std::uint8_t* mid, const std::uint8_t* down,
+                 int width) {
+  using namespace cv;
+  RowSums r;
+  const int blocks = (width - 1) / 48;
+  v_int32x4 vsum = v_setzero_s32();
+  v_int32x4 vsq = v_setzero_s32();
+  for (int b = 0; b < blocks; ++b) {
+    const int o = 48 * b;
+    v_uint8x16 m0, m1, m2, u0, u1, u2, d0, d1, d2;
+    v_load_deinterleave(mid + o, m0, m1, m2);
+    v_load_deinterleave(up + o, u0, u1, u2);
+    v_load_deinterleave(down + o, d0, d1, d2);
+    v_uint16x8 m0l, m0h, m1l, m1h, m2l, m2h, u1l, u1h, d1l, d1h;
+    v_expand(m0, m0l, m0h);
+    v_expand(m1, m1l, m1h);
+    v_expand(m2, m2l, m2h);
+    v_expand(u1, u1l, u1h);
+    v_expand(d1, d1l, d1h);
+    const v_int16x8 ll =
+        v_reinterpret_as_s16(u1l + d1l + m0l + m2l) - v_reinterpret_as_s16(v_shl<2>(m1l));
+    const v_int16x8 lh =
+        v_reinterpret_as_s16(u1h + d1h + m0h + m2h) - v_reinterpret_as_s16(v_shl<2>(m1h));
+    const v_int16x8 one = v_setall_s16(1);
+    vsum += v_dotprod(ll, one) + v_dotprod(lh, one);
+    vsq += v_dotprod(ll, ll) + v_dotprod(lh, lh);
+  }
+  r.sum = v_reduce_sum(vsum);
+  // Each lane holds at most 4 * 170 * 1020^2 < 2^31 for widths up to 8192;
+  // their total may not fit in 32 bits, so add them in 64.
+  int lanes[4];
+  v_store(lanes, vsq);
+  r.sumSq = std::int64_t{lanes[0]} + lanes[1] + lanes[2] + lanes[3];
+  r.n = 16 * static_cast<std::int64_t>(blocks);
+  const RowSums tail = rowScalar(up, mid, down, 1 + 48 * blocks, width, 3);
+  r.sum += tail.sum;
+  r.sumSq += tail.sumSq;
+  r.n += tail.n;
+  return r;
+}
+#endif
+
+}  // namespace
 
 LaplacianStats sampledLaplacianVariance(GrayView gray, int rowStep, int colStep) {
   LaplacianStats total;
@@ -16,21 +86,20 @@ LaplacianStats sampledLaplacianVariance(GrayView gray, int rowStep, int colStep)
     const std::uint8_t* up = gray.row(y - 1);
     const std::uint8_t* mid = gray.row(y);
     const std::uint8_t* down = gray.row(y + 1);
-    // Exact integer sums for one row (|L| <= 1020, so no overflow), then one
-    // Welford/Chan update per row: the same on-line variance, but the inner loop
-    // has no division and vectorises.
-    std::int64_t sum = 0;
-    std::int64_t sumSq = 0;
-    std::int64_t n = 0;
-    for (int x = 1; x < gray.width - 1; x += colStep) {
-      const int l = up[x] + down[x] + mid[x - 1] + mid[x + 1] - 4 * mid[x];
-      sum += l;
-      sumSq += static_cast<std::int64_t>(l) * l;
-      ++n;
-    }
-    if (n == 0) continue;
-    const double rowMean = static_cast<double>(sum) / static_cast<double>(n);
-    const double rowM2 = static_cast<double>(sumSq) - static_cast<double>(sum) * rowMean;
+    // Exact integer sums for one row (|L| <= 1020), then one Welford/Chan
+    // update per row: the same on-line variance as a per-sample update, but the
+    // inner loop has no division and vectorises.
+#if CV_SIMD128
+    const RowSums row = colStep == 3 && gray.width <= 8192
+                            ? rowStep3(up, mid, down, gray.width)
+                            : rowScalar(up, mid, down, 1, gray.width, colStep);
+#else
+    const RowSums row = rowScalar(up, mid, down, 1, gray.width, colStep);
+#endif
+    if (row.n == 0) continue;
+    const auto n = row.n;
+    const double rowMean = static_cast<double>(row.sum) / static_cast<double>(n);
+    const double rowM2 = static_cast<double>(row.sumSq) - static_cast<double>(row.sum) * rowMean;
     const std::int64_t merged = total.count + n;
     const double delta = rowMean - total.mean;
     total.mean += delta * static_cast<double>(n) / static_cast<double>(merged);

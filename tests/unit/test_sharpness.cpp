@@ -62,6 +62,26 @@ TEST(Sharpness, RowBatchedUpdateMatchesPerSampleWelford) {
   }
 }
 
+TEST(Sharpness, VectorisedRowsMatchTheScalarDefinitionAtEveryWidth) {
+  cv::RNG rng(3);
+  for (int w = 3; w < 260; w += 7) {
+    cv::Mat g(9, w, CV_8UC1);
+    rng.fill(g, cv::RNG::UNIFORM, 0, 256);
+    const auto a = sampledLaplacianVariance(GrayView::of(g), 2, 3);
+    const auto b = welfordPerSample(g, 2, 3);
+    ASSERT_EQ(a.count, b.count) << w;
+    EXPECT_NEAR(a.mean, b.mean, 1e-9) << w;
+    EXPECT_NEAR(a.variance, b.variance, 1e-6 * b.variance) << w;
+  }
+  // Extreme values: a checkerboard of 0 and 255 (|L| = 1020) over a wide row.
+  cv::Mat c(5, 8000, CV_8UC1);
+  for (int y = 0; y < c.rows; ++y)
+    for (int x = 0; x < c.cols; ++x) c.at<uchar>(y, x) = ((x + y) % 2) ? 255 : 0;
+  const auto a = sampledLaplacianVariance(GrayView::of(c), 2, 3);
+  const auto b = welfordPerSample(c, 2, 3);
+  EXPECT_NEAR(a.variance, b.variance, 1e-6 * b.variance);
+}
+
 TEST(Sharpness, BlurLowersTheScoreMonotonically) {
   const cv::Mat g = test::photo("aero3.jpg");
   double last = sampledLaplacianVariance(GrayView::of(g), 2, 3).variance;
