@@ -121,6 +121,16 @@ bool DecisionLog::add(const Decision& d, std::string& error) {
   return true;
 }
 
+void DecisionLog::markGapFill(std::int64_t index) {
+  for (Decision& p : pending_) {
+    if (p.index == index) {
+      p.kept = true;
+      p.reason = Reason::GapFill;
+      p.candidate = false;
+    }
+  }
+}
+
 bool DecisionLog::close(std::string& error) {
   if (file_ == nullptr) return true;
   bool ok = flushPending(error);

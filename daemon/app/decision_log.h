@@ -22,6 +22,8 @@ class DecisionLog {
   bool open(const std::string& path, DecisionFormat format, std::string& error);
   // Adds a decision; returns false on a write error.
   bool add(const Decision& d, std::string& error);
+  // Marks an earlier, still pending row as a keyframe (the selector's finish()).
+  void markGapFill(std::int64_t index);
   bool close(std::string& error);
 
   static std::string header();

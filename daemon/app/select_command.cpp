@@ -185,6 +185,20 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
                el > 0 ? static_cast<double>(s.framesRead) / el : 0.0);
     }
   }
+  // The end of the flight needs covering too: keep the pending candidate.
+  if (s.error.empty()) {
+    const std::int64_t last = selector.finish();
+    if (last >= 0 && last == candidateIndex && !candidate.empty()) {
+      if (jpeg.write(candidate, candidateIndex, error)) {
+        log.markGapFill(last);
+        ++s.kept;
+        ++s.promoted;
+        --s.rejectedOverlap;
+      } else {
+        s.error = error;
+      }
+    }
+  }
   if (!log.close(error) && s.error.empty()) s.error = error;
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;

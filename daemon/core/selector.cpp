@@ -63,6 +63,14 @@ bool KeyframeSelector::promoteCandidate(Decision& d) {
   return true;
 }
 
+std::int64_t KeyframeSelector::finish() {
+  Decision d;
+  if (!promoteCandidate(d)) return -1;
+  haveKeyframe_ = false;
+  overlap_->reset();
+  return d.promotedIndex;
+}
+
 Decision KeyframeSelector::process(const Frame& frame) {
   Decision d;
   d.index = frame.index;

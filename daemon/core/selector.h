@@ -87,6 +87,10 @@ class KeyframeSelector {
   // Decide for the next frame (frames in capture order).
   Decision process(const Frame& frame);
 
+  // End of the stream: the candidate, if any, becomes a keyframe so that the
+  // last stretch of the flight is covered too. Returns its index, or -1.
+  std::int64_t finish();
+
   // Apply new settings (SIGHUP); selection restarts at the next sharp frame.
   void reconfigure(const SelectorConfig& config);
 

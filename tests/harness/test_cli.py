@@ -130,3 +130,35 @@ def test_full_disk_is_an_error_not_a_crash(kf_bin: Path, pan_video: Path, tmp_pa
     p = run(kf_bin, "select", pan_video, "--out", out)
     assert p.returncode == 3
     assert "cannot" in p.stderr
+
+
+def test_progress_line_on_request(kf_bin: Path, pan_video: Path, tmp_path):
+    p = run(kf_bin, "select", pan_video, "--out", tmp_path / "o", "--progress")
+    assert p.returncode == 0
+    assert "frame 90/90" in p.stderr and "kept" in p.stderr
+
+
+def test_interrupt_stops_cleanly_with_outputs_flushed(kf_bin: Path, tmp_path):
+    import signal
+    import time
+
+    from conftest import write_pan_video
+
+    video = write_pan_video(tmp_path / "long.avi", frames=1500, step=1.0, size=(640, 360))
+    out = tmp_path / "o"
+    proc = subprocess.Popen(
+        [str(kf_bin), "select", str(video), "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is True
+    assert 0 < summary["frames_read"] < 1500
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    assert len(rows) == summary["frames_read"]
+    assert len(list(out.glob("*.jpg"))) == summary["kept"]

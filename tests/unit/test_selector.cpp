@@ -141,3 +141,25 @@ TEST(Selector, ConfigValidation) {
 
 }  // namespace
 }  // namespace keyframed
+
+namespace keyframed {
+namespace {
+
+TEST(Selector, FinishKeepsThePendingCandidateSoTheEndIsCovered) {
+  const cv::Mat strip = test::photoStrip();
+  SelectorConfig cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  std::int64_t lastCandidate = -1;
+  // 8 px a frame: the target is 18 frames away; stop at frame 12 (overlap 0.78).
+  for (int i = 0; i <= 12; ++i) {
+    const Decision d = sel.process(Frame::ofGray(test::viewAt(strip, 100 + 8.0 * i), i, i));
+    if (d.candidate) lastCandidate = d.index;
+  }
+  ASSERT_GE(lastCandidate, 0);
+  EXPECT_EQ(sel.finish(), lastCandidate);
+  EXPECT_EQ(sel.finish(), -1);  // only once
+}
+
+}  // namespace
+}  // namespace keyframed

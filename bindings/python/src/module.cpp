@@ -214,6 +214,13 @@ NB_MODULE(_core, m) {
           },
           "image"_a.noconvert(), "index"_a, "timestamp_ns"_a = 0,
           "Decide for the next frame; returns the decision as a dict.")
+      .def(
+          "finish",
+          [](KeyframeSelector& s) {
+            const std::int64_t i = s.finish();
+            return i >= 0 ? nb::object(nb::int_(i)) : nb::none();
+          },
+          "End of stream: the index of the pending candidate, now a keyframe, or None.")
       .def_prop_ro("keyframes", &KeyframeSelector::keyframes);
 
   m.def(
