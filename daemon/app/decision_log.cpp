@@ -32,7 +32,8 @@ DecisionLog::~DecisionLog() {
 
 std::string DecisionLog::header() {
   return "index,timestamp_ns,kept,reason,candidate,promoted,sharpness,threshold,sharp,overlap,"
-         "paper_distance,tracking,features,matches,inliers,luma_ms,blur_ms,resize_ms,overlap_ms,"
+         "paper_distance,tracking,motion_px,fast_motion,features,matches,inliers,luma_ms,blur_ms,"
+         "resize_ms,overlap_ms,"
          "total_ms";
 }
 
@@ -43,10 +44,11 @@ std::string DecisionLog::csvRow(const Decision& d) {
        "," + toString(d.reason) + "," + (d.candidate ? "1" : "0") + "," +
        (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "") + "," + num(d.sharpness, 3) +
        "," + num(d.threshold, 3) + "," + (d.sharp ? "1" : "0") + "," + num(d.overlap, 4) + "," +
-       num(d.paperDistance, 3) + "," + (d.tracking ? "1" : "0") + "," + std::to_string(d.features) +
-       "," + std::to_string(d.matches) + "," + std::to_string(d.inliers) + "," +
-       ms(d.times.lumaNs) + "," + ms(d.times.blurNs) + "," + ms(d.times.resizeNs) + "," +
-       ms(d.times.overlapNs) + "," + ms(d.times.totalNs);
+       num(d.paperDistance, 3) + "," + (d.tracking ? "1" : "0") + "," + num(d.motionPx, 2) + "," +
+       (d.fastMotion ? "1" : "0") + "," + std::to_string(d.features) + "," +
+       std::to_string(d.matches) + "," + std::to_string(d.inliers) + "," + ms(d.times.lumaNs) +
+       "," + ms(d.times.blurNs) + "," + ms(d.times.resizeNs) + "," + ms(d.times.overlapNs) + "," +
+       ms(d.times.totalNs);
   return s;
 }
 
@@ -60,7 +62,8 @@ std::string DecisionLog::jsonRow(const Decision& d) {
       ",\"sharpness\":" + jnum(d.sharpness, 3) + ",\"threshold\":" + jnum(d.threshold, 3) +
       ",\"sharp\":" + (d.sharp ? "true" : "false") + ",\"overlap\":" + jnum(d.overlap, 4) +
       ",\"paper_distance\":" + jnum(d.paperDistance, 3) +
-      ",\"tracking\":" + (d.tracking ? "true" : "false") +
+      ",\"tracking\":" + (d.tracking ? "true" : "false") + ",\"motion_px\":" + jnum(d.motionPx, 2) +
+      ",\"fast_motion\":" + (d.fastMotion ? "true" : "false") +
       ",\"features\":" + std::to_string(d.features) + ",\"matches\":" + std::to_string(d.matches) +
       ",\"inliers\":" + std::to_string(d.inliers) + ",\"luma_ms\":" + ms(d.times.lumaNs) +
       ",\"blur_ms\":" + ms(d.times.blurNs) + ",\"resize_ms\":" + ms(d.times.resizeNs) +

@@ -46,6 +46,10 @@ selection:
   --mode geometric|paper     overlap test (default geometric)
   --target F                 overlap to keep a frame at, 0..1 (default 0.70)
   --band LO,HI               overlap band for fallbacks (default 0.60,0.85)
+  --min-overlap F            hard floor: a blurry fallback is kept rather than
+                             let overlap fall under F (default 0.50)
+  --motion-ratio R           geometric mode: a frame moving more than R times the
+                             recent median is motion-blurred, 0 = off (default 4)
   --analysis-width PX        overlap analysis width, 0 = full (default 640)
   --orb-features N           paper mode: ORB features (default 2500)
   --paper-threshold T        paper mode: mean Hamming distance to keep (default 50)
@@ -54,7 +58,7 @@ blur:
   --blur-mode adaptive|absolute   (default adaptive)
   --blur-threshold V         absolute mode threshold on Laplacian variance (default 100)
   --blur-floor V             adaptive mode: absolute floor (default 10)
-  --blur-ratio R             adaptive mode: fraction of the recent quantile (default 0.8)
+  --blur-ratio R             adaptive mode: fraction of the recent quantile (default 0.7)
   --blur-quantile Q          adaptive mode: quantile of recent scores (default 0.75)
   --blur-window N            adaptive mode: recent frames considered (default 150)
   --blur-step R,C            sample every R-th row, C-th column (default 2,3)
@@ -129,6 +133,8 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return {};
        }},
       {"--analysis-width", integer(c.analysisWidth, 0, 16384)},
+      {"--min-overlap", number(c.minOverlap, 0.01, 0.99)},
+      {"--motion-ratio", number(c.motionRatio, 0, 100)},
       {"--orb-features", integer(c.overlap.orbFeatures, 50, 50000)},
       {"--paper-threshold", number(c.overlap.paperThreshold, 1, 256)},
       {"--max-tracks", integer(c.overlap.maxTracks, 20, 5000)},

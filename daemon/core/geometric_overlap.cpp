@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include <opencv2/video/tracking.hpp>
 
@@ -11,6 +12,19 @@ namespace keyframed {
 namespace {
 constexpr int kGridCols = 16;
 constexpr int kGridRows = 9;
+
+// Largest displacement of the image corners and centre under a step homography.
+double stepMotion(const cv::Matx33d& h, cv::Size size) {
+  const double w = size.width, hh = size.height;
+  const cv::Point2d pts[5] = {{0, 0}, {w, 0}, {w, hh}, {0, hh}, {w / 2, hh / 2}};
+  double worst = 0.0;
+  for (const cv::Point2d& p : pts) {
+    const cv::Vec3d v = h * cv::Vec3d(p.x, p.y, 1.0);
+    if (!(v[2] > 1e-9)) return std::numeric_limits<double>::infinity();
+    worst = std::max(worst, std::hypot(v[0] / v[2] - p.x, v[1] / v[2] - p.y));
+  }
+  return worst;
+}
 }  // namespace
 
 GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
@@ -46,6 +60,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
   cv::buildOpticalFlowPyramid(img, curPyr_, win, config_.lkLevels, true);
 
   bool tracked = false;
+  lastMotion_ = std::numeric_limits<double>::quiet_NaN();
   lastTracked_ = 0;
   lastInliers_ = 0;
   curPts_.clear();
@@ -73,6 +88,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
           if (inlierMask_[i]) curPts_.push_back(goodCur_[i]);
         lastInliers_ = static_cast<int>(curPts_.size());
         if (lastInliers_ >= config_.minInliers) {
+          lastMotion_ = stepMotion(fit.h, size_);
           refToCur_ = fit.h * refToCur_;
           refToCur_ *= 1.0 / refToCur_(2, 2);
           tracked = true;
@@ -97,6 +113,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
   r.features = static_cast<int>(prevPts_.size());
   r.matches = lastTracked_;
   r.inliers = lastInliers_;
+  r.motionPx = lastMotion_;
   return r;
 }
 

@@ -55,6 +55,7 @@ class GeometricOverlap final : public OverlapEstimator {
   bool haveCandidate_ = false;
   int lastTracked_ = 0;
   int lastInliers_ = 0;
+  double lastMotion_ = 0.0;
 };
 
 }  // namespace keyframed

@@ -40,6 +40,9 @@ struct OverlapResult {
   int features = 0;  // features detected or tracked in this frame
   int matches = 0;   // correspondences with the reference chain
   int inliers = 0;   // RANSAC inliers (geometric)
+  // Geometric: how far the image moved since the previous frame, the largest
+  // displacement of its corners and centre, in analysis pixels (NaN if unknown).
+  double motionPx = std::numeric_limits<double>::quiet_NaN();
 };
 
 // Measures how much of the last keyframe the current frame still shows.

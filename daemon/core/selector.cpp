@@ -1,5 +1,6 @@
 #include "core/selector.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include <opencv2/imgproc.hpp>
@@ -25,6 +26,12 @@ std::string SelectorConfig::validate() const {
   if (!(target > 0.0 && target < 1.0)) return "overlap target must be in (0, 1)";
   if (!(bandLow > 0.0 && bandLow <= target)) return "overlap band low must be in (0, target]";
   if (!(bandHigh >= target && bandHigh < 1.0)) return "overlap band high must be in [target, 1)";
+  if (!(motionRatio == 0.0 || motionRatio >= 1.0)) return "motion ratio must be 0 (off) or >= 1";
+  if (!(motionMinFraction >= 0.0 && motionMinFraction < 1.0))
+    return "motion minimum fraction must be in [0, 1)";
+  if (motionWindow < 5 || motionWindow > 10000) return "motion window must be 5..10000 frames";
+  if (!(minOverlap > 0.0 && minOverlap <= bandLow))
+    return "minimum overlap must be in (0, band low]";
   if (analysisWidth < 0 || (analysisWidth > 0 && analysisWidth < 64))
     return "analysis width must be 0 (full) or >= 64";
   return {};
@@ -34,11 +41,37 @@ KeyframeSelector::KeyframeSelector(const SelectorConfig& config, const Clock* cl
     : config_(config),
       clock_(clock),
       sharpness_(config.blur),
-      overlap_(OverlapEstimator::create(config.overlap)) {}
+      overlap_(OverlapEstimator::create(config.overlap)),
+      motionHistory_(static_cast<std::size_t>(std::max(1, config.motionWindow)), 0.0),
+      motionScratch_(motionHistory_.size(), 0.0) {}
+
+bool KeyframeSelector::motionTooFast(double motionPx, int analysisWidth) {
+  if (!std::isfinite(motionPx) && !std::isinf(motionPx)) return false;
+  bool fast = false;
+  if (config_.motionRatio > 0.0 && motionFilled_ >= 5) {
+    std::copy_n(motionHistory_.begin(), motionFilled_, motionScratch_.begin());
+    const auto mid = static_cast<std::ptrdiff_t>(motionFilled_ / 2);
+    std::nth_element(motionScratch_.begin(), motionScratch_.begin() + mid,
+                     motionScratch_.begin() + static_cast<std::ptrdiff_t>(motionFilled_));
+    const double median = motionScratch_[static_cast<std::size_t>(mid)];
+    fast = motionPx > config_.motionRatio * median &&
+           motionPx > config_.motionMinFraction * analysisWidth;
+  }
+  if (std::isfinite(motionPx)) {
+    motionHistory_[motionNext_] = motionPx;
+    motionNext_ = (motionNext_ + 1) % motionHistory_.size();
+    motionFilled_ = std::min(motionFilled_ + 1, motionHistory_.size());
+  }
+  return fast;
+}
 
 void KeyframeSelector::reconfigure(const SelectorConfig& config) {
   config_ = config;
   sharpness_ = SharpnessScorer(config.blur);
+  motionHistory_.assign(static_cast<std::size_t>(std::max(1, config.motionWindow)), 0.0);
+  motionScratch_.assign(motionHistory_.size(), 0.0);
+  motionNext_ = 0;
+  motionFilled_ = 0;
   // A new estimator has no reference: the next sharp frame starts a new chain.
   overlap_ = OverlapEstimator::create(config.overlap);
   haveKeyframe_ = false;
@@ -115,6 +148,11 @@ Decision KeyframeSelector::process(const Frame& frame) {
   d.tracking = ov.valid;
   d.overlap = ov.overlap;
   d.paperDistance = ov.paperDistance;
+  d.motionPx = ov.motionPx;
+  if (motionTooFast(ov.motionPx, analysis.width)) {
+    d.fastMotion = true;
+    d.sharp = false;
+  }
 
   const bool paper = config_.overlap.mode == OverlapMode::Paper;
   if (!haveKeyframe_) {
@@ -143,16 +181,14 @@ Decision KeyframeSelector::process(const Frame& frame) {
     const double o = ov.overlap;
     if (d.sharp && o <= config_.target) {
       keepCurrent(d, Reason::OverlapTarget);
-    } else if (o < config_.bandLow) {
+    } else if (o < config_.bandLow && (candidateSharp_ || o < config_.minOverlap)) {
       // About to leave the band with no sharp frame at the target: fall back to
-      // the sharpest frame since the last keyframe.
+      // the best frame in the band since the last keyframe. A blurry fallback is
+      // taken only at the hard floor (minOverlap): until then a sharp frame may
+      // still come, e.g. when a yaw turn blurs a few frames and ends.
       d.reason = Reason::Blurry;  // a sharp frame here was kept by the branch above
-      if (candidateIndex_ < 0 && d.sharpness >= config_.blur.floor) {
-        // Nothing in the band to fall back on: this frame is the last one that
-        // still overlaps by about the band's lower edge. Waiting for a sharp
-        // frame would open a gap, so keep it.
-        keepCurrent(d, Reason::GapFill);
-      } else if (promoteCandidate(d)) {
+      if (candidateIndex_ >= 0) {
+        promoteCandidate(d);
         const OverlapResult again = overlap_->setReferenceToCandidate();
         d.overlap = again.overlap;
         d.tracking = again.valid;
@@ -160,16 +196,23 @@ Decision KeyframeSelector::process(const Frame& frame) {
           haveKeyframe_ = false;
           overlap_->reset();
         }
+      } else if (d.sharpness >= config_.blur.floor) {
+        // Nothing in the band to fall back on: this frame is the last one that
+        // still overlaps by the floor. Waiting longer would open a gap.
+        keepCurrent(d, Reason::GapFill);
       }
     } else {
       d.reason = d.sharp ? Reason::Redundant : Reason::Blurry;
-      // The fallback is the sharpest frame inside the band, judged relative to
-      // its neighbours rather than to the threshold: when the scene's texture
-      // drops, every frame may score under a threshold learnt on richer ground.
-      if (o <= config_.bandHigh && d.sharpness >= config_.blur.floor &&
-          (candidateIndex_ < 0 || d.sharpness > candidateSharpness_)) {
+      // The fallback: a sharp frame beats a blurry one, then the higher score
+      // wins. Scores are compared among neighbours rather than against the
+      // threshold, which a drop in ground texture can leave out of reach.
+      const bool better = candidateIndex_ < 0 || (d.sharp && !candidateSharp_) ||
+                          (d.sharp == candidateSharp_ && d.sharpness > candidateSharpness_);
+      if (o <= config_.bandHigh && o >= config_.minOverlap && d.sharpness >= config_.blur.floor &&
+          better) {
         candidateIndex_ = d.index;
         candidateSharpness_ = d.sharpness;
+        candidateSharp_ = d.sharp;
         d.candidate = true;
         overlap_->markCandidate();
       }

@@ -62,6 +62,8 @@ struct Decision {
   double overlap = std::numeric_limits<double>::quiet_NaN();  // vs the last keyframe
   double paperDistance = std::numeric_limits<double>::quiet_NaN();
   bool tracking = false;
+  bool fastMotion = false;                                     // failed the motion gate
+  double motionPx = std::numeric_limits<double>::quiet_NaN();  // since the previous frame
   int features = 0;
   int matches = 0;
   int inliers = 0;
@@ -71,9 +73,16 @@ struct Decision {
 struct SelectorConfig {
   SharpnessConfig blur;
   OverlapConfig overlap;
-  double target = 0.70;     // keep a frame when overlap with the last keyframe falls to this
-  double bandLow = 0.60;    // never let overlap fall under this: promote the best candidate
-  double bandHigh = 0.85;   // frames above this are too redundant to be fallbacks
+  double target = 0.70;      // keep a frame when overlap with the last keyframe falls to this
+  double bandLow = 0.60;     // never let overlap fall under this: promote the best candidate
+  double bandHigh = 0.85;    // frames above this are too redundant to be fallbacks
+  double minOverlap = 0.50;  // hard floor: below this even a blurry fallback is kept
+  // Motion gate (geometric mode): a frame that moved more than motionRatio times
+  // the median of recent frames, and more than motionMinFraction of the image
+  // width, is judged blurred by motion whatever its Laplacian says. 0 disables.
+  double motionRatio = 4.0;
+  double motionMinFraction = 0.01;
+  int motionWindow = 150;   // recent frames whose median motion is the reference
   int analysisWidth = 640;  // overlap analysis width in pixels (0: full resolution)
 
   [[nodiscard]] std::string validate() const;
@@ -102,6 +111,7 @@ class KeyframeSelector {
   [[nodiscard]] std::int64_t now() const { return clock_ ? clock_->nowNs() : 0; }
   void keepCurrent(Decision& d, Reason reason);
   bool promoteCandidate(Decision& d);
+  bool motionTooFast(double motionPx, int analysisWidth);
 
   SelectorConfig config_;
   const Clock* clock_;
@@ -114,6 +124,11 @@ class KeyframeSelector {
   std::int64_t keyframes_ = 0;
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;
+  bool candidateSharp_ = false;
+  std::vector<double> motionHistory_;  // ring of recent frame motions (analysis px)
+  std::vector<double> motionScratch_;
+  std::size_t motionNext_ = 0;
+  std::size_t motionFilled_ = 0;
 };
 
 }  // namespace keyframed

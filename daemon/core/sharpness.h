@@ -36,7 +36,7 @@ struct SharpnessConfig {
   int colStep = 3;
   double absoluteThreshold = 100.0;  // Absolute mode
   double floor = 10.0;               // Adaptive mode: never accept below this
-  double ratio = 0.8;                // Adaptive: fraction of the running statistic
+  double ratio = 0.7;                // Adaptive: fraction of the running statistic
   double quantile = 0.75;            // Adaptive: which quantile of recent scores
   int window = 150;                  // Adaptive: how many recent frames (5 s at 30 fps)
   int warmup = 5;                    // Adaptive: frames before the statistic is trusted

@@ -68,6 +68,8 @@ nb::dict decisionDict(const Decision& d) {
   r["paper_distance"] =
       std::isfinite(d.paperDistance) ? nb::object(nb::float_(d.paperDistance)) : nb::none();
   r["tracking"] = d.tracking;
+  r["motion_px"] = std::isfinite(d.motionPx) ? nb::object(nb::float_(d.motionPx)) : nb::none();
+  r["fast_motion"] = d.fastMotion;
   r["features"] = d.features;
   r["matches"] = d.matches;
   r["inliers"] = d.inliers;
@@ -109,6 +111,10 @@ NB_MODULE(_core, m) {
       .def_rw("target", &SelectorConfig::target)
       .def_rw("band_low", &SelectorConfig::bandLow)
       .def_rw("band_high", &SelectorConfig::bandHigh)
+      .def_rw("min_overlap", &SelectorConfig::minOverlap)
+      .def_rw("motion_ratio", &SelectorConfig::motionRatio)
+      .def_rw("motion_min_fraction", &SelectorConfig::motionMinFraction)
+      .def_rw("motion_window", &SelectorConfig::motionWindow)
       .def_rw("analysis_width", &SelectorConfig::analysisWidth)
       .def_prop_rw(
           "blur_mode",

@@ -1,0 +1,27 @@
+"""Sample flights for the tests, generated once and cached by generator version."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+from keyframed import synth
+
+ROOT = Path(__file__).resolve().parents[2]
+CACHE = Path(os.environ.get("KEYFRAMED_FLIGHT_CACHE", ROOT / "build" / "flights"))
+
+
+def flight(name: str, *, width: int = 960, height: int = 540, seconds: float | None = None) -> Path:
+    """The directory of a generated flight; regenerated when synth.py changes."""
+    version = hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:12]
+    key = f"{name}-{width}x{height}-{seconds or 'default'}-{version}"
+    out = CACHE / key
+    if (out / "meta.json").exists():
+        return out
+    tmp = CACHE / (key + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    synth.generate(name, tmp, width=width, height=height, seconds=seconds, seed=0)
+    tmp.rename(out)
+    return out

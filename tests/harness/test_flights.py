@@ -1,0 +1,102 @@
+"""Selection quality on the synthetic flights, against their ground truth.
+
+The geometric mode must keep consecutive keyframes inside the overlap band, keep
+(almost) no blurry frame and add nothing while hovering. The paper's mode runs on
+the same flights and its figures are reported beside them (see the terminal
+summary and build/reports/flight_quality.md).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from flights import ROOT, flight
+from keyframed.evaluate import Evaluation, evaluate
+
+REPORT: dict[tuple[str, str], Evaluation] = {}
+
+
+def select(kf_bin: Path, video: Path, out: Path, *args: str) -> dict:
+    p = subprocess.run(
+        [str(kf_bin), "select", str(video), "--out", str(out), "--quiet", *args],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert p.returncode == 0, p.stderr
+    return json.loads((out / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module", params=["nadir", "orbit"])
+def sample(request: pytest.FixtureRequest) -> tuple[str, Path]:
+    return request.param, flight(request.param)
+
+
+def test_geometric_mode_meets_the_quality_bar(kf_bin: Path, sample, tmp_path):
+    name, fdir = sample
+    summary = select(kf_bin, fdir / "video.avi", tmp_path / "geo")
+    ev = evaluate(fdir, tmp_path / "geo")
+    REPORT[(name, "geometric")] = ev
+    assert summary["frames_read"] == ev.frames
+    assert len(ev.keyframes) >= 5
+    assert ev.in_band >= 0.90, ev.pair_overlaps
+    assert ev.min_overlap >= 0.5, ev.pair_overlaps
+    assert ev.blurry_kept_fraction < 0.02, ev.keyframes
+    assert ev.hover_keyframes == 0
+
+
+def test_hover_adds_no_keyframes(kf_bin: Path, tmp_path):
+    fdir = flight("nadir")
+    select(kf_bin, fdir / "video.avi", tmp_path / "geo")
+    ev = evaluate(fdir, tmp_path / "geo")
+    from keyframed.synth import load_flight
+
+    hover = load_flight(fdir).hover
+    assert hover.sum() > 60  # the flight does hover
+    inside = [k for k in ev.keyframes if hover[k]]
+    assert len(inside) <= 1, inside  # at most the frame where it arrived
+
+
+def test_paper_mode_runs_on_the_same_flights(kf_bin: Path, sample, tmp_path):
+    name, fdir = sample
+    summary = select(kf_bin, fdir / "video.avi", tmp_path / "paper", "--mode", "paper")
+    ev = evaluate(fdir, tmp_path / "paper")
+    REPORT[(name, "paper")] = ev
+    assert summary["frames_read"] == ev.frames
+    assert len(ev.keyframes) >= 2  # reported, not held to the geometric bar
+
+
+def test_python_selection_matches_the_command_line(kf_bin: Path, tmp_path):
+    import keyframed
+
+    fdir = flight("nadir")
+    select(kf_bin, fdir / "video.avi", tmp_path / "cli")
+    s = keyframed.select_video(str(fdir / "video.avi"), str(tmp_path / "py"))
+    assert s["error"] == ""
+    cli = sorted(p.name for p in (tmp_path / "cli").glob("*.jpg"))
+    py = sorted(p.name for p in (tmp_path / "py").glob("*.jpg"))
+    assert cli == py
+
+
+def write_report() -> str:
+    if not REPORT:
+        return ""
+    lines = [
+        "| flight | mode | keyframes | overlap median | min | in band | blurry kept |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for (name, mode), ev in sorted(REPORT.items()):
+        ov = sorted(ev.pair_overlaps)
+        med = ov[len(ov) // 2] if ov else float("nan")
+        lines.append(
+            f"| {name} | {mode} | {len(ev.keyframes)} | {med:.2f} | {ev.min_overlap:.2f} | "
+            f"{100 * ev.in_band:.0f}% | {ev.blurry_kept} ({100 * ev.blurry_kept_fraction:.1f}%) |"
+        )
+    text = "\n".join(lines) + "\n"
+    out = ROOT / "build" / "reports"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "flight_quality.md").write_text(text)
+    return text
