@@ -25,6 +25,23 @@ def kf_bin() -> Path:
     return keyframed_bin()
 
 
+def sanitized_bin() -> Path | None:
+    """The AddressSanitizer + UBSan build of keyframed, when tools/test.sh made one."""
+    path = os.environ.get("KEYFRAMED_ASAN_BIN")
+    return Path(path) if path and Path(path).exists() else None
+
+
+@pytest.fixture(scope="session", params=["release", "asan"])
+def any_bin(request: pytest.FixtureRequest) -> Path:
+    """Bad-input tests run against both builds: under the sanitizers too, no crash."""
+    if request.param == "release":
+        return keyframed_bin()
+    path = sanitized_bin()
+    if path is None:
+        pytest.skip("no sanitizer build (KEYFRAMED_ASAN_BIN unset): tools/test.sh builds one")
+    return path
+
+
 def photo_strip() -> np.ndarray:
     parts = []
     for name in ("aero1.jpg", "aero3.jpg", "building.jpg", "baboon.jpg"):

@@ -60,11 +60,18 @@ def test_hover_adds_no_keyframes(kf_bin: Path, tmp_path):
     assert len(inside) <= 1, inside  # at most the frame where it arrived
 
 
-def test_paper_mode_runs_on_the_same_flights(kf_bin: Path, sample, tmp_path):
+# t = 50 is the paper's value for a Bebop; t = 29 is what gives 0.70 overlap on the
+# nadir flight (read off its ground truth): the paper's threshold has to be tuned per
+# source, which is the weakness the geometric mode removes.
+@pytest.mark.parametrize("threshold", [50, 29])
+def test_paper_mode_runs_on_the_same_flights(kf_bin: Path, sample, tmp_path, threshold: int):
     name, fdir = sample
-    summary = select(kf_bin, fdir / "video.avi", tmp_path / "paper", "--mode", "paper")
-    ev = evaluate(fdir, tmp_path / "paper")
-    REPORT[(name, "paper")] = ev
+    out = tmp_path / "paper"
+    summary = select(
+        kf_bin, fdir / "video.avi", out, "--mode", "paper", "--paper-threshold", str(threshold)
+    )
+    ev = evaluate(fdir, out)
+    REPORT[(name, f"paper t={threshold}")] = ev
     assert summary["frames_read"] == ev.frames
     assert len(ev.keyframes) >= 2  # reported, not held to the geometric bar
 
