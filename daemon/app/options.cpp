@@ -49,7 +49,7 @@ selection:
   --min-overlap F            hard floor: a blurry fallback is kept rather than
                              let overlap fall under F (default 0.50)
   --motion-ratio R           geometric mode: a frame moving more than R times the
-                             recent median is motion-blurred, 0 = off (default 4)
+                             recent lower quartile is motion-blurred, 0 = off (default 4)
   --analysis-width PX        overlap analysis width, 0 = full (default 640)
   --orb-features N           paper mode: ORB features (default 2500)
   --paper-threshold T        paper mode: mean Hamming distance to keep (default 50)

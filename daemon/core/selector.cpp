@@ -50,7 +50,7 @@ bool KeyframeSelector::motionTooFast(double motionPx, int analysisWidth) {
   bool fast = false;
   if (config_.motionRatio > 0.0 && motionFilled_ >= 5) {
     std::copy_n(motionHistory_.begin(), motionFilled_, motionScratch_.begin());
-    const auto mid = static_cast<std::ptrdiff_t>(motionFilled_ / 2);
+    const auto mid = static_cast<std::ptrdiff_t>(motionFilled_ / 4);  // lower quartile
     std::nth_element(motionScratch_.begin(), motionScratch_.begin() + mid,
                      motionScratch_.begin() + static_cast<std::ptrdiff_t>(motionFilled_));
     const double median = motionScratch_[static_cast<std::size_t>(mid)];

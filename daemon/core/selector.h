@@ -78,11 +78,12 @@ struct SelectorConfig {
   double bandHigh = 0.85;    // frames above this are too redundant to be fallbacks
   double minOverlap = 0.50;  // hard floor: below this even a blurry fallback is kept
   // Motion gate (geometric mode): a frame that moved more than motionRatio times
-  // the median of recent frames, and more than motionMinFraction of the image
-  // width, is judged blurred by motion whatever its Laplacian says. 0 disables.
+  // the lower quartile of recent frames' motion (robust to long manoeuvres), and
+  // more than motionMinFraction of the image width, is judged blurred by motion
+  // whatever its Laplacian score says. 0 disables.
   double motionRatio = 4.0;
   double motionMinFraction = 0.01;
-  int motionWindow = 150;   // recent frames whose median motion is the reference
+  int motionWindow = 150;   // recent frames whose lower-quartile motion is the reference
   int analysisWidth = 640;  // overlap analysis width in pixels (0: full resolution)
 
   [[nodiscard]] std::string validate() const;

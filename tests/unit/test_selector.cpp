@@ -163,3 +163,30 @@ TEST(Selector, FinishKeepsThePendingCandidateSoTheEndIsCovered) {
 
 }  // namespace
 }  // namespace keyframed
+
+namespace keyframed {
+namespace {
+
+TEST(Selector, MotionGateFlagsASuddenFastMove) {
+  const cv::Mat strip = test::photoStrip();
+  SelectorConfig cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  double x = 100;
+  for (int i = 0; i < 60; ++i) {
+    // 2 px a frame, then a jerk of three 25 px frames, then 2 px again.
+    x += (i >= 40 && i < 43) ? 25.0 : 2.0;
+    const Decision d = sel.process(Frame::ofGray(test::viewAt(strip, x), i, i));
+    if (i >= 40 && i < 43) {
+      EXPECT_TRUE(d.fastMotion) << i << " moved " << d.motionPx;
+      EXPECT_FALSE(d.sharp);
+      EXPECT_FALSE(d.kept);
+    } else if (i > 10) {
+      EXPECT_FALSE(d.fastMotion) << i << " moved " << d.motionPx;
+      EXPECT_NEAR(d.motionPx, 2.0, 0.5) << i;
+    }
+  }
+}
+
+}  // namespace
+}  // namespace keyframed
