@@ -117,6 +117,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   KeyframeSelector selector(opts.selector, &clock);
   cv::Mat candidate;  // pixels of the current fallback candidate (buffer reused)
   std::int64_t candidateIndex = -1;
+  bool candidateBlur = false;  // the candidate was counted as rejected for blur
   double analysisNs = 0.0;
 
   const auto start = std::chrono::steady_clock::now();
@@ -143,6 +144,9 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     analysisNs += static_cast<double>(d.times.totalNs);
     const cv::Mat bgr(frame.height, frame.width, CV_8UC3, const_cast<std::uint8_t*>(frame.data),
                       static_cast<size_t>(frame.stride));
+    // Each frame is counted once by its decision; a candidate promoted later
+    // moves from its rejection counter to the kept one.
+    auto uncount = [&s](bool blur) { --(blur ? s.rejectedBlur : s.rejectedOverlap); };
     if (d.promotedIndex >= 0) {
       if (d.promotedIndex == candidateIndex && !candidate.empty() &&
           !jpeg.write(candidate, candidateIndex, error)) {
@@ -151,8 +155,10 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       }
       ++s.kept;
       ++s.promoted;
+      uncount(candidateBlur);
       candidateIndex = -1;
     }
+    const bool blur = d.reason == Reason::Blurry || d.reason == Reason::Lost;
     if (d.kept) {
       if (!jpeg.write(bgr, d.index, error)) {
         s.error = error;
@@ -160,19 +166,14 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       }
       ++s.kept;
       candidateIndex = -1;
-    } else if (d.candidate) {
-      bgr.copyTo(candidate);
-      candidateIndex = d.index;
+    } else {
+      ++(blur ? s.rejectedBlur : s.rejectedOverlap);
+      if (d.candidate) {
+        bgr.copyTo(candidate);
+        candidateIndex = d.index;
+        candidateBlur = blur;
+      }
     }
-    if (!d.kept && !d.candidate) {
-      if (d.reason == Reason::Blurry || d.reason == Reason::Lost)
-        ++s.rejectedBlur;
-      else
-        ++s.rejectedOverlap;
-    } else if (d.candidate) {
-      ++s.rejectedOverlap;  // counted as redundant unless promoted later (below)
-    }
-    if (d.promotedIndex >= 0) --s.rejectedOverlap;
     if (!log.add(d, error)) {
       s.error = error;
       break;
@@ -193,7 +194,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
         log.markGapFill(last);
         ++s.kept;
         ++s.promoted;
-        --s.rejectedOverlap;
+        --(candidateBlur ? s.rejectedBlur : s.rejectedOverlap);
       } else {
         s.error = error;
       }

@@ -41,6 +41,8 @@ def test_select_writes_keyframes_decisions_and_summary(kf_bin: Path, pan_video: 
         summary["kept"] + summary["rejected_blur"] + summary["rejected_overlap"]
         == summary["frames_read"]
     )
+    blur = [r for r in rows if r["kept"] == "0" and r["reason"] in ("blurry", "lost")]
+    assert summary["rejected_blur"] == len(blur)
     assert summary["frames_per_second"] > 0
     assert "keyframes:" in p.stdout and str(out) in p.stdout
     assert not list(out.glob("*.tmp"))
