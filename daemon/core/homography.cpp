@@ -161,27 +161,13 @@ HomographyFit RansacHomography::fit(const std::vector<cv::Point2f>& src,
   inlierMask = bestMask_;
   std::vector<unsigned char>& mask = inlierMask;
   for (int round = 0; round < 2; ++round) {
-    double ata[8][8] = {};
-    double atb[8] = {};
-    int used = 0;
-    for (int i = 0; i < n; ++i) {
-      const auto k = static_cast<std::size_t>(i);
-      if (!mask[k]) continue;
-      ++used;
-      const cv::Point2d p = a_[k], q = b_[k];
-      const double r1[8] = {p.x, p.y, 1, 0, 0, 0, -q.x * p.x, -q.x * p.y};
-      const double r2[8] = {0, 0, 0, p.x, p.y, 1, -q.y * p.x, -q.y * p.y};
-      for (int r = 0; r < 8; ++r) {
-        for (int c = r; c < 8; ++c) ata[r][c] += r1[r] * r1[c] + r2[r] * r2[c];
-        atb[r] += r1[r] * q.x + r2[r] * q.y;
-      }
-    }
-    if (used < 4) break;
-    for (int r = 0; r < 8; ++r)
-      for (int c = 0; c < r; ++c) ata[r][c] = ata[c][r];
-    double h[8];
-    if (!solve8(ata, atb, h)) break;
-    const cv::Matx33d hn(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0);
+    inlierIdx_.clear();
+    for (int i = 0; i < n; ++i)
+      if (mask[static_cast<std::size_t>(i)]) inlierIdx_.push_back(i);
+    cv::Matx33d hn;
+    if (inlierIdx_.size() < 4 || !solveHomography(a_.data(), b_.data(), inlierIdx_.data(),
+                                                  static_cast<int>(inlierIdx_.size()), hn))
+      break;
     const int count = score(hn, bestMask_);
     if (count < bestCount) break;  // keep the better of sample and refit
     bestCount = count;

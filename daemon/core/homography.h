@@ -28,6 +28,7 @@ class RansacHomography {
   std::vector<cv::Point2d> a_;  // normalised src
   std::vector<cv::Point2d> b_;  // normalised dst
   std::vector<unsigned char> bestMask_;
+  std::vector<int> inlierIdx_;
 };
 
 // Solves the 8x8 DLT system for the homography (h33 = 1) through four or more
