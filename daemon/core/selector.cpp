@@ -42,40 +42,33 @@ KeyframeSelector::KeyframeSelector(const SelectorConfig& config, const Clock* cl
       clock_(clock),
       sharpness_(config.blur),
       overlap_(OverlapEstimator::create(config.overlap)),
-      motionHistory_(static_cast<std::size_t>(std::max(1, config.motionWindow)), 0.0),
-      motionScratch_(motionHistory_.size(), 0.0) {}
+      motion_(static_cast<std::size_t>(std::max(1, config.motionWindow))) {}
 
 bool KeyframeSelector::motionTooFast(double motionPx, int analysisWidth) {
-  if (!std::isfinite(motionPx) && !std::isinf(motionPx)) return false;
-  bool fast = false;
-  if (config_.motionRatio > 0.0 && motionFilled_ >= 5) {
-    std::copy_n(motionHistory_.begin(), motionFilled_, motionScratch_.begin());
-    const auto mid = static_cast<std::ptrdiff_t>(motionFilled_ / 4);  // lower quartile
-    std::nth_element(motionScratch_.begin(), motionScratch_.begin() + mid,
-                     motionScratch_.begin() + static_cast<std::ptrdiff_t>(motionFilled_));
-    const double median = motionScratch_[static_cast<std::size_t>(mid)];
-    fast = motionPx > config_.motionRatio * median &&
-           motionPx > config_.motionMinFraction * analysisWidth;
-  }
-  if (std::isfinite(motionPx)) {
-    motionHistory_[motionNext_] = motionPx;
-    motionNext_ = (motionNext_ + 1) % motionHistory_.size();
-    motionFilled_ = std::min(motionFilled_ + 1, motionHistory_.size());
-  }
+  if (std::isnan(motionPx)) return false;  // unknown (no tracking, paper mode)
+  // The lower quartile, not the median: a long manoeuvre must not raise the
+  // reference it is judged against.
+  const bool fast = config_.motionRatio > 0.0 && motion_.size() >= 5 &&
+                    motionPx > config_.motionRatio * motion_.quantile(0.25) &&
+                    motionPx > config_.motionMinFraction * analysisWidth;
+  if (std::isfinite(motionPx)) motion_.push(motionPx);
   return fast;
 }
 
 void KeyframeSelector::reconfigure(const SelectorConfig& config) {
   config_ = config;
   sharpness_ = SharpnessScorer(config.blur);
-  motionHistory_.assign(static_cast<std::size_t>(std::max(1, config.motionWindow)), 0.0);
-  motionScratch_.assign(motionHistory_.size(), 0.0);
-  motionNext_ = 0;
-  motionFilled_ = 0;
+  motion_ = RunningQuantile(static_cast<std::size_t>(std::max(1, config.motionWindow)));
   // A new estimator has no reference: the next sharp frame starts a new chain.
   overlap_ = OverlapEstimator::create(config.overlap);
   haveKeyframe_ = false;
+  clearCandidate();
+}
+
+void KeyframeSelector::clearCandidate() {
   candidateIndex_ = -1;
+  candidateSharpness_ = 0.0;
+  candidateSharp_ = false;
 }
 
 void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
@@ -84,14 +77,14 @@ void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
   d.candidate = false;
   overlap_->setReferenceToCurrent();
   haveKeyframe_ = true;
-  candidateIndex_ = -1;
+  clearCandidate();
   ++keyframes_;
 }
 
 bool KeyframeSelector::promoteCandidate(Decision& d) {
   if (candidateIndex_ < 0) return false;
   d.promotedIndex = candidateIndex_;
-  candidateIndex_ = -1;
+  clearCandidate();
   ++keyframes_;
   return true;
 }

@@ -10,6 +10,7 @@
 
 #include "core/frame.h"
 #include "core/overlap.h"
+#include "core/running_quantile.h"
 #include "core/sharpness.h"
 
 namespace keyframed {
@@ -112,6 +113,7 @@ class KeyframeSelector {
   [[nodiscard]] std::int64_t now() const { return clock_ ? clock_->nowNs() : 0; }
   void keepCurrent(Decision& d, Reason reason);
   bool promoteCandidate(Decision& d);
+  void clearCandidate();
   bool motionTooFast(double motionPx, int analysisWidth);
 
   SelectorConfig config_;
@@ -126,10 +128,7 @@ class KeyframeSelector {
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;
   bool candidateSharp_ = false;
-  std::vector<double> motionHistory_;  // ring of recent frame motions (analysis px)
-  std::vector<double> motionScratch_;
-  std::size_t motionNext_ = 0;
-  std::size_t motionFilled_ = 0;
+  RunningQuantile motion_;  // recent frame motions (analysis px)
 };
 
 }  // namespace keyframed

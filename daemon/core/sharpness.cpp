@@ -151,13 +151,10 @@ std::string SharpnessConfig::validate() const {
 }
 
 SharpnessScorer::SharpnessScorer(const SharpnessConfig& config)
-    : config_(config),
-      history_(static_cast<std::size_t>(std::max(1, config.window)), 0.0),
-      scratch_(history_.size(), 0.0) {}
+    : config_(config), history_(static_cast<std::size_t>(std::max(1, config.window))) {}
 
 void SharpnessScorer::reset() {
-  next_ = 0;
-  filled_ = 0;
+  history_.clear();
 }
 
 double SharpnessScorer::score(GrayView gray) {
@@ -172,19 +169,12 @@ double SharpnessScorer::score(GrayView gray) {
 
 double SharpnessScorer::threshold() const {
   if (config_.mode == BlurMode::Absolute) return config_.absoluteThreshold;
-  if (filled_ < static_cast<std::size_t>(std::max(1, config_.warmup))) return config_.floor;
-  std::copy_n(history_.begin(), filled_, scratch_.begin());
-  const auto k =
-      static_cast<std::size_t>(std::lround(config_.quantile * static_cast<double>(filled_ - 1)));
-  std::nth_element(scratch_.begin(), scratch_.begin() + static_cast<std::ptrdiff_t>(k),
-                   scratch_.begin() + static_cast<std::ptrdiff_t>(filled_));
-  return std::max(config_.floor, config_.ratio * scratch_[k]);
+  if (history_.size() < static_cast<std::size_t>(std::max(1, config_.warmup))) return config_.floor;
+  return std::max(config_.floor, config_.ratio * history_.quantile(config_.quantile));
 }
 
 void SharpnessScorer::observe(double s) {
-  history_[next_] = s;
-  next_ = (next_ + 1) % history_.size();
-  filled_ = std::min(filled_ + 1, history_.size());
+  history_.push(s);
 }
 
 SharpnessScorer::Result SharpnessScorer::evaluate(GrayView gray) {

@@ -6,6 +6,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "core/frame.h"
+#include "core/running_quantile.h"
 
 namespace keyframed {
 
@@ -74,10 +75,7 @@ class SharpnessScorer {
   void observe(double score);
 
   SharpnessConfig config_;
-  std::vector<double> history_;  // ring buffer of recent scores
-  std::size_t next_ = 0;
-  std::size_t filled_ = 0;
-  mutable std::vector<double> scratch_;
+  RunningQuantile history_;  // recent scores
   cv::Mat resized_;
 };
 
