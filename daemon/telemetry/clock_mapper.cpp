@@ -1,0 +1,95 @@
+#include "telemetry/clock_mapper.h"
+
+#include <cmath>
+
+namespace keyframed {
+
+void ClockMapper::observeArrival(std::uint32_t bootMs, std::int64_t localNs) {
+  const std::int64_t offset = localNs - static_cast<std::int64_t>(bootMs) * 1'000'000;
+  // Sliding-window minimum: drop entries that can never be the minimum again.
+  while (!arrivals_.empty() && arrivals_.back().offsetNs >= offset) arrivals_.pop_back();
+  arrivals_.push_back({localNs, offset});
+  while (arrivals_.size() > 1 && arrivals_.front().localNs < localNs - config_.arrivalWindowNs) {
+    arrivals_.pop_front();
+  }
+  lastArrivalNs_ = localNs;
+}
+
+void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
+  const std::int64_t rtt = nowNs - ts1Ns;
+  if (rtt < 0 || tc1Ns <= 0) return;
+  // Forget the best round trip slowly, so a link that got slower is still used.
+  if (bestRttNs_ < 0 || rtt < bestRttNs_) {
+    bestRttNs_ = rtt;
+  } else {
+    bestRttNs_ += (rtt - bestRttNs_) / 64;
+  }
+  if (rtt * 2 > bestRttNs_ * 3 + 1'000'000) return;
+  const std::int64_t offset = ts1Ns + rtt / 2 - tc1Ns;
+  if (!timesyncOffsetNs_ || nowNs - timesyncAtNs_ > config_.timesyncTimeoutNs) {
+    timesyncOffsetNs_ = offset;
+  } else {
+    timesyncOffsetNs_ = *timesyncOffsetNs_ + (offset - *timesyncOffsetNs_) / 4;
+  }
+  timesyncAtNs_ = nowNs;
+}
+
+void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) {
+  if (unixUs == 0) return;  // autopilot without GPS time yet
+  utcMinusBootUs_ = static_cast<std::int64_t>(unixUs) - static_cast<std::int64_t>(bootMs) * 1000;
+}
+
+ClockMapper::Source ClockMapper::source() const {
+  if (timesyncOffsetNs_ && lastArrivalNs_ - timesyncAtNs_ <= config_.timesyncTimeoutNs) {
+    return Source::Timesync;
+  }
+  if (!arrivals_.empty()) return Source::Arrival;
+  if (timesyncOffsetNs_) return Source::Timesync;
+  return Source::None;
+}
+
+std::optional<std::int64_t> ClockMapper::offsetNs() const {
+  switch (source()) {
+    case Source::Timesync:
+      return timesyncOffsetNs_;
+    case Source::Arrival:
+      return arrivals_.front().offsetNs;
+    case Source::None:
+      break;
+  }
+  return std::nullopt;
+}
+
+std::optional<std::int64_t> ClockMapper::toLocalNs(std::int64_t bootNs) const {
+  const auto offset = offsetNs();
+  if (!offset) return std::nullopt;
+  return bootNs + *offset;
+}
+
+std::optional<std::int64_t> ClockMapper::utcUs(std::int64_t localNs) const {
+  const auto offset = offsetNs();
+  if (!offset || !utcMinusBootUs_) return std::nullopt;
+  const std::int64_t bootNs = localNs - *offset;
+  // Round to the nearest microsecond, also for negative values.
+  const std::int64_t bootUs =
+      bootNs >= 0 ? (bootNs + 500) / 1000 : -((-bootNs + 500) / 1000);
+  return bootUs + *utcMinusBootUs_;
+}
+
+double ClockMapper::bestRoundTripMs() const {
+  return bestRttNs_ < 0 ? NAN : static_cast<double>(bestRttNs_) / 1e6;
+}
+
+const char* toString(ClockMapper::Source source) {
+  switch (source) {
+    case ClockMapper::Source::Timesync:
+      return "timesync";
+    case ClockMapper::Source::Arrival:
+      return "arrival";
+    case ClockMapper::Source::None:
+      break;
+  }
+  return "none";
+}
+
+}  // namespace keyframed

@@ -1,0 +1,63 @@
+#pragma once
+
+#include <cstdint>
+#include <deque>
+#include <optional>
+
+namespace keyframed {
+
+// Maps the autopilot's clock (time_boot_ms) onto the companion's clock (the one
+// frames are stamped with) and onto UTC.
+//
+// Two estimates of offset = local - autopilot:
+//  - TIMESYNC: the companion sends ts1 = local time, the autopilot answers with its
+//    own time tc1; offset = (ts1 + now) / 2 - tc1, good to half the round trip.
+//    Samples with a round trip above 1.5x the best recent one are ignored.
+//  - arrival: every timestamped message arrives after it was stamped, so
+//    min(arrival - time_boot_ms) over a sliding window is the offset plus the
+//    smallest latency seen. Used while TIMESYNC is not answered.
+// SYSTEM_TIME gives UTC for the autopilot's clock.
+class ClockMapper {
+ public:
+  enum class Source { None, Arrival, Timesync };
+
+  struct Config {
+    std::int64_t arrivalWindowNs = 10'000'000'000;   // sliding window of the min filter
+    std::int64_t timesyncTimeoutNs = 5'000'000'000;  // fall back to arrival after this
+  };
+
+  ClockMapper() = default;
+  explicit ClockMapper(Config config) : config_(config) {}
+
+  void observeArrival(std::uint32_t bootMs, std::int64_t localNs);
+  // tc1: autopilot time (ns), ts1: our time echoed (ns), nowNs: local arrival.
+  void observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs);
+  void observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs);
+
+  // Autopilot time (ns since its boot) -> local ns; empty until an estimate exists.
+  [[nodiscard]] std::optional<std::int64_t> toLocalNs(std::int64_t bootNs) const;
+  // Local ns -> UTC unix microseconds; empty until SYSTEM_TIME and an offset are known.
+  [[nodiscard]] std::optional<std::int64_t> utcUs(std::int64_t localNs) const;
+
+  [[nodiscard]] Source source() const;
+  [[nodiscard]] std::optional<std::int64_t> offsetNs() const;  // local - autopilot
+  [[nodiscard]] double bestRoundTripMs() const;                // NaN without TIMESYNC
+
+ private:
+  struct Arrival {
+    std::int64_t localNs;
+    std::int64_t offsetNs;
+  };
+
+  Config config_;
+  std::deque<Arrival> arrivals_;  // monotonic deque: offsets increasing from front
+  std::int64_t lastArrivalNs_ = 0;
+  std::optional<std::int64_t> timesyncOffsetNs_;
+  std::int64_t timesyncAtNs_ = 0;
+  std::int64_t bestRttNs_ = -1;
+  std::optional<std::int64_t> utcMinusBootUs_;
+};
+
+const char* toString(ClockMapper::Source source);
+
+}  // namespace keyframed

@@ -1,0 +1,44 @@
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+namespace keyframed {
+
+// A byte link to the autopilot. One reader thread calls read(); write() may be
+// called from the same thread only (the camera component runs on it).
+class MavlinkLink {
+ public:
+  enum class Status { Data, Timeout, End, Error };
+
+  virtual ~MavlinkLink() = default;
+
+  // Waits up to timeoutMs for bytes. On Data, size holds the byte count and
+  // timeNs the arrival time (CLOCK_MONOTONIC, or the tlog's record time).
+  virtual Status read(std::uint8_t* buffer, std::size_t capacity, std::size_t& size,
+                      std::int64_t& timeNs, int timeoutMs, std::string& error) = 0;
+  // Sends a packet; false when there is no peer yet or the link failed.
+  virtual bool write(const std::uint8_t* data, std::size_t size, std::string& error) = 0;
+  // Reopens after an error (a serial device unplugged and plugged back in).
+  virtual bool reopen(std::string& error) = 0;
+  // Replay links deliver recorded times and have an end.
+  [[nodiscard]] virtual bool isReplay() const { return false; }
+  [[nodiscard]] virtual std::string describe() const = 0;
+};
+
+// Opens a link from a URL:
+//   udpin:HOST:PORT       listen (answers the last sender)
+//   udpout:HOST:PORT      send to HOST:PORT (we speak first)
+//   serial:DEVICE[:BAUD]  e.g. serial:/dev/ttyAMA0:921600 (default 57600)
+//   tlog:PATH             a MAVLink tlog, replayed with its recorded timestamps
+// (a bare path ending in .tlog means tlog:PATH, a bare /dev/... means serial).
+std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string& error);
+
+// Validates a link URL without opening it (configuration checks).
+bool parseMavlinkUrl(const std::string& url, std::string& error);
+
+std::int64_t monotonicNowNs();
+
+}  // namespace keyframed

@@ -1,0 +1,32 @@
+#include "telemetry/mavlink_codec.h"
+
+namespace keyframed {
+
+MavlinkParser::MavlinkParser() = default;
+
+bool MavlinkParser::parseByte(std::uint8_t byte) {
+  ++stats_.bytes;
+  const std::uint8_t stateBefore = status_.parse_state;
+  const std::uint8_t result =
+      mavlink_frame_char_buffer(&rx_, &status_, byte, &message_, &messageStatus_);
+  if (result == MAVLINK_FRAMING_OK) {
+    ++stats_.messages;
+    if (message_.magic == MAVLINK_STX_MAVLINK1) ++stats_.mavlink1;
+    return true;
+  }
+  if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE) {
+    ++stats_.rejected;
+  } else if (stateBefore == MAVLINK_PARSE_STATE_IDLE &&
+             status_.parse_state == MAVLINK_PARSE_STATE_IDLE) {
+    ++stats_.skippedBytes;  // not a start byte: noise between frames
+  }
+  return false;
+}
+
+MavlinkEncoder::MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1)
+    : systemId_(systemId), componentId_(componentId) {
+  if (mavlink1) status_.flags |= MAVLINK_STATUS_FLAG_OUT_MAVLINK1;
+  out_.reserve(MAVLINK_MAX_PACKET_LEN);
+}
+
+}  // namespace keyframed

@@ -1,0 +1,76 @@
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+// Generated at build time by mavgen (see daemon/CMakeLists.txt); never committed.
+#include <common/mavlink.h>
+
+namespace keyframed {
+
+// Counts of what a parser saw on a link. "Rejected" frames had a good start byte
+// but a bad checksum, an unknown message id (its CRC_EXTRA is unknown, so it cannot
+// be checked) or a bad signature; bytes between frames are "skipped".
+struct ParserStats {
+  std::uint64_t bytes = 0;
+  std::uint64_t messages = 0;
+  std::uint64_t rejected = 0;
+  std::uint64_t skippedBytes = 0;
+  std::uint64_t mavlink1 = 0;  // of `messages`, how many were MAVLink 1 frames
+};
+
+// Byte-stream MAVLink 1/2 parser with its own state (no global channel table), so
+// several links parse in parallel. Garbage never stops it: it resynchronises on
+// the next start byte.
+class MavlinkParser {
+ public:
+  MavlinkParser();
+
+  // Feeds bytes; calls onMessage(const mavlink_message_t&) for each good frame.
+  template <typename Fn>
+  void feed(const std::uint8_t* data, std::size_t size, Fn&& onMessage) {
+    for (std::size_t i = 0; i < size; ++i) {
+      if (parseByte(data[i])) onMessage(message_);
+    }
+  }
+
+  [[nodiscard]] const ParserStats& stats() const { return stats_; }
+
+ private:
+  bool parseByte(std::uint8_t byte);
+
+  mavlink_message_t rx_{};
+  mavlink_status_t status_{};
+  mavlink_message_t message_{};
+  mavlink_status_t messageStatus_{};
+  ParserStats stats_;
+};
+
+// Encodes outgoing messages of one component with its own sequence counter.
+class MavlinkEncoder {
+ public:
+  MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1 = false);
+
+  // Fills `msg` via fn(systemId, componentId, status*, msg*) (a mavgen
+  // *_encode_status/_pack_status function) and serialises it into `out`.
+  template <typename Fn>
+  const std::vector<std::uint8_t>& encode(Fn&& fn) {
+    mavlink_message_t msg{};
+    fn(systemId_, componentId_, &status_, &msg);
+    out_.resize(MAVLINK_MAX_PACKET_LEN);
+    out_.resize(mavlink_msg_to_send_buffer(out_.data(), &msg));
+    return out_;
+  }
+
+  [[nodiscard]] std::uint8_t systemId() const { return systemId_; }
+  [[nodiscard]] std::uint8_t componentId() const { return componentId_; }
+
+ private:
+  std::uint8_t systemId_;
+  std::uint8_t componentId_;
+  mavlink_status_t status_{};
+  std::vector<std::uint8_t> out_;
+};
+
+}  // namespace keyframed

@@ -1,0 +1,73 @@
+#pragma once
+
+#include <cstdint>
+#include <deque>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "telemetry/pose.h"
+
+namespace keyframed {
+
+// Thread-safe, time-indexed history of the vehicle's attitude, position and GPS
+// state on one timeline (the autopilot's clock, in ns). The telemetry thread adds
+// samples; the output thread asks for the pose at a frame's time: attitude by
+// slerp, position linearly, between the two samples around that time. A pose part
+// is only given when samples lie close enough on both sides (or, past the newest
+// sample, when that sample is recent enough); otherwise it is absent and the
+// reason is said: a keyframe is never tagged with a fabricated position.
+class PoseStore {
+ public:
+  struct Config {
+    std::int64_t historyNs = 120'000'000'000;        // keep this much history
+    std::int64_t maxAttitudeGapNs = 250'000'000;     // max spacing of the samples used
+    std::int64_t maxPositionGapNs = 1'500'000'000;
+    std::int64_t maxHoldNs = 150'000'000;            // past the newest sample: hold this long
+    int minFixType = 3;                              // GPS_FIX_TYPE_3D_FIX
+  };
+
+  PoseStore() = default;
+  explicit PoseStore(Config config) : config_(config) {}
+
+  void addAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
+  void addPosition(std::int64_t timeNs, const GeoPosition& position);
+  void addGps(std::int64_t timeNs, const GpsQuality& gps);
+  void clear();
+
+  // The pose at timeNs (same timeline as the samples). Pose::timeNs = timeNs;
+  // utcUs is left for the caller, who knows the clocks.
+  [[nodiscard]] Pose at(std::int64_t timeNs) const;
+
+  // True when samples newer than timeNs exist for attitude and position (or the
+  // store will never get them): the caller may query without waiting for more.
+  [[nodiscard]] bool covers(std::int64_t timeNs) const;
+  [[nodiscard]] std::optional<std::int64_t> newestNs() const;
+  [[nodiscard]] std::size_t size() const;
+
+ private:
+  template <typename T>
+  struct Sample {
+    std::int64_t timeNs;
+    T value;
+  };
+  template <typename T>
+  static void append(std::deque<Sample<T>>& q, std::int64_t timeNs, const T& value,
+                     std::int64_t historyNs);
+
+  Config config_;
+  mutable std::mutex mutex_;
+  std::deque<Sample<Quaternion>> attitude_;
+  std::deque<Sample<GeoPosition>> position_;
+  std::deque<Sample<GpsQuality>> gps_;
+};
+
+// Spherical linear interpolation between unit quaternions (shortest path).
+Quaternion slerp(const Quaternion& a, const Quaternion& b, double t);
+Quaternion normalized(const Quaternion& q);
+// ZYX (yaw, pitch, roll) aeronautical Euler angles in radians -> body->NED quaternion.
+Quaternion quaternionFromEuler(double roll, double pitch, double yaw);
+// Angle between two attitudes in radians.
+double angleBetween(const Quaternion& a, const Quaternion& b);
+
+}  // namespace keyframed

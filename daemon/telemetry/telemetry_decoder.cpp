@@ -1,0 +1,175 @@
+#include "telemetry/telemetry_decoder.h"
+
+namespace keyframed {
+
+namespace {
+constexpr std::int64_t kMs = 1'000'000;
+}
+
+TelemetryDecoder::TelemetryDecoder(TelemetryConfig config)
+    : config_(config),
+      clock_(config.clock),
+      store_(config.store),
+      system_(config.autopilotSystem),
+      component_(config.autopilotComponent) {}
+
+bool TelemetryDecoder::accept(const mavlink_message_t& msg) {
+  if (system_ == 0 || component_ == 0) {
+    // Lock onto the first autopilot that says so in its HEARTBEAT.
+    if (msg.msgid != MAVLINK_MSG_ID_HEARTBEAT) return false;
+    mavlink_heartbeat_t hb;
+    mavlink_msg_heartbeat_decode(&msg, &hb);
+    if (hb.autopilot == MAV_AUTOPILOT_INVALID || hb.type == MAV_TYPE_GCS ||
+        hb.type == MAV_TYPE_CAMERA || hb.type == MAV_TYPE_GIMBAL) {
+      return false;
+    }
+    if (system_ != 0 && msg.sysid != system_) return false;
+    if (component_ != 0 && msg.compid != component_) return false;
+    system_ = msg.sysid;
+    component_ = msg.compid;
+    return true;
+  }
+  return msg.sysid == system_ && msg.compid == component_;
+}
+
+void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localNs) {
+  // A clock that jumps back by more than a few seconds means the autopilot rebooted.
+  if (lastBootMs_ >= 0 && static_cast<std::int64_t>(bootMs) + 5000 < lastBootMs_) {
+    store_.clear();
+    clock_ = ClockMapper(config_.clock);
+    ++stats_.reboots;
+  }
+  lastBootMs_ = bootMs;
+  clock_.observeArrival(bootMs, localNs);
+}
+
+void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs) {
+  std::lock_guard lock(mutex_);
+  if (!accept(msg)) {
+    ++stats_.otherSources;
+    return;
+  }
+  ++stats_.accepted;
+  switch (msg.msgid) {
+    case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
+      mavlink_attitude_quaternion_t a;
+      mavlink_msg_attitude_quaternion_decode(&msg, &a);
+      observeBootTime(a.time_boot_ms, localNs);
+      lastQuaternionNs_ = localNs;
+      store_.addAttitude(a.time_boot_ms * kMs, {a.q1, a.q2, a.q3, a.q4});
+      ++stats_.attitude;
+      break;
+    }
+    case MAVLINK_MSG_ID_ATTITUDE: {
+      mavlink_attitude_t a;
+      mavlink_msg_attitude_decode(&msg, &a);
+      observeBootTime(a.time_boot_ms, localNs);
+      // Both streams describe the same estimate; the quaternion has no gimbal lock.
+      if (lastQuaternionNs_ >= 0 && localNs - lastQuaternionNs_ < 2000 * kMs) break;
+      store_.addAttitude(a.time_boot_ms * kMs, quaternionFromEuler(a.roll, a.pitch, a.yaw));
+      ++stats_.attitude;
+      break;
+    }
+    case MAVLINK_MSG_ID_GLOBAL_POSITION_INT: {
+      mavlink_global_position_int_t p;
+      mavlink_msg_global_position_int_decode(&msg, &p);
+      observeBootTime(p.time_boot_ms, localNs);
+      GeoPosition g;
+      g.latDeg = p.lat * 1e-7;
+      g.lonDeg = p.lon * 1e-7;
+      g.altAmslM = p.alt * 1e-3;
+      g.altRelM = p.relative_alt * 1e-3;
+      store_.addPosition(p.time_boot_ms * kMs, g);
+      ++stats_.position;
+      break;
+    }
+    case MAVLINK_MSG_ID_GPS_RAW_INT: {
+      mavlink_gps_raw_int_t r;
+      mavlink_msg_gps_raw_int_decode(&msg, &r);
+      GpsQuality q;
+      q.fixType = r.fix_type;
+      q.satellites = r.satellites_visible == 255 ? -1 : r.satellites_visible;
+      q.hdop = r.eph == UINT16_MAX ? NAN : r.eph / 100.0;
+      q.vdop = r.epv == UINT16_MAX ? NAN : r.epv / 100.0;
+      // h_acc/v_acc are MAVLink 2 extensions (mm); 0 in MAVLink 1 frames = unknown.
+      q.hAccuracyM = r.h_acc == 0 ? NAN : r.h_acc / 1000.0;
+      q.vAccuracyM = r.v_acc == 0 ? NAN : r.v_acc / 1000.0;
+      // time_usec is UTC or boot time depending on the autopilot: stamp GPS state
+      // with the newest boot time instead, it changes slowly.
+      const std::int64_t t = lastBootMs_ >= 0 ? lastBootMs_ * kMs : 0;
+      store_.addGps(t, q);
+      ++stats_.gps;
+      break;
+    }
+    case MAVLINK_MSG_ID_SYSTEM_TIME: {
+      mavlink_system_time_t s;
+      mavlink_msg_system_time_decode(&msg, &s);
+      observeBootTime(s.time_boot_ms, localNs);
+      clock_.observeSystemTime(s.time_unix_usec, s.time_boot_ms);
+      break;
+    }
+    default:
+      break;
+  }
+}
+
+void TelemetryDecoder::handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
+  std::lock_guard lock(mutex_);
+  clock_.observeTimesync(tc1Ns, ts1Ns, nowNs);
+}
+
+Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
+  std::optional<std::int64_t> offset;
+  std::optional<std::int64_t> utc;
+  {
+    std::lock_guard lock(mutex_);
+    offset = clock_.offsetNs();
+    utc = clock_.utcUs(localNs);
+  }
+  if (!offset) {
+    Pose p;
+    p.timeNs = localNs;
+    p.staleReason = "no telemetry";
+    return p;
+  }
+  Pose p = store_.at(localNs - *offset);
+  p.timeNs = localNs;
+  p.utcUs = utc;
+  return p;
+}
+
+bool TelemetryDecoder::covers(std::int64_t localNs) const {
+  std::optional<std::int64_t> offset;
+  {
+    std::lock_guard lock(mutex_);
+    offset = clock_.offsetNs();
+  }
+  return offset && store_.covers(localNs - *offset);
+}
+
+TelemetryStats TelemetryDecoder::stats() const {
+  std::lock_guard lock(mutex_);
+  return stats_;
+}
+
+ClockMapper::Source TelemetryDecoder::clockSource() const {
+  std::lock_guard lock(mutex_);
+  return clock_.source();
+}
+
+std::optional<std::int64_t> TelemetryDecoder::clockOffsetNs() const {
+  std::lock_guard lock(mutex_);
+  return clock_.offsetNs();
+}
+
+int TelemetryDecoder::autopilotSystem() const {
+  std::lock_guard lock(mutex_);
+  return system_;
+}
+
+int TelemetryDecoder::autopilotComponent() const {
+  std::lock_guard lock(mutex_);
+  return component_;
+}
+
+}  // namespace keyframed

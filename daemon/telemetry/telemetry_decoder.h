@@ -1,0 +1,67 @@
+#pragma once
+
+#include <cstdint>
+#include <mutex>
+#include <string>
+
+#include "telemetry/clock_mapper.h"
+#include "telemetry/mavlink_codec.h"
+#include "telemetry/pose_store.h"
+
+namespace keyframed {
+
+struct TelemetryConfig {
+  int autopilotSystem = 0;     // 0: the first system whose HEARTBEAT names an autopilot
+  int autopilotComponent = 0;  // 0: that system's first autopilot component
+  PoseStore::Config store;
+  ClockMapper::Config clock;
+};
+
+struct TelemetryStats {
+  std::uint64_t accepted = 0;      // messages from the chosen autopilot
+  std::uint64_t otherSources = 0;  // messages from other systems/components
+  std::uint64_t attitude = 0;
+  std::uint64_t position = 0;
+  std::uint64_t gps = 0;
+  std::uint64_t reboots = 0;  // time_boot_ms went backwards: history cleared
+};
+
+// Turns the autopilot's messages into pose history and clock mapping. Thread-safe:
+// the telemetry thread calls handle(); any thread calls poseAt().
+class TelemetryDecoder {
+ public:
+  explicit TelemetryDecoder(TelemetryConfig config = {});
+
+  // msg arrived at localNs (the companion clock, or the tlog's record time).
+  void handle(const mavlink_message_t& msg, std::int64_t localNs);
+  // Our TIMESYNC request's answer (handled by the camera component).
+  void handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs);
+
+  // The pose at a frame time on the companion clock, with UTC when known. Empty
+  // attitude/position with staleReason when telemetry cannot tell.
+  [[nodiscard]] Pose poseAt(std::int64_t localNs) const;
+  // True when telemetry newer than localNs has arrived (no need to wait more).
+  [[nodiscard]] bool covers(std::int64_t localNs) const;
+
+  [[nodiscard]] TelemetryStats stats() const;
+  [[nodiscard]] ClockMapper::Source clockSource() const;
+  [[nodiscard]] std::optional<std::int64_t> clockOffsetNs() const;
+  [[nodiscard]] int autopilotSystem() const;
+  [[nodiscard]] int autopilotComponent() const;
+
+ private:
+  bool accept(const mavlink_message_t& msg);
+  void observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
+
+  TelemetryConfig config_;
+  mutable std::mutex mutex_;  // guards everything but store_ (which has its own)
+  ClockMapper clock_;
+  PoseStore store_;
+  TelemetryStats stats_;
+  int system_ = 0;
+  int component_ = 0;
+  std::int64_t lastBootMs_ = -1;
+  std::int64_t lastQuaternionNs_ = -1;  // ATTITUDE_QUATERNION seen: ignore ATTITUDE
+};
+
+}  // namespace keyframed

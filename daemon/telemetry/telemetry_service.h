@@ -1,0 +1,107 @@
+#pragma once
+
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+
+#include "telemetry/link.h"
+#include "telemetry/mavlink_codec.h"
+#include "telemetry/telemetry_decoder.h"
+
+namespace keyframed {
+
+// What the camera component says about itself (CAMERA_INFORMATION).
+struct CameraDescription {
+  std::string vendor = "keyframed";
+  std::string model = "camera";
+  float focalLengthMm = NAN;  // NaN where unknown, never 0
+  float sensorWidthMm = NAN;
+  float sensorHeightMm = NAN;
+  int width = 0;
+  int height = 0;
+};
+
+// One keyframe, reported to the autopilot as CAMERA_IMAGE_CAPTURED.
+struct CaptureReport {
+  std::int64_t timeNs = 0;  // frame time, companion clock
+  std::int32_t imageIndex = 0;
+  Pose pose;                                 // position used when present
+  std::optional<Quaternion> cameraAttitude;  // camera -> NED
+  std::string fileUrl;
+};
+
+struct TelemetryServiceConfig {
+  std::string url;           // see openMavlinkLink()
+  int systemId = 0;          // our system id; 0: the autopilot's once known (else 1)
+  int componentId = 100;     // MAV_COMP_ID_CAMERA
+  bool timesync = true;      // send TIMESYNC requests (1 Hz)
+  bool camera = true;        // act as a MAVLink camera component
+  bool mavlink1 = false;     // send MAVLink 1 frames
+  TelemetryConfig decoder;
+};
+
+struct TelemetryServiceStats {
+  ParserStats parser;
+  TelemetryStats decoder;
+  std::uint64_t linkErrors = 0;
+  std::uint64_t reconnects = 0;
+  std::uint64_t capturesSent = 0;
+  std::uint64_t infoSent = 0;
+  bool replayDone = false;
+  bool truncated = false;
+};
+
+// The telemetry thread: reads the link, feeds the decoder, and speaks for the
+// camera (HEARTBEAT, TIMESYNC, CAMERA_INFORMATION on request, CAMERA_IMAGE_CAPTURED).
+// A replay link (tlog) is read to its end at start() instead, with its own times.
+class TelemetryService {
+ public:
+  TelemetryService(TelemetryServiceConfig config, CameraDescription camera);
+  ~TelemetryService();
+  TelemetryService(const TelemetryService&) = delete;
+  TelemetryService& operator=(const TelemetryService&) = delete;
+
+  bool start(std::string& error);
+  void stop();
+
+  [[nodiscard]] const TelemetryDecoder& decoder() const { return decoder_; }
+  [[nodiscard]] bool isReplay() const { return replay_; }
+  // Queues a capture report; the telemetry thread sends it. Thread-safe.
+  void reportCapture(const CaptureReport& report);
+  [[nodiscard]] TelemetryServiceStats stats() const;
+
+ private:
+  void run();
+  void onMessage(const mavlink_message_t& msg, std::int64_t timeNs);
+  void send(const std::vector<std::uint8_t>& bytes);
+  void sendHeartbeat();
+  void sendTimesync(std::int64_t nowNs);
+  void sendCameraInformation();
+  void sendCommandAck(std::uint16_t command, std::uint8_t result, std::uint8_t targetSys,
+                      std::uint8_t targetComp);
+  void sendCapture(const CaptureReport& report);
+  std::uint32_t bootMs() const;
+  std::uint8_t systemId() const;
+
+  TelemetryServiceConfig config_;
+  CameraDescription camera_;
+  TelemetryDecoder decoder_;
+  std::unique_ptr<MavlinkLink> link_;
+  MavlinkParser parser_;
+  std::unique_ptr<MavlinkEncoder> encoder_;
+  std::thread thread_;
+  std::atomic<bool> stop_{false};
+  bool replay_ = false;
+  std::int64_t startNs_ = 0;
+
+  mutable std::mutex mutex_;  // guards queue_ and stats_
+  std::deque<CaptureReport> queue_;
+  TelemetryServiceStats stats_;
+};
+
+}  // namespace keyframed

@@ -1,0 +1,90 @@
+#include "telemetry/tlog.h"
+
+namespace keyframed {
+
+namespace {
+constexpr int kStx1 = 0xFE;
+constexpr int kStx2 = 0xFD;
+// Plausible record times: 2000-01-01 .. 2100-01-01 in unix microseconds.
+constexpr std::uint64_t kMinUs = 946684800ULL * 1000000ULL;
+constexpr std::uint64_t kMaxUs = 4102444800ULL * 1000000ULL;
+}  // namespace
+
+TlogReader::~TlogReader() {
+  if (file_ != nullptr) std::fclose(file_);
+}
+
+bool TlogReader::open(const std::string& path, std::string& error) {
+  file_ = std::fopen(path.c_str(), "rb");
+  if (file_ == nullptr) {
+    error = "cannot open telemetry log " + path;
+    return false;
+  }
+  // Check the first record looks like a tlog.
+  std::uint8_t head[9];
+  if (std::fread(head, 1, 9, file_) != 9) {
+    error = path + " is not a MAVLink tlog (too short)";
+    return false;
+  }
+  std::uint64_t us = 0;
+  for (int i = 0; i < 8; ++i) us = (us << 8) | head[i];
+  if (us < kMinUs || us > kMaxUs || (head[8] != kStx1 && head[8] != kStx2)) {
+    error = path + " is not a MAVLink tlog (no timestamped packet at its start)";
+    return false;
+  }
+  std::rewind(file_);
+  return true;
+}
+
+bool TlogReader::next(std::int64_t& unixNs, std::vector<std::uint8_t>& packet) {
+  if (file_ == nullptr) return false;
+  std::uint8_t head[8];
+  for (;;) {
+    const std::size_t got = std::fread(head, 1, 8, file_);
+    if (got < 8) {
+      truncated_ = truncated_ || got > 0;
+      return false;
+    }
+    std::uint64_t us = 0;
+    for (std::uint8_t b : head) us = (us << 8) | b;
+    const int stx = std::fgetc(file_);
+    if (stx == EOF) {
+      truncated_ = true;
+      return false;
+    }
+    if (us < kMinUs || us > kMaxUs || (stx != kStx1 && stx != kStx2)) {
+      // Not a record boundary: slide one byte and look again.
+      ++resyncedBytes_;
+      std::fseek(file_, -8, SEEK_CUR);
+      continue;
+    }
+    const int len = std::fgetc(file_);
+    if (len == EOF) {
+      truncated_ = true;
+      return false;
+    }
+    std::size_t rest = 0;  // bytes after STX and LEN
+    if (stx == kStx1) {
+      rest = 4 + static_cast<std::size_t>(len) + 2;
+    } else {
+      const int incompat = std::fgetc(file_);
+      if (incompat == EOF) {
+        truncated_ = true;
+        return false;
+      }
+      std::ungetc(incompat, file_);
+      rest = 8 + static_cast<std::size_t>(len) + 2 + ((incompat & 0x01) != 0 ? 13 : 0);
+    }
+    packet.resize(2 + rest);
+    packet[0] = static_cast<std::uint8_t>(stx);
+    packet[1] = static_cast<std::uint8_t>(len);
+    if (std::fread(packet.data() + 2, 1, rest, file_) != rest) {
+      truncated_ = true;
+      return false;
+    }
+    unixNs = static_cast<std::int64_t>(us) * 1000;
+    return true;
+  }
+}
+
+}  // namespace keyframed

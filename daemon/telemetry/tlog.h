@@ -1,0 +1,33 @@
+#pragma once
+
+#include <cstdint>
+#include <cstdio>
+#include <string>
+#include <vector>
+
+namespace keyframed {
+
+// A MAVLink telemetry log (.tlog) as QGroundControl and MAVProxy write it: each
+// record is an 8-byte big-endian UNIX time in microseconds followed by one packet.
+// Packets are framed by their own length field; a record cut short at the end of
+// the file is reported as truncated, not as an error.
+class TlogReader {
+ public:
+  TlogReader() = default;
+  ~TlogReader();
+  TlogReader(const TlogReader&) = delete;
+  TlogReader& operator=(const TlogReader&) = delete;
+
+  bool open(const std::string& path, std::string& error);
+  // Next record: its time (unix ns) and packet bytes. False at the end.
+  bool next(std::int64_t& unixNs, std::vector<std::uint8_t>& packet);
+  [[nodiscard]] bool truncated() const { return truncated_; }
+  [[nodiscard]] std::uint64_t resyncedBytes() const { return resyncedBytes_; }
+
+ private:
+  std::FILE* file_ = nullptr;
+  bool truncated_ = false;
+  std::uint64_t resyncedBytes_ = 0;
+};
+
+}  // namespace keyframed

@@ -1,0 +1,299 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <vector>
+
+#include "telemetry/clock_mapper.h"
+#include "telemetry/link.h"
+#include "telemetry/mavlink_codec.h"
+#include "telemetry/pose_store.h"
+#include "telemetry/telemetry_decoder.h"
+#include "telemetry/tlog.h"
+
+namespace keyframed {
+namespace {
+
+constexpr std::int64_t kMs = 1'000'000;
+constexpr double kDeg = M_PI / 180.0;
+
+std::vector<std::uint8_t> heartbeat(MavlinkEncoder& enc, std::uint8_t type, std::uint8_t autopilot) {
+  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+    mavlink_msg_heartbeat_pack_status(s, c, st, m, type, autopilot, 0, 0, MAV_STATE_ACTIVE);
+  });
+}
+
+std::vector<std::uint8_t> attitudeQ(MavlinkEncoder& enc, std::uint32_t bootMs, const Quaternion& q) {
+  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+    const float qq[4] = {static_cast<float>(q.w), static_cast<float>(q.x), static_cast<float>(q.y),
+                         static_cast<float>(q.z)};
+    mavlink_msg_attitude_quaternion_pack_status(s, c, st, m, bootMs, qq[0], qq[1], qq[2], qq[3], 0,
+                                                0, 0, nullptr);
+  });
+}
+
+std::vector<std::uint8_t> position(MavlinkEncoder& enc, std::uint32_t bootMs, double lat,
+                                   double lon, double alt) {
+  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+    mavlink_msg_global_position_int_pack_status(
+        s, c, st, m, bootMs, static_cast<std::int32_t>(std::lround(lat * 1e7)),
+        static_cast<std::int32_t>(std::lround(lon * 1e7)),
+        static_cast<std::int32_t>(std::lround(alt * 1e3)), 30000, 0, 0, 0, 0);
+  });
+}
+
+std::vector<std::uint8_t> gpsRaw(MavlinkEncoder& enc, std::uint8_t fix) {
+  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+    mavlink_msg_gps_raw_int_pack_status(s, c, st, m, 0, fix, 0, 0, 0, 80, 120, 0, 0, 14, 0, 800,
+                                        1200, 0, 0, 0);
+  });
+}
+
+TEST(PoseStore, InterpolatesAttitudeBySlerpAndPositionLinearly) {
+  PoseStore store;
+  const Quaternion a = quaternionFromEuler(0, 0, 10 * kDeg);
+  const Quaternion b = quaternionFromEuler(0, 0, 30 * kDeg);
+  store.addAttitude(1000 * kMs, a);
+  store.addAttitude(1020 * kMs, b);
+  GpsQuality fix;
+  fix.fixType = 3;
+  store.addGps(900 * kMs, fix);
+  store.addPosition(900 * kMs, {51.0, 1.0, 100.0, 10.0});
+  store.addPosition(1100 * kMs, {51.0002, 1.0004, 102.0, 12.0});
+
+  const Pose p = store.at(1015 * kMs);
+  ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 25 * kDeg)), 0.0, 1e-9);
+  // 1015 ms lies 57.5 % of the way from 900 to 1100 ms.
+  EXPECT_NEAR(p.position->latDeg, 51.000115, 1e-12);
+  EXPECT_NEAR(p.position->lonDeg, 1.00023, 1e-12);
+  EXPECT_NEAR(p.position->altAmslM, 101.15, 1e-9);
+  EXPECT_TRUE(p.staleReason.empty());
+}
+
+TEST(PoseStore, SaysStaleInsteadOfInventingAPose) {
+  PoseStore::Config cfg;
+  PoseStore store(cfg);
+  GpsQuality fix;
+  fix.fixType = 3;
+  store.addGps(0, fix);
+  store.addAttitude(0, Quaternion{});
+  store.addPosition(0, {1, 2, 3, 4});
+  // Past the newest sample by more than the hold limit.
+  Pose p = store.at(cfg.maxHoldNs + 10 * kMs);
+  EXPECT_FALSE(p.attitude.has_value());
+  EXPECT_FALSE(p.position.has_value());
+  EXPECT_NE(p.staleReason.find("stale"), std::string::npos) << p.staleReason;
+  // Within the hold limit: the last sample is used.
+  p = store.at(cfg.maxHoldNs / 2);
+  EXPECT_TRUE(p.attitude.has_value());
+  // A hole in the samples wider than the gap limit.
+  store.addAttitude(2000 * kMs, Quaternion{});
+  p = store.at(1000 * kMs);
+  EXPECT_FALSE(p.attitude.has_value());
+  EXPECT_NE(p.staleReason.find("gap"), std::string::npos) << p.staleReason;
+  // Before the first sample.
+  p = store.at(-5 * kMs);
+  EXPECT_FALSE(p.attitude.has_value());
+}
+
+TEST(PoseStore, NoFixMeansNoPosition) {
+  PoseStore store;
+  GpsQuality nofix;
+  nofix.fixType = 1;
+  store.addGps(0, nofix);
+  store.addAttitude(0, Quaternion{});
+  store.addAttitude(100 * kMs, Quaternion{});
+  store.addPosition(0, {1, 2, 3, 4});
+  store.addPosition(100 * kMs, {1, 2, 3, 4});
+  const Pose p = store.at(50 * kMs);
+  EXPECT_TRUE(p.attitude.has_value());
+  EXPECT_FALSE(p.position.has_value());
+  EXPECT_NE(p.staleReason.find("no GPS fix"), std::string::npos) << p.staleReason;
+}
+
+TEST(PoseStore, SlerpTakesTheShortWay) {
+  const Quaternion a = quaternionFromEuler(0, 0, 179 * kDeg);
+  const Quaternion b = quaternionFromEuler(0, 0, -179 * kDeg);
+  const Quaternion m = slerp(a, b, 0.5);
+  EXPECT_NEAR(angleBetween(m, quaternionFromEuler(0, 0, 180 * kDeg)), 0.0, 1e-9);
+}
+
+TEST(ClockMapper, ArrivalMinimumFindsTheOffsetUnderJitter) {
+  ClockMapper clock;
+  std::mt19937 rng(3);
+  std::exponential_distribution<double> latency(1.0 / 3e6);  // mean 3 ms
+  const std::int64_t trueOffset = 5'000'000'000'123;
+  for (int i = 0; i < 500; ++i) {
+    const std::uint32_t boot = 100'000 + static_cast<std::uint32_t>(i * 20);
+    const auto lat = static_cast<std::int64_t>(latency(rng)) + 200'000;  // >= 0.2 ms
+    clock.observeArrival(boot, boot * kMs + trueOffset + lat);
+  }
+  ASSERT_EQ(clock.source(), ClockMapper::Source::Arrival);
+  const std::int64_t err = *clock.offsetNs() - trueOffset;
+  EXPECT_GE(err, 0);
+  EXPECT_LT(err, 1 * kMs);
+}
+
+TEST(ClockMapper, TimesyncWinsAndUtcFollows) {
+  ClockMapper clock;
+  const std::int64_t trueOffset = 777 * kMs;  // local = autopilot + offset
+  clock.observeArrival(1000, 1000 * kMs + trueOffset + 40 * kMs);  // a slow link
+  for (int i = 0; i < 10; ++i) {
+    const std::int64_t ts1 = (2000 + i * 1000) * kMs;          // our send time
+    const std::int64_t tc1 = ts1 + 2 * kMs - trueOffset;       // their clock 2 ms later
+    clock.observeTimesync(tc1, ts1, ts1 + 4 * kMs);            // 4 ms round trip
+    clock.observeArrival(static_cast<std::uint32_t>((ts1 - trueOffset) / kMs), ts1 + 40 * kMs);
+  }
+  EXPECT_EQ(clock.source(), ClockMapper::Source::Timesync);
+  EXPECT_NEAR(static_cast<double>(*clock.offsetNs() - trueOffset), 0.0, 1e5);
+  clock.observeSystemTime(1'780'000'000'000'000ULL, 5000);
+  const auto utc = clock.utcUs(5000 * kMs + trueOffset + 250 * kMs);
+  ASSERT_TRUE(utc.has_value());
+  EXPECT_NEAR(static_cast<double>(*utc), 1'780'000'000'250'000.0, 1.0);
+}
+
+TEST(MavlinkParser, SkipsGarbageAndCorruptFramesAndKeepsTheRest) {
+  MavlinkEncoder ap(1, 1);
+  std::vector<std::uint8_t> stream;
+  std::mt19937 rng(7);
+  int good = 0;
+  int bursts = 0;
+  for (int i = 0; i < 200; ++i) {
+    auto pkt = attitudeQ(ap, static_cast<std::uint32_t>(i * 20), Quaternion{});
+    if (i % 10 == 3) {
+      pkt[pkt.size() / 2] ^= 0x5A;  // CRC error
+    } else {
+      ++good;
+    }
+    stream.insert(stream.end(), pkt.begin(), pkt.end());
+    if (i % 7 == 0) {  // noise between frames, start bytes included
+      ++bursts;
+      for (int k = 0; k < 30; ++k) stream.push_back(static_cast<std::uint8_t>(rng()));
+    }
+  }
+  MavlinkParser parser;
+  int seen = 0;
+  parser.feed(stream.data(), stream.size(), [&](const mavlink_message_t& m) {
+    if (m.msgid == MAVLINK_MSG_ID_ATTITUDE_QUATERNION) ++seen;
+  });
+  // A false start byte in the noise can swallow the frame after it (the parser
+  // does not backtrack), so at most one good frame is lost per burst.
+  EXPECT_GE(seen, good - bursts);
+  EXPECT_LE(seen, good);
+  EXPECT_GT(parser.stats().rejected, 0U);
+  EXPECT_EQ(parser.stats().bytes, stream.size());
+}
+
+TEST(MavlinkParser, ReadsMavlink1AndMavlink2) {
+  MavlinkEncoder v1(1, 1, true);
+  MavlinkEncoder v2(1, 1, false);
+  auto a = heartbeat(v1, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  auto b = heartbeat(v2, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  EXPECT_EQ(a[0], 0xFE);
+  EXPECT_EQ(b[0], 0xFD);
+  a.insert(a.end(), b.begin(), b.end());
+  MavlinkParser parser;
+  int n = 0;
+  parser.feed(a.data(), a.size(), [&](const mavlink_message_t&) { ++n; });
+  EXPECT_EQ(n, 2);
+  EXPECT_EQ(parser.stats().mavlink1, 1U);
+}
+
+TEST(MavlinkParser, RandomBytesNeverCrash) {
+  std::mt19937 rng(11);
+  std::vector<std::uint8_t> junk(200'000);
+  for (auto& b : junk) b = static_cast<std::uint8_t>(rng() % 4 == 0 ? 0xFD : rng());
+  MavlinkParser parser;
+  std::uint64_t n = 0;
+  parser.feed(junk.data(), junk.size(), [&](const mavlink_message_t&) { ++n; });
+  EXPECT_EQ(parser.stats().bytes, junk.size());
+  EXPECT_LT(n, 5U);
+}
+
+TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
+  TelemetryDecoder dec;
+  MavlinkEncoder gcs(255, 190), ap(1, 1), other(2, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(gcs, MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID));
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
+  push(heartbeat(other, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
+  for (int i = 0; i <= 10; ++i) {
+    now = (10'000 + i * 100) * kMs + 5 * kMs;
+    const auto boot = static_cast<std::uint32_t>(i * 100);
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, 45 * kDeg)));
+    push(position(ap, boot, 10.0 + i * 1e-5, 20.0, 50.0));
+    push(attitudeQ(other, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
+    push(position(other, boot, -10.0, -20.0, 0.0));
+  }
+  EXPECT_EQ(dec.autopilotSystem(), 1);
+  EXPECT_GT(dec.stats().otherSources, 10U);
+  const Pose p = dec.poseAt(10'000 * kMs + 5 * kMs + 550 * kMs);
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
+  EXPECT_NEAR(p.position->latDeg, 10.0 + 5.5e-5, 1e-9);
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 45 * kDeg)), 0.0, 1e-6);
+}
+
+TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
+  MavlinkEncoder ap(1, 1);
+  const auto path = std::filesystem::temp_directory_path() / "keyframed_test.tlog";
+  std::vector<std::uint8_t> bytes;
+  const std::uint64_t t0 = 1'780'000'000'000'000ULL;
+  for (int i = 0; i < 20; ++i) {
+    const std::uint64_t us = t0 + static_cast<std::uint64_t>(i) * 20'000;
+    for (int k = 7; k >= 0; --k) bytes.push_back(static_cast<std::uint8_t>(us >> (8 * k)));
+    const auto pkt = attitudeQ(ap, static_cast<std::uint32_t>(i * 20), Quaternion{});
+    bytes.insert(bytes.end(), pkt.begin(), pkt.end());
+  }
+  bytes.resize(bytes.size() - 7);  // cut the last packet short
+  std::ofstream(path, std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+
+  TlogReader reader;
+  std::string error;
+  ASSERT_TRUE(reader.open(path.string(), error)) << error;
+  std::int64_t t = 0;
+  std::vector<std::uint8_t> pkt;
+  int n = 0;
+  while (reader.next(t, pkt)) {
+    EXPECT_EQ(t, static_cast<std::int64_t>(t0 + static_cast<std::uint64_t>(n) * 20'000) * 1000);
+    ++n;
+  }
+  EXPECT_EQ(n, 19);
+  EXPECT_TRUE(reader.truncated());
+
+  // Not a tlog at all.
+  std::ofstream(path, std::ios::binary) << "this is not a tlog, just text\n";
+  TlogReader bad;
+  EXPECT_FALSE(bad.open(path.string(), error));
+  EXPECT_NE(error.find("not a MAVLink tlog"), std::string::npos) << error;
+  std::filesystem::remove(path);
+}
+
+TEST(MavlinkLink, RejectsBadUrls) {
+  std::string error;
+  EXPECT_TRUE(parseMavlinkUrl("udpin:0.0.0.0:14550", error));
+  EXPECT_TRUE(parseMavlinkUrl("udpout:127.0.0.1:14550", error));
+  EXPECT_TRUE(parseMavlinkUrl("serial:/dev/ttyAMA0:921600", error));
+  EXPECT_TRUE(parseMavlinkUrl("/dev/ttyUSB0", error));
+  EXPECT_TRUE(parseMavlinkUrl("flight.tlog", error));
+  EXPECT_FALSE(parseMavlinkUrl("udpin:0.0.0.0", error));
+  EXPECT_FALSE(parseMavlinkUrl("serial:/dev/ttyS0:12345", error));
+  EXPECT_NE(error.find("baud"), std::string::npos);
+  EXPECT_FALSE(parseMavlinkUrl("tcp:1.2.3.4:5760", error));
+  EXPECT_FALSE(openMavlinkLink("serial:/dev/does-not-exist:57600", error));
+  EXPECT_NE(error.find("does-not-exist"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace keyframed
