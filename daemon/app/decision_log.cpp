@@ -33,11 +33,10 @@ DecisionLog::~DecisionLog() {
 std::string DecisionLog::header() {
   return "index,timestamp_ns,kept,reason,candidate,promoted,sharpness,threshold,sharp,overlap,"
          "paper_distance,tracking,motion_px,fast_motion,features,matches,inliers,luma_ms,blur_ms,"
-         "resize_ms,overlap_ms,"
-         "total_ms";
+         "resize_ms,overlap_ms,total_ms,geotag";
 }
 
-std::string DecisionLog::csvRow(const Decision& d) {
+std::string DecisionLog::csvRow(const Decision& d, const std::string& geotag) {
   std::string s;
   s.reserve(160);
   s += std::to_string(d.index) + "," + std::to_string(d.timestampNs) + "," + (d.kept ? "1" : "0") +
@@ -48,11 +47,17 @@ std::string DecisionLog::csvRow(const Decision& d) {
        (d.fastMotion ? "1" : "0") + "," + std::to_string(d.features) + "," +
        std::to_string(d.matches) + "," + std::to_string(d.inliers) + "," + ms(d.times.lumaNs) +
        "," + ms(d.times.blurNs) + "," + ms(d.times.resizeNs) + "," + ms(d.times.overlapNs) + "," +
-       ms(d.times.totalNs);
+       ms(d.times.totalNs) + ",";
+  // The note is free text: quote it, doubling quotes, as CSV does.
+  if (!geotag.empty()) {
+    s += '"';
+    for (char c : geotag) s += c == '"' ? std::string("\"\"") : std::string(1, c);
+    s += '"';
+  }
   return s;
 }
 
-std::string DecisionLog::jsonRow(const Decision& d) {
+std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
   std::string s =
       "{\"index\":" + std::to_string(d.index) +
       ",\"timestamp_ns\":" + std::to_string(d.timestampNs) +
@@ -67,7 +72,18 @@ std::string DecisionLog::jsonRow(const Decision& d) {
       ",\"features\":" + std::to_string(d.features) + ",\"matches\":" + std::to_string(d.matches) +
       ",\"inliers\":" + std::to_string(d.inliers) + ",\"luma_ms\":" + ms(d.times.lumaNs) +
       ",\"blur_ms\":" + ms(d.times.blurNs) + ",\"resize_ms\":" + ms(d.times.resizeNs) +
-      ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) + "}";
+      ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) + ",\"geotag\":";
+  if (geotag.empty()) {
+    s += "null";
+  } else {
+    s += '"';
+    for (char c : geotag) {
+      if (c == '"' || c == '\\') s += '\\';
+      if (static_cast<unsigned char>(c) >= 0x20) s += c;
+    }
+    s += '"';
+  }
+  s += "}";
   return s;
 }
 
@@ -87,8 +103,9 @@ bool DecisionLog::open(const std::string& path, DecisionFormat format, std::stri
 }
 
 bool DecisionLog::flushPending(std::string& error) {
-  for (const Decision& d : pending_) {
-    const std::string row = format_ == DecisionFormat::Csv ? csvRow(d) : jsonRow(d);
+  for (const Row& r : pending_) {
+    const std::string row = format_ == DecisionFormat::Csv ? csvRow(r.decision, r.geotag)
+                                                           : jsonRow(r.decision, r.geotag);
     if (std::fprintf(file_, "%s\n", row.c_str()) < 0) {
       error = "cannot write " + path_ + ": " + std::strerror(errno);
       pending_.clear();
@@ -100,10 +117,11 @@ bool DecisionLog::flushPending(std::string& error) {
          (error = "cannot write " + path_ + ": " + std::strerror(errno), false);
 }
 
-bool DecisionLog::add(const Decision& d, std::string& error) {
+bool DecisionLog::add(const Decision& d, std::string& error, const std::string& geotag) {
   if (file_ == nullptr) return true;
   if (d.promotedIndex >= 0) {
-    for (Decision& p : pending_) {
+    for (Row& r : pending_) {
+      Decision& p = r.decision;
       if (p.index == d.promotedIndex) {
         p.kept = true;
         p.reason = Reason::GapFill;
@@ -111,12 +129,12 @@ bool DecisionLog::add(const Decision& d, std::string& error) {
       }
     }
   }
-  pending_.push_back(d);
+  pending_.push_back({d, geotag});
   // A keyframe or a promotion settles every row up to here; a new candidate
   // settles every row before it.
   if (d.kept || d.promotedIndex >= 0) return flushPending(error);
   if (d.candidate) {
-    const Decision last = pending_.back();
+    const Row last = pending_.back();
     pending_.pop_back();
     if (!flushPending(error)) return false;
     pending_.push_back(last);
@@ -124,8 +142,15 @@ bool DecisionLog::add(const Decision& d, std::string& error) {
   return true;
 }
 
+void DecisionLog::setGeotag(std::int64_t index, const std::string& geotag) {
+  for (Row& r : pending_) {
+    if (r.decision.index == index) r.geotag = geotag;
+  }
+}
+
 void DecisionLog::markGapFill(std::int64_t index) {
-  for (Decision& p : pending_) {
+  for (Row& r : pending_) {
+    Decision& p = r.decision;
     if (p.index == index) {
       p.kept = true;
       p.reason = Reason::GapFill;

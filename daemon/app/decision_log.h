@@ -20,22 +20,29 @@ class DecisionLog {
   ~DecisionLog();
 
   bool open(const std::string& path, DecisionFormat format, std::string& error);
-  // Adds a decision; returns false on a write error.
-  bool add(const Decision& d, std::string& error);
+  // Adds a decision; returns false on a write error. `geotag` says how a keyframe
+  // was tagged ("ok", or why position or attitude is missing); empty otherwise.
+  bool add(const Decision& d, std::string& error, const std::string& geotag = {});
   // Marks an earlier, still pending row as a keyframe (the selector's finish()).
   void markGapFill(std::int64_t index);
+  // Sets the geotag note of a pending row (a candidate promoted to keyframe).
+  void setGeotag(std::int64_t index, const std::string& geotag);
   bool close(std::string& error);
 
   static std::string header();
-  static std::string csvRow(const Decision& d);
-  static std::string jsonRow(const Decision& d);
+  static std::string csvRow(const Decision& d, const std::string& geotag = {});
+  static std::string jsonRow(const Decision& d, const std::string& geotag = {});
 
  private:
   bool flushPending(std::string& error);
 
   std::FILE* file_ = nullptr;
   DecisionFormat format_ = DecisionFormat::Csv;
-  std::deque<Decision> pending_;
+  struct Row {
+    Decision decision;
+    std::string geotag;
+  };
+  std::deque<Row> pending_;
   std::string path_;
 };
 

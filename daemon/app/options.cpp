@@ -2,9 +2,12 @@
 
 #include <cerrno>
 #include <cmath>
+#include <ctime>
 #include <cstdlib>
 #include <functional>
 #include <map>
+
+#include "telemetry/link.h"
 
 namespace keyframed {
 namespace {
@@ -35,6 +38,44 @@ bool parsePair(const std::string& s, std::string& a, std::string& b) {
 
 }  // namespace
 
+bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
+  double seconds = 0;
+  if (parseDouble(text, seconds)) {
+    if (seconds < 0 || seconds > 4.1e9) return false;
+    unixNs = std::llround(seconds * 1e9);
+    return true;
+  }
+  std::tm tm{};
+  int consumed = 0;
+  if (std::sscanf(text.c_str(), "%4d-%2d-%2dT%2d:%2d:%2d%n", &tm.tm_year, &tm.tm_mon, &tm.tm_mday,
+                  &tm.tm_hour, &tm.tm_min, &tm.tm_sec, &consumed) != 6) {
+    return false;
+  }
+  if (tm.tm_mon < 1 || tm.tm_mon > 12 || tm.tm_mday < 1 || tm.tm_mday > 31 || tm.tm_hour > 23 ||
+      tm.tm_min > 59 || tm.tm_sec > 60) {
+    return false;
+  }
+  std::string rest = text.substr(static_cast<std::size_t>(consumed));
+  std::int64_t fracNs = 0;
+  if (!rest.empty() && rest[0] == '.') {
+    std::size_t i = 1;
+    std::int64_t scale = 100'000'000;
+    while (i < rest.size() && rest[i] >= '0' && rest[i] <= '9') {
+      fracNs += (rest[i] - '0') * scale;
+      scale /= 10;
+      ++i;
+    }
+    if (i == 1) return false;
+    rest = rest.substr(i);
+  }
+  if (rest != "Z" && rest != "+00:00" && !rest.empty()) return false;  // UTC only
+  tm.tm_year -= 1900;
+  tm.tm_mon -= 1;
+  const std::time_t t = timegm(&tm);
+  unixNs = static_cast<std::int64_t>(t) * 1'000'000'000 + fracNs;
+  return true;
+}
+
 std::string selectUsage() {
   return R"(usage: keyframed select VIDEO --out DIR [options]
 
@@ -63,6 +104,19 @@ blur:
   --blur-window N            adaptive mode: recent frames considered (default 150)
   --blur-step R,C            sample every R-th row, C-th column (default 2,3)
   --blur-width PX            score at reduced width, 0 = full (default 0)
+telemetry and tags:
+  --telemetry SRC            MAVLink source: FILE.tlog, udpin:HOST:PORT, udpout:HOST:PORT
+                             or serial:DEVICE[:BAUD]; keyframes are geotagged with the
+                             pose at their time (a live link implies --realtime)
+  --video-start TIME         UTC time of the video's first frame (ISO 8601 or unix
+                             seconds); needed with a tlog
+  --calibration FILE         camera intrinsics (OpenCV YAML/XML, TOML or JSON)
+  --mount R,P,Y              camera mount on the body, degrees (default 0,-90,0: nadir)
+  --autopilot SYS[:COMP]     follow this autopilot (default: the first one heard)
+  --mavlink-sysid N          our system id on a live link (default: the autopilot's)
+  --telemetry-wait MS        wait this long for telemetry newer than a keyframe (default 1000)
+  --realtime                 deliver frames at the video's own rate, stamped with the
+                             monotonic clock, as a camera would
 output:
   --decisions csv|jsonl      decisions file format (default csv)
   --jpeg-quality Q           1..100 (default 92)
@@ -176,6 +230,60 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
        }},
       {"--jpeg-quality", integer(o.jpegQuality, 1, 100)},
       {"--max-frames", integer(o.maxFrames, 1, std::int64_t{1} << 40)},
+      {"--telemetry",
+       [&](const std::string& v) -> std::string {
+         if (v.empty()) return "empty telemetry source";
+         o.telemetry = v;
+         return {};
+       }},
+      {"--calibration",
+       [&](const std::string& v) -> std::string {
+         if (v.empty()) return "empty calibration path";
+         o.calibration = v;
+         return {};
+       }},
+      {"--video-start",
+       [&](const std::string& v) -> std::string {
+         std::int64_t ns = 0;
+         if (!parseUtcTime(v, ns))
+           return "expected a UTC time like 2026-06-01T10:00:00Z or unix seconds, got '" + v +
+                  "'";
+         o.videoStartUnixNs = ns;
+         return {};
+       }},
+      {"--mount",
+       [&](const std::string& v) -> std::string {
+         double a[3];
+         std::size_t start = 0;
+         for (int k = 0; k < 3; ++k) {
+           const auto comma = v.find(',', start);
+           if ((k < 2) != (comma != std::string::npos))
+             return "expected ROLL,PITCH,YAW in degrees";
+           const std::string part = v.substr(start, comma == std::string::npos ? std::string::npos
+                                                                               : comma - start);
+           if (!parseDouble(part, a[k]) || std::fabs(a[k]) > 360) return "bad angle '" + part + "'";
+           start = comma + 1;
+         }
+         o.mountRollDeg = a[0];
+         o.mountPitchDeg = a[1];
+         o.mountYawDeg = a[2];
+         return {};
+       }},
+      {"--telemetry-wait", integer(o.telemetryWaitMs, 0, 60000)},
+      {"--autopilot",
+       [&](const std::string& v) -> std::string {
+         std::int64_t sys = 0, comp = 0;
+         const auto colon = v.find(':');
+         if (!parseInt(v.substr(0, colon), sys) || sys < 1 || sys > 255)
+           return "expected SYS[:COMP] with ids 1..255";
+         if (colon != std::string::npos &&
+             (!parseInt(v.substr(colon + 1), comp) || comp < 1 || comp > 255))
+           return "expected SYS[:COMP] with ids 1..255";
+         o.autopilotSystem = static_cast<int>(sys);
+         o.autopilotComponent = static_cast<int>(comp);
+         return {};
+       }},
+      {"--mavlink-sysid", integer(o.mavlinkSystemId, 1, 255)},
   };
 
   for (std::size_t i = 0; i < args.size(); ++i) {
@@ -195,6 +303,10 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     }
     if (a == "--quiet") {
       o.quiet = true;
+      continue;
+    }
+    if (a == "--realtime") {
+      o.realtime = true;
       continue;
     }
     if (a.rfind("--", 0) == 0) {
@@ -224,6 +336,15 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (o.video.empty()) return fail("no video given (usage: keyframed select VIDEO --out DIR)");
   if (o.outDir.empty()) return fail("--out DIR is required");
   if (std::string e = c.validate(); !e.empty()) return fail(e);
+  if (!o.telemetry.empty()) {
+    std::string e;
+    if (!parseMavlinkUrl(o.telemetry, e)) return fail("--telemetry: " + e);
+    const bool replay = o.telemetry.starts_with("tlog:") ||
+                        (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
+    if (replay && !o.videoStartUnixNs)
+      return fail("--video-start TIME is needed to align the video with the tlog");
+    if (!replay) o.realtime = true;  // a live link runs on the real clock
+  }
   r.ok = true;
   return r;
 }

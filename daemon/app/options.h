@@ -21,7 +21,24 @@ struct SelectOptions {
   std::int64_t maxFrames = -1;                     // --max-frames N (stop after N frames)
   std::optional<bool> progress;  // --progress / --no-progress (default: when stderr is a TTY)
   bool quiet = false;            // --quiet: no summary on stdout
+
+  // Telemetry and tagging.
+  std::string telemetry;                   // --telemetry URL|FILE.tlog (see openMavlinkLink)
+  std::string calibration;                 // --calibration FILE (OpenCV YAML/XML, TOML, JSON)
+  std::optional<std::int64_t> videoStartUnixNs;  // --video-start ISO8601|UNIX_SECONDS
+  double mountRollDeg = 0.0;               // --mount ROLL,PITCH,YAW (degrees, body FRD)
+  double mountPitchDeg = -90.0;
+  double mountYawDeg = 0.0;
+  bool realtime = false;                   // --realtime: deliver frames at the video's rate
+  int telemetryWaitMs = 1000;              // --telemetry-wait MS: wait for poses this long
+  int autopilotSystem = 0;                 // --autopilot SYS[:COMP] (0: first autopilot)
+  int autopilotComponent = 0;
+  int mavlinkSystemId = 0;                 // --mavlink-sysid N (0: the autopilot's)
 };
+
+// Parses an ISO 8601 UTC time (2026-06-01T10:00:00Z, fractions allowed) or a number
+// of unix seconds into unix nanoseconds.
+bool parseUtcTime(const std::string& text, std::int64_t& unixNs);
 
 struct ParseResult {
   bool ok = false;

@@ -7,12 +7,16 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <optional>
+#include <thread>
 
 #include <opencv2/core/utils/logger.hpp>
 
 #include "app/decision_log.h"
-#include "app/jpeg_writer.h"
+#include "app/keyframe_writer.h"
 #include "capture/file_source.h"
+#include "tagging/camera_model.h"
+#include "telemetry/telemetry_service.h"
 
 namespace keyframed {
 namespace {
@@ -38,15 +42,34 @@ std::string jsonEscape(const std::string& s) {
 
 bool writeSummary(const std::string& path, const SelectOptions& o, const SourceInfo& info,
                   const SelectSummary& s, std::string& error) {
+  char tel[1024] = "null";
+  if (!s.telemetry.source.empty()) {
+    std::snprintf(tel, sizeof tel,
+                  "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
+                  "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
+                  "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
+                  "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
+                  "    \"captures_sent\": %llu,\n    \"truncated\": %s\n  }",
+                  jsonEscape(s.telemetry.source).c_str(),
+                  static_cast<long long>(s.telemetry.geotagged), s.telemetry.clock.c_str(),
+                  s.telemetry.clockOffsetMs.c_str(),
+                  static_cast<unsigned long long>(s.telemetry.messages),
+                  static_cast<unsigned long long>(s.telemetry.rejected),
+                  static_cast<unsigned long long>(s.telemetry.skippedBytes),
+                  static_cast<unsigned long long>(s.telemetry.otherSources),
+                  static_cast<unsigned long long>(s.telemetry.capturesSent),
+                  s.telemetry.truncated ? "true" : "false");
+  }
   const SelectorConfig& c = o.selector;
-  char buf[4096];
+  char buf[8192];
   std::snprintf(
       buf, sizeof buf,
       "{\n  \"video\": \"%s\",\n  \"width\": %d,\n  \"height\": %d,\n  \"source_fps\": %.3f,\n"
       "  \"frames_read\": %lld,\n  \"kept\": %lld,\n  \"rejected_blur\": %lld,\n"
       "  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n  \"seconds\": %.3f,\n"
       "  \"frames_per_second\": %.2f,\n  \"analysis_ms_mean\": %.3f,\n  \"truncated\": %s,\n"
-      "  \"interrupted\": %s,\n  \"error\": \"%s\",\n  \"settings\": {\n    \"mode\": \"%s\",\n"
+      "  \"interrupted\": %s,\n  \"error\": \"%s\",\n  \"telemetry\": %s,\n"
+      "  \"settings\": {\n    \"mode\": \"%s\",\n"
       "    \"target\": %.3f,\n    \"band\": [%.3f, %.3f],\n    \"analysis_width\": %d,\n"
       "    \"blur_mode\": \"%s\",\n    \"blur_threshold\": %.3f,\n    \"blur_floor\": %.3f,\n"
       "    \"blur_ratio\": %.3f,\n    \"blur_quantile\": %.3f,\n    \"blur_window\": %d,\n"
@@ -56,7 +79,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       static_cast<long long>(s.framesRead), static_cast<long long>(s.kept),
       static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
       static_cast<long long>(s.promoted), s.seconds, s.framesPerSecond, s.analysisMsMean,
-      s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(),
+      s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(), tel,
       toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
       c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
       c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
@@ -97,6 +120,19 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     s.error = error;
     return s;
   }
+  std::optional<CameraModel> camera;
+  if (!opts.calibration.empty()) {
+    CameraModel model;
+    if (!loadCameraModel(opts.calibration, model, error)) {
+      s.error = error;
+      return s;
+    }
+    camera = model;
+  } else if (!opts.telemetry.empty()) {
+    std::fprintf(stderr,
+                 "keyframed select: warning: no --calibration: keyframes carry position and "
+                 "attitude but no intrinsics\n");
+  }
   std::error_code ec;
   std::filesystem::create_directories(opts.outDir, ec);
   if (ec || !std::filesystem::is_directory(opts.outDir, ec)) {
@@ -107,22 +143,92 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   s.decisionsPath = opts.outDir + "/decisions." + ext;
   s.summaryPath = opts.outDir + "/summary.json";
 
+  // Telemetry: a tlog is read whole now; a live link gets its own thread.
+  std::unique_ptr<TelemetryService> telemetry;
+  if (!opts.telemetry.empty()) {
+    TelemetryServiceConfig tc;
+    tc.url = opts.telemetry;
+    tc.systemId = opts.mavlinkSystemId;
+    tc.decoder.autopilotSystem = opts.autopilotSystem;
+    tc.decoder.autopilotComponent = opts.autopilotComponent;
+    CameraDescription cd;
+    cd.width = source->info().width;
+    cd.height = source->info().height;
+    if (camera) {
+      cd.vendor = camera->make;
+      cd.model = camera->model;
+      cd.focalLengthMm = static_cast<float>(camera->focalLengthMm);
+      cd.sensorWidthMm = static_cast<float>(camera->sensorWidthMm);
+      cd.sensorHeightMm = static_cast<float>(camera->sensorHeightMm);
+    }
+    telemetry = std::make_unique<TelemetryService>(tc, cd);
+    if (!telemetry->start(error)) {
+      s.error = error;
+      return s;
+    }
+    s.telemetry.source = opts.telemetry;
+  }
+
   DecisionLog log;
   if (!log.open(s.decisionsPath, opts.decisions, error)) {
     s.error = error;
     return s;
   }
-  JpegWriter jpeg(opts.outDir, opts.jpegQuality);
+  KeyframeWriter writer;
+  {
+    KeyframeWriterConfig wc;
+    wc.dir = opts.outDir;
+    wc.quality = opts.jpegQuality;
+    wc.camera = camera;
+    wc.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg};
+    if (!writer.open(wc, error)) {
+      s.error = error;
+      return s;
+    }
+  }
+
+  // Encodes, tags and writes one keyframe; returns its geotag note.
+  auto writeKeyframe = [&](const cv::Mat& bgr, std::int64_t index, std::int64_t timeNs,
+                           std::string& note) -> bool {
+    std::optional<Pose> pose;
+    if (telemetry) {
+      if (!telemetry->isReplay()) {
+        // Telemetry for this instant may still be on its way: wait a little.
+        const std::int64_t deadline = monotonicNowNs() + opts.telemetryWaitMs * 1'000'000LL;
+        while (!telemetry->decoder().covers(timeNs) && monotonicNowNs() < deadline) {
+          std::this_thread::sleep_for(std::chrono::milliseconds(2));
+        }
+      }
+      pose = telemetry->decoder().poseAt(timeNs);
+    }
+    KeyframeRecord rec;
+    if (!writer.write(bgr, index, timeNs, pose ? &*pose : nullptr, rec, error)) return false;
+    note = rec.geotag;
+    if (telemetry && !telemetry->isReplay()) {
+      CaptureReport report;
+      report.timeNs = timeNs;
+      report.imageIndex = static_cast<std::int32_t>(rec.sequence);
+      report.pose = rec.pose;
+      report.cameraAttitude = rec.cameraToNed;
+      report.fileUrl = "file://" + rec.file;
+      telemetry->reportCapture(report);
+    }
+    return true;
+  };
+
   SteadyClock clock;
   KeyframeSelector selector(opts.selector, &clock);
   cv::Mat candidate;  // pixels of the current fallback candidate (buffer reused)
   std::int64_t candidateIndex = -1;
+  std::int64_t candidateTimeNs = 0;
   bool candidateBlur = false;  // the candidate was counted as rejected for blur
   double analysisNs = 0.0;
 
   const auto start = std::chrono::steady_clock::now();
+  const std::int64_t startNs = monotonicNowNs();
   auto lastProgress = start;
   Frame frame;
+  std::string note;
   while (true) {
     if (stop != nullptr && stop->load()) {
       s.interrupted = true;
@@ -139,6 +245,19 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       s.truncated = source->truncated();
       break;
     }
+    // The frame's time on the telemetry's clock.
+    if (opts.realtime) {
+      // As a camera: the frame exists at its presentation time, stamped on arrival.
+      const std::int64_t due = startNs + frame.timestampNs;
+      while (monotonicNowNs() < due) {
+        if (stop != nullptr && stop->load()) break;
+        std::this_thread::sleep_for(std::chrono::nanoseconds(
+            std::min<std::int64_t>(due - monotonicNowNs(), 20'000'000)));
+      }
+      frame.timestampNs = monotonicNowNs();
+    } else if (opts.videoStartUnixNs) {
+      frame.timestampNs += *opts.videoStartUnixNs;
+    }
     ++s.framesRead;
     const Decision d = selector.process(frame);
     analysisNs += static_cast<double>(d.times.totalNs);
@@ -148,10 +267,12 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     // moves from its rejection counter to the kept one.
     auto uncount = [&s](bool blur) { --(blur ? s.rejectedBlur : s.rejectedOverlap); };
     if (d.promotedIndex >= 0) {
-      if (d.promotedIndex == candidateIndex && !candidate.empty() &&
-          !jpeg.write(candidate, candidateIndex, error)) {
-        s.error = error;
-        break;
+      if (d.promotedIndex == candidateIndex && !candidate.empty()) {
+        if (!writeKeyframe(candidate, candidateIndex, candidateTimeNs, note)) {
+          s.error = error;
+          break;
+        }
+        log.setGeotag(candidateIndex, note);
       }
       ++s.kept;
       ++s.promoted;
@@ -159,8 +280,9 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       candidateIndex = -1;
     }
     const bool blur = d.reason == Reason::Blurry || d.reason == Reason::Lost;
+    note.clear();
     if (d.kept) {
-      if (!jpeg.write(bgr, d.index, error)) {
+      if (!writeKeyframe(bgr, d.index, frame.timestampNs, note)) {
         s.error = error;
         break;
       }
@@ -171,10 +293,11 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       if (d.candidate) {
         bgr.copyTo(candidate);
         candidateIndex = d.index;
+        candidateTimeNs = frame.timestampNs;
         candidateBlur = blur;
       }
     }
-    if (!log.add(d, error)) {
+    if (!log.add(d, error, note)) {
       s.error = error;
       break;
     }
@@ -190,8 +313,9 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   if (s.error.empty()) {
     const std::int64_t last = selector.finish();
     if (last >= 0 && last == candidateIndex && !candidate.empty()) {
-      if (jpeg.write(candidate, candidateIndex, error)) {
+      if (writeKeyframe(candidate, candidateIndex, candidateTimeNs, note)) {
         log.markGapFill(last);
+        log.setGeotag(last, note);
         ++s.kept;
         ++s.promoted;
         --(candidateBlur ? s.rejectedBlur : s.rejectedOverlap);
@@ -201,6 +325,26 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   }
   if (!log.close(error) && s.error.empty()) s.error = error;
+  if (!writer.close(error) && s.error.empty()) s.error = error;
+  if (telemetry) {
+    // Let the telemetry thread send the last CAMERA_IMAGE_CAPTURED reports.
+    if (!telemetry->isReplay()) std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    telemetry->stop();
+    const TelemetryServiceStats ts = telemetry->stats();
+    s.telemetry.geotagged = writer.geotagged();
+    s.telemetry.clock = toString(telemetry->decoder().clockSource());
+    if (const auto off = telemetry->decoder().clockOffsetNs()) {
+      char b[64];
+      std::snprintf(b, sizeof b, "%.3f", static_cast<double>(*off) / 1e6);
+      s.telemetry.clockOffsetMs = b;
+    }
+    s.telemetry.messages = ts.parser.messages;
+    s.telemetry.rejected = ts.parser.rejected;
+    s.telemetry.skippedBytes = ts.parser.skippedBytes;
+    s.telemetry.otherSources = ts.decoder.otherSources;
+    s.telemetry.capturesSent = ts.capturesSent;
+    s.telemetry.truncated = ts.truncated;
+  }
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;
   s.analysisMsMean = s.framesRead > 0 ? analysisNs / static_cast<double>(s.framesRead) / 1e6 : 0.0;

@@ -21,6 +21,18 @@ struct SelectSummary {
   bool truncated = false;       // the video ended before its announced length
   bool interrupted = false;     // stopped by a signal or --max-frames
   std::string error;            // non-empty: the run failed (one line)
+  struct Telemetry {
+    std::string source;  // empty: no telemetry
+    std::int64_t geotagged = 0;
+    std::string clock = "none";
+    std::string clockOffsetMs = "null";
+    std::uint64_t messages = 0;
+    std::uint64_t rejected = 0;
+    std::uint64_t skippedBytes = 0;
+    std::uint64_t otherSources = 0;
+    std::uint64_t capturesSent = 0;
+    bool truncated = false;
+  } telemetry;
   std::string summaryPath;
   std::string decisionsPath;
 };

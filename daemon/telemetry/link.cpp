@@ -333,7 +333,7 @@ class TlogLink final : public MavlinkLink {
   }
   [[nodiscard]] bool isReplay() const override { return true; }
   [[nodiscard]] std::string describe() const override { return "tlog:" + url_.host; }
-  [[nodiscard]] bool truncated() const { return reader_.truncated(); }
+  [[nodiscard]] bool truncated() const override { return reader_.truncated(); }
 
  private:
   Url url_;

@@ -25,6 +25,8 @@ class MavlinkLink {
   virtual bool reopen(std::string& error) = 0;
   // Replay links deliver recorded times and have an end.
   [[nodiscard]] virtual bool isReplay() const { return false; }
+  // A replay that ended inside a record.
+  [[nodiscard]] virtual bool truncated() const { return false; }
   [[nodiscard]] virtual std::string describe() const = 0;
 };
 

@@ -26,6 +26,8 @@ bool TelemetryService::start(std::string& error) {
     error.clear();
     std::lock_guard lock(mutex_);
     stats_.replayDone = true;
+    stats_.truncated = link_->truncated();
+    stats_.parser = parser_.stats();
     return true;
   }
   encoder_ = std::make_unique<MavlinkEncoder>(0, 0, config_.mavlink1);

@@ -1,0 +1,70 @@
+#pragma once
+
+#include <cstdint>
+#include <cstdio>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <opencv2/core/mat.hpp>
+
+#include "tagging/camera_model.h"
+#include "tagging/camera_mount.h"
+#include "tagging/jpeg_encoder.h"
+#include "telemetry/pose.h"
+
+namespace keyframed {
+
+struct KeyframeWriterConfig {
+  std::string dir;
+  int quality = 92;
+  std::optional<CameraModel> camera;  // scaled to the frame size when it differs
+  CameraMount mount;
+};
+
+// What was written for one keyframe (also a row of keyframes.csv).
+struct KeyframeRecord {
+  std::int64_t sequence = 0;  // 0, 1, 2, ... in the order keyframes are written
+  std::int64_t frameIndex = 0;
+  std::int64_t timeNs = 0;
+  std::string file;  // absolute path
+  Pose pose;
+  std::optional<Quaternion> cameraToNed;
+  std::string geotag;  // "ok", why a part is missing, or "" without telemetry
+};
+
+// Encodes keyframes (libjpeg-turbo), tags them (EXIF/XMP with the pose at the frame
+// time and the camera model), and writes each atomically (temp file + rename) as
+// <dir>/<frame index>.jpg, plus one row per keyframe in <dir>/keyframes.csv.
+class KeyframeWriter {
+ public:
+  KeyframeWriter() = default;
+  ~KeyframeWriter();
+  KeyframeWriter(const KeyframeWriter&) = delete;
+  KeyframeWriter& operator=(const KeyframeWriter&) = delete;
+
+  bool open(KeyframeWriterConfig config, std::string& error);
+  // pose: nullptr when there is no telemetry. False with a one-line error.
+  bool write(const cv::Mat& bgr, std::int64_t frameIndex, std::int64_t timeNs, const Pose* pose,
+             KeyframeRecord& record, std::string& error);
+  bool close(std::string& error);
+
+  [[nodiscard]] std::int64_t count() const { return count_; }
+  [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
+  [[nodiscard]] static std::string fileName(std::int64_t frameIndex);
+  [[nodiscard]] static std::string indexHeader();
+
+ private:
+  const CameraModel* cameraFor(int width, int height);
+
+  KeyframeWriterConfig config_;
+  JpegEncoder encoder_;
+  std::vector<std::uint8_t> jpeg_;
+  std::optional<CameraModel> scaled_;
+  std::FILE* index_ = nullptr;
+  std::string indexPath_;
+  std::int64_t count_ = 0;
+  std::int64_t geotagged_ = 0;
+};
+
+}  // namespace keyframed

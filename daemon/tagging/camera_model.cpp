@@ -1,0 +1,267 @@
+#include "tagging/camera_model.h"
+
+#include <algorithm>
+#include <cctype>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+#include <toml++/toml.h>
+#include <opencv2/core.hpp>
+
+namespace keyframed {
+
+bool CameraModel::calibrated() const {
+  return width > 0 && height > 0 && std::isfinite(fx) && std::isfinite(fy) && std::isfinite(cx) &&
+         std::isfinite(cy);
+}
+
+double CameraModel::focalLength35mm() const {
+  if (width > 0 && height > 0 && std::isfinite(fx) && std::isfinite(fy)) {
+    return width >= height ? fx * 36.0 / width : fy * 36.0 / height;
+  }
+  if (std::isfinite(focalLengthMm) && std::isfinite(sensorWidthMm)) {
+    const double longSide =
+        std::isfinite(sensorHeightMm) ? std::max(sensorWidthMm, sensorHeightMm) : sensorWidthMm;
+    return focalLengthMm * 36.0 / longSide;
+  }
+  return NAN;
+}
+
+CameraModel CameraModel::scaledTo(int w, int h) const {
+  CameraModel out = *this;
+  out.width = w;
+  out.height = h;
+  if (width > 0 && height > 0) {
+    const double sx = static_cast<double>(w) / width;
+    const double sy = static_cast<double>(h) / height;
+    out.fx = fx * sx;
+    out.fy = fy * sy;
+    out.cx = (cx + 0.5) * sx - 0.5;
+    out.cy = (cy + 0.5) * sy - 0.5;
+  }
+  return out;
+}
+
+namespace {
+
+bool endsWith(const std::string& s, const std::string& suffix) {
+  return s.size() >= suffix.size() && std::equal(suffix.rbegin(), suffix.rend(), s.rbegin(),
+                                                 [](unsigned char a, unsigned char b) {
+                                                   return std::tolower(a) == std::tolower(b);
+                                                 });
+}
+
+// Checks shared by every format; fills derived values.
+bool finish(const std::string& path, CameraModel& m, std::string& error) {
+  const auto bad = [&](const std::string& what) {
+    error = path + ": " + what;
+    return false;
+  };
+  if (m.width < 0 || m.height < 0) return bad("negative image size");
+  if ((m.width > 0) != (m.height > 0)) return bad("image width and height go together");
+  for (double v : {m.fx, m.fy}) {
+    if (!std::isnan(v) && !(v > 0.0 && std::isfinite(v))) return bad("focal length must be > 0");
+  }
+  if (std::isfinite(m.fx) && m.width == 0) return bad("intrinsics need the image size");
+  for (double v : {m.sensorWidthMm, m.sensorHeightMm, m.focalLengthMm}) {
+    if (!std::isnan(v) && !(v > 0.0 && std::isfinite(v))) return bad("sizes in mm must be > 0");
+  }
+  // k1, k2, p1, p2, k3 is what the tags can carry; longer OpenCV vectors (rational or
+  // thin-prism models) are accepted only when their extra terms are zero.
+  if (!m.distortion.empty() && m.distortion.size() < 4) return bad("distortion needs 4 or 5 terms");
+  for (std::size_t i = 5; i < m.distortion.size(); ++i) {
+    if (m.distortion[i] != 0.0) return bad("only k1, k2, p1, p2, k3 distortion is supported");
+  }
+  if (m.distortion.size() > 5) m.distortion.resize(5);
+  for (double d : m.distortion) {
+    if (!std::isfinite(d)) return bad("distortion terms must be finite");
+  }
+  if (std::isnan(m.focalLengthMm) && std::isfinite(m.fx) && std::isfinite(m.sensorWidthMm)) {
+    m.focalLengthMm = m.fx * m.sensorWidthMm / m.width;
+  }
+  return true;
+}
+
+// ---------------------------------------------------------------- OpenCV / JSON
+
+double number(const cv::FileNode& n) {
+  return (n.isReal() || n.isInt()) ? static_cast<double>(n) : NAN;
+}
+
+bool readFileStorage(const std::string& path, CameraModel& m, std::string& error) {
+  cv::FileStorage fs(path, cv::FileStorage::READ);
+  if (!fs.isOpened()) {
+    error = path + ": not an OpenCV YAML/XML/JSON file";
+    return false;
+  }
+  const auto text = [](const cv::FileNode& n, std::string& dst) {
+    if (n.isString()) dst = static_cast<std::string>(n);
+  };
+  const auto integer = [](const cv::FileNode& n) { return n.isInt() ? static_cast<int>(n) : 0; };
+  const cv::FileNode k = fs["camera_matrix"];
+  if (!k.empty()) {
+    // cv::calibrateCamera sample layout.
+    cv::Mat mat;
+    k >> mat;
+    if (mat.rows != 3 || mat.cols != 3 || mat.channels() != 1) {
+      error = path + ": camera_matrix must be a 3x3 matrix";
+      return false;
+    }
+    mat.convertTo(mat, CV_64F);
+    m.fx = mat.at<double>(0, 0);
+    m.fy = mat.at<double>(1, 1);
+    m.cx = mat.at<double>(0, 2);
+    m.cy = mat.at<double>(1, 2);
+    cv::Mat d;
+    fs["distortion_coefficients"] >> d;
+    if (!d.empty()) {
+      d.convertTo(d, CV_64F);
+      d = d.reshape(1, 1);
+      m.distortion.assign(d.ptr<double>(), d.ptr<double>() + d.cols);
+    }
+    m.width = integer(fs["image_width"]);
+    m.height = integer(fs["image_height"]);
+    text(fs["make"], m.make);
+    text(fs["model"], m.model);
+  } else if (!fs["fx"].empty()) {
+    // keyframed.synth intrinsics.json; its "model" key is the projection ("pinhole").
+    m.width = integer(fs["width"]);
+    m.height = integer(fs["height"]);
+    m.fx = number(fs["fx"]);
+    m.fy = number(fs["fy"]);
+    m.cx = number(fs["cx"]);
+    m.cy = number(fs["cy"]);
+    const cv::FileNode d = fs["distortion"];
+    if (d.isSeq()) {
+      for (const auto& v : d) m.distortion.push_back(number(v));
+    }
+  } else {
+    error = path + ": no camera_matrix (OpenCV calibration) or fx (intrinsics.json) found";
+    return false;
+  }
+  m.sensorWidthMm = number(fs["sensor_width_mm"]);
+  m.sensorHeightMm = number(fs["sensor_height_mm"]);
+  m.focalLengthMm = number(fs["focal_length_mm"]);
+  if (m.width <= 0 || m.height <= 0) {
+    error = path + ": image size missing (image_width/image_height or width/height)";
+    return false;
+  }
+  return true;
+}
+
+// ---------------------------------------------------------------- TOML
+
+bool readToml(const std::string& path, CameraModel& m, std::string& error) {
+  toml::table doc;
+  try {
+    doc = toml::parse_file(path);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream s;
+    s << path << ":" << e.source().begin.line << ": " << e.description();
+    error = s.str();
+    return false;
+  }
+  const auto where = [&](const toml::node& n) {
+    return path + ":" + std::to_string(n.source().begin.line) + ": ";
+  };
+  for (auto&& [key, node] : doc) {
+    if (key != "camera") {
+      error = where(node) + "unknown key '" + std::string(key.str()) + "'";
+      return false;
+    }
+  }
+  const toml::table* cam = doc["camera"].as_table();
+  if (cam == nullptr) {
+    error = path + ": no [camera] table";
+    return false;
+  }
+  static const std::set<std::string> kKeys = {"make",
+                                              "model",
+                                              "width",
+                                              "height",
+                                              "fx",
+                                              "fy",
+                                              "cx",
+                                              "cy",
+                                              "distortion",
+                                              "sensor_width_mm",
+                                              "sensor_height_mm",
+                                              "focal_length_mm"};
+  for (auto&& [key, node] : *cam) {
+    const std::string k(key.str());
+    if (!kKeys.contains(k)) {
+      error = where(node) + "unknown key 'camera." + k + "'";
+      return false;
+    }
+    const auto wrongType = [&](const char* want) {
+      error = where(node) + "camera." + k + " must be " + want;
+      return false;
+    };
+    if (k == "make" || k == "model") {
+      const auto v = node.value<std::string>();
+      if (!v) return wrongType("a string");
+      (k == "make" ? m.make : m.model) = *v;
+    } else if (k == "width" || k == "height") {
+      const auto v = node.value_exact<std::int64_t>();
+      if (!v || *v <= 0 || *v > 100000) return wrongType("a positive integer");
+      (k == "width" ? m.width : m.height) = static_cast<int>(*v);
+    } else if (k == "distortion") {
+      const toml::array* a = node.as_array();
+      if (a == nullptr) return wrongType("an array of numbers");
+      for (const auto& e : *a) {
+        const auto v = e.value<double>();
+        if (!v) return wrongType("an array of numbers");
+        m.distortion.push_back(*v);
+      }
+    } else {
+      const auto v = node.value<double>();
+      if (!v) return wrongType("a number");
+      double* dst = k == "fx"                 ? &m.fx
+                    : k == "fy"               ? &m.fy
+                    : k == "cx"               ? &m.cx
+                    : k == "cy"               ? &m.cy
+                    : k == "sensor_width_mm"  ? &m.sensorWidthMm
+                    : k == "sensor_height_mm" ? &m.sensorHeightMm
+                                              : &m.focalLengthMm;
+      *dst = *v;
+    }
+  }
+  // Partial intrinsics are a mistake in the file, not "uncalibrated".
+  const int known =
+      std::isfinite(m.fx) + std::isfinite(m.fy) + std::isfinite(m.cx) + std::isfinite(m.cy);
+  if (known != 0 && known != 4) {
+    error = path + ": fx, fy, cx, cy go together";
+    return false;
+  }
+  return true;
+}
+
+}  // namespace
+
+bool loadCameraModel(const std::string& path, CameraModel& out, std::string& error) {
+  if (!std::ifstream(path).good()) {
+    error = path + ": cannot open";
+    return false;
+  }
+  CameraModel m;
+  try {
+    const bool ok =
+        endsWith(path, ".toml") ? readToml(path, m, error) : readFileStorage(path, m, error);
+    if (!ok) return false;
+  } catch (const cv::Exception& e) {
+    // FileStorage reports syntax errors by throwing; keep the first line only.
+    std::string what = e.what();
+    what.erase(std::find(what.begin(), what.end(), '\n'), what.end());
+    error = path + ": " + (e.err.empty() ? what : e.err);
+    return false;
+  } catch (const std::exception& e) {
+    error = path + ": " + e.what();
+    return false;
+  }
+  if (!finish(path, m, error)) return false;
+  out = std::move(m);
+  return true;
+}
+
+}  // namespace keyframed

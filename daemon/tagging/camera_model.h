@@ -1,0 +1,53 @@
+#pragma once
+
+#include <cmath>
+#include <string>
+#include <vector>
+
+namespace keyframed {
+
+// What is known about the camera: identity, pinhole intrinsics in pixels (OpenCV
+// convention: the centre of pixel (0,0) is at (0,0)), distortion and physical size.
+// Unknown numbers are NaN; nothing is guessed.
+struct CameraModel {
+  std::string make = "keyframed";
+  std::string model = "camera";
+  int width = 0;  // pixels the intrinsics refer to
+  int height = 0;
+  double fx = NAN;
+  double fy = NAN;
+  double cx = NAN;
+  double cy = NAN;
+  std::vector<double> distortion;  // OpenCV order: k1, k2, p1, p2[, k3]
+  double sensorWidthMm = NAN;
+  double sensorHeightMm = NAN;
+  double focalLengthMm = NAN;
+
+  // True when the pinhole intrinsics (fx, fy, cx, cy) and the image size are known.
+  [[nodiscard]] bool calibrated() const;
+  // 35 mm equivalent focal length, NaN when unknown. Convention: the image's longer
+  // side is matched to the 36 mm side of a 36x24 mm frame (fx * 36 / max(w, h), or
+  // focalLengthMm * 36 / sensor long side). This is how OpenSfM/ODM read EXIF
+  // FocalLengthIn35mmFilm back into a focal length (focal / 36 * max(w, h)), so a
+  // reconstruction starts from the right field of view; the diagonal ("crop factor")
+  // convention would differ by a few percent on 4:3 sensors.
+  [[nodiscard]] double focalLength35mm() const;
+  // The same camera at another resolution (same field of view): intrinsics scale per
+  // axis; the OpenCV pixel-centre convention is kept ((c + 0.5) * s - 0.5).
+  [[nodiscard]] CameraModel scaledTo(int w, int h) const;
+};
+
+// Reads a camera model from:
+//  - OpenCV FileStorage YAML/XML as cv::calibrateCamera samples write it
+//    (camera_matrix, distortion_coefficients, image_width, image_height; optional
+//    sensor_width_mm, sensor_height_mm, focal_length_mm, make, model);
+//  - TOML (*.toml): a [camera] table with make, model, width, height, fx, fy, cx, cy,
+//    distortion, sensor_width_mm, sensor_height_mm, focal_length_mm (unknown keys are
+//    errors);
+//  - JSON intrinsics.json from keyframed.synth (width, height, fx, fy, cx, cy,
+//    distortion, sensor_width_mm, sensor_height_mm, focal_length_mm).
+// Derives focalLengthMm = fx * sensorWidthMm / width when it is not given.
+// Returns false with a one-line error; never throws.
+[[nodiscard]] bool loadCameraModel(const std::string& path, CameraModel& out, std::string& error);
+
+}  // namespace keyframed

@@ -1,0 +1,236 @@
+#include "tagging/exif_writer.h"
+
+#include <cmath>
+#include <cstdio>
+#include <ctime>
+#include <mutex>
+
+// exiv2 0.27 hands images out as std::auto_ptr, deprecated in C++11 and still provided
+// by libstdc++; the warning is about exiv2's API, not this file.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wdeprecated-declarations"
+#include <exiv2/exiv2.hpp>
+
+#include "tagging/camera_mount.h"
+
+namespace keyframed {
+namespace {
+
+// Pix4D's XMP namespace (https://support.pix4d.com/hc/en-us/articles/360016450032); the
+// trailing slash is how Pix4D-aware cameras (Parrot Sequoia, DJI) write it.
+constexpr const char* kPix4dNs = "http://pix4d.com/camera/1.0/";
+
+// Typical 1-sigma user range error of a standalone single-frequency GPS receiver;
+// accuracy ~ DOP x UERE when the receiver does not report h_acc/v_acc.
+constexpr double kUereM = 5.0;
+
+void xmpLock(void* data, bool lock) {
+  auto* m = static_cast<std::mutex*>(data);
+  if (lock) {
+    m->lock();
+  } else {
+    m->unlock();
+  }
+}
+
+// XmpParser::initialize is not thread-safe itself: run it (and the namespace
+// registration) exactly once, with a lock the XMP toolkit uses afterwards.
+void initExiv2Once() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    static std::mutex toolkitMutex;
+    Exiv2::XmpParser::initialize(xmpLock, &toolkitMutex);
+    Exiv2::XmpProperties::registerNs(kPix4dNs, "Camera");
+    // Warnings (e.g. about odd input files) would go to stderr; errors come back to us
+    // as exceptions anyway.
+    Exiv2::LogMsg::setLevel(Exiv2::LogMsg::error);
+  });
+}
+
+Exiv2::URational rational(double v, std::uint32_t den) {
+  return {static_cast<std::uint32_t>(std::llround(std::abs(v) * den)), den};
+}
+
+std::string format(const char* fmt, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, fmt, v);
+  return buf;
+}
+
+// Degrees as EXIF deg/min/sec rationals; seconds in micro-arcseconds (3e-8 m).
+void setDms(Exiv2::ExifData& exif, const char* key, double deg) {
+  const std::int64_t totalUas = std::llround(std::abs(deg) * 3600.0 * 1e6);
+  const std::int64_t d = totalUas / (3600LL * 1000000);
+  const std::int64_t m = (totalUas / (60LL * 1000000)) % 60;
+  const std::int64_t s = totalUas % (60LL * 1000000);
+  Exiv2::URationalValue v;
+  v.value_.push_back({static_cast<std::uint32_t>(d), 1});
+  v.value_.push_back({static_cast<std::uint32_t>(m), 1});
+  v.value_.push_back({static_cast<std::uint32_t>(s), 1000000});
+  exif[key].setValue(&v);
+}
+
+void setByte(Exiv2::ExifData& exif, const char* key, const char* values) {
+  Exiv2::Value::AutoPtr v = Exiv2::Value::create(Exiv2::unsignedByte);
+  v->read(values);
+  exif[key].setValue(v.get());
+}
+
+void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& cam) {
+  exif["Exif.Image.Make"] = cam.make;
+  exif["Exif.Image.Model"] = cam.model;
+  if (cam.width > 0 && cam.height > 0) {
+    exif["Exif.Photo.PixelXDimension"] = static_cast<std::uint32_t>(cam.width);
+    exif["Exif.Photo.PixelYDimension"] = static_cast<std::uint32_t>(cam.height);
+  }
+  if (std::isfinite(cam.focalLengthMm)) {
+    exif["Exif.Photo.FocalLength"] = rational(cam.focalLengthMm, 1000);
+  }
+  const double f35 = cam.focalLength35mm();
+  if (std::isfinite(f35) && f35 >= 1.0 && f35 < 65535.0) {
+    exif["Exif.Photo.FocalLengthIn35mmFilm"] = static_cast<std::uint16_t>(std::lround(f35));
+  }
+  // Square pixels are assumed when only the sensor width is known.
+  const bool sensorKnown = std::isfinite(cam.sensorWidthMm) && cam.width > 0 && cam.height > 0;
+  const double sensorH = std::isfinite(cam.sensorHeightMm)
+                             ? cam.sensorHeightMm
+                             : cam.sensorWidthMm * cam.height / std::max(cam.width, 1);
+  if (sensorKnown) {
+    // Pixels per centimetre (FocalPlaneResolutionUnit 3).
+    exif["Exif.Photo.FocalPlaneXResolution"] = rational(cam.width / (cam.sensorWidthMm / 10), 1000);
+    exif["Exif.Photo.FocalPlaneYResolution"] = rational(cam.height / (sensorH / 10), 1000);
+    exif["Exif.Photo.FocalPlaneResolutionUnit"] = std::uint16_t{3};
+  }
+  if (!cam.calibrated()) return;  // no fabricated intrinsics
+  xmp["Xmp.Camera.ModelType"] = "perspective";
+  if (sensorKnown) {
+    const double pitchX = cam.sensorWidthMm / cam.width;
+    const double pitchY = sensorH / cam.height;
+    // Millimetres from the image's top-left corner; OpenCV puts that corner at
+    // (-0.5, -0.5) pixels.
+    xmp["Xmp.Camera.PrincipalPoint"] =
+        format("%.6f", (cam.cx + 0.5) * pitchX) + "," + format("%.6f", (cam.cy + 0.5) * pitchY);
+    xmp["Xmp.Camera.PerspectiveFocalLength"] = format("%.6f", cam.fx * pitchX);
+  }
+  // Pix4D R1,R2,R3,T1,T2 <- OpenCV k1,k2,k3,p1,p2 (same polynomial; docs/formats.md).
+  const auto d = [&](std::size_t i) { return i < cam.distortion.size() ? cam.distortion[i] : 0.0; };
+  std::string dist;
+  for (double v : {d(0), d(1), d(4), d(2), d(3)}) {
+    dist += (dist.empty() ? "" : ",") + format("%.9g", v);
+  }
+  xmp["Xmp.Camera.PerspectiveDistortion"] = dist;
+}
+
+void writeTime(Exiv2::ExifData& exif, std::int64_t utcUs, bool gps) {
+  const std::int64_t secs = utcUs >= 0 ? utcUs / 1000000 : (utcUs - 999999) / 1000000;
+  const std::int64_t micros = utcUs - secs * 1000000;
+  const std::time_t t = static_cast<std::time_t>(secs);
+  std::tm tm{};
+  gmtime_r(&t, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y:%m:%d %H:%M:%S", &tm);
+  exif["Exif.Photo.DateTimeOriginal"] = std::string(buf);
+  std::snprintf(buf, sizeof buf, "%03d", static_cast<int>(micros / 1000));
+  exif["Exif.Photo.SubSecTimeOriginal"] = std::string(buf);
+  exif["Exif.Photo.OffsetTimeOriginal"] = std::string("+00:00");
+  if (!gps) return;
+  Exiv2::URationalValue v;
+  v.value_.push_back({static_cast<std::uint32_t>(tm.tm_hour), 1});
+  v.value_.push_back({static_cast<std::uint32_t>(tm.tm_min), 1});
+  v.value_.push_back({static_cast<std::uint32_t>(tm.tm_sec * 1000000 + micros), 1000000});
+  exif["Exif.GPSInfo.GPSTimeStamp"].setValue(&v);
+  std::strftime(buf, sizeof buf, "%Y:%m:%d", &tm);
+  exif["Exif.GPSInfo.GPSDateStamp"] = std::string(buf);
+}
+
+void writeGps(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const GeoPosition& p,
+              const GpsQuality& q) {
+  setByte(exif, "Exif.GPSInfo.GPSVersionID", "2 3 0 0");
+  exif["Exif.GPSInfo.GPSLatitudeRef"] = std::string(p.latDeg < 0 ? "S" : "N");
+  setDms(exif, "Exif.GPSInfo.GPSLatitude", p.latDeg);
+  exif["Exif.GPSInfo.GPSLongitudeRef"] = std::string(p.lonDeg < 0 ? "W" : "E");
+  setDms(exif, "Exif.GPSInfo.GPSLongitude", p.lonDeg);
+  setByte(exif, "Exif.GPSInfo.GPSAltitudeRef", p.altAmslM < 0 ? "1" : "0");
+  exif["Exif.GPSInfo.GPSAltitude"] = rational(p.altAmslM, 1000);
+  exif["Exif.GPSInfo.GPSMapDatum"] = std::string("WGS-84");
+  if (q.fixType >= 3) {
+    exif["Exif.GPSInfo.GPSMeasureMode"] = std::string("3");
+  } else if (q.fixType == 2) {
+    exif["Exif.GPSInfo.GPSMeasureMode"] = std::string("2");
+  }
+  if (std::isfinite(q.hdop)) exif["Exif.GPSInfo.GPSDOP"] = rational(q.hdop, 1000);
+  // Receiver-reported accuracy first; DOP x UERE only for standalone fixes (an RTK
+  // fix's DOP says nothing about its centimetre accuracy).
+  const bool standalone = q.fixType >= 2 && q.fixType <= 4;
+  double xy = q.hAccuracyM;
+  if (!std::isfinite(xy) && standalone) xy = q.hdop * kUereM;
+  double z = q.vAccuracyM;
+  if (!std::isfinite(z) && standalone) z = q.vdop * kUereM;
+  if (std::isfinite(xy)) xmp["Xmp.Camera.GPSXYAccuracy"] = format("%.3f", xy);
+  if (std::isfinite(z)) xmp["Xmp.Camera.GPSZAccuracy"] = format("%.3f", z);
+}
+
+void buildTags(Exiv2::Image& image, const TagSet& tags) {
+  Exiv2::ExifData& exif = image.exifData();
+  Exiv2::XmpData& xmp = image.xmpData();
+  exif["Exif.Image.Software"] = tags.software;
+  if (tags.camera != nullptr) {
+    // Intrinsics refer to the camera's resolution; the JPEG may be a scaled copy.
+    const int w = image.pixelWidth();
+    const int h = image.pixelHeight();
+    const CameraModel& c = *tags.camera;
+    if (c.width > 0 && w > 0 && h > 0 && (c.width != w || c.height != h)) {
+      writeCamera(exif, xmp, c.scaledTo(w, h));
+    } else {
+      writeCamera(exif, xmp, c);
+    }
+  }
+  if (tags.utcUs) writeTime(exif, *tags.utcUs, tags.position.has_value());
+  if (tags.position) writeGps(exif, xmp, *tags.position, tags.gps);
+  if (tags.cameraToNed) {
+    const Pix4dAngles a = pix4dAngles(*tags.cameraToNed);
+    xmp["Xmp.Camera.Yaw"] = format("%.6f", a.yawDeg);
+    xmp["Xmp.Camera.Pitch"] = format("%.6f", a.pitchDeg);
+    xmp["Xmp.Camera.Roll"] = format("%.6f", a.rollDeg);
+  }
+}
+
+}  // namespace
+
+bool writeTags(std::vector<std::uint8_t>& jpeg, const TagSet& tags, std::string& error) {
+  if (jpeg.empty()) {
+    error = "cannot tag an empty JPEG buffer";
+    return false;
+  }
+  try {
+    initExiv2Once();
+    Exiv2::Image::AutoPtr image =
+        Exiv2::ImageFactory::open(jpeg.data(), static_cast<long>(jpeg.size()));
+    if (image.get() == nullptr || image->imageType() != Exiv2::ImageType::jpeg) {
+      error = "not a JPEG image";
+      return false;
+    }
+    image->readMetadata();
+    buildTags(*image, tags);
+    image->writeMetadata();
+    Exiv2::BasicIo& io = image->io();
+    io.seek(0, Exiv2::BasicIo::beg);
+    const long size = static_cast<long>(io.size());
+    std::vector<std::uint8_t> out(static_cast<std::size_t>(size));
+    if (io.read(out.data(), size) != size) {
+      error = "exiv2: short read of the tagged JPEG";
+      return false;
+    }
+    jpeg.swap(out);
+    return true;
+  } catch (const Exiv2::AnyError& e) {
+    error = std::string("exiv2: ") + e.what();
+  } catch (const std::exception& e) {
+    error = std::string("tagging failed: ") + e.what();
+  }
+  return false;
+}
+
+}  // namespace keyframed
+
+#pragma GCC diagnostic pop
