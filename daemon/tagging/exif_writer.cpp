@@ -1,5 +1,6 @@
 #include "tagging/exif_writer.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <ctime>
@@ -48,7 +49,9 @@ void initExiv2Once() {
 }
 
 Exiv2::URational rational(double v, std::uint32_t den) {
-  return {static_cast<std::uint32_t>(std::llround(std::abs(v) * den)), den};
+  // Clamped: a nonsense value must not wrap round into a plausible one.
+  const long long n = std::min(std::llround(std::abs(v) * den), 0xFFFFFFFFLL);
+  return {static_cast<std::uint32_t>(n), den};
 }
 
 std::string format(const char* fmt, double v) {

@@ -1,5 +1,8 @@
 #include "tagging/jpeg_encoder.h"
 
+#include <algorithm>
+#include <cmath>
+
 #include <turbojpeg.h>
 
 namespace keyframed {
@@ -19,7 +22,22 @@ bool checkQuality(int quality, std::string& error) {
 
 }  // namespace
 
-JpegEncoder::JpegEncoder() : handle_(tjInitCompress()) {}
+JpegEncoder::JpegEncoder() : handle_(tjInitCompress()) {
+  setYuvRange(YuvRange::Limited);
+}
+
+void JpegEncoder::setYuvRange(YuvRange range) {
+  for (int i = 0; i < 256; ++i) {
+    double yv = i;
+    double cv = i;
+    if (range == YuvRange::Limited) {
+      yv = (i - 16) * 255.0 / 219.0;
+      cv = (i - 128) * 255.0 / 224.0 + 128.0;
+    }
+    lumaLut_[i] = static_cast<std::uint8_t>(std::clamp(std::lround(yv), 0L, 255L));
+    chromaLut_[i] = static_cast<std::uint8_t>(std::clamp(std::lround(cv), 0L, 255L));
+  }
+}
 
 JpegEncoder::~JpegEncoder() {
   if (handle_ != nullptr) tjDestroy(tj(handle_));
@@ -89,30 +107,43 @@ bool JpegEncoder::encode(const Frame& f, int quality, std::vector<std::uint8_t>&
     case PixelFormat::BGR24:
       return compressPacked(f.data, f.width, f.stride, f.height, TJPF_BGR, TJSAMP_420, quality, out,
                             error);
-    case PixelFormat::YUV420: {
-      const int cs = (f.stride + 1) / 2;
-      const std::uint8_t* u = y + ySize;
-      const std::uint8_t* v = u + static_cast<std::size_t>(cs) * ch;
-      const std::uint8_t* planes[3] = {y, u, v};
-      const int strides[3] = {f.stride, cs, cs};
-      return compressPlanes(planes, strides, f.width, f.height, TJSAMP_420, quality, out, error);
-    }
+    case PixelFormat::YUV420:
     case PixelFormat::NV12: {
-      // libjpeg-turbo wants planar chroma: split UV into U then V (a reused buffer).
+      // Rebuild planar Y, U, V in a reused buffer: NV12's chroma is interleaved, and
+      // limited-range samples are expanded on the way.
       const std::size_t plane = static_cast<std::size_t>(cw) * ch;
-      chroma_.resize(2 * plane);
-      const std::uint8_t* uv = y + ySize;
+      planes_.resize(static_cast<std::size_t>(f.width) * f.height + 2 * plane);
+      std::uint8_t* yp = planes_.data();
+      std::uint8_t* up = yp + static_cast<std::size_t>(f.width) * f.height;
+      std::uint8_t* vp = up + plane;
+      for (int r = 0; r < f.height; ++r) {
+        const std::uint8_t* src = y + static_cast<std::ptrdiff_t>(r) * f.stride;
+        std::uint8_t* dst = yp + static_cast<std::size_t>(r) * f.width;
+        for (int c = 0; c < f.width; ++c) dst[c] = lumaLut_[src[c]];
+      }
+      const std::uint8_t* chroma = y + ySize;
+      const int cs = f.format == PixelFormat::NV12 ? f.stride : (f.stride + 1) / 2;
       for (int r = 0; r < ch; ++r) {
-        const std::uint8_t* src = uv + static_cast<std::ptrdiff_t>(r) * f.stride;
-        std::uint8_t* u = chroma_.data() + static_cast<std::size_t>(r) * cw;
-        std::uint8_t* v = u + plane;
-        for (int c = 0; c < cw; ++c) {
-          u[c] = src[2 * c];
-          v[c] = src[2 * c + 1];
+        std::uint8_t* u = up + static_cast<std::size_t>(r) * cw;
+        std::uint8_t* v = vp + static_cast<std::size_t>(r) * cw;
+        if (f.format == PixelFormat::NV12) {
+          const std::uint8_t* src = chroma + static_cast<std::ptrdiff_t>(r) * cs;
+          for (int c = 0; c < cw; ++c) {
+            u[c] = chromaLut_[src[2 * c]];
+            v[c] = chromaLut_[src[2 * c + 1]];
+          }
+        } else {
+          const std::uint8_t* su = chroma + static_cast<std::ptrdiff_t>(r) * cs;
+          const std::uint8_t* sv =
+              chroma + static_cast<std::ptrdiff_t>(cs) * ch + static_cast<std::ptrdiff_t>(r) * cs;
+          for (int c = 0; c < cw; ++c) {
+            u[c] = chromaLut_[su[c]];
+            v[c] = chromaLut_[sv[c]];
+          }
         }
       }
-      const std::uint8_t* planes[3] = {y, chroma_.data(), chroma_.data() + plane};
-      const int strides[3] = {f.stride, cw, cw};
+      const std::uint8_t* planes[3] = {yp, up, vp};
+      const int strides[3] = {f.width, cw, cw};
       return compressPlanes(planes, strides, f.width, f.height, TJSAMP_420, quality, out, error);
     }
     case PixelFormat::YUYV: {
@@ -120,8 +151,8 @@ bool JpegEncoder::encode(const Frame& f, int quality, std::vector<std::uint8_t>&
       const int yw = 2 * cw;  // even luma width covering the image
       const std::size_t yPlane = static_cast<std::size_t>(yw) * f.height;
       const std::size_t cPlane = static_cast<std::size_t>(cw) * f.height;
-      chroma_.resize(yPlane + 2 * cPlane);
-      std::uint8_t* yp = chroma_.data();
+      planes_.resize(yPlane + 2 * cPlane);
+      std::uint8_t* yp = planes_.data();
       std::uint8_t* up = yp + yPlane;
       std::uint8_t* vp = up + cPlane;
       for (int r = 0; r < f.height; ++r) {
@@ -130,10 +161,10 @@ bool JpegEncoder::encode(const Frame& f, int quality, std::vector<std::uint8_t>&
         std::uint8_t* ur = up + static_cast<std::size_t>(r) * cw;
         std::uint8_t* vr = vp + static_cast<std::size_t>(r) * cw;
         for (int c = 0; c < cw; ++c) {
-          yr[2 * c] = src[4 * c];
-          ur[c] = src[4 * c + 1];
-          yr[2 * c + 1] = src[4 * c + 2];
-          vr[c] = src[4 * c + 3];
+          yr[2 * c] = lumaLut_[src[4 * c]];
+          ur[c] = chromaLut_[src[4 * c + 1]];
+          yr[2 * c + 1] = lumaLut_[src[4 * c + 2]];
+          vr[c] = chromaLut_[src[4 * c + 3]];
         }
       }
       const std::uint8_t* planes[3] = {yp, up, vp};

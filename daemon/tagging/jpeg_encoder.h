@@ -21,6 +21,13 @@ namespace keyframed {
 //   NV12          Y, then interleaved UV (h+1)/2 rows with the same pitch as Y.
 //   YUYV          packed 4:2:2 (Y0 U Y1 V).
 // Colour is encoded as YCbCr 4:2:0 (YUV420, NV12, BGR24), 4:2:2 (YUYV) or grey.
+//
+// JPEG (JFIF) stores full-range YCbCr (0-255). Cameras' video streams usually deliver
+// limited ("TV") range, Y 16-235 and chroma 16-240; those samples are expanded while
+// the planes are copied (one table look-up per byte), otherwise the keyframes would
+// come out washed out. BT.601 vs BT.709 matrices are not converted.
+enum class YuvRange { Limited, Full };
+
 class JpegEncoder {
  public:
   JpegEncoder();
@@ -30,6 +37,10 @@ class JpegEncoder {
 
   // False when libjpeg-turbo could not be set up.
   [[nodiscard]] bool isValid() const { return handle_ != nullptr; }
+
+  // Range of YUV420/NV12/YUYV input (default Limited, what V4L2 and libcamera video
+  // streams give unless asked for sYCC/JPEG colour space).
+  void setYuvRange(YuvRange range);
 
   // Replaces `out` with the JPEG. quality 1..100. False with a one-line error.
   [[nodiscard]] bool encode(const Frame& frame, int quality, std::vector<std::uint8_t>& out,
@@ -45,7 +56,9 @@ class JpegEncoder {
                       std::string& error);
 
   void* handle_ = nullptr;            // tjhandle
-  std::vector<std::uint8_t> chroma_;  // de-interleaved chroma (NV12) or all planes (YUYV)
+  std::vector<std::uint8_t> planes_;  // Y, U, V planes rebuilt from the YUV input (reused)
+  std::uint8_t lumaLut_[256] = {};    // input sample -> full-range sample
+  std::uint8_t chromaLut_[256] = {};
 };
 
 }  // namespace keyframed

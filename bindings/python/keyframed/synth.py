@@ -80,6 +80,11 @@ Outputs of :func:`generate` (all in one directory)
     groundtruth.csv    one row per frame, columns ``GT_COLUMNS``.
     intrinsics.json    width, height, fx, fy, cx, cy, distortion, sensor and focal
                        length in mm, fps, exposure_s, mount_pitch_deg.
+    calibration.yaml   the same camera as an OpenCV FileStorage YAML (camera_matrix,
+                       distortion_coefficients, image_width, image_height as
+                       cv::calibrateCamera samples write them, plus sensor_width_mm,
+                       sensor_height_mm, focal_length_mm, make, model): what the
+                       daemon's camera calibration setting reads.
     flight.tlog        MAVLink 2 tlog (8-byte big-endian unix microseconds + packed
                        message per record) from system 1 / component 1: HEARTBEAT
                        1 Hz, ATTITUDE 50 Hz, ATTITUDE_QUATERNION 50 Hz,
@@ -1085,6 +1090,7 @@ class FlightInfo:
     video: Path
     groundtruth: Path
     intrinsics: Path
+    calibration: Path
     tlog: Path
     meta: Path
     frames: int
@@ -1341,6 +1347,27 @@ def _write_intrinsics(
     path.write_text(json.dumps(doc, indent=2) + "\n")
 
 
+def _write_calibration(path: Path, width: int, height: int) -> None:
+    """The same camera as an OpenCV FileStorage YAML, as cv::calibrateCamera samples
+    write it (camera_matrix, distortion_coefficients, image_width/height) plus the
+    sensor and focal length in mm, so the daemon reads it like a real calibration."""
+    k = intrinsics_matrix(width, height)
+    sw = SENSOR_WIDTH_MM
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("image_width", width)
+        fs.write("image_height", height)
+        fs.write("camera_matrix", k)
+        fs.write("distortion_coefficients", np.zeros((1, 5)))
+        fs.write("sensor_width_mm", sw)
+        fs.write("sensor_height_mm", sw * height / width)
+        fs.write("focal_length_mm", float(k[0, 0] * sw / width))
+        fs.write("make", "keyframed")
+        fs.write("model", "synth")
+    finally:
+        fs.release()
+
+
 def _ranges(mask: NDArray[np.bool_]) -> list[list[int]]:
     """Inclusive [first, last] index ranges of the True runs in ``mask``."""
     out: list[list[int]] = []
@@ -1513,11 +1540,13 @@ def generate(
         "video": out / "video.avi",
         "groundtruth": out / "groundtruth.csv",
         "intrinsics": out / "intrinsics.json",
+        "calibration": out / "calibration.yaml",
         "tlog": out / "flight.tlog",
         "meta": out / "meta.json",
     }
     _write_groundtruth(paths["groundtruth"], truth)
     _write_intrinsics(paths["intrinsics"], width, height, fps, exposure_s, plan.mount_pitch_deg)
+    _write_calibration(paths["calibration"], width, height)
     _write_tlog(paths["tlog"], plan, n, fps)
     _render_video(paths["video"], plan, truth, width, height, fps, exposure_s, seed)
 

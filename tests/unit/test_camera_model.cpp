@@ -1,0 +1,241 @@
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <numbers>
+
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+#include <opencv2/core.hpp>
+
+#include "tagging/camera_model.h"
+#include "tagging/camera_mount.h"
+
+namespace keyframed {
+namespace {
+
+namespace fs = std::filesystem;
+
+// A directory of this test process's own under the system temp dir.
+fs::path tempDir() {
+  const fs::path d =
+      fs::path(testing::TempDir()) / ("keyframed-camera-" + std::to_string(getpid()));
+  fs::create_directories(d);
+  return d;
+}
+
+fs::path tempFile(const std::string& name, const std::string& text) {
+  const fs::path p = tempDir() / name;
+  std::ofstream(p) << text;
+  return p;
+}
+
+TEST(CameraModel, ReadsOpenCvCalibrationYaml) {
+  const fs::path p = tempDir() / "calib.yaml";
+  {
+    cv::FileStorage out(p.string(), cv::FileStorage::WRITE);
+    out << "image_width" << 1280 << "image_height" << 720;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << 1000, 0, 640.5, 0, 1002, 360.25, 0, 0, 1);
+    out << "distortion_coefficients" << (cv::Mat_<double>(1, 5) << -0.1, 0.05, 0.001, -0.002, 0.01);
+    out << "sensor_width_mm" << 6.4;
+  }
+  CameraModel m;
+  std::string error;
+  ASSERT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+  EXPECT_TRUE(m.calibrated());
+  EXPECT_EQ(m.width, 1280);
+  EXPECT_EQ(m.height, 720);
+  EXPECT_DOUBLE_EQ(m.fx, 1000);
+  EXPECT_DOUBLE_EQ(m.fy, 1002);
+  EXPECT_DOUBLE_EQ(m.cx, 640.5);
+  EXPECT_DOUBLE_EQ(m.cy, 360.25);
+  ASSERT_EQ(m.distortion.size(), 5u);
+  EXPECT_DOUBLE_EQ(m.distortion[3], -0.002);
+  EXPECT_NEAR(m.focalLengthMm, 1000 * 6.4 / 1280, 1e-12);  // derived
+  EXPECT_EQ(m.make, "keyframed");                          // default kept
+}
+
+TEST(CameraModel, ReadsTheShippedExample) {
+  CameraModel m;
+  std::string error;
+  ASSERT_TRUE(loadCameraModel(KEYFRAMED_SOURCE_DIR "/config/camera-example.yaml", m, error))
+      << error;
+  EXPECT_TRUE(m.calibrated());
+  EXPECT_EQ(m.make, "ExampleCam");
+  EXPECT_DOUBLE_EQ(m.focalLengthMm, 4.41);
+  EXPECT_DOUBLE_EQ(m.sensorHeightMm, 3.47);
+}
+
+TEST(CameraModel, ReadsSynthIntrinsicsJson) {
+  const fs::path p = tempFile("intrinsics.json", R"({
+  "width": 960, "height": 540, "fx": 685.5, "fy": 685.5, "cx": 479.5, "cy": 269.5,
+  "distortion": [0.0, 0.0, 0.0, 0.0, 0.0], "model": "pinhole",
+  "sensor_width_mm": 6.17, "sensor_height_mm": 3.470625, "focal_length_mm": 4.405,
+  "fps": 30.0, "mount_pitch_deg": -90.0
+})");
+  CameraModel m;
+  std::string error;
+  ASSERT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+  EXPECT_TRUE(m.calibrated());
+  EXPECT_EQ(m.width, 960);
+  EXPECT_DOUBLE_EQ(m.cy, 269.5);
+  EXPECT_EQ(m.model, "camera");  // "model" there is the projection, not the camera name
+  EXPECT_DOUBLE_EQ(m.focalLengthMm, 4.405);
+  EXPECT_NEAR(m.focalLength35mm(), 685.5 * 36 / 960, 1e-12);
+}
+
+TEST(CameraModel, ReadsTomlAndDerivesFocalLength) {
+  const fs::path p = tempFile("cam.toml", R"([camera]
+make = "Acme"
+model = "Eye 2"
+width = 4000
+height = 3000
+fx = 2800
+fy = 2800.5
+cx = 1999.5
+cy = 1499.5
+distortion = [0.01, -0.02, 0.0, 0.0]
+sensor_width_mm = 6.4
+)");
+  CameraModel m;
+  std::string error;
+  ASSERT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+  EXPECT_EQ(m.make, "Acme");
+  EXPECT_EQ(m.model, "Eye 2");
+  EXPECT_DOUBLE_EQ(m.fy, 2800.5);
+  EXPECT_EQ(m.distortion.size(), 4u);
+  EXPECT_NEAR(m.focalLengthMm, 2800 * 6.4 / 4000, 1e-12);
+  EXPECT_NEAR(m.focalLength35mm(), 2800 * 36.0 / 4000, 1e-12);
+}
+
+TEST(CameraModel, TomlUnknownKeyNamesFileLineAndKey) {
+  const fs::path p = tempFile("typo.toml", "[camera]\nwidth = 640\nheight = 480\nfocal_mm = 4\n");
+  CameraModel m;
+  std::string error;
+  EXPECT_FALSE(loadCameraModel(p.string(), m, error));
+  EXPECT_NE(error.find("typo.toml:4:"), std::string::npos) << error;
+  EXPECT_NE(error.find("camera.focal_mm"), std::string::npos) << error;
+}
+
+TEST(CameraModel, UncalibratedTomlKeepsOnlyWhatIsKnown) {
+  const fs::path p =
+      tempFile("lens.toml", "[camera]\nfocal_length_mm = 4.5\nsensor_width_mm = 6.0\n");
+  CameraModel m;
+  std::string error;
+  ASSERT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+  EXPECT_FALSE(m.calibrated());
+  EXPECT_NEAR(m.focalLength35mm(), 4.5 * 36 / 6.0, 1e-12);
+}
+
+TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"empty.yaml", ""},
+      {"garbage.yaml", "%YAML:1.0\ncamera_matrix: [1, 2\n  ::: }"},
+      {"garbage.json", "{ \"fx\": "},
+      {"nokeys.yaml", "%YAML:1.0\nfoo: 1\n"},
+      {"badmatrix.yaml", "%YAML:1.0\nimage_width: 10\nimage_height: 10\ncamera_matrix: 3\n"},
+      {"bad.toml", "[camera\nwidth = 1"},
+      {"badtype.toml", "[camera]\nwidth = \"wide\"\n"},
+      {"partial.toml", "[camera]\nwidth = 640\nheight = 480\nfx = 500\n"},
+      {"binary.xml", std::string("\x01\x02\xff\xfe<<", 6)},
+  };
+  for (const auto& [name, text] : cases) {
+    CameraModel m;
+    std::string error;
+    EXPECT_FALSE(loadCameraModel(tempFile(name, text).string(), m, error)) << name;
+    EXPECT_FALSE(error.empty()) << name;
+    EXPECT_EQ(error.find('\n'), std::string::npos) << name << ": " << error;
+  }
+  CameraModel m;
+  std::string error;
+  EXPECT_FALSE(loadCameraModel("/nonexistent/cam.yaml", m, error));
+  EXPECT_NE(error.find("cannot open"), std::string::npos);
+}
+
+TEST(CameraModel, ScaledToKeepsTheFieldOfView) {
+  CameraModel m;
+  m.width = 1920;
+  m.height = 1080;
+  m.fx = m.fy = 1400;
+  m.cx = 959.5;
+  m.cy = 539.5;
+  const CameraModel h = m.scaledTo(960, 540);
+  EXPECT_DOUBLE_EQ(h.fx, 700);
+  EXPECT_DOUBLE_EQ(h.cx, 479.5);  // still the centre in OpenCV's pixel-centre convention
+  EXPECT_DOUBLE_EQ(h.cy, 269.5);
+  EXPECT_DOUBLE_EQ(h.focalLength35mm(), m.focalLength35mm());
+}
+
+// ---------------------------------------------------------------- mount / Pix4D angles
+
+Quaternion headingQ(double yawDeg) {
+  const double h = yawDeg * std::numbers::pi / 360.0;
+  return {std::cos(h), 0, 0, std::sin(h)};  // rotation about NED down: heading
+}
+
+double angleDiff(double a, double b) {
+  return std::remainder(a - b, 360.0);
+}
+
+TEST(CameraMount, Pix4dAnglesRoundTrip) {
+  for (const Pix4dAngles a : {Pix4dAngles{10, 20, 30}, Pix4dAngles{350, -45, 5},
+                              Pix4dAngles{181, 60, -170}, Pix4dAngles{0.5, 0, 0}}) {
+    const Pix4dAngles b = pix4dAngles(fromPix4dAngles(a));
+    EXPECT_NEAR(angleDiff(b.yawDeg, a.yawDeg), 0, 1e-9);
+    EXPECT_NEAR(b.pitchDeg, a.pitchDeg, 1e-9);
+    EXPECT_NEAR(angleDiff(b.rollDeg, a.rollDeg), 0, 1e-9);
+  }
+}
+
+TEST(CameraMount, NadirCameraHeadingNorthIsAllZero) {
+  // Pix4D: yaw 0, pitch 0, roll 0 = nadir, image top to the north.
+  const Pix4dAngles a = pix4dAngles(cameraToNed(Quaternion{}, CameraMount{}));
+  EXPECT_NEAR(angleDiff(a.yawDeg, 0), 0, 1e-9);
+  EXPECT_NEAR(a.pitchDeg, 0, 1e-9);
+  EXPECT_NEAR(a.rollDeg, 0, 1e-9);
+}
+
+TEST(CameraMount, HeadingEastTurnsYawBy90) {
+  const Pix4dAngles a = pix4dAngles(cameraToNed(headingQ(90), CameraMount{}));
+  EXPECT_NEAR(a.yawDeg, 90, 1e-9);  // image top to the east
+  EXPECT_NEAR(a.pitchDeg, 0, 1e-9);
+  const Pix4dAngles w = pix4dAngles(cameraToNed(headingQ(-90), CameraMount{}));
+  EXPECT_NEAR(w.yawDeg, 270, 1e-9);  // Pix4D's own example: 270 = top to the west
+}
+
+TEST(CameraMount, ForwardCameraHasPitch90AndObliqueInBetween) {
+  const Pix4dAngles f = pix4dAngles(cameraToNed(headingQ(30), CameraMount{0, 0, 0}));
+  EXPECT_NEAR(f.pitchDeg, 90, 1e-6);
+  EXPECT_NEAR(f.yawDeg, 30, 1e-6);
+  // synth's orbit: camera 55 deg down from the horizon -> Pix4D pitch 35.
+  const Pix4dAngles o = pix4dAngles(cameraToNed(headingQ(200), CameraMount{0, -55, 0}));
+  EXPECT_NEAR(o.pitchDeg, 35, 1e-9);
+  EXPECT_NEAR(o.yawDeg, 200, 1e-9);
+  EXPECT_NEAR(o.rollDeg, 0, 1e-9);
+}
+
+TEST(CameraMount, CameraAxesFollowTheMountConvention) {
+  // Nadir mount: the optical axis (camera z) points down (NED +z) and the image top
+  // (camera -y) toward the nose (north when heading north).
+  const Quaternion q = cameraToNed(Quaternion{}, CameraMount{});
+  const auto rotate = [&](double x, double y, double z) {
+    // v' = q v q^-1 via the matrix form
+    const double w = q.w, a = q.x, b = q.y, c = q.z;
+    return std::array<double, 3>{
+        (1 - 2 * (b * b + c * c)) * x + 2 * (a * b - w * c) * y + 2 * (a * c + w * b) * z,
+        2 * (a * b + w * c) * x + (1 - 2 * (a * a + c * c)) * y + 2 * (b * c - w * a) * z,
+        2 * (a * c - w * b) * x + 2 * (b * c + w * a) * y + (1 - 2 * (a * a + b * b)) * z};
+  };
+  const auto axis = rotate(0, 0, 1);
+  EXPECT_NEAR(axis[2], 1, 1e-12);
+  const auto up = rotate(0, -1, 0);
+  EXPECT_NEAR(up[0], 1, 1e-12);
+  // A vehicle rolled right by 10 deg tilts the nadir camera: Pix4D roll follows.
+  const double r = 10 * std::numbers::pi / 360.0;
+  const Pix4dAngles a = pix4dAngles(cameraToNed({std::cos(r), std::sin(r), 0, 0}, CameraMount{}));
+  EXPECT_NEAR(a.rollDeg, 10, 1e-9);
+  EXPECT_NEAR(a.pitchDeg, 0, 1e-9);
+}
+
+}  // namespace
+}  // namespace keyframed
