@@ -119,7 +119,10 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
   const auto d = [&](std::size_t i) { return i < cam.distortion.size() ? cam.distortion[i] : 0.0; };
   std::string dist;
   for (double v : {d(0), d(1), d(4), d(2), d(3)}) {
-    dist += (dist.empty() ? "" : ",") + format("%.9g", v);
+    if (!dist.empty()) {
+      dist += ',';
+    }
+    dist += format("%.9g", v);
   }
   xmp["Xmp.Camera.PerspectiveDistortion"] = dist;
 }
