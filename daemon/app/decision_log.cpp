@@ -72,7 +72,8 @@ std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
       ",\"features\":" + std::to_string(d.features) + ",\"matches\":" + std::to_string(d.matches) +
       ",\"inliers\":" + std::to_string(d.inliers) + ",\"luma_ms\":" + ms(d.times.lumaNs) +
       ",\"blur_ms\":" + ms(d.times.blurNs) + ",\"resize_ms\":" + ms(d.times.resizeNs) +
-      ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) + ",\"geotag\":";
+      ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) +
+      ",\"geotag\":";
   if (geotag.empty()) {
     s += "null";
   } else {

@@ -80,8 +80,8 @@ const CameraModel* KeyframeWriter::cameraFor(int width, int height) {
   if (!config_.camera) return nullptr;
   if (!scaled_ || scaled_->width != width || scaled_->height != height) {
     const CameraModel& c = *config_.camera;
-    scaled_ = (c.width > 0 && (c.width != width || c.height != height)) ? c.scaledTo(width, height)
-                                                                        : c;
+    scaled_ =
+        (c.width > 0 && (c.width != width || c.height != height)) ? c.scaledTo(width, height) : c;
     if (scaled_->width <= 0) {
       scaled_->width = width;
       scaled_->height = height;

@@ -2,8 +2,8 @@
 
 #include <cerrno>
 #include <cmath>
-#include <ctime>
 #include <cstdlib>
+#include <ctime>
 #include <functional>
 #include <map>
 
@@ -115,6 +115,8 @@ telemetry and tags:
   --autopilot SYS[:COMP]     follow this autopilot (default: the first one heard)
   --mavlink-sysid N          our system id on a live link (default: the autopilot's)
   --telemetry-wait MS        wait this long for telemetry newer than a keyframe (default 1000)
+  --telemetry-start-wait MS  live link: wait this long for a first pose before
+                             reading video (default 10000; 0 = do not wait)
   --realtime                 deliver frames at the video's own rate, stamped with the
                              monotonic clock, as a camera would
 output:
@@ -246,8 +248,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
        [&](const std::string& v) -> std::string {
          std::int64_t ns = 0;
          if (!parseUtcTime(v, ns))
-           return "expected a UTC time like 2026-06-01T10:00:00Z or unix seconds, got '" + v +
-                  "'";
+           return "expected a UTC time like 2026-06-01T10:00:00Z or unix seconds, got '" + v + "'";
          o.videoStartUnixNs = ns;
          return {};
        }},
@@ -257,10 +258,9 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          std::size_t start = 0;
          for (int k = 0; k < 3; ++k) {
            const auto comma = v.find(',', start);
-           if ((k < 2) != (comma != std::string::npos))
-             return "expected ROLL,PITCH,YAW in degrees";
-           const std::string part = v.substr(start, comma == std::string::npos ? std::string::npos
-                                                                               : comma - start);
+           if ((k < 2) != (comma != std::string::npos)) return "expected ROLL,PITCH,YAW in degrees";
+           const std::string part =
+               v.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
            if (!parseDouble(part, a[k]) || std::fabs(a[k]) > 360) return "bad angle '" + part + "'";
            start = comma + 1;
          }
@@ -270,6 +270,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return {};
        }},
       {"--telemetry-wait", integer(o.telemetryWaitMs, 0, 60000)},
+      {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, 0, 600000)},
       {"--autopilot",
        [&](const std::string& v) -> std::string {
          std::int64_t sys = 0, comp = 0;
@@ -339,8 +340,9 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (!o.telemetry.empty()) {
     std::string e;
     if (!parseMavlinkUrl(o.telemetry, e)) return fail("--telemetry: " + e);
-    const bool replay = o.telemetry.starts_with("tlog:") ||
-                        (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
+    const bool replay =
+        o.telemetry.starts_with("tlog:") ||
+        (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
     if (replay && !o.videoStartUnixNs)
       return fail("--video-start TIME is needed to align the video with the tlog");
     if (!replay) o.realtime = true;  // a live link runs on the real clock

@@ -23,17 +23,18 @@ struct SelectOptions {
   bool quiet = false;            // --quiet: no summary on stdout
 
   // Telemetry and tagging.
-  std::string telemetry;                   // --telemetry URL|FILE.tlog (see openMavlinkLink)
-  std::string calibration;                 // --calibration FILE (OpenCV YAML/XML, TOML, JSON)
+  std::string telemetry;                         // --telemetry URL|FILE.tlog (see openMavlinkLink)
+  std::string calibration;                       // --calibration FILE (OpenCV YAML/XML, TOML, JSON)
   std::optional<std::int64_t> videoStartUnixNs;  // --video-start ISO8601|UNIX_SECONDS
-  double mountRollDeg = 0.0;               // --mount ROLL,PITCH,YAW (degrees, body FRD)
+  double mountRollDeg = 0.0;                     // --mount ROLL,PITCH,YAW (degrees, body FRD)
   double mountPitchDeg = -90.0;
   double mountYawDeg = 0.0;
-  bool realtime = false;                   // --realtime: deliver frames at the video's rate
-  int telemetryWaitMs = 1000;              // --telemetry-wait MS: wait for poses this long
-  int autopilotSystem = 0;                 // --autopilot SYS[:COMP] (0: first autopilot)
+  bool realtime = false;             // --realtime: deliver frames at the video's rate
+  int telemetryWaitMs = 1000;        // --telemetry-wait MS: wait for poses this long
+  int telemetryStartWaitMs = 10000;  // --telemetry-start-wait MS: first pose, live links
+  int autopilotSystem = 0;           // --autopilot SYS[:COMP] (0: first autopilot)
   int autopilotComponent = 0;
-  int mavlinkSystemId = 0;                 // --mavlink-sysid N (0: the autopilot's)
+  int mavlinkSystemId = 0;  // --mavlink-sysid N (0: the autopilot's)
 };
 
 // Parses an ISO 8601 UTC time (2026-06-01T10:00:00Z, fractions allowed) or a number

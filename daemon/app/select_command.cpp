@@ -79,8 +79,8 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       static_cast<long long>(s.framesRead), static_cast<long long>(s.kept),
       static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
       static_cast<long long>(s.promoted), s.seconds, s.framesPerSecond, s.analysisMsMean,
-      s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(), tel,
-      toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
+      s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(),
+      tel, toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
       c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
       c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
       c.blur.analysisWidth, c.overlap.orbFeatures, c.overlap.paperThreshold);
@@ -167,6 +167,23 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       return s;
     }
     s.telemetry.source = opts.telemetry;
+    if (!telemetry->isReplay() && opts.telemetryStartWaitMs > 0) {
+      // A camera that starts before the autopilot is heard would take its first
+      // keyframes untagged: give the link a moment to deliver a first pose.
+      if (!opts.quiet)
+        std::fprintf(stderr, "waiting for telemetry on %s\n", opts.telemetry.c_str());
+      const std::int64_t deadline = monotonicNowNs() + opts.telemetryStartWaitMs * 1'000'000LL;
+      while (!telemetry->decoder().hasPose() && monotonicNowNs() < deadline &&
+             (stop == nullptr || !stop->load())) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+      }
+      if (!telemetry->decoder().hasPose()) {
+        std::fprintf(stderr,
+                     "keyframed: warning: no attitude and position from %s after %d ms; "
+                     "keyframes are tagged when telemetry arrives\n",
+                     opts.telemetry.c_str(), opts.telemetryStartWaitMs);
+      }
+    }
   }
 
   DecisionLog log;
@@ -251,8 +268,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       const std::int64_t due = startNs + frame.timestampNs;
       while (monotonicNowNs() < due) {
         if (stop != nullptr && stop->load()) break;
-        std::this_thread::sleep_for(std::chrono::nanoseconds(
-            std::min<std::int64_t>(due - monotonicNowNs(), 20'000'000)));
+        std::this_thread::sleep_for(
+            std::chrono::nanoseconds(std::min<std::int64_t>(due - monotonicNowNs(), 20'000'000)));
       }
       frame.timestampNs = monotonicNowNs();
     } else if (opts.videoStartUnixNs) {

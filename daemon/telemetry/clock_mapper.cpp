@@ -50,12 +50,9 @@ ClockMapper::Source ClockMapper::source() const {
 
 std::optional<std::int64_t> ClockMapper::offsetNs() const {
   switch (source()) {
-    case Source::Timesync:
-      return timesyncOffsetNs_;
-    case Source::Arrival:
-      return arrivals_.front().offsetNs;
-    case Source::None:
-      break;
+    case Source::Timesync: return timesyncOffsetNs_;
+    case Source::Arrival: return arrivals_.front().offsetNs;
+    case Source::None: break;
   }
   return std::nullopt;
 }
@@ -71,8 +68,7 @@ std::optional<std::int64_t> ClockMapper::utcUs(std::int64_t localNs) const {
   if (!offset || !utcMinusBootUs_) return std::nullopt;
   const std::int64_t bootNs = localNs - *offset;
   // Round to the nearest microsecond, also for negative values.
-  const std::int64_t bootUs =
-      bootNs >= 0 ? (bootNs + 500) / 1000 : -((-bootNs + 500) / 1000);
+  const std::int64_t bootUs = bootNs >= 0 ? (bootNs + 500) / 1000 : -((-bootNs + 500) / 1000);
   return bootUs + *utcMinusBootUs_;
 }
 
@@ -82,12 +78,9 @@ double ClockMapper::bestRoundTripMs() const {
 
 const char* toString(ClockMapper::Source source) {
   switch (source) {
-    case ClockMapper::Source::Timesync:
-      return "timesync";
-    case ClockMapper::Source::Arrival:
-      return "arrival";
-    case ClockMapper::Source::None:
-      break;
+    case ClockMapper::Source::Timesync: return "timesync";
+    case ClockMapper::Source::Arrival: return "arrival";
+    case ClockMapper::Source::None: break;
   }
   return "none";
 }

@@ -95,7 +95,9 @@ bool parseUrl(const std::string& url, Url& out, std::string& error) {
   return bad("unknown scheme '" + out.scheme + "'");
 }
 
-std::string errnoText(const std::string& what) { return what + ": " + std::strerror(errno); }
+std::string errnoText(const std::string& what) {
+  return what + ": " + std::strerror(errno);
+}
 
 class UdpLink final : public MavlinkLink {
  public:
@@ -201,26 +203,16 @@ class UdpLink final : public MavlinkLink {
 
 speed_t baudConstant(int baud) {
   switch (baud) {
-    case 9600:
-      return B9600;
-    case 19200:
-      return B19200;
-    case 38400:
-      return B38400;
-    case 57600:
-      return B57600;
-    case 115200:
-      return B115200;
-    case 230400:
-      return B230400;
-    case 460800:
-      return B460800;
-    case 500000:
-      return B500000;
-    case 921600:
-      return B921600;
-    default:
-      return B1500000;
+    case 9600: return B9600;
+    case 19200: return B19200;
+    case 38400: return B38400;
+    case 57600: return B57600;
+    case 115200: return B115200;
+    case 230400: return B230400;
+    case 460800: return B460800;
+    case 500000: return B500000;
+    case 921600: return B921600;
+    default: return B1500000;
   }
 }
 

@@ -37,12 +37,12 @@ struct GpsQuality {
 // The vehicle's state at one instant of the companion's clock, as the PoseStore
 // interpolates it. Missing parts are absent, never zero-filled.
 struct Pose {
-  std::int64_t timeNs = 0;                // companion clock (CLOCK_MONOTONIC or replay time)
-  std::optional<Quaternion> attitude;     // body FRD -> local NED
-  std::optional<GeoPosition> position;    // absent without a 3D fix or when stale
-  GpsQuality gps;                         // latest GPS_RAW_INT before timeNs
-  std::optional<std::int64_t> utcUs;      // UTC of timeNs (unix microseconds) when known
-  std::string staleReason;                // why attitude or position is absent; "" when fresh
+  std::int64_t timeNs = 0;              // companion clock (CLOCK_MONOTONIC or replay time)
+  std::optional<Quaternion> attitude;   // body FRD -> local NED
+  std::optional<GeoPosition> position;  // absent without a 3D fix or when stale
+  GpsQuality gps;                       // latest GPS_RAW_INT before timeNs
+  std::optional<std::int64_t> utcUs;    // UTC of timeNs (unix microseconds) when known
+  std::string staleReason;              // why attitude or position is absent; "" when fresh
 };
 
 }  // namespace keyframed

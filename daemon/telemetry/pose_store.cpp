@@ -27,8 +27,8 @@ Quaternion slerp(const Quaternion& a, const Quaternion& b0, double t) {
     wa = std::sin((1.0 - t) * theta) / s;
     wb = std::sin(t * theta) / s;
   }
-  return normalized({wa * a.w + wb * b.w, wa * a.x + wb * b.x, wa * a.y + wb * b.y,
-                     wa * a.z + wb * b.z});
+  return normalized(
+      {wa * a.w + wb * b.w, wa * a.x + wb * b.x, wa * a.y + wb * b.y, wa * a.z + wb * b.z});
 }
 
 Quaternion quaternionFromEuler(double roll, double pitch, double yaw) {
@@ -88,8 +88,8 @@ namespace {
 
 // Finds the samples around t. Returns false with a reason when they are too far.
 template <typename Q>
-bool bracket(const Q& q, std::int64_t t, std::int64_t maxGap, std::int64_t maxHold,
-             std::size_t& i0, std::size_t& i1, std::string& why, const char* what) {
+bool bracket(const Q& q, std::int64_t t, std::int64_t maxGap, std::int64_t maxHold, std::size_t& i0,
+             std::size_t& i1, std::string& why, const char* what) {
   if (q.empty()) {
     why = std::string("no ") + what;
     return false;
@@ -123,7 +123,9 @@ bool bracket(const Q& q, std::int64_t t, std::int64_t maxGap, std::int64_t maxHo
   return true;
 }
 
-double lerp(double a, double b, double t) { return a + (b - a) * t; }
+double lerp(double a, double b, double t) {
+  return a + (b - a) * t;
+}
 
 }  // namespace
 
@@ -197,7 +199,8 @@ std::optional<std::int64_t> PoseStore::newestNs() const {
   std::lock_guard lock(mutex_);
   std::optional<std::int64_t> t;
   if (!attitude_.empty()) t = attitude_.back().timeNs;
-  if (!position_.empty()) t = std::max(t.value_or(position_.back().timeNs), position_.back().timeNs);
+  if (!position_.empty())
+    t = std::max(t.value_or(position_.back().timeNs), position_.back().timeNs);
   return t;
 }
 

@@ -20,11 +20,11 @@ namespace keyframed {
 class PoseStore {
  public:
   struct Config {
-    std::int64_t historyNs = 120'000'000'000;        // keep this much history
-    std::int64_t maxAttitudeGapNs = 250'000'000;     // max spacing of the samples used
+    std::int64_t historyNs = 120'000'000'000;     // keep this much history
+    std::int64_t maxAttitudeGapNs = 250'000'000;  // max spacing of the samples used
     std::int64_t maxPositionGapNs = 1'500'000'000;
-    std::int64_t maxHoldNs = 150'000'000;            // past the newest sample: hold this long
-    int minFixType = 3;                              // GPS_FIX_TYPE_3D_FIX
+    std::int64_t maxHoldNs = 150'000'000;  // past the newest sample: hold this long
+    int minFixType = 3;                    // GPS_FIX_TYPE_3D_FIX
   };
 
   PoseStore() = default;

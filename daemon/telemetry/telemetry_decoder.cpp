@@ -1,5 +1,7 @@
 #include "telemetry/telemetry_decoder.h"
 
+#include <limits>
+
 namespace keyframed {
 
 namespace {
@@ -108,8 +110,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       clock_.observeSystemTime(s.time_unix_usec, s.time_boot_ms);
       break;
     }
-    default:
-      break;
+    default: break;
   }
 }
 
@@ -145,6 +146,15 @@ bool TelemetryDecoder::covers(std::int64_t localNs) const {
     offset = clock_.offsetNs();
   }
   return offset && store_.covers(localNs - *offset);
+}
+
+bool TelemetryDecoder::hasPose() const {
+  bool mapped = false;
+  {
+    std::lock_guard lock(mutex_);
+    mapped = clock_.offsetNs().has_value();
+  }
+  return mapped && store_.covers(std::numeric_limits<std::int64_t>::min());
 }
 
 TelemetryStats TelemetryDecoder::stats() const {

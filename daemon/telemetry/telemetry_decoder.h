@@ -42,6 +42,8 @@ class TelemetryDecoder {
   [[nodiscard]] Pose poseAt(std::int64_t localNs) const;
   // True when telemetry newer than localNs has arrived (no need to wait more).
   [[nodiscard]] bool covers(std::int64_t localNs) const;
+  // True once the clock is mapped and both attitude and position have arrived.
+  [[nodiscard]] bool hasPose() const;
 
   [[nodiscard]] TelemetryStats stats() const;
   [[nodiscard]] ClockMapper::Source clockSource() const;

@@ -8,7 +8,9 @@ namespace keyframed {
 TelemetryService::TelemetryService(TelemetryServiceConfig config, CameraDescription camera)
     : config_(std::move(config)), camera_(std::move(camera)), decoder_(config_.decoder) {}
 
-TelemetryService::~TelemetryService() { stop(); }
+TelemetryService::~TelemetryService() {
+  stop();
+}
 
 bool TelemetryService::start(std::string& error) {
   link_ = openMavlinkLink(config_.url, error);
@@ -72,18 +74,20 @@ void TelemetryService::send(const std::vector<std::uint8_t>& bytes) {
 }
 
 void TelemetryService::sendHeartbeat() {
-  send(encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_heartbeat_pack_status(systemId(), static_cast<std::uint8_t>(config_.componentId),
-                                      st, m, MAV_TYPE_CAMERA, MAV_AUTOPILOT_INVALID, 0, 0,
-                                      MAV_STATE_ACTIVE);
-  }));
+  send(
+      encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_heartbeat_pack_status(
+            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, MAV_TYPE_CAMERA,
+            MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE);
+      }));
 }
 
 void TelemetryService::sendTimesync(std::int64_t nowNs) {
-  send(encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_timesync_pack_status(systemId(), static_cast<std::uint8_t>(config_.componentId),
-                                      st, m, 0, nowNs);
-  }));
+  send(
+      encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_timesync_pack_status(systemId(), static_cast<std::uint8_t>(config_.componentId),
+                                         st, m, 0, nowNs);
+      }));
 }
 
 void TelemetryService::sendCameraInformation() {
@@ -92,20 +96,22 @@ void TelemetryService::sendCameraInformation() {
   std::memcpy(vendor, camera_.vendor.data(), std::min<std::size_t>(31, camera_.vendor.size()));
   std::memcpy(model, camera_.model.data(), std::min<std::size_t>(31, camera_.model.size()));
   const char uri[140] = {};
-  send(encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_camera_information_pack_status(
-        systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, bootMs(), vendor, model,
-        0, camera_.focalLengthMm, camera_.sensorWidthMm, camera_.sensorHeightMm,
-        static_cast<std::uint16_t>(camera_.width), static_cast<std::uint16_t>(camera_.height), 0,
-        CAMERA_CAP_FLAGS_CAPTURE_IMAGE, 0, uri, 0, 0);
-  }));
+  send(
+      encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_camera_information_pack_status(
+            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, bootMs(), vendor,
+            model, 0, camera_.focalLengthMm, camera_.sensorWidthMm, camera_.sensorHeightMm,
+            static_cast<std::uint16_t>(camera_.width), static_cast<std::uint16_t>(camera_.height),
+            0, CAMERA_CAP_FLAGS_CAPTURE_IMAGE, 0, uri, 0, 0);
+      }));
   std::lock_guard lock(mutex_);
   ++stats_.infoSent;
 }
 
 void TelemetryService::sendCommandAck(std::uint16_t command, std::uint8_t result,
                                       std::uint8_t targetSys, std::uint8_t targetComp) {
-  send(encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+  send(encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st,
+                            mavlink_message_t* m) {
     mavlink_msg_command_ack_pack_status(systemId(), static_cast<std::uint8_t>(config_.componentId),
                                         st, m, command, result, 0, 0, targetSys, targetComp);
   }));
@@ -134,11 +140,12 @@ void TelemetryService::sendCapture(const CaptureReport& r) {
   if (const auto off = decoder_.clockOffsetNs()) {
     boot = static_cast<std::uint32_t>((r.timeNs - *off) / 1'000'000);
   }
-  send(encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_camera_image_captured_pack_status(
-        systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, boot, utc, 0, lat, lon,
-        alt, rel, q, r.imageIndex, 1, url);
-  }));
+  send(
+      encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_camera_image_captured_pack_status(
+            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, boot, utc, 0, lat,
+            lon, alt, rel, q, r.imageIndex, 1, url);
+      }));
   std::lock_guard lock(mutex_);
   ++stats_.capturesSent;
 }
@@ -155,9 +162,8 @@ void TelemetryService::onMessage(const mavlink_message_t& msg, std::int64_t time
       const std::int64_t now = monotonicNowNs();
       send(encoder_->encode(
           [&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-            mavlink_msg_timesync_pack_status(systemId(),
-                                             static_cast<std::uint8_t>(config_.componentId), st, m,
-                                             now, ts.ts1);
+            mavlink_msg_timesync_pack_status(
+                systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, now, ts.ts1);
           }));
     }
     return;
@@ -211,7 +217,8 @@ void TelemetryService::run() {
       lastHeartbeat = now;
       sendHeartbeat();
     }
-    if (config_.timesync && decoder_.autopilotSystem() != 0 && now - lastTimesync >= 1'000'000'000) {
+    if (config_.timesync && decoder_.autopilotSystem() != 0 &&
+        now - lastTimesync >= 1'000'000'000) {
       lastTimesync = now;
       sendTimesync(now);
     }
@@ -234,11 +241,8 @@ void TelemetryService::run() {
           stats_.parser = parser_.stats();
         }
         break;
-      case MavlinkLink::Status::Timeout:
-        break;
-      case MavlinkLink::Status::End:
-        stop_ = true;
-        break;
+      case MavlinkLink::Status::Timeout: break;
+      case MavlinkLink::Status::End: stop_ = true; break;
       case MavlinkLink::Status::Error: {
         std::lock_guard lock(mutex_);
         ++stats_.linkErrors;

@@ -36,12 +36,12 @@ struct CaptureReport {
 };
 
 struct TelemetryServiceConfig {
-  std::string url;           // see openMavlinkLink()
-  int systemId = 0;          // our system id; 0: the autopilot's once known (else 1)
-  int componentId = 100;     // MAV_COMP_ID_CAMERA
-  bool timesync = true;      // send TIMESYNC requests (1 Hz)
-  bool camera = true;        // act as a MAVLink camera component
-  bool mavlink1 = false;     // send MAVLink 1 frames
+  std::string url;        // see openMavlinkLink()
+  int systemId = 0;       // our system id; 0: the autopilot's once known (else 1)
+  int componentId = 100;  // MAV_COMP_ID_CAMERA
+  bool timesync = true;   // send TIMESYNC requests (1 Hz)
+  bool camera = true;     // act as a MAVLink camera component
+  bool mavlink1 = false;  // send MAVLink 1 frames
   TelemetryConfig decoder;
 };
 

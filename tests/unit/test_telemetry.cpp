@@ -20,36 +20,42 @@ namespace {
 constexpr std::int64_t kMs = 1'000'000;
 constexpr double kDeg = M_PI / 180.0;
 
-std::vector<std::uint8_t> heartbeat(MavlinkEncoder& enc, std::uint8_t type, std::uint8_t autopilot) {
-  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_heartbeat_pack_status(s, c, st, m, type, autopilot, 0, 0, MAV_STATE_ACTIVE);
-  });
+std::vector<std::uint8_t> heartbeat(MavlinkEncoder& enc, std::uint8_t type,
+                                    std::uint8_t autopilot) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_heartbeat_pack_status(s, c, st, m, type, autopilot, 0, 0, MAV_STATE_ACTIVE);
+      });
 }
 
-std::vector<std::uint8_t> attitudeQ(MavlinkEncoder& enc, std::uint32_t bootMs, const Quaternion& q) {
-  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-    const float qq[4] = {static_cast<float>(q.w), static_cast<float>(q.x), static_cast<float>(q.y),
-                         static_cast<float>(q.z)};
-    mavlink_msg_attitude_quaternion_pack_status(s, c, st, m, bootMs, qq[0], qq[1], qq[2], qq[3], 0,
-                                                0, 0, nullptr);
-  });
+std::vector<std::uint8_t> attitudeQ(MavlinkEncoder& enc, std::uint32_t bootMs,
+                                    const Quaternion& q) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        const float qq[4] = {static_cast<float>(q.w), static_cast<float>(q.x),
+                             static_cast<float>(q.y), static_cast<float>(q.z)};
+        mavlink_msg_attitude_quaternion_pack_status(s, c, st, m, bootMs, qq[0], qq[1], qq[2], qq[3],
+                                                    0, 0, 0, nullptr);
+      });
 }
 
 std::vector<std::uint8_t> position(MavlinkEncoder& enc, std::uint32_t bootMs, double lat,
                                    double lon, double alt) {
-  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_global_position_int_pack_status(
-        s, c, st, m, bootMs, static_cast<std::int32_t>(std::lround(lat * 1e7)),
-        static_cast<std::int32_t>(std::lround(lon * 1e7)),
-        static_cast<std::int32_t>(std::lround(alt * 1e3)), 30000, 0, 0, 0, 0);
-  });
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_global_position_int_pack_status(
+            s, c, st, m, bootMs, static_cast<std::int32_t>(std::lround(lat * 1e7)),
+            static_cast<std::int32_t>(std::lround(lon * 1e7)),
+            static_cast<std::int32_t>(std::lround(alt * 1e3)), 30000, 0, 0, 0, 0);
+      });
 }
 
 std::vector<std::uint8_t> gpsRaw(MavlinkEncoder& enc, std::uint8_t fix) {
-  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-    mavlink_msg_gps_raw_int_pack_status(s, c, st, m, 0, fix, 0, 0, 0, 80, 120, 0, 0, 14, 0, 800,
-                                        1200, 0, 0, 0);
-  });
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_gps_raw_int_pack_status(s, c, st, m, 0, fix, 0, 0, 0, 80, 120, 0, 0, 14, 0, 800,
+                                            1200, 0, 0, 0);
+      });
 }
 
 TEST(PoseStore, InterpolatesAttitudeBySlerpAndPositionLinearly) {
@@ -141,12 +147,12 @@ TEST(ClockMapper, ArrivalMinimumFindsTheOffsetUnderJitter) {
 
 TEST(ClockMapper, TimesyncWinsAndUtcFollows) {
   ClockMapper clock;
-  const std::int64_t trueOffset = 777 * kMs;  // local = autopilot + offset
+  const std::int64_t trueOffset = 777 * kMs;                       // local = autopilot + offset
   clock.observeArrival(1000, 1000 * kMs + trueOffset + 40 * kMs);  // a slow link
   for (int i = 0; i < 10; ++i) {
-    const std::int64_t ts1 = (2000 + i * 1000) * kMs;          // our send time
-    const std::int64_t tc1 = ts1 + 2 * kMs - trueOffset;       // their clock 2 ms later
-    clock.observeTimesync(tc1, ts1, ts1 + 4 * kMs);            // 4 ms round trip
+    const std::int64_t ts1 = (2000 + i * 1000) * kMs;     // our send time
+    const std::int64_t tc1 = ts1 + 2 * kMs - trueOffset;  // their clock 2 ms later
+    clock.observeTimesync(tc1, ts1, ts1 + 4 * kMs);       // 4 ms round trip
     clock.observeArrival(static_cast<std::uint32_t>((ts1 - trueOffset) / kMs), ts1 + 40 * kMs);
   }
   EXPECT_EQ(clock.source(), ClockMapper::Source::Timesync);
@@ -257,7 +263,8 @@ TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
   }
   bytes.resize(bytes.size() - 7);  // cut the last packet short
   std::ofstream(path, std::ios::binary)
-      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+      .write(reinterpret_cast<const char*>(bytes.data()),
+             static_cast<std::streamsize>(bytes.size()));
 
   TlogReader reader;
   std::string error;
