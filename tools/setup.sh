@@ -14,6 +14,7 @@ APT_PACKAGES=(
   libcamera-dev libv4l-dev libexiv2-dev libturbojpeg0-dev libsystemd-dev
   libtomlplusplus-dev libgtest-dev libbenchmark-dev
   libimage-exiftool-perl clang-format
+  clang-14 libclang-rt-14-dev
 )
 
 SUDO=""
@@ -35,7 +36,7 @@ if [ -n "$MISSING" ]; then
   # libsystemd-dev can upgrade systemd and leave dpkg half-configured (exit 100):
   # repair and retry rather than fail.
   for attempt in 1 2 3; do
-    if $SUDO apt-get install -y -qq --no-install-recommends $MISSING; then break; fi
+    if $SUDO apt-get install -y -qq -o DPkg::Lock::Timeout=600 --no-install-recommends $MISSING; then break; fi
     echo "setup: apt-get install failed (attempt $attempt), repairing" >&2
     $SUDO dpkg --configure -a || true
     $SUDO apt-get -f install -y -qq || true

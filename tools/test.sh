@@ -22,9 +22,14 @@ if [ ! -f build/asan/build.ninja ]; then
   cmake -S . -B build/asan -G Ninja -DCMAKE_BUILD_TYPE=Debug -DKEYFRAMED_SANITIZE=ON \
     -DKEYFRAMED_BUILD_BENCHMARKS=OFF -DKEYFRAMED_WERROR=ON
 fi
-ninja -C build/asan -j"$JOBS" keyframed_unit keyframed
-ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-  build/asan/tests/keyframed_unit --gtest_brief=1
+ninja -C build/asan -j"$JOBS" keyframed_unit keyframed fuzz_mavlink_standalone
+export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+build/asan/tests/keyframed_unit --gtest_brief=1
+build/asan/tests/fuzz/fuzz_mavlink_standalone --iterations 100000
+unset ASAN_OPTIONS UBSAN_OPTIONS
+
+step "fuzz the MAVLink parser (libFuzzer, 30 s)"
+tools/fuzz.sh 30
 
 step "style (clang-format, ruff)"
 git ls-files -co --exclude-standard -- '*.cpp' '*.h' | xargs clang-format --dry-run --Werror

@@ -409,6 +409,14 @@ int selectMain(const std::vector<std::string>& args) {
         static_cast<long long>(s.promoted), static_cast<long long>(s.rejectedBlur),
         static_cast<long long>(s.rejectedOverlap), s.framesPerSecond, s.analysisMsMean,
         opts.outDir.c_str(), s.decisionsPath.c_str(), s.summaryPath.c_str());
+    if (!s.telemetry.source.empty()) {
+      std::printf("geotagged %lld of %lld keyframes (clock: %s)%s%s%s\n",
+                  static_cast<long long>(s.telemetry.geotagged), static_cast<long long>(s.kept),
+                  s.telemetry.clock.c_str(),
+                  s.telemetry.geotagged < s.kept ? "; why not: see the geotag column of " : "",
+                  s.telemetry.geotagged < s.kept ? opts.outDir.c_str() : "",
+                  s.telemetry.geotagged < s.kept ? "/keyframes.csv" : "");
+    }
   }
   if (!s.error.empty()) {
     std::fprintf(stderr, "keyframed select: %s\n", s.error.c_str());

@@ -147,6 +147,10 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
         assert t["GPS:GPSDOP"] == pytest.approx(0.8)
         assert t["XMP-Camera:GPSXYAccuracy"] == pytest.approx(0.8)
         assert decisions(out)[idx]["geotag"] == "ok"
+    print(
+        f"tlog tags vs truth, max: horizontal {worst[0]:.4f} m, vertical {worst[1]:.4f} m, "
+        f"attitude {worst[2]:.4f} deg"
+    )
     # Telemetry is quantised to 1e-7 degrees (1 cm) and 1 mm: 0.1 m and 0.2 degrees is
     # far above that and far below any interpolation or clock mistake.
     assert worst[0] < 0.1, f"horizontal error {worst[0]:.3f} m"
@@ -340,6 +344,11 @@ def check_live_tags(fl: Path, out: Path, ap: FakeAutopilot) -> list[tuple[float,
         errs.append(tag_errors(tags[k["file"]], truth.at(flight_t)))
         # UTC comes from SYSTEM_TIME through the same clock mapping
         assert abs(utc_us_of(tags[k["file"]]) - (truth.epoch_us + flight_t * 1e6)) < 5_000
+    e = np.array(errs)
+    print(
+        f"live tags vs truth, max: horizontal {e[:, 0].max():.3f} m, "
+        f"vertical {e[:, 1].max():.3f} m, attitude {e[:, 2].max():.3f} deg"
+    )
     return errs
 
 

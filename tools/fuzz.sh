@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Coverage-guided fuzzing of the MAVLink parser and telemetry decoder with clang's
+# libFuzzer (+ AddressSanitizer, UBSan). The seed corpus is generated (well-formed
+# MAVLink 1/2 frames of every message the decoder reads); crashes land in
+# build/fuzz/artifacts/.
+#   tools/fuzz.sh [SECONDS]   (default 60)
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+SECONDS_TO_RUN="${1:-60}"
+JOBS="${KEYFRAMED_JOBS:-2}"
+CXX_FUZZ="$(command -v clang++-14 || command -v clang++ || true)"
+CC_FUZZ="$(command -v clang-14 || command -v clang || true)"
+if [ -z "$CXX_FUZZ" ] || [ -z "$CC_FUZZ" ]; then
+  echo "fuzz: clang not found (tools/setup.sh installs clang-14)" >&2
+  exit 1
+fi
+if [ ! -f build/fuzz/build.ninja ]; then
+  cmake -S . -B build/fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+    -DCMAKE_C_COMPILER="$CC_FUZZ" -DCMAKE_CXX_COMPILER="$CXX_FUZZ" -DKEYFRAMED_FUZZ=ON \
+    -DKEYFRAMED_BUILD_DAEMON=OFF -DKEYFRAMED_BUILD_TESTS=OFF -DKEYFRAMED_BUILD_BENCHMARKS=OFF \
+    -DKEYFRAMED_PYTHON="$ROOT/.venv/bin/python" >/dev/null
+fi
+ninja -C build/fuzz -j"$JOBS" fuzz_mavlink fuzz_mavlink_standalone
+mkdir -p build/fuzz/corpus build/fuzz/artifacts
+build/fuzz/tests/fuzz/fuzz_mavlink_standalone --write-seeds build/fuzz/seeds
+ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+  build/fuzz/tests/fuzz/fuzz_mavlink -max_total_time="$SECONDS_TO_RUN" -max_len=4096 \
+  -print_final_stats=1 -artifact_prefix=build/fuzz/artifacts/ \
+  build/fuzz/corpus build/fuzz/seeds
