@@ -443,3 +443,110 @@ def test_live_link_drop_garbage_and_return(
         assert "stale" in k["geotag"] or "gap" in k["geotag"]
     last_ok = max(int(k["index"]) for k in ok)
     assert stale and last_ok > max(int(k["index"]) for k in stale), "tags resume after the drop"
+
+
+def free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@needs_exiftool
+def test_live_udpin_daemon_listens(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The usual deployment: keyframed listens (udpin) and the autopilot (or a MAVLink
+    router) streams to it without waiting to hear from it first."""
+    import time
+
+    port = free_udp_port()
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
+    out = tmp_path / "live"
+    proc = subprocess.Popen(
+        [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(out), "--quiet"]
+        + ["--telemetry", f"udpin:127.0.0.1:{port}"]
+        + ["--calibration", str(short_nadir / "intrinsics.json")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(0.3)
+    ap.start()
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    errs = np.array(check_live_tags(short_nadir, out, ap))
+    assert errs[:, 0].max() < 0.1 and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2, errs
+    # our HEARTBEATs reach the autopilot through the address it streams to
+    assert ap.wait_for("HEARTBEAT", timeout=5)
+
+
+@needs_exiftool
+def test_serial_link_over_a_pty(kf_bin: Path, short_nadir: Path, tmp_path: Path) -> None:
+    """A serial link (telemetry radio, flight controller UART): the flight's packets
+    written in real time into a pseudo-terminal whose other end keyframed opens."""
+    import os
+    import threading
+    import time
+
+    records = read_tlog(short_nadir / "flight.tlog")
+    master, slave = os.openpty()
+    device = os.ttyname(slave)
+    stop = threading.Event()
+    heard = bytearray()
+    start_ns = time.monotonic_ns() + 300_000_000
+    t0 = records[0].unix_us
+
+    def writer() -> None:
+        for rec in records:
+            due = start_ns + (rec.unix_us - t0) * 1000
+            while not stop.is_set() and time.monotonic_ns() < due:
+                time.sleep(min(0.01, max(0.0, (due - time.monotonic_ns()) / 1e9)))
+            if stop.is_set():
+                return
+            os.write(master, bytes(rec.msg.get_msgbuf()))
+
+    def reader() -> None:  # drain what keyframed sends (HEARTBEAT, TIMESYNC, captures)
+        import select
+
+        while not stop.is_set():
+            r, _, _ = select.select([master], [], [], 0.05)
+            if r:
+                try:
+                    heard.extend(os.read(master, 4096))
+                except OSError:
+                    return
+
+    threads = [threading.Thread(target=writer), threading.Thread(target=reader)]
+    out = tmp_path / "serial"
+    try:
+        for t in threads:
+            t.start()
+        r = run_select(
+            kf_bin,
+            short_nadir,
+            out,
+            "--telemetry",
+            f"serial:{device}:921600",
+            "--calibration",
+            str(short_nadir / "intrinsics.json"),
+        )
+    finally:
+        stop.set()
+        for t in threads:
+            t.join()
+        os.close(master)
+        os.close(slave)
+    assert r.returncode == 0, r.stderr
+    truth = Truth(short_nadir)
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    tags = exif([out / k["file"] for k in kfs])
+    for k in kfs:
+        assert k["geotag"] == "ok", k
+        flight_t = (int(k["time_ns"]) - start_ns) / 1e9 + (t0 - truth.epoch_us) / 1e6
+        e = tag_errors(tags[k["file"]], truth.at(flight_t))
+        assert e[0] < 0.1 and e[1] < 0.1 and e[2] < 0.2, (k["index"], e)
+    # keyframed spoke on the serial line too: its HEARTBEATs (MAVLink 2 frames)
+    assert heard.count(0xFD) >= 1 and len(heard) > 20
