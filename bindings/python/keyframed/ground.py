@@ -1,0 +1,553 @@
+"""keyframed-ground: the ground station. Receives keyframes over Zenoh and writes a
+dataset per vehicle that COLMAP and OpenDroneMap take as it is.
+
+    keyframed-ground --out DATASET [--vehicle NAME] [--connect tcp/HOST:PORT] ...
+
+Subscribes to ``keyframed/<vehicle>/keyframe`` (``*``: every vehicle). Each keyframe
+arrives as the tagged JPEG with its metadata (JSON) in the attachment; a gap in the
+sequence numbers, or a vehicle whose status says it has written more than we hold,
+is filled by querying ``keyframed/<vehicle>/keyframes/<seq>``, which the vehicle
+answers from its on-disk store. Nothing is written twice; every file is written to a
+temporary name and renamed.
+
+``DATASET/<vehicle>/`` holds:
+
+- ``images/NNNNNN.jpg``: the keyframes, byte for byte as the vehicle wrote them
+  (EXIF GPS and XMP Pix4D tags: ODM, OpenSfM and Pix4D read these directly);
+- ``keyframes.jsonl``: the metadata of each, in sequence order;
+- ``cameras.txt``: the camera in COLMAP's text format (OPENCV model, from the
+  intrinsics in the JPEG's tags);
+- ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``: each
+  keyframe with its neighbours along the flight and with those whose ground footprint
+  lies near its own (the next survey line), so matching need not be exhaustive;
+- ``geo.txt``: positions for OpenDroneMap (EPSG:4326; lon lat alt, accuracies);
+- with ``--sift``: ``features/<image>.txt``, SIFT keypoints and descriptors in the
+  text format ``colmap feature_importer`` reads, computed by a low-priority worker.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import os
+import re
+import signal
+import sys
+import threading
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+KEY_PREFIX = "keyframed"
+GAP_GRACE_S = 1.0  # how long a gap may last before it is filled by query
+
+
+def keyframe_key(vehicle: str) -> str:
+    return f"{KEY_PREFIX}/{vehicle}/keyframe"
+
+
+def status_key(vehicle: str) -> str:
+    return f"{KEY_PREFIX}/{vehicle}/status"
+
+
+def store_key(vehicle: str, seq: int | str) -> str:
+    return f"{KEY_PREFIX}/{vehicle}/keyframes/{seq}"
+
+
+# ----------------------------------------------------------------------------- tags
+
+
+@dataclass
+class ImageTags:
+    """What the dataset files need from one keyframe's EXIF/XMP tags."""
+
+    width: int = 0
+    height: int = 0
+    lat: float | None = None
+    lon: float | None = None
+    alt: float | None = None
+    xy_accuracy: float | None = None
+    z_accuracy: float | None = None
+    focal_mm: float | None = None
+    pixels_per_mm: float | None = None  # from FocalPlaneXResolution
+    principal_mm: tuple[float, float] | None = None
+    distortion: list[float] = field(default_factory=list)  # Pix4D R1,R2,R3,T1,T2
+
+
+def _xmp_value(xmp: str, name: str) -> str | None:
+    m = re.search(rf'Camera:{name}="([^"]*)"', xmp) or re.search(
+        rf"<Camera:{name}>([^<]*)</Camera:{name}>", xmp
+    )
+    return m.group(1) if m else None
+
+
+def read_tags(jpeg: bytes) -> ImageTags:
+    """EXIF (Pillow) and the Pix4D XMP fields of a keyframe JPEG."""
+    from PIL import Image
+
+    tags = ImageTags()
+    with Image.open(io.BytesIO(jpeg)) as im:
+        tags.width, tags.height = im.size
+        exif = im.getexif()
+        sub = exif.get_ifd(0x8769)
+        if 0x920A in sub:
+            tags.focal_mm = float(sub[0x920A])
+        if 0xA20E in sub and 0xA210 in sub:
+            per_unit = float(sub[0xA20E])
+            unit_mm = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(sub[0xA210]))
+            if unit_mm and per_unit > 0:
+                tags.pixels_per_mm = per_unit / unit_mm
+        gps = exif.get_ifd(0x8825)
+        if 2 in gps and 4 in gps:
+
+            def deg(v: Any) -> float:
+                return float(v[0]) + float(v[1]) / 60.0 + float(v[2]) / 3600.0
+
+            tags.lat = deg(gps[2]) * (-1.0 if gps.get(1) == "S" else 1.0)
+            tags.lon = deg(gps[4]) * (-1.0 if gps.get(3) == "W" else 1.0)
+            if 6 in gps:
+                tags.alt = float(gps[6]) * (-1.0 if gps.get(5) in (1, b"\x01") else 1.0)
+    start = jpeg.find(b"<x:xmpmeta")
+    end = jpeg.find(b"</x:xmpmeta>")
+    if start >= 0 and end > start:
+        xmp = jpeg[start:end].decode("utf-8", "replace")
+        for name, attr in (("GPSXYAccuracy", "xy_accuracy"), ("GPSZAccuracy", "z_accuracy")):
+            v = _xmp_value(xmp, name)
+            if v:
+                setattr(tags, attr, float(v))
+        pp = _xmp_value(xmp, "PrincipalPoint")
+        if pp:
+            x, y = (float(s) for s in pp.split(","))
+            tags.principal_mm = (x, y)
+        fl = _xmp_value(xmp, "PerspectiveFocalLength")
+        if fl:
+            tags.focal_mm = float(fl)
+        dist = _xmp_value(xmp, "PerspectiveDistortion")
+        if dist:
+            tags.distortion = [float(s) for s in dist.split(",")]
+    return tags
+
+
+def colmap_camera(tags: ImageTags) -> str | None:
+    """One COLMAP camera line (OPENCV: fx fy cx cy k1 k2 p1 p2), or None when the
+    tags do not give the intrinsics in pixels."""
+    if not (tags.focal_mm and tags.pixels_per_mm and tags.width):
+        return None
+    f = tags.focal_mm * tags.pixels_per_mm
+    if tags.principal_mm:
+        cx = tags.principal_mm[0] * tags.pixels_per_mm - 0.5
+        cy = tags.principal_mm[1] * tags.pixels_per_mm - 0.5
+    else:
+        cx, cy = tags.width / 2.0 - 0.5, tags.height / 2.0 - 0.5
+    r = (tags.distortion + [0.0] * 5)[:5]  # R1 R2 R3 T1 T2 = k1 k2 k3 p1 p2
+    params = [f, f, cx, cy, r[0], r[1], r[3], r[4]]
+    return f"1 OPENCV {tags.width} {tags.height} " + " ".join(f"{p:.9g}" for p in params)
+
+
+# ------------------------------------------------------------------------ pairs
+
+
+def _local_xy(lat: float, lon: float, lat0: float, lon0: float) -> tuple[float, float]:
+    r = 6378137.0
+    return (
+        math.radians(lon - lon0) * r * math.cos(math.radians(lat0)),
+        math.radians(lat - lat0) * r,
+    )
+
+
+def image_pairs(
+    names: list[str],
+    tags: list[ImageTags],
+    sequential: int = 3,
+    footprint_fraction: float = 0.8,
+    alt_above_ground: list[float | None] | None = None,
+) -> list[tuple[str, str]]:
+    """Pairs to match: each image with the next ``sequential`` ones, and any two whose
+    camera positions lie closer than ``footprint_fraction`` of the ground footprint
+    width (estimated from height above ground and the field of view); a lawn-mower
+    survey's neighbouring lines overlap sideways, which sequence alone misses."""
+    pairs: set[tuple[int, int]] = set()
+    n = len(names)
+    for i in range(n):
+        for j in range(i + 1, min(n, i + 1 + sequential)):
+            pairs.add((i, j))
+    known = [i for i in range(n) if tags[i].lat is not None and tags[i].lon is not None]
+    if known:
+        lat0, lon0 = tags[known[0]].lat or 0.0, tags[known[0]].lon or 0.0
+        xy = {i: _local_xy(tags[i].lat or 0.0, tags[i].lon or 0.0, lat0, lon0) for i in known}
+        for a_i, i in enumerate(known):
+            for j in known[a_i + 1 :]:
+                h = None
+                if alt_above_ground is not None:
+                    hs = [v for v in (alt_above_ground[i], alt_above_ground[j]) if v is not None]
+                    h = min(hs) if hs else None
+                t = tags[i]
+                if h is None or not (t.focal_mm and t.pixels_per_mm and t.width):
+                    continue
+                footprint = h * min(t.width, t.height) / (t.focal_mm * t.pixels_per_mm)
+                d = math.dist(xy[i], xy[j])
+                if d < footprint_fraction * footprint:
+                    pairs.add((i, j))
+    return [(names[i], names[j]) for i, j in sorted(pairs)]
+
+
+# ------------------------------------------------------------------------- SIFT
+
+
+def _sift_worker_init() -> None:
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+
+
+def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> int:
+    """SIFT keypoints + descriptors of one image in COLMAP's feature import format:
+    ``N 128`` then per feature ``x y scale orientation d1 ... d128`` (0-255)."""
+    import cv2
+    import numpy as np
+
+    img = cv2.imread(jpeg_path, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise ValueError(f"cannot read {jpeg_path}")
+    sift = cv2.SIFT_create(nfeatures=max_features)
+    kps, desc = sift.detectAndCompute(img, None)
+    lines = [f"{len(kps)} 128"]
+    if desc is not None:
+        # As COLMAP stores SIFT: L2-normalised, times 512, clipped to 0..255.
+        d = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        d = np.clip(np.round(d * 512.0), 0, 255).astype(np.uint8)
+        for kp, row in zip(kps, d, strict=True):
+            lines.append(
+                f"{kp.pt[0]:.3f} {kp.pt[1]:.3f} {kp.size / 2.0:.3f} "
+                f"{math.radians(kp.angle):.5f} " + " ".join(str(int(v)) for v in row)
+            )
+    tmp = out_path + ".tmp"
+    Path(tmp).write_text("\n".join(lines) + "\n")
+    os.replace(tmp, out_path)
+    return len(kps)
+
+
+# ---------------------------------------------------------------------- dataset
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class VehicleDataset:
+    """One vehicle's dataset folder; thread-safe."""
+
+    def __init__(self, root: Path, vehicle: str, sift: ProcessPoolExecutor | None) -> None:
+        self.vehicle = vehicle
+        self.dir = root / vehicle
+        self.images = self.dir / "images"
+        self.images.mkdir(parents=True, exist_ok=True)
+        self.lock = threading.Lock()
+        self.meta: dict[int, dict[str, Any]] = {}
+        self.duplicates = 0
+        self.fetched = 0
+        self.announced = -1  # highest sequence the vehicle says it has written
+        self.missing_since: dict[int, float] = {}
+        self.first_time = time.monotonic()
+        self.sift = sift
+        self.sift_jobs: list[Future[int]] = []
+        if sift is not None:
+            (self.dir / "features").mkdir(exist_ok=True)
+        # resume: what an earlier run already holds
+        index = self.dir / "keyframes.jsonl"
+        if index.exists():
+            for line in index.read_text().splitlines():
+                try:
+                    m = json.loads(line)
+                    if (self.images / m["file"]).exists():
+                        self.meta[int(m["sequence"])] = m
+                except (ValueError, KeyError):
+                    continue
+
+    def add(self, meta: dict[str, Any], jpeg: bytes, fetched: bool = False) -> bool:
+        """Stores one keyframe; False when it was already there."""
+        seq = int(meta["sequence"])
+        name = meta.get("file") or f"{int(meta.get('frame_index', seq)):06d}.jpg"
+        name = os.path.basename(str(name))
+        meta = dict(meta, file=name)
+        with self.lock:
+            if seq in self.meta:
+                self.duplicates += 1
+                return False
+            _write_atomic(self.images / name, jpeg)
+            self.meta[seq] = meta
+            if fetched:
+                self.fetched += 1
+            with open(self.dir / "keyframes.jsonl", "a") as f:
+                f.write(json.dumps(meta, sort_keys=True) + "\n")
+        if self.sift is not None:
+            out = str(self.dir / "features" / (name + ".txt"))
+            self.sift_jobs.append(self.sift.submit(sift_to_colmap, str(self.images / name), out))
+        return True
+
+    def missing(self) -> list[int]:
+        with self.lock:
+            top = max([self.announced, *self.meta.keys()], default=-1)
+            return [s for s in range(top + 1) if s not in self.meta]
+
+    def overdue(self, grace: float) -> list[int]:
+        """Missing keyframes noticed more than ``grace`` seconds ago: a status or a
+        later keyframe can overtake a large keyframe still in flight, so a gap is
+        only queried once it has lasted a moment."""
+        now = time.monotonic()
+        gone = self.missing()
+        with self.lock:
+            self.missing_since = {s: self.missing_since.get(s, now) for s in gone}
+            return [s for s in gone if now - self.missing_since[s] >= grace]
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.meta)
+
+    def finish(self) -> dict[str, Any]:
+        """Rewrites keyframes.jsonl in sequence order and writes the COLMAP/ODM files."""
+        for job in self.sift_jobs:
+            job.result()
+        with self.lock:
+            metas = [self.meta[s] for s in sorted(self.meta)]
+        lines = "".join(json.dumps(m, sort_keys=True) + "\n" for m in metas)
+        _write_atomic(self.dir / "keyframes.jsonl", lines.encode())
+        names = [m["file"] for m in metas]
+        tags = [read_tags((self.images / n).read_bytes()) for n in names]
+        camera = next((c for c in (colmap_camera(t) for t in tags) if c), None)
+        header = "# Camera list with one line of data per camera:\n"
+        header += "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+        _write_atomic(self.dir / "cameras.txt", (header + (camera or "") + "\n").encode())
+        rel = [_float_or_none(m.get("alt_rel")) for m in metas]
+        pairs = image_pairs(names, tags, alt_above_ground=rel)
+        _write_atomic(self.dir / "pairs.txt", "".join(f"{a} {b}\n" for a, b in pairs).encode())
+        geo = ["EPSG:4326"]
+        for n, t in zip(names, tags, strict=True):
+            if t.lat is None or t.lon is None:
+                continue
+            row = f"{n} {t.lon:.9f} {t.lat:.9f} {t.alt if t.alt is not None else 0.0:.3f}"
+            if t.xy_accuracy is not None and t.z_accuracy is not None:
+                row += f" 0 0 0 {t.xy_accuracy:.3f} {t.z_accuracy:.3f}"
+            geo.append(row)
+        _write_atomic(self.dir / "geo.txt", ("\n".join(geo) + "\n").encode())
+        return {
+            "vehicle": self.vehicle,
+            "keyframes": len(metas),
+            "fetched_by_query": self.fetched,
+            "duplicates_ignored": self.duplicates,
+            "missing": self.missing(),
+            "pairs": len(pairs),
+            "camera": camera,
+        }
+
+
+def _float_or_none(v: Any) -> float | None:
+    try:
+        return float(v) if v not in (None, "") else None
+    except (TypeError, ValueError):
+        return None
+
+
+# ------------------------------------------------------------------------ station
+
+
+class GroundStation:
+    def __init__(self, session: Any, out: Path, vehicle: str, sift: bool, quiet: bool) -> None:
+        self.session = session
+        self.out = out
+        self.vehicle = vehicle
+        self.quiet = quiet
+        self.datasets: dict[str, VehicleDataset] = {}
+        self.lock = threading.Lock()
+        self.last_arrival = 0.0
+        self.wake = threading.Event()
+        self.pool = (
+            ProcessPoolExecutor(max_workers=1, initializer=_sift_worker_init) if sift else None
+        )
+        self.subs = [
+            session.declare_subscriber(keyframe_key(vehicle), self._on_keyframe),
+            session.declare_subscriber(status_key(vehicle), self._on_status),
+        ]
+
+    def dataset(self, vehicle: str) -> VehicleDataset:
+        with self.lock:
+            if vehicle not in self.datasets:
+                self.datasets[vehicle] = VehicleDataset(self.out, vehicle, self.pool)
+            return self.datasets[vehicle]
+
+    @staticmethod
+    def _vehicle_of(key: str) -> str:
+        parts = key.split("/")
+        return parts[1] if len(parts) > 2 else "unknown"
+
+    def _on_keyframe(self, sample: Any) -> None:
+        try:
+            meta = json.loads(sample.attachment.to_bytes()) if sample.attachment else {}
+            if "sequence" not in meta:
+                print("keyframed-ground: keyframe without a sequence number", file=sys.stderr)
+                return
+            ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
+            ds.add(meta, sample.payload.to_bytes())
+            self.last_arrival = time.monotonic()
+            if ds.missing():
+                self.wake.set()
+        except Exception as err:  # a bad message must not stop the station
+            print(f"keyframed-ground: bad keyframe message: {err}", file=sys.stderr)
+
+    def _on_status(self, sample: Any) -> None:
+        try:
+            status = json.loads(sample.payload.to_bytes())
+            n = status.get("keyframes", status.get("kept"))
+            if n is None:
+                return
+            ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
+            ds.announced = max(ds.announced, int(n) - 1)
+            if ds.missing():
+                self.wake.set()
+        except Exception as err:
+            print(f"keyframed-ground: bad status message: {err}", file=sys.stderr)
+
+    def fill_gaps(self, grace: float = GAP_GRACE_S, timeout: float = 5.0) -> int:
+        """Queries every vehicle's store for the keyframes we have lacked for
+        ``grace`` seconds; returns how many arrived."""
+        got = 0
+        for ds in list(self.datasets.values()):
+            for seq in ds.overdue(grace):
+                replies = self.session.get(store_key(ds.vehicle, seq), timeout=timeout)
+                for reply in replies:
+                    if reply.ok is None:
+                        continue
+                    s = reply.ok
+                    meta = json.loads(s.attachment.to_bytes()) if s.attachment else {}
+                    meta.setdefault("sequence", seq)
+                    if ds.add(meta, s.payload.to_bytes(), fetched=True):
+                        got += 1
+                        self.last_arrival = time.monotonic()
+                    break
+        return got
+
+    def progress(self) -> str:
+        parts = []
+        for ds in self.datasets.values():
+            n = ds.count()
+            rate = n / max(1e-3, time.monotonic() - ds.first_time)
+            last = ""
+            with ds.lock:
+                if ds.meta:
+                    m = ds.meta[max(ds.meta)]
+                    if m.get("lat") not in (None, ""):
+                        last = f" at {float(m['lat']):.6f},{float(m['lon']):.6f}"
+            parts.append(f"{ds.vehicle}: {n} keyframes, {rate * 60:.0f}/min{last}")
+        return "; ".join(parts) or "waiting for keyframes"
+
+    def run(self, duration: float | None, until_idle: float | None, stop: threading.Event) -> None:
+        start = time.monotonic()
+        last_print = 0.0
+        while not stop.is_set():
+            self.wake.wait(0.5)
+            self.wake.clear()
+            self.fill_gaps()
+            now = time.monotonic()
+            if not self.quiet and now - last_print > 1.0:
+                print("\r" + self.progress() + "   ", end="", file=sys.stderr, flush=True)
+                last_print = now
+            if duration is not None and now - start > duration:
+                break
+            if (
+                until_idle is not None
+                and self.last_arrival
+                and now - self.last_arrival > until_idle
+            ):
+                if not any(ds.missing() for ds in self.datasets.values()):
+                    break
+        if not self.quiet:
+            print(file=sys.stderr)
+
+    def close(self) -> list[dict[str, Any]]:
+        for s in self.subs:
+            s.undeclare()
+        self.fill_gaps(grace=0.0)
+        results = [ds.finish() for ds in self.datasets.values()]
+        if self.pool is not None:
+            self.pool.shutdown()
+        return results
+
+
+def open_session(args: argparse.Namespace) -> Any:
+    import zenoh
+
+    conf = zenoh.Config.from_file(str(args.zenoh_config)) if args.zenoh_config else zenoh.Config()
+    if args.mode:
+        conf.insert_json5("mode", json.dumps(args.mode))
+    if args.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(args.connect))
+    if args.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(args.listen))
+    if args.connect or args.listen:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="keyframed-ground", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
+    p.add_argument("--out", type=Path, required=True, help="dataset folder (one per vehicle)")
+    p.add_argument("--vehicle", default="*", help="vehicle name, or * for all (default)")
+    p.add_argument("--zenoh-config", type=Path, help="Zenoh JSON5 configuration file")
+    p.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode (default: config's)")
+    p.add_argument("--connect", action="append", default=[], help="endpoint, e.g. tcp/IP:7447")
+    p.add_argument("--listen", action="append", default=[], help="endpoint to listen on")
+    p.add_argument("--sift", action="store_true", help="write SIFT features for COLMAP")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument(
+        "--until-idle", type=float, help="stop once no keyframe arrived for this many seconds"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    args = p.parse_args(argv)
+    if args.zenoh_config and not args.zenoh_config.is_file():
+        print(f"keyframed-ground: no such file: {args.zenoh_config}", file=sys.stderr)
+        return 2
+    if "/" in args.vehicle or not args.vehicle:
+        print(f"keyframed-ground: bad vehicle name {args.vehicle!r}", file=sys.stderr)
+        return 2
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"keyframed-ground: cannot create {args.out}: {err.strerror}", file=sys.stderr)
+        return 1
+    try:
+        session = open_session(args)
+    except Exception as err:
+        print(f"keyframed-ground: cannot open the Zenoh session: {err}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    station = GroundStation(session, args.out, args.vehicle, args.sift, args.quiet)
+    try:
+        station.run(args.duration, args.until_idle, stop)
+    finally:
+        results = station.close()
+        session.close()
+    for r in results:
+        print(json.dumps(r, sort_keys=True))
+    incomplete = [r["vehicle"] for r in results if r["missing"]]
+    if incomplete:
+        print(f"keyframed-ground: keyframes still missing for {incomplete}", file=sys.stderr)
+        return 3
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,258 @@
+"""The ground station (keyframed-ground) against a vehicle on loopback Zenoh.
+
+The vehicle side here is a Python Zenoh session that publishes the keyframes a real
+`keyframed select --telemetry` run wrote (tagged JPEGs, keyframes.csv) and answers
+queries from that folder, as the daemon does; the daemon end to end is in
+test_mcap_zenoh.py. The checks use independent readers: pycolmap for what COLMAP
+makes of the dataset, exiftool's values through the JPEG bytes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from flights import flight
+
+zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is installed by tools/setup.sh")
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def tagged(kf_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    fl = flight("nadir", width=480, height=270, seconds=8.0)
+    out = tmp_path_factory.mktemp("tagged")
+    r = subprocess.run(
+        [str(kf_bin), "select", str(fl / "video.avi"), "--out", str(out), "--quiet"]
+        + ["--telemetry", str(fl / "flight.tlog"), "--video-start", "2026-06-01T10:00:00Z"]
+        + ["--calibration", str(fl / "intrinsics.json")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def rows(out: Path) -> list[dict[str, str]]:
+    with open(out / "keyframes.csv") as f:
+        return list(csv.DictReader(f))
+
+
+class Vehicle:
+    """Publishes keyframes and serves keyframed/<name>/keyframes/<seq> from a folder."""
+
+    def __init__(self, name: str, folder: Path, port: int) -> None:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(conf)
+        self.name = name
+        self.folder = folder
+        self.rows = rows(folder)
+        self.queries: list[str] = []
+        self.stopped = threading.Event()
+        self.status_thread: threading.Thread | None = None
+        self.pub = self.session.declare_publisher(
+            f"keyframed/{name}/keyframe", congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        self.queryable = self.session.declare_queryable(
+            f"keyframed/{name}/keyframes/*", self._serve
+        )
+
+    def meta(self, row: dict[str, str]) -> dict[str, Any]:
+        return {
+            "sequence": int(row["sequence"]),
+            "frame_index": int(row["index"]),
+            "file": row["file"],
+            "lat": row["lat"],
+            "lon": row["lon"],
+            "alt_rel": row["alt_rel"],
+        }
+
+    def _serve(self, query: Any) -> None:
+        key = str(query.key_expr)
+        self.queries.append(key)
+        seq = int(key.rsplit("/", 1)[1])
+        row = self.rows[seq]
+        query.reply(
+            key,
+            (self.folder / row["file"]).read_bytes(),
+            attachment=json.dumps(self.meta(row)).encode(),
+        )
+
+    def publish(self, seq: int) -> None:
+        row = self.rows[seq]
+        self.pub.put(
+            (self.folder / row["file"]).read_bytes(), attachment=json.dumps(self.meta(row)).encode()
+        )
+
+    def status(self) -> None:
+        """Like the daemon: status over and over (it says how many keyframes exist)."""
+
+        def loop() -> None:
+            while not self.stopped.wait(0.2):
+                self.session.put(
+                    f"keyframed/{self.name}/status",
+                    json.dumps({"keyframes": len(self.rows)}).encode(),
+                )
+
+        self.status_thread = threading.Thread(target=loop, daemon=True)
+        self.status_thread.start()
+
+    def close(self) -> None:
+        self.stopped.set()
+        if self.status_thread is not None:
+            self.status_thread.join()
+        self.queryable.undeclare()
+        self.pub.undeclare()
+        self.session.close()
+
+
+def ground(out: Path, port: int, *extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
+        + ["--connect", f"tcp/127.0.0.1:{port}", "--until-idle", "2", *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_connected(vehicle: Vehicle, timeout: float = 10.0) -> None:
+    """Until the ground station's subscriber is known to the vehicle's publisher."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if vehicle.pub.matching_status.matching:
+            time.sleep(0.2)  # the status subscriber is declared just after
+            return
+        time.sleep(0.05)
+    raise AssertionError("the ground station never subscribed")
+
+
+def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
+    tagged: Path, tmp_path: Path
+) -> None:
+    port = free_tcp_port()
+    vehicle = Vehicle("uav1", tagged, port)
+    out = tmp_path / "dataset"
+    proc = ground(out, port, "--sift")
+    try:
+        wait_connected(vehicle)
+        n = len(vehicle.rows)
+        assert n >= 5
+        lost = {1, 2, n - 1}  # a dropped link: two in the middle and the last one
+        for seq in range(n):
+            if seq not in lost:
+                vehicle.publish(seq)
+        vehicle.publish(0)  # a repeat must not be stored twice
+        vehicle.status()  # "I have written n": the missing tail is fetched too
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n
+    assert summary["fetched_by_query"] == len(lost)
+    assert summary["duplicates_ignored"] == 1
+    assert sorted(int(q.rsplit("/", 1)[1]) for q in vehicle.queries) == sorted(lost)
+
+    ds = out / "uav1"
+    for row in vehicle.rows:
+        assert (ds / "images" / row["file"]).read_bytes() == (tagged / row["file"]).read_bytes()
+    seqs = [json.loads(line)["sequence"] for line in (ds / "keyframes.jsonl").open()]
+    assert seqs == list(range(n))
+
+    # cameras.txt: the calibration, recovered from the JPEG tags alone
+    fl = flight("nadir", width=480, height=270, seconds=8.0)
+    intr = json.loads((fl / "intrinsics.json").read_text())
+    cam = (ds / "cameras.txt").read_text().splitlines()[-1].split()
+    assert cam[1] == "OPENCV" and int(cam[2]) == 480 and int(cam[3]) == 270
+    fx, fy, cx, cy = (float(v) for v in cam[4:8])
+    assert fx == pytest.approx(intr["fx"], rel=1e-4)
+    assert fy == pytest.approx(intr["fx"], rel=1e-4)
+    assert cx == pytest.approx(intr["cx"], abs=0.01)
+    assert cy == pytest.approx(intr["cy"], abs=0.01)
+
+    pairs = [tuple(line.split()) for line in (ds / "pairs.txt").read_text().splitlines()]
+    files = [r["file"] for r in vehicle.rows]
+    for a, b in zip(files, files[1:], strict=False):
+        assert (a, b) in pairs
+    assert len(pairs) < n * (n - 1) / 2 or n < 6, "pairs are not exhaustive"
+
+    geo = (ds / "geo.txt").read_text().splitlines()
+    assert geo[0] == "EPSG:4326" and len(geo) == n + 1
+
+    # SIFT in COLMAP's import format
+    for f in files:
+        lines = (ds / "features" / (f + ".txt")).read_text().splitlines()
+        count, dim = (int(v) for v in lines[0].split())
+        assert dim == 128 and count == len(lines) - 1 and count > 50
+        first = lines[1].split()
+        assert len(first) == 4 + 128 and all(0 <= int(v) <= 255 for v in first[4:])
+
+    # COLMAP: the camera as given, and a GPS prior per image from the EXIF tags
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is installed by tools/setup.sh")
+    db_path = tmp_path / "colmap.db"
+    opts = pycolmap.ImageReaderOptions()
+    opts.camera_model = "OPENCV"
+    opts.camera_params = ",".join(cam[4:])
+    pycolmap.Database.open(db_path).close()  # creates the schema
+    pycolmap.import_images(db_path, ds / "images", pycolmap.CameraMode.SINGLE, options=opts)
+    db = pycolmap.Database.open(db_path)
+    try:
+        cams = db.read_all_cameras()
+        assert len(cams) == 1
+        assert cams[0].params[0] == pytest.approx(intr["fx"], rel=1e-4)
+        images = db.read_all_images()
+        assert len(images) == n
+        priors = db.read_all_pose_priors()
+        assert len(priors) == n, "COLMAP read a GPS prior from every keyframe"
+        by_name = {r["file"]: r for r in vehicle.rows}
+        lat_lon = np.array(
+            [[float(by_name[i.name]["lat"]), float(by_name[i.name]["lon"])] for i in images]
+        )
+        got = np.array([[p.position[0], p.position[1]] for p in priors])
+        # COLMAP's WGS84 prior is (lat, lon, alt); its order follows image ids
+        assert np.allclose(np.sort(got[:, 0]), np.sort(lat_lon[:, 0]), atol=1e-7)
+        assert np.allclose(np.sort(got[:, 1]), np.sort(lat_lon[:, 1]), atol=1e-7)
+    finally:
+        db.close()
+
+
+def test_bad_command_lines(tmp_path: Path) -> None:
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "keyframed.ground", *args],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+
+    r = run("--out", str(tmp_path), "--zenoh-config", str(tmp_path / "nope.json5"))
+    assert r.returncode == 2 and "no such file" in r.stderr
+    r = run("--out", str(tmp_path), "--vehicle", "a/b")
+    assert r.returncode == 2 and "bad vehicle" in r.stderr
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: 12 ")
+    r = run("--out", str(tmp_path / "d"), "--zenoh-config", str(bad))
+    assert r.returncode == 1 and "Zenoh" in r.stderr
+    assert "Traceback" not in r.stderr
+    r = run("--out", "/proc/keyframed-cannot-write")
+    assert r.returncode == 1 and "cannot create" in r.stderr
