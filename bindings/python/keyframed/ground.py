@@ -468,8 +468,9 @@ class GroundStation:
                 and self.last_arrival
                 and now - self.last_arrival > until_idle
             ):
-                if not any(ds.missing() for ds in self.datasets.values()):
-                    break
+                # Idle: nothing arrived, by subscription or by query, for a while.
+                # What is still missing gets one last query at close() and is reported.
+                break
         if not self.quiet:
             print(file=sys.stderr)
 
