@@ -66,6 +66,7 @@ class Vehicle:
         self.rows = rows(folder)
         self.queries: list[str] = []
         self.stopped = threading.Event()
+        self.unavailable: set[int] = set()
         self.status_thread: threading.Thread | None = None
         self.pub = self.session.declare_publisher(
             f"keyframed/{name}/keyframe", congestion_control=zenoh.CongestionControl.BLOCK
@@ -88,6 +89,9 @@ class Vehicle:
         key = str(query.key_expr)
         self.queries.append(key)
         seq = int(key.rsplit("/", 1)[1])
+        if seq in self.unavailable:
+            query.reply_err(b"not in the store")
+            return
         row = self.rows[seq]
         query.reply(
             key,
@@ -256,3 +260,25 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     assert "Traceback" not in r.stderr
     r = run("--out", "/proc/keyframed-cannot-write")
     assert r.returncode == 1 and "cannot create" in r.stderr
+
+
+def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path) -> None:
+    port = free_tcp_port()
+    vehicle = Vehicle("uav2", tagged, port)
+    vehicle.unavailable = {1}
+    out = tmp_path / "dataset"
+    proc = ground(out, port)
+    try:
+        wait_connected(vehicle)
+        for seq in (0, 2, 3):
+            vehicle.publish(seq)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 3, stderr
+    assert "still missing" in stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == 3 and summary["missing"] == [1]
+    assert 1 in [int(q.rsplit("/", 1)[1]) for q in vehicle.queries]
