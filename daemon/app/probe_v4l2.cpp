@@ -184,7 +184,8 @@ int probeV4l2Main(const std::vector<std::string>& args) {
         return usage("--size needs WxH, e.g. 1280x720");
       }
     } else if (a == "--fps") {
-      if (!value(v) || !parseDouble(v, 0.01, 1000.0, opt.fps)) return usage("--fps needs 0.01..1000");
+      if (!value(v) || !parseDouble(v, 0.01, 1000.0, opt.fps))
+        return usage("--fps needs 0.01..1000");
     } else if (a == "--buffers") {
       if (!value(v) || !parseInt(v, 2, 32, opt.bufferCount)) return usage("--buffers needs 2..32");
     } else if (a == "--timeout-ms") {
@@ -227,9 +228,9 @@ int probeV4l2Main(const std::vector<std::string>& args) {
     return 1;
   }
   const SourceInfo& info = src->info();
-  emit("{\"event\":\"open\",\"device\":" + jsonString(opt.device) +
-       ",\"driver\":" + jsonString(src->device().driver) + ",\"format\":" +
-       jsonString(src->fourcc()) + ",\"pixel_format\":" + jsonString(formatName(src->pixelFormat())) +
+  emit("{\"event\":\"open\",\"device\":" + jsonString(opt.device) + ",\"driver\":" +
+       jsonString(src->device().driver) + ",\"format\":" + jsonString(src->fourcc()) +
+       ",\"pixel_format\":" + jsonString(formatName(src->pixelFormat())) +
        ",\"width\":" + std::to_string(info.width) + ",\"height\":" + std::to_string(info.height) +
        ",\"fps\":" + jsonNumber(info.fps) + "}");
 
@@ -249,9 +250,8 @@ int probeV4l2Main(const std::vector<std::string>& args) {
       ++errors;
       const bool nowLost = src->lost();
       if (!lost || !nowLost) {
-        emit("{\"event\":\"error\",\"reason\":" + jsonString(error) +
-             ",\"lost\":" + (nowLost ? "true" : "false") + ",\"frame\":" + std::to_string(captured) +
-             "}");
+        emit("{\"event\":\"error\",\"reason\":" + jsonString(error) + ",\"lost\":" +
+             (nowLost ? "true" : "false") + ",\"frame\":" + std::to_string(captured) + "}");
       }
       if (!nowLost) {
         rc = 1;  // a timeout without the device going away: report and stop
@@ -262,8 +262,8 @@ int probeV4l2Main(const std::vector<std::string>& args) {
       const double waited =
           std::chrono::duration<double>(std::chrono::steady_clock::now() - lostSince).count();
       if (!opt.autoReopen || waited > reopenWait) {
-        emit("{\"event\":\"error\",\"reason\":" +
-             jsonString("device did not come back: " + error) + ",\"lost\":true}");
+        emit("{\"event\":\"error\",\"reason\":" + jsonString("device did not come back: " + error) +
+             ",\"lost\":true}");
         rc = 1;
         break;
       }
@@ -314,21 +314,21 @@ int probeV4l2Main(const std::vector<std::string>& args) {
     mx = sorted.back();
     median = sorted[sorted.size() / 2];
   }
-  const double measuredFps = segmentSpanNs > 0.0 ? static_cast<double>(segmentFrames) * 1e9 / segmentSpanNs : 0.0;
+  const double measuredFps =
+      segmentSpanNs > 0.0 ? static_cast<double>(segmentFrames) * 1e9 / segmentSpanNs : 0.0;
   emit("{\"event\":\"summary\",\"device\":" + jsonString(opt.device) +
        ",\"format\":" + jsonString(src->fourcc()) + ",\"width\":" + std::to_string(info.width) +
        ",\"height\":" + std::to_string(info.height) + ",\"fps\":" + jsonNumber(info.fps) +
        ",\"frames\":" + std::to_string(captured) + ",\"fps_measured\":" + jsonNumber(measuredFps) +
        ",\"delta_ms_mean\":" + jsonNumber(mean) + ",\"delta_ms_median\":" + jsonNumber(median) +
        ",\"delta_ms_std\":" + jsonNumber(sd) + ",\"delta_ms_min\":" + jsonNumber(mn) +
-       ",\"delta_ms_max\":" + jsonNumber(mx) + ",\"monotonic\":" +
-       (stats.monotonic ? "true" : "false") +
+       ",\"delta_ms_max\":" + jsonNumber(mx) +
+       ",\"monotonic\":" + (stats.monotonic ? "true" : "false") +
        ",\"driver_timestamps\":" + (src->driverTimestamps() ? "true" : "false") +
        ",\"first_ts_ns\":" + std::to_string(firstTs) + ",\"last_ts_ns\":" + std::to_string(lastTs) +
-       ",\"sequence_gaps\":" + std::to_string(src->sequenceGaps()) +
-       ",\"corrupt\":" + std::to_string(src->corruptFrames()) +
-       ",\"errors\":" + std::to_string(errors) + ",\"reopens\":" +
-       std::to_string(src->reopenCount()) + ",\"mean\":" + jsonNumber(lastMean) +
+       ",\"sequence_gaps\":" + std::to_string(src->sequenceGaps()) + ",\"corrupt\":" +
+       std::to_string(src->corruptFrames()) + ",\"errors\":" + std::to_string(errors) +
+       ",\"reopens\":" + std::to_string(src->reopenCount()) + ",\"mean\":" + jsonNumber(lastMean) +
        ",\"wall_s\":" + jsonNumber(wall) + ",\"cpu_s\":" + jsonNumber(cpu) +
        ",\"cpu_percent\":" + jsonNumber(wall > 0 ? 100.0 * cpu / wall : 0.0) +
        ",\"ok\":" + (rc == 0 ? "true" : "false") + "}");

@@ -36,7 +36,9 @@ int xioctl(int fd, unsigned long request, void* arg) {
   return r;
 }
 
-std::string errnoText(int err) { return std::strerror(err); }
+std::string errnoText(int err) {
+  return std::strerror(err);
+}
 
 std::string cString(const std::uint8_t* s, std::size_t n) {
   const auto* c = reinterpret_cast<const char*>(s);
@@ -94,7 +96,6 @@ int videoNumber(const std::string& name) {
   return n;
 }
 
-
 }  // namespace
 
 std::string V4l2Source::fourccString(std::uint32_t fourcc) {
@@ -132,7 +133,7 @@ std::int64_t V4l2Source::timevalToNs(long sec, long usec) {
 bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::string& error) {
   out = V4l2DeviceInfo{};
   out.path = path;
-  struct stat st{};
+  struct stat st {};
   if (::stat(path.c_str(), &st) != 0) {
     error = "no such device: " + path;
     return false;
@@ -206,11 +207,13 @@ std::unique_ptr<V4l2Source> V4l2Source::open(const V4l2Options& options, std::st
   return src;
 }
 
-V4l2Source::~V4l2Source() { shutdown(); }
+V4l2Source::~V4l2Source() {
+  shutdown();
+}
 
 bool V4l2Source::start(std::string& error) {
   const std::string& path = options_.device;
-  struct stat st{};
+  struct stat st {};
   if (::stat(path.c_str(), &st) != 0) {
     error = "no such device: " + path;
     return false;
@@ -261,8 +264,8 @@ bool V4l2Source::start(std::string& error) {
       return false;
     }
     if (std::find(offered.begin(), offered.end(), want) == offered.end()) {
-      error = who + " does not offer " + fourccString(want) + " (offers: " + joinFormats(offered) +
-              ")";
+      error =
+          who + " does not offer " + fourccString(want) + " (offers: " + joinFormats(offered) + ")";
       shutdown();
       return false;
     }

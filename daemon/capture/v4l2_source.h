@@ -18,8 +18,8 @@ struct V4l2DeviceInfo {
   std::string driver;
   std::string card;
   std::string busInfo;
-  bool capture = false;    // single- or multi-planar video capture
-  bool streaming = false;  // supports mmap streaming I/O
+  bool capture = false;              // single- or multi-planar video capture
+  bool streaming = false;            // supports mmap streaming I/O
   std::vector<std::string> formats;  // fourccs the capture queue offers ("YUYV", "NV12", ...)
 };
 
@@ -31,9 +31,9 @@ struct V4l2Options {
   std::string format;
   int width = 0;
   int height = 0;
-  double fps = 0.0;       // VIDIOC_S_PARM when > 0 and the driver supports it
-  int bufferCount = 4;    // mmap ring size
-  int timeoutMs = 2000;   // poll() timeout for one frame
+  double fps = 0.0;      // VIDIOC_S_PARM when > 0 and the driver supports it
+  int bufferCount = 4;   // mmap ring size
+  int timeoutMs = 2000;  // poll() timeout for one frame
   // Recovery when the device disappears (unplugged, driver unbound): when on,
   // next() keeps trying to reopen the same path every `reopenIntervalMs` (each
   // failed attempt returns Error), up to `maxReopenAttempts` (0: no limit).

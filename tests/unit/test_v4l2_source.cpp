@@ -31,8 +31,7 @@ TEST(V4l2Source, PrefersPlanarYuvThenYuyvThenMjpeg) {
   EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_YUV420}),
             V4L2_PIX_FMT_YUV420);
   EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_YUYV}), V4L2_PIX_FMT_YUYV);
-  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_H264, V4L2_PIX_FMT_MJPEG}),
-            V4L2_PIX_FMT_MJPEG);
+  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_H264, V4L2_PIX_FMT_MJPEG}), V4L2_PIX_FMT_MJPEG);
   EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_H264, V4L2_PIX_FMT_RGB565}), 0u);
 }
 
