@@ -13,6 +13,7 @@ be found or run (tools/setup.sh installs them).
 
 from __future__ import annotations
 
+import gzip
 import json
 import lzma
 import os
@@ -23,7 +24,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import keyframed_bin
 
 WIDTH, HEIGHT, FPS = 640, 360, 30
@@ -90,8 +90,6 @@ def _copy_module(src: Path, dst_dir: Path) -> str:
     if src.suffix == ".xz":
         dst.write_bytes(lzma.decompress(src.read_bytes()))
     elif src.suffix == ".gz":
-        import gzip
-
         dst.write_bytes(gzip.decompress(src.read_bytes()))
     elif src.suffix == ".zst":
         if not shutil.which("zstd"):
@@ -150,7 +148,8 @@ n=0; while [ "$(grep -c '"event":"frame"' /tmp/recover.log)" -lt 20 ] && [ $n -l
   sleep 0.1; n=$((n+1)); done
 echo "KF-UNBIND $(cut -d' ' -f1 /proc/uptime)"
 echo vivid.0 > /sys/bus/platform/drivers/vivid/unbind || echo "KF-UNBIND-FAIL"
-n=0; while ! grep -q '"lost":true' /tmp/recover.log && [ $n -lt 100 ]; do sleep 0.1; n=$((n+1)); done
+n=0; while ! grep -q '"lost":true' /tmp/recover.log && [ $n -lt 100 ]; do
+  sleep 0.1; n=$((n+1)); done
 rmmod vivid && echo "KF-RMMOD ok" || echo "KF-RMMOD-FAIL"
 sleep 1
 insmod $VIVID && echo "KF-RELOAD $(cut -d' ' -f1 /proc/uptime)" || echo "KF-INSMOD-FAIL vivid.ko"
@@ -324,5 +323,5 @@ def test_vivid_unbind_and_reload_recovers(vm_run: dict) -> None:
     frames = _events(sec, "frame")
     assert [f["index"] for f in frames] == list(range(60))
     ts = [f["ts_ns"] for f in frames]
-    assert all(b > a for a, b in zip(ts, ts[1:]))
+    assert all(b > a for a, b in zip(ts, ts[1:], strict=False))
     print(f"recovered {rec['after_s']:.2f} s after the loss; VM total {vm_run['elapsed']:.1f} s")
