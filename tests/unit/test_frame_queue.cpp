@@ -1,12 +1,14 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <string>
 #include <thread>
 #include <vector>
 
 #include <gtest/gtest.h>
 
 #include "capture/buffer_pool.h"
+#include "capture/capture_thread.h"
 #include "capture/frame_queue.h"
 
 namespace keyframed {
@@ -175,6 +177,85 @@ TEST(FrameQueue, ConcurrentProducerConsumerKeepsOrderAndReturnsBuffers) {
   consumer.join();
   EXPECT_EQ(consumed + q.dropped() + noBuffer, 5000u);
   EXPECT_EQ(pool.available(), 6u);
+}
+
+}  // namespace
+}  // namespace keyframed
+
+namespace keyframed {
+namespace {
+
+// A source that produces `count` small gray frames as fast as asked.
+class CountingSource final : public FrameSource {
+ public:
+  explicit CountingSource(int count, int errorsAt = -1) : count_(count), errorsAt_(errorsAt) {
+    info_.width = 16;
+    info_.height = 8;
+    pixels_.assign(16 * 8, 0);
+  }
+  const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame& f, std::string& error) override {
+    if (n_ == errorsAt_ && !erred_) {
+      erred_ = true;
+      error = "device lost: test";
+      return ReadStatus::Error;
+    }
+    if (n_ >= count_) return ReadStatus::End;
+    pixels_[0] = static_cast<std::uint8_t>(n_);
+    f = Frame{PixelFormat::Gray8, pixels_.data(), 16, 8, 16, n_ * 1000LL, n_};
+    ++n_;
+    return ReadStatus::Frame;
+  }
+
+ private:
+  SourceInfo info_;
+  std::vector<std::uint8_t> pixels_;
+  int count_, errorsAt_, n_ = 0;
+  bool erred_ = false;
+};
+
+TEST(CaptureThread, DeliversCopiesInOrderAndClosesAtEnd) {
+  CountingSource src(500, 100);
+  FramePool pool(8);
+  FrameQueue q(4);
+  CaptureThread capture(src, pool, q);
+  capture.start();
+  std::vector<std::int64_t> seen;
+  while (auto f = q.pop()) {
+    EXPECT_EQ((*f)->pixels[0], static_cast<std::uint8_t>((*f)->frame.index));  // a real copy
+    seen.push_back((*f)->frame.index);
+    std::this_thread::sleep_for(std::chrono::microseconds(200));  // a slow consumer
+  }
+  capture.stop();
+  EXPECT_TRUE(capture.ended());
+  const auto st = capture.stats();
+  EXPECT_EQ(st.captured, 500u);
+  EXPECT_EQ(st.errors, 1u);
+  EXPECT_EQ(capture.lastError(), "device lost: test");
+  EXPECT_EQ(seen.size() + q.dropped() + st.noBuffer, 500u);
+  EXPECT_EQ(seen.back(), 499);
+  for (std::size_t i = 1; i < seen.size(); ++i) EXPECT_LT(seen[i - 1], seen[i]);
+  EXPECT_LE(pool.created(), 8u);
+}
+
+TEST(CaptureThread, GivesUpAfterConsecutiveErrors) {
+  class Failing final : public FrameSource {
+   public:
+    const SourceInfo& info() const override { return info_; }
+    ReadStatus next(Frame&, std::string& error) override {
+      error = "no such device: /dev/video9";
+      return ReadStatus::Error;
+    }
+    SourceInfo info_;
+  } src;
+  FramePool pool(2);
+  FrameQueue q(2);
+  CaptureThread capture(src, pool, q, 3);
+  capture.start();
+  EXPECT_FALSE(q.pop().has_value());  // closed by the thread
+  capture.stop();
+  EXPECT_EQ(capture.stats().errors, 3u);
+  EXPECT_FALSE(capture.ended());
 }
 
 }  // namespace
