@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <string>
 #include <vector>
 
@@ -298,6 +299,9 @@ int probeV4l2Main(const std::vector<std::string>& args) {
     haveLast = true;
     ++captured;
   }
+  timespec now{};
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  const std::int64_t nowNs = static_cast<std::int64_t>(now.tv_sec) * 1'000'000'000 + now.tv_nsec;
   const double wall =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
   const double cpu = cpuSeconds() - cpu0;
@@ -326,6 +330,7 @@ int probeV4l2Main(const std::vector<std::string>& args) {
        ",\"monotonic\":" + (stats.monotonic ? "true" : "false") +
        ",\"driver_timestamps\":" + (src->driverTimestamps() ? "true" : "false") +
        ",\"first_ts_ns\":" + std::to_string(firstTs) + ",\"last_ts_ns\":" + std::to_string(lastTs) +
+       ",\"monotonic_now_ns\":" + std::to_string(nowNs) +
        ",\"sequence_gaps\":" + std::to_string(src->sequenceGaps()) + ",\"corrupt\":" +
        std::to_string(src->corruptFrames()) + ",\"errors\":" + std::to_string(errors) +
        ",\"reopens\":" + std::to_string(src->reopenCount()) + ",\"mean\":" + jsonNumber(lastMean) +

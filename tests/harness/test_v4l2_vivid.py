@@ -127,7 +127,7 @@ echo "KF-BOOTED $(cut -d' ' -f1 /proc/uptime)"
 for m in $(cat /modules.order); do
   insmod /modules/$m || echo "KF-INSMOD-FAIL $m"
 done
-VIVID="/modules/vivid.ko n_devs=1 node_types=0x1"
+VIVID="/modules/vivid.ko n_devs=1 node_types=0x101"
 insmod $VIVID || echo "KF-INSMOD-FAIL vivid.ko"
 n=0; while [ ! -e /dev/video0 ] && [ $n -lt 50 ]; do sleep 0.1; n=$((n+1)); done
 echo "KF-VIVID-LOADED $(cut -d' ' -f1 /proc/uptime)"
@@ -137,6 +137,12 @@ for fmt in @FORMATS@; do
   /probe --device /dev/video0 --format $fmt --size @SIZE@ --fps @FPS@ --frames @FRAMES@
   echo "KF-RC $fmt $?"
 done
+echo "KF-BEGIN notcapture"
+/probe --device /dev/video1 --frames 1
+echo "KF-RC notcapture $?"
+echo "KF-BEGIN missing"
+/probe --device /dev/video7 --frames 1
+echo "KF-RC missing $?"
 
 # Device going away mid-capture: unbind the driver, then unload it; bring it back.
 echo "KF-BEGIN recover"
@@ -268,6 +274,19 @@ def test_vivid_listed_as_capture_device(vm_run: dict) -> None:
     assert vivid and vivid[0]["path"] == "/dev/video0"
     assert vivid[0]["capture"] and vivid[0]["streaming"]
     assert {"YUYV", "NV12", "YU12"} <= set(vivid[0]["formats"])
+    # node_types=0x101: a video output node beside the capture node
+    assert any(d["path"] == "/dev/video1" and not d["capture"] for d in vivid), vivid
+
+
+def test_clear_errors_for_output_and_missing_nodes(vm_run: dict) -> None:
+    sec = vm_run["sections"]["notcapture"]
+    assert sec["rc"] == 1
+    (err,) = _events(sec, "error")
+    assert err["reason"] == "/dev/video1 (vivid: vivid) is not a video capture device", err
+    sec = vm_run["sections"]["missing"]
+    assert sec["rc"] == 1
+    (err,) = _events(sec, "error")
+    assert err["reason"] == "no such device: /dev/video7", err
 
 
 @pytest.mark.parametrize("fmt", ["YUYV", "NV12", "YUV420"])
@@ -282,6 +301,9 @@ def test_vivid_capture_format(vm_run: dict, fmt: str) -> None:
     assert s["ok"] and s["frames"] == 45
     assert s["driver_timestamps"], "vivid stamps buffers on CLOCK_MONOTONIC"
     assert s["monotonic"]
+    # Driver time is CLOCK_MONOTONIC: the last frame was stamped close to now
+    # (vivid stamps the end of the frame period it schedules: up to a frame ahead).
+    assert abs(s["monotonic_now_ns"] - s["last_ts_ns"]) < 1_000_000_000, s
     # Timestamps come at the configured rate. Under TCG vivid may fall behind
     # and drop frames (sequence gaps), so the median delta is checked, and the
     # span against the frames the driver produced.
