@@ -14,9 +14,10 @@ APT_PACKAGES=(
   libcamera-dev libv4l-dev libexiv2-dev libturbojpeg0-dev libsystemd-dev
   libtomlplusplus-dev libgtest-dev libbenchmark-dev
   libimage-exiftool-perl clang-format
-  # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu
-  qemu-system-x86 linux-image-amd64 busybox-static cpio
 )
+
+# tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu.
+APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
