@@ -17,6 +17,9 @@ APT_PACKAGES=(
   clang-14 libclang-rt-14-dev
 )
 
+# tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu.
+APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
+
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 

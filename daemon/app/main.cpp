@@ -3,6 +3,7 @@
 #include <string>
 #include <vector>
 
+#include "app/probe_v4l2.h"
 #include "app/select_command.h"
 
 namespace {
@@ -26,6 +27,8 @@ int main(int argc, char** argv) {
   args.erase(args.begin());
   try {
     if (command == "select") return keyframed::selectMain(args);
+    // Diagnostic, not in the usage text: V4L2 devices, formats and frame timing.
+    if (command == "probe-v4l2") return keyframed::probeV4l2Main(args);
     if (command == "version" || command == "--version") {
       std::puts("keyframed " KEYFRAMED_VERSION);
       return 0;

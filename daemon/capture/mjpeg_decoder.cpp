@@ -1,0 +1,47 @@
+#include "capture/mjpeg_decoder.h"
+
+#include <turbojpeg.h>
+
+namespace keyframed {
+
+MjpegDecoder::MjpegDecoder() : handle_(tjInitDecompress()) {}
+
+MjpegDecoder::~MjpegDecoder() {
+  if (handle_ != nullptr) tjDestroy(handle_);
+}
+
+bool MjpegDecoder::decode(const std::uint8_t* data, std::size_t size, std::string& error) {
+  if (handle_ == nullptr) {
+    error = "libjpeg-turbo decompressor could not be created";
+    return false;
+  }
+  // A JPEG starts with SOI (FF D8); drivers hand over empty or garbage payloads
+  // when a USB transfer was lost.
+  if (data == nullptr || size < 4 || data[0] != 0xFF || data[1] != 0xD8) {
+    error = "MJPEG frame is not a JPEG (" + std::to_string(size) + " bytes)";
+    return false;
+  }
+  int w = 0, h = 0, subsamp = 0, colorspace = 0;
+  // turbojpeg's API takes non-const buffers in 2.1.
+  auto* src = const_cast<unsigned char*>(data);
+  const auto len = static_cast<unsigned long>(size);
+  if (tjDecompressHeader3(handle_, src, len, &w, &h, &subsamp, &colorspace) != 0 || w <= 0 ||
+      h <= 0) {
+    error = std::string("MJPEG header: ") + tjGetErrorStr2(handle_);
+    return false;
+  }
+  const std::size_t bytes = static_cast<std::size_t>(w) * static_cast<std::size_t>(h) * 3;
+  if (bgr_.size() < bytes) bgr_.resize(bytes);
+  if (tjDecompress2(handle_, src, len, bgr_.data(), w, w * 3, h, TJPF_BGR, TJFLAG_FASTDCT) != 0) {
+    // Warnings (e.g. a truncated final scan) still produce a usable picture.
+    if (tjGetErrorCode(handle_) != TJERR_WARNING) {
+      error = std::string("MJPEG decode: ") + tjGetErrorStr2(handle_);
+      return false;
+    }
+  }
+  width_ = w;
+  height_ = h;
+  return true;
+}
+
+}  // namespace keyframed

@@ -1,0 +1,595 @@
+#include "capture/v4l2_source.h"
+
+#include <dirent.h>
+#include <fcntl.h>
+#include <linux/videodev2.h>
+#include <poll.h>
+#include <sys/ioctl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cerrno>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <ctime>
+#include <numeric>
+#include <thread>
+
+namespace keyframed {
+namespace {
+
+// Formats in order of preference: planar YUV gives the analysis its luma plane
+// without a copy; YUYV needs one extraction; MJPEG a full decode.
+constexpr std::uint32_t kPreferred[] = {V4L2_PIX_FMT_NV12, V4L2_PIX_FMT_YUV420, V4L2_PIX_FMT_YUYV,
+                                        V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_GREY};
+
+int xioctl(int fd, unsigned long request, void* arg) {
+  int r = 0;
+  do {
+    r = ::ioctl(fd, request, arg);
+  } while (r < 0 && errno == EINTR);
+  return r;
+}
+
+std::string errnoText(int err) {
+  return std::strerror(err);
+}
+
+std::string cString(const std::uint8_t* s, std::size_t n) {
+  const auto* c = reinterpret_cast<const char*>(s);
+  return std::string(c, strnlen(c, n));
+}
+
+std::uint32_t deviceCaps(const v4l2_capability& cap) {
+  return (cap.capabilities & V4L2_CAP_DEVICE_CAPS) != 0 ? cap.device_caps : cap.capabilities;
+}
+
+std::vector<std::uint32_t> enumFormats(int fd, std::uint32_t type) {
+  std::vector<std::uint32_t> out;
+  for (std::uint32_t i = 0; i < 64; ++i) {
+    v4l2_fmtdesc d{};
+    d.index = i;
+    d.type = type;
+    if (xioctl(fd, VIDIOC_ENUM_FMT, &d) < 0) break;
+    out.push_back(d.pixelformat);
+  }
+  return out;
+}
+
+std::string joinFormats(const std::vector<std::uint32_t>& codes) {
+  std::string s;
+  for (std::uint32_t c : codes) {
+    if (!s.empty()) s += ", ";
+    s += V4l2Source::fourccString(c);
+  }
+  return s.empty() ? "none" : s;
+}
+
+std::string supportedList() {
+  std::string s;
+  for (std::uint32_t c : kPreferred) {
+    if (!s.empty()) s += ", ";
+    s += V4l2Source::fourccString(c);
+  }
+  return s;
+}
+
+std::int64_t monotonicNowNs() {
+  timespec ts{};
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
+}
+
+int videoNumber(const std::string& name) {
+  // "video12" -> 12; -1 for anything else (e.g. "video-foo").
+  if (name.size() <= 5 || name.compare(0, 5, "video") != 0) return -1;
+  int n = 0;
+  for (std::size_t i = 5; i < name.size(); ++i) {
+    if (name[i] < '0' || name[i] > '9' || n > 100000) return -1;
+    n = n * 10 + (name[i] - '0');
+  }
+  return n;
+}
+
+}  // namespace
+
+std::string V4l2Source::fourccString(std::uint32_t fourcc) {
+  std::string s;
+  for (int i = 0; i < 4; ++i) {
+    const char c = static_cast<char>((fourcc >> (8 * i)) & 0xFF);
+    s += (c >= 32 && c < 127) ? c : '?';
+  }
+  while (!s.empty() && s.back() == ' ') s.pop_back();
+  return s;
+}
+
+std::uint32_t V4l2Source::parseFormat(const std::string& name) {
+  std::string n;
+  for (char c : name) n += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  if (n == "NV12") return V4L2_PIX_FMT_NV12;
+  if (n == "YUV420" || n == "YU12" || n == "I420") return V4L2_PIX_FMT_YUV420;
+  if (n == "YUYV" || n == "YUY2") return V4L2_PIX_FMT_YUYV;
+  if (n == "MJPEG" || n == "MJPG") return V4L2_PIX_FMT_MJPEG;
+  if (n == "GREY" || n == "GRAY" || n == "GRAY8") return V4L2_PIX_FMT_GREY;
+  return 0;
+}
+
+std::uint32_t V4l2Source::chooseFormat(const std::vector<std::uint32_t>& offered) {
+  for (std::uint32_t want : kPreferred) {
+    if (std::find(offered.begin(), offered.end(), want) != offered.end()) return want;
+  }
+  return 0;
+}
+
+std::int64_t V4l2Source::timevalToNs(long sec, long usec) {
+  return static_cast<std::int64_t>(sec) * 1'000'000'000 + static_cast<std::int64_t>(usec) * 1'000;
+}
+
+bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::string& error) {
+  out = V4l2DeviceInfo{};
+  out.path = path;
+  struct stat st {};
+  if (::stat(path.c_str(), &st) != 0) {
+    error = "no such device: " + path;
+    return false;
+  }
+  if (!S_ISCHR(st.st_mode)) {
+    error = "not a device node: " + path;
+    return false;
+  }
+  const int fd = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) {
+    const int err = errno;
+    error = "cannot open " + path + ": " + errnoText(err);
+    if (err == EACCES) error += " (is the user in group 'video'?)";
+    return false;
+  }
+  v4l2_capability cap{};
+  if (xioctl(fd, VIDIOC_QUERYCAP, &cap) < 0) {
+    error = path + " is not a V4L2 device (VIDIOC_QUERYCAP: " + errnoText(errno) + ")";
+    ::close(fd);
+    return false;
+  }
+  out.driver = cString(cap.driver, sizeof(cap.driver));
+  out.card = cString(cap.card, sizeof(cap.card));
+  out.busInfo = cString(cap.bus_info, sizeof(cap.bus_info));
+  const std::uint32_t caps = deviceCaps(cap);
+  out.capture = (caps & (V4L2_CAP_VIDEO_CAPTURE | V4L2_CAP_VIDEO_CAPTURE_MPLANE)) != 0;
+  out.streaming = (caps & V4L2_CAP_STREAMING) != 0;
+  if (out.capture) {
+    const std::uint32_t type = (caps & V4L2_CAP_VIDEO_CAPTURE) != 0
+                                   ? V4L2_BUF_TYPE_VIDEO_CAPTURE
+                                   : V4L2_BUF_TYPE_VIDEO_CAPTURE_MPLANE;
+    for (std::uint32_t c : enumFormats(fd, type)) out.formats.push_back(fourccString(c));
+  }
+  ::close(fd);
+  return true;
+}
+
+std::vector<V4l2DeviceInfo> V4l2Source::listDevices() {
+  std::vector<std::pair<int, std::string>> nodes;
+  if (DIR* dir = ::opendir("/dev")) {
+    while (const dirent* e = ::readdir(dir)) {
+      const int n = videoNumber(e->d_name);
+      if (n >= 0) nodes.emplace_back(n, std::string("/dev/") + e->d_name);
+    }
+    ::closedir(dir);
+  }
+  std::sort(nodes.begin(), nodes.end());
+  std::vector<V4l2DeviceInfo> out;
+  for (const auto& [n, path] : nodes) {
+    V4l2DeviceInfo d;
+    std::string ignored;
+    describe(path, d, ignored);  // unreadable nodes are listed with an empty driver
+    d.path = path;
+    out.push_back(std::move(d));
+  }
+  return out;
+}
+
+std::unique_ptr<V4l2Source> V4l2Source::open(const V4l2Options& options, std::string& error) {
+  if (options.bufferCount < 2 || options.bufferCount > 32) {
+    error = "buffer count must be 2..32, got " + std::to_string(options.bufferCount);
+    return nullptr;
+  }
+  std::unique_ptr<V4l2Source> src(new V4l2Source(options));
+  if (!src->start(error)) return nullptr;
+  // Pin what was negotiated, so a reopen after the device came back asks for
+  // exactly the same stream.
+  src->options_.format = src->fourcc_;
+  src->options_.width = src->info_.width;
+  src->options_.height = src->info_.height;
+  return src;
+}
+
+V4l2Source::~V4l2Source() {
+  shutdown();
+}
+
+bool V4l2Source::start(std::string& error) {
+  const std::string& path = options_.device;
+  struct stat st {};
+  if (::stat(path.c_str(), &st) != 0) {
+    error = "no such device: " + path;
+    return false;
+  }
+  fd_ = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+  if (fd_ < 0) {
+    const int err = errno;
+    error = "cannot open " + path + ": " + errnoText(err);
+    if (err == EACCES) error += " (is the user in group 'video'?)";
+    return false;
+  }
+  v4l2_capability cap{};
+  if (xioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) {
+    error = path + " is not a V4L2 device (VIDIOC_QUERYCAP: " + errnoText(errno) + ")";
+    shutdown();
+    return false;
+  }
+  device_ = V4l2DeviceInfo{};
+  device_.path = path;
+  device_.driver = cString(cap.driver, sizeof(cap.driver));
+  device_.card = cString(cap.card, sizeof(cap.card));
+  device_.busInfo = cString(cap.bus_info, sizeof(cap.bus_info));
+  const std::uint32_t caps = deviceCaps(cap);
+  device_.capture = (caps & (V4L2_CAP_VIDEO_CAPTURE | V4L2_CAP_VIDEO_CAPTURE_MPLANE)) != 0;
+  device_.streaming = (caps & V4L2_CAP_STREAMING) != 0;
+  const std::string who = path + " (" + device_.driver + ": " + device_.card + ")";
+  if ((caps & V4L2_CAP_VIDEO_CAPTURE) == 0) {
+    error = (caps & V4L2_CAP_VIDEO_CAPTURE_MPLANE) != 0
+                ? who + " is a multi-planar capture device, not supported yet"
+                : who + " is not a video capture device";
+    shutdown();
+    return false;
+  }
+  if (!device_.streaming) {
+    error = who + " does not support streaming I/O";
+    shutdown();
+    return false;
+  }
+
+  const std::vector<std::uint32_t> offered = enumFormats(fd_, V4L2_BUF_TYPE_VIDEO_CAPTURE);
+  for (std::uint32_t c : offered) device_.formats.push_back(fourccString(c));
+  std::uint32_t want = 0;
+  if (!options_.format.empty()) {
+    want = parseFormat(options_.format);
+    if (want == 0) {
+      error = "unknown pixel format '" + options_.format + "' (supported: " + supportedList() + ")";
+      shutdown();
+      return false;
+    }
+    if (std::find(offered.begin(), offered.end(), want) == offered.end()) {
+      error =
+          who + " does not offer " + fourccString(want) + " (offers: " + joinFormats(offered) + ")";
+      shutdown();
+      return false;
+    }
+  } else {
+    want = chooseFormat(offered);
+    if (want == 0) {
+      error = who + " offers no supported pixel format (offers: " + joinFormats(offered) +
+              "; supported: " + supportedList() + ")";
+      shutdown();
+      return false;
+    }
+  }
+
+  v4l2_format fmt{};
+  fmt.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  if (xioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) {
+    error = who + ": VIDIOC_G_FMT: " + errnoText(errno);
+    shutdown();
+    return false;
+  }
+  fmt.fmt.pix.pixelformat = want;
+  if (options_.width > 0 && options_.height > 0) {
+    fmt.fmt.pix.width = static_cast<std::uint32_t>(options_.width);
+    fmt.fmt.pix.height = static_cast<std::uint32_t>(options_.height);
+  }
+  fmt.fmt.pix.field = V4L2_FIELD_NONE;
+  fmt.fmt.pix.bytesperline = 0;  // let the driver choose its stride
+  if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) {
+    error = who + ": VIDIOC_S_FMT " + fourccString(want) + ": " + errnoText(errno);
+    shutdown();
+    return false;
+  }
+  if (fmt.fmt.pix.pixelformat != want) {
+    error = who + " refused " + fourccString(want) + " (gave " +
+            fourccString(fmt.fmt.pix.pixelformat) + ")";
+    shutdown();
+    return false;
+  }
+  if (fmt.fmt.pix.field != V4L2_FIELD_NONE && fmt.fmt.pix.field != V4L2_FIELD_ANY) {
+    // Interlaced frames would still work for sharpness, but warn through the description.
+    info_.description = "interlaced ";
+  } else {
+    info_.description.clear();
+  }
+  fourccCode_ = want;
+  fourcc_ = fourccString(want);
+  info_.width = static_cast<int>(fmt.fmt.pix.width);
+  info_.height = static_cast<int>(fmt.fmt.pix.height);
+  sizeImage_ = fmt.fmt.pix.sizeimage;
+  switch (want) {
+    case V4L2_PIX_FMT_NV12: pixelFormat_ = PixelFormat::NV12; break;
+    case V4L2_PIX_FMT_YUV420: pixelFormat_ = PixelFormat::YUV420; break;
+    case V4L2_PIX_FMT_YUYV: pixelFormat_ = PixelFormat::YUYV; break;
+    case V4L2_PIX_FMT_GREY: pixelFormat_ = PixelFormat::Gray8; break;
+    default: pixelFormat_ = PixelFormat::BGR24; break;  // MJPEG, decoded
+  }
+  const int minStride = pixelFormat_ == PixelFormat::YUYV ? info_.width * 2 : info_.width;
+  stride_ = std::max(static_cast<int>(fmt.fmt.pix.bytesperline), minStride);
+  if (info_.width <= 0 || info_.height <= 0) {
+    error = who + " reported an empty frame size";
+    shutdown();
+    return false;
+  }
+
+  // Frame rate: ask, then read back what the driver settled on.
+  v4l2_streamparm parm{};
+  parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  const bool haveParm = xioctl(fd_, VIDIOC_G_PARM, &parm) == 0;
+  if (haveParm && options_.fps > 0.0 &&
+      (parm.parm.capture.capability & V4L2_CAP_TIMEPERFRAME) != 0) {
+    // timeperframe = 1000 / (fps * 1000), reduced: 30 -> 1/30, 29.97 -> 100/2997.
+    auto num = std::uint32_t{1000};
+    auto den = static_cast<std::uint32_t>(std::llround(options_.fps * 1000.0));
+    const std::uint32_t g = std::gcd(num, den);
+    parm.parm.capture.timeperframe.numerator = num / g;
+    parm.parm.capture.timeperframe.denominator = den / g;
+    if (xioctl(fd_, VIDIOC_S_PARM, &parm) < 0) {
+      error = who + ": VIDIOC_S_PARM: " + errnoText(errno);
+      shutdown();
+      return false;
+    }
+  }
+  info_.fps = 0.0;
+  if (haveParm && xioctl(fd_, VIDIOC_G_PARM, &parm) == 0 &&
+      parm.parm.capture.timeperframe.numerator > 0) {
+    info_.fps = static_cast<double>(parm.parm.capture.timeperframe.denominator) /
+                static_cast<double>(parm.parm.capture.timeperframe.numerator);
+  }
+  info_.frameCount = -1;
+
+  // The mmap ring.
+  v4l2_requestbuffers req{};
+  req.count = static_cast<std::uint32_t>(options_.bufferCount);
+  req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  req.memory = V4L2_MEMORY_MMAP;
+  if (xioctl(fd_, VIDIOC_REQBUFS, &req) < 0) {
+    error = who + " does not support mmap streaming (VIDIOC_REQBUFS: " + errnoText(errno) + ")";
+    shutdown();
+    return false;
+  }
+  if (req.count < 2) {
+    error = who + " granted only " + std::to_string(req.count) + " buffer(s)";
+    shutdown();
+    return false;
+  }
+  buffers_.assign(req.count, Buffer{});
+  for (std::uint32_t i = 0; i < req.count; ++i) {
+    v4l2_buffer buf{};
+    buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    buf.memory = V4L2_MEMORY_MMAP;
+    buf.index = i;
+    if (xioctl(fd_, VIDIOC_QUERYBUF, &buf) < 0) {
+      error = who + ": VIDIOC_QUERYBUF: " + errnoText(errno);
+      shutdown();
+      return false;
+    }
+    void* p = ::mmap(nullptr, buf.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_, buf.m.offset);
+    if (p == MAP_FAILED) {
+      error = who + ": mmap: " + errnoText(errno);
+      shutdown();
+      return false;
+    }
+    buffers_[i] = Buffer{p, buf.length};
+    if (xioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
+      error = who + ": VIDIOC_QBUF: " + errnoText(errno);
+      shutdown();
+      return false;
+    }
+  }
+  int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  if (xioctl(fd_, VIDIOC_STREAMON, &type) < 0) {
+    error = who + ": VIDIOC_STREAMON: " + errnoText(errno);
+    shutdown();
+    return false;
+  }
+  streaming_ = true;
+  held_ = -1;
+  haveSequence_ = false;
+  driverTimestamps_ = false;  // decided per buffer
+  char fps[32];
+  std::snprintf(fps, sizeof(fps), "%.6g", info_.fps);
+  info_.description += "v4l2:" + path + " (" + device_.driver + ": " + device_.card + ") " +
+                       fourcc_ + " " + std::to_string(info_.width) + "x" +
+                       std::to_string(info_.height) + "@" + fps;
+  return true;
+}
+
+void V4l2Source::shutdown() {
+  if (fd_ >= 0 && streaming_) {
+    int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    xioctl(fd_, VIDIOC_STREAMOFF, &type);  // fails harmlessly on a vanished device
+  }
+  streaming_ = false;
+  for (Buffer& b : buffers_) {
+    if (b.start != nullptr) ::munmap(b.start, b.length);
+  }
+  const bool hadBuffers = !buffers_.empty();
+  buffers_.clear();
+  if (fd_ >= 0) {
+    if (hadBuffers) {
+      v4l2_requestbuffers req{};
+      req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+      req.memory = V4L2_MEMORY_MMAP;
+      xioctl(fd_, VIDIOC_REQBUFS, &req);
+    }
+    ::close(fd_);
+  }
+  fd_ = -1;
+  held_ = -1;
+}
+
+ReadStatus V4l2Source::lose(int err, const char* what, std::string& error) {
+  lostReason_ = "device lost: " + options_.device + ": " + errnoText(err) + " (" + what + ")";
+  shutdown();
+  reopenAttempts_ = 0;
+  error = lostReason_;
+  return ReadStatus::Error;
+}
+
+bool V4l2Source::reopen(std::string& error) {
+  shutdown();
+  if (!start(error)) {
+    shutdown();
+    return false;
+  }
+  ++reopens_;
+  reopenAttempts_ = 0;
+  return true;
+}
+
+ReadStatus V4l2Source::tryRecover(std::string& error) {
+  if (!options_.autoReopen) {
+    error = lostReason_.empty() ? "device closed: " + options_.device
+                                : lostReason_ + "; call reopen() when it is back";
+    return ReadStatus::Error;
+  }
+  if (options_.maxReopenAttempts > 0 && reopenAttempts_ >= options_.maxReopenAttempts) {
+    error = lostReason_ + "; gave up after " + std::to_string(reopenAttempts_) + " reopen attempts";
+    return ReadStatus::Error;
+  }
+  ++reopenAttempts_;
+  // The first attempt waits too: a device that just vanished is rarely back at once.
+  std::this_thread::sleep_for(std::chrono::milliseconds(std::max(0, options_.reopenIntervalMs)));
+  const int attempt = reopenAttempts_;
+  std::string why;
+  if (!reopen(why)) {
+    error = lostReason_ + "; reopen attempt " + std::to_string(attempt) + " failed: " + why;
+    return ReadStatus::Error;
+  }
+  return ReadStatus::Frame;  // streaming again; the caller reads the frame
+}
+
+bool V4l2Source::requeueHeld(std::string& error) {
+  if (held_ < 0) return true;
+  v4l2_buffer buf{};
+  buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  buf.memory = V4L2_MEMORY_MMAP;
+  buf.index = static_cast<std::uint32_t>(held_);
+  held_ = -1;
+  if (xioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
+    lose(errno, "VIDIOC_QBUF", error);
+    return false;
+  }
+  return true;
+}
+
+ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
+  if (fd_ < 0) {
+    const ReadStatus s = tryRecover(error);
+    if (s != ReadStatus::Frame) return s;
+  }
+  if (!requeueHeld(error)) return ReadStatus::Error;
+
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::milliseconds(options_.timeoutMs);
+  for (;;) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+                          deadline - std::chrono::steady_clock::now())
+                          .count();
+    if (left <= 0) {
+      error = "timeout: no frame from " + options_.device + " within " +
+              std::to_string(options_.timeoutMs) + " ms";
+      return ReadStatus::Error;
+    }
+    pollfd pfd{fd_, POLLIN, 0};
+    const int r = ::poll(&pfd, 1, static_cast<int>(left));
+    if (r < 0) {
+      if (errno == EINTR) continue;
+      return lose(errno, "poll", error);
+    }
+    if (r == 0) continue;  // the deadline check above reports the timeout
+
+    v4l2_buffer buf{};
+    buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    buf.memory = V4L2_MEMORY_MMAP;
+    if (xioctl(fd_, VIDIOC_DQBUF, &buf) < 0) {
+      const int err = errno;
+      if (err == EAGAIN) {
+        // POLLERR with nothing to dequeue: the queue is dead (vb2 sets it when
+        // the driver gives up, the node is unregistered or streaming stopped).
+        if ((pfd.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0) return lose(EIO, "poll", error);
+        continue;
+      }
+      // ENODEV/EIO after an unplug or unbind; anything else also leaves the
+      // stream unusable, and a reopen is the way back for both.
+      return lose(err, "VIDIOC_DQBUF", error);
+    }
+    if (buf.index >= buffers_.size()) return lose(EIO, "buffer index out of range", error);
+    const int index = static_cast<int>(buf.index);
+    held_ = index;
+
+    if (haveSequence_ && buf.sequence > lastSequence_ + 1) {
+      sequenceGaps_ += buf.sequence - lastSequence_ - 1;
+    }
+    lastSequence_ = buf.sequence;
+    haveSequence_ = true;
+
+    const bool monotonic =
+        (buf.flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) == V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC;
+    driverTimestamps_ = monotonic;
+    const std::int64_t ts =
+        monotonic ? timevalToNs(buf.timestamp.tv_sec, buf.timestamp.tv_usec) : monotonicNowNs();
+
+    const auto* data = static_cast<const std::uint8_t*>(buffers_[buf.index].start);
+    const std::size_t used = buf.bytesused > 0 ? buf.bytesused : buffers_[buf.index].length;
+    if ((buf.flags & V4L2_BUF_FLAG_ERROR) != 0) {
+      ++corruptFrames_;
+      if (!requeueHeld(error)) return ReadStatus::Error;
+      continue;
+    }
+
+    frame = Frame{};
+    frame.timestampNs = ts;
+    frame.width = info_.width;
+    frame.height = info_.height;
+    if (fourccCode_ == V4L2_PIX_FMT_MJPEG) {
+      std::string why;
+      const bool ok = mjpeg_.decode(data, used, why);
+      // The decoded picture lives in the decoder: the driver can have its buffer back now.
+      if (!requeueHeld(error)) return ReadStatus::Error;
+      if (!ok || mjpeg_.width() != info_.width || mjpeg_.height() != info_.height) {
+        ++corruptFrames_;
+        continue;
+      }
+      frame.format = PixelFormat::BGR24;
+      frame.data = mjpeg_.bgr();
+      frame.stride = mjpeg_.stride();
+    } else {
+      frame.format = pixelFormat_;
+      frame.data = data;
+      frame.stride = stride_;
+      const std::size_t need =
+          pixelFormat_ == PixelFormat::NV12 || pixelFormat_ == PixelFormat::YUV420
+              ? static_cast<std::size_t>(stride_) * static_cast<std::size_t>(info_.height) * 3 / 2
+              : static_cast<std::size_t>(stride_) * static_cast<std::size_t>(info_.height);
+      if (used < need || buffers_[buf.index].length < need) {
+        ++corruptFrames_;  // a short frame: skip it rather than read past the picture
+        if (!requeueHeld(error)) return ReadStatus::Error;
+        continue;
+      }
+    }
+    frame.index = index_++;
+    return ReadStatus::Frame;
+  }
+}
+
+}  // namespace keyframed

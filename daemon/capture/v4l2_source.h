@@ -1,0 +1,134 @@
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "capture/frame_source.h"
+#include "capture/mjpeg_decoder.h"
+
+namespace keyframed {
+
+// One /dev/video* node as VIDIOC_QUERYCAP describes it.
+struct V4l2DeviceInfo {
+  std::string path;
+  std::string driver;
+  std::string card;
+  std::string busInfo;
+  bool capture = false;              // single- or multi-planar video capture
+  bool streaming = false;            // supports mmap streaming I/O
+  std::vector<std::string> formats;  // fourccs the capture queue offers ("YUYV", "NV12", ...)
+};
+
+// What to ask the driver for. Zero/empty fields keep the driver's current setting.
+struct V4l2Options {
+  std::string device = "/dev/video0";
+  // "" picks the first offered of NV12, YUV420 (YU12), YUYV, MJPEG, GREY.
+  // Otherwise one of those names (or a fourcc such as "YU12", "MJPG").
+  std::string format;
+  int width = 0;
+  int height = 0;
+  double fps = 0.0;      // VIDIOC_S_PARM when > 0 and the driver supports it
+  int bufferCount = 4;   // mmap ring size
+  int timeoutMs = 2000;  // poll() timeout for one frame
+  // Recovery when the device disappears (unplugged, driver unbound): when on,
+  // next() keeps trying to reopen the same path every `reopenIntervalMs` (each
+  // failed attempt returns Error), up to `maxReopenAttempts` (0: no limit).
+  bool autoReopen = false;
+  int reopenIntervalMs = 500;
+  int maxReopenAttempts = 0;
+};
+
+// V4L2 capture (single-planar, mmap streaming) behind FrameSource. Frames are
+// borrowed from the driver's buffer ring: the buffer goes back to the driver
+// on the following next() call. Timestamps are the driver's, on
+// CLOCK_MONOTONIC, when it says so (V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC);
+// otherwise the dequeue time on CLOCK_MONOTONIC. MJPEG is decoded to BGR24.
+class V4l2Source final : public FrameSource {
+ public:
+  ~V4l2Source() override;
+  V4l2Source(const V4l2Source&) = delete;
+  V4l2Source& operator=(const V4l2Source&) = delete;
+
+  // Every /dev/video* node in numeric order, capture-capable or not. Nodes that
+  // cannot be opened are listed with an empty driver.
+  static std::vector<V4l2DeviceInfo> listDevices();
+  // QUERYCAP + ENUM_FMT of one node; false and a one-line error when missing.
+  static bool describe(const std::string& path, V4l2DeviceInfo& out, std::string& error);
+
+  // Opens, negotiates and starts streaming. nullptr and a one-line error when
+  // the device is missing, not a capture device, or offers no supported format.
+  static std::unique_ptr<V4l2Source> open(const V4l2Options& options, std::string& error);
+
+  [[nodiscard]] const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame& frame, std::string& error) override;
+
+  // Closes and reopens the device with the same options (after it came back).
+  // Frame indices continue. False and a one-line error while it is still gone.
+  [[nodiscard]] bool reopen(std::string& error);
+
+  // True after the device went away (ENODEV/EIO/...) until a reopen succeeds.
+  [[nodiscard]] bool lost() const { return fd_ < 0; }
+  // The negotiated V4L2 fourcc ("YUYV", "NV12", "YU12", "MJPG", "GREY").
+  [[nodiscard]] const std::string& fourcc() const { return fourcc_; }
+  // The format the frames are delivered in (BGR24 for MJPEG).
+  [[nodiscard]] PixelFormat pixelFormat() const { return pixelFormat_; }
+  // True when the driver stamps buffers on CLOCK_MONOTONIC.
+  [[nodiscard]] bool driverTimestamps() const { return driverTimestamps_; }
+  [[nodiscard]] const V4l2DeviceInfo& device() const { return device_; }
+  // Frames the driver skipped (gaps in v4l2_buffer.sequence).
+  [[nodiscard]] std::uint64_t sequenceGaps() const { return sequenceGaps_; }
+  // Buffers flagged V4L2_BUF_FLAG_ERROR or MJPEG frames that failed to decode, skipped.
+  [[nodiscard]] std::uint64_t corruptFrames() const { return corruptFrames_; }
+  [[nodiscard]] std::uint64_t reopenCount() const { return reopens_; }
+
+  // Parses a format name ("NV12", "yuv420", "YU12", "MJPEG", ...) to a V4L2
+  // fourcc; 0 when unknown.
+  static std::uint32_t parseFormat(const std::string& name);
+  static std::string fourccString(std::uint32_t fourcc);
+  // Picks the preferred fourcc among those offered; 0 when none is supported.
+  static std::uint32_t chooseFormat(const std::vector<std::uint32_t>& offered);
+  // Driver timeval on CLOCK_MONOTONIC to nanoseconds.
+  static std::int64_t timevalToNs(long sec, long usec);
+
+ private:
+  struct Buffer {
+    void* start = nullptr;
+    std::size_t length = 0;
+  };
+
+  explicit V4l2Source(V4l2Options options) : options_(std::move(options)) {}
+  bool start(std::string& error);
+  void shutdown();
+  bool requeueHeld(std::string& error);
+  ReadStatus lose(int err, const char* what, std::string& error);
+  ReadStatus tryRecover(std::string& error);
+
+  V4l2Options options_;
+  V4l2DeviceInfo device_;
+  SourceInfo info_;
+  int fd_ = -1;
+  std::vector<Buffer> buffers_;
+  int held_ = -1;  // buffer index lent to the caller, requeued on the next call
+  bool streaming_ = false;
+  std::string fourcc_;
+  std::uint32_t fourccCode_ = 0;
+  PixelFormat pixelFormat_ = PixelFormat::YUYV;
+  int stride_ = 0;
+  std::size_t sizeImage_ = 0;
+  bool driverTimestamps_ = false;
+  MjpegDecoder mjpeg_;
+  std::int64_t index_ = 0;
+  std::uint32_t lastSequence_ = 0;
+  bool haveSequence_ = false;
+  std::uint64_t sequenceGaps_ = 0;
+  std::uint64_t corruptFrames_ = 0;
+  std::uint64_t reopens_ = 0;
+  int reopenAttempts_ = 0;
+  std::string lostReason_;
+};
+
+}  // namespace keyframed

@@ -1,0 +1,262 @@
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "capture/buffer_pool.h"
+#include "capture/capture_thread.h"
+#include "capture/frame_queue.h"
+
+namespace keyframed {
+namespace {
+
+using namespace std::chrono_literals;
+
+TEST(BoundedQueue, FifoOrder) {
+  BoundedQueue<int> q(4);
+  for (int i = 0; i < 3; ++i) EXPECT_TRUE(q.push(i));
+  EXPECT_EQ(q.size(), 3u);
+  for (int i = 0; i < 3; ++i) EXPECT_EQ(q.tryPop().value(), i);
+  EXPECT_FALSE(q.tryPop().has_value());
+  EXPECT_EQ(q.dropped(), 0u);
+}
+
+TEST(BoundedQueue, DropsOldestWhenFullAndCounts) {
+  BoundedQueue<int> q(3);
+  for (int i = 0; i < 3; ++i) EXPECT_TRUE(q.push(i));
+  EXPECT_FALSE(q.push(3));  // 0 goes
+  EXPECT_FALSE(q.push(4));  // 1 goes
+  EXPECT_EQ(q.dropped(), 2u);
+  EXPECT_EQ(q.pushed(), 5u);
+  EXPECT_EQ(q.size(), 3u);
+  EXPECT_EQ(q.tryPop().value(), 2);
+  EXPECT_EQ(q.tryPop().value(), 3);
+  EXPECT_EQ(q.tryPop().value(), 4);
+}
+
+TEST(BoundedQueue, PopTimesOutWhenEmpty) {
+  BoundedQueue<int> q(2);
+  const auto t0 = std::chrono::steady_clock::now();
+  EXPECT_FALSE(q.pop(20ms).has_value());
+  EXPECT_GE(std::chrono::steady_clock::now() - t0, 15ms);
+}
+
+TEST(BoundedQueue, CloseWakesConsumerAndRejectsPushes) {
+  BoundedQueue<int> q(2);
+  q.push(7);
+  std::thread consumer([&] {
+    EXPECT_EQ(q.pop().value(), 7);
+    EXPECT_FALSE(q.pop().has_value());  // woken by close()
+  });
+  std::this_thread::sleep_for(10ms);
+  q.close();
+  consumer.join();
+  EXPECT_FALSE(q.push(8));
+  EXPECT_TRUE(q.closed());
+}
+
+TEST(BoundedQueue, ProducerNeverBlocksOnSlowConsumer) {
+  BoundedQueue<int> q(2);
+  std::atomic<bool> done{false};
+  std::vector<int> seen;
+  std::thread consumer([&] {
+    while (auto v = q.pop()) {
+      seen.push_back(*v);
+      std::this_thread::sleep_for(1ms);
+    }
+    done = true;
+  });
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int i = 0; i < 2000; ++i) q.push(i);
+  const auto pushTime = std::chrono::steady_clock::now() - t0;
+  q.close();
+  consumer.join();
+  EXPECT_LT(pushTime, 500ms);  // 2000 pushes against a 1 ms/item consumer
+  EXPECT_EQ(q.pushed(), 2000u);
+  EXPECT_EQ(q.dropped() + seen.size(), 2000u);
+  EXPECT_GT(q.dropped(), 0u);
+  for (std::size_t i = 1; i < seen.size(); ++i) EXPECT_LT(seen[i - 1], seen[i]);
+  EXPECT_EQ(seen.back(), 1999);  // the freshest frame always survives
+}
+
+TEST(BufferPool, ReturnsObjectsWhenLastHolderLetsGo) {
+  BufferPool<std::vector<int>> pool(2);
+  auto a = pool.acquire();
+  auto b = pool.acquire();
+  ASSERT_TRUE(a && b);
+  EXPECT_FALSE(pool.acquire());  // exhausted
+  EXPECT_EQ(pool.exhaustedCount(), 1u);
+  std::vector<int>* raw = a.get();
+  a->push_back(42);
+  auto a2 = a;  // a second holder
+  a.reset();
+  EXPECT_EQ(pool.available(), 0u);
+  a2.reset();
+  EXPECT_EQ(pool.available(), 1u);
+  auto c = pool.acquire();
+  EXPECT_EQ(c.get(), raw);  // the same object came back, contents kept
+  EXPECT_EQ(c->size(), 1u);
+  EXPECT_EQ(pool.created(), 2u);
+}
+
+TEST(BufferPool, NoAllocationPerFrameInSteadyState) {
+  FramePool pool(4);
+  FrameQueue q(2);
+  std::vector<std::uint8_t> pixels(64 * 48 * 2, 128);
+  Frame src{PixelFormat::YUYV, pixels.data(), 64, 48, 128, 0, 0};
+  for (int i = 0; i < 1000; ++i) {
+    FramePtr buf = pool.acquire();
+    ASSERT_TRUE(buf) << "pool exhausted at frame " << i;
+    src.index = i;
+    src.timestampNs = i * 33'000'000LL;
+    copyFrame(src, *buf);
+    q.push(std::move(buf));  // drops the oldest when full: it goes back to the pool
+    if (i % 3 == 0) q.tryPop();
+  }
+  EXPECT_LE(pool.created(), 4u);
+  EXPECT_LE(pool.controlBlockAllocations(), 4u);
+  EXPECT_GT(q.dropped(), 0u);
+  auto last = q.tryPop();
+  while (auto more = q.tryPop()) last = std::move(more);
+  ASSERT_TRUE(last.has_value());
+  EXPECT_EQ((*last)->frame.index, 999);
+  EXPECT_EQ((*last)->frame.data, (*last)->pixels.data());
+  EXPECT_EQ((*last)->frame.timestampNs, 999 * 33'000'000LL);
+}
+
+TEST(BufferPool, ObjectsMayOutliveThePool) {
+  std::shared_ptr<std::vector<int>> keep;
+  {
+    BufferPool<std::vector<int>> pool(1);
+    keep = pool.acquire();
+    keep->assign(10, 1);
+  }
+  EXPECT_EQ(keep->size(), 10u);
+  keep.reset();  // deleted, not returned: no crash (ASan checks the rest)
+}
+
+TEST(FrameBytes, CoversAllPlanes) {
+  Frame f{PixelFormat::NV12, nullptr, 640, 480, 640, 0, 0};
+  EXPECT_EQ(frameBytes(f), 640u * 480u * 3u / 2u);
+  f.format = PixelFormat::YUV420;
+  EXPECT_EQ(frameBytes(f), 640u * 480u * 3u / 2u);
+  f.format = PixelFormat::YUYV;
+  f.stride = 1280;
+  EXPECT_EQ(frameBytes(f), 1280u * 480u);
+}
+
+TEST(FrameQueue, ConcurrentProducerConsumerKeepsOrderAndReturnsBuffers) {
+  FramePool pool(6);
+  FrameQueue q(3);
+  std::vector<std::uint8_t> pixels(32 * 32, 0);
+  std::atomic<int> consumed{0};
+  std::thread consumer([&] {
+    std::int64_t last = -1;
+    while (auto f = q.pop()) {
+      EXPECT_GT((*f)->frame.index, last);
+      last = (*f)->frame.index;
+      ++consumed;
+    }
+  });
+  std::uint64_t noBuffer = 0;
+  for (int i = 0; i < 5000; ++i) {
+    FramePtr buf = pool.acquire();
+    if (!buf) {
+      ++noBuffer;  // every buffer in flight: a real producer counts a drop
+      continue;
+    }
+    Frame src{PixelFormat::Gray8, pixels.data(), 32, 32, 32, i, i};
+    copyFrame(src, *buf);
+    q.push(std::move(buf));
+  }
+  q.close();
+  consumer.join();
+  EXPECT_EQ(consumed + q.dropped() + noBuffer, 5000u);
+  EXPECT_EQ(pool.available(), 6u);
+}
+
+}  // namespace
+}  // namespace keyframed
+
+namespace keyframed {
+namespace {
+
+// A source that produces `count` small gray frames as fast as asked.
+class CountingSource final : public FrameSource {
+ public:
+  explicit CountingSource(int count, int errorsAt = -1) : count_(count), errorsAt_(errorsAt) {
+    info_.width = 16;
+    info_.height = 8;
+    pixels_.assign(16 * 8, 0);
+  }
+  const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame& f, std::string& error) override {
+    if (n_ == errorsAt_ && !erred_) {
+      erred_ = true;
+      error = "device lost: test";
+      return ReadStatus::Error;
+    }
+    if (n_ >= count_) return ReadStatus::End;
+    pixels_[0] = static_cast<std::uint8_t>(n_);
+    f = Frame{PixelFormat::Gray8, pixels_.data(), 16, 8, 16, n_ * 1000LL, n_};
+    ++n_;
+    return ReadStatus::Frame;
+  }
+
+ private:
+  SourceInfo info_;
+  std::vector<std::uint8_t> pixels_;
+  int count_, errorsAt_, n_ = 0;
+  bool erred_ = false;
+};
+
+TEST(CaptureThread, DeliversCopiesInOrderAndClosesAtEnd) {
+  CountingSource src(500, 100);
+  FramePool pool(8);
+  FrameQueue q(4);
+  CaptureThread capture(src, pool, q);
+  capture.start();
+  std::vector<std::int64_t> seen;
+  while (auto f = q.pop()) {
+    EXPECT_EQ((*f)->pixels[0], static_cast<std::uint8_t>((*f)->frame.index));  // a real copy
+    seen.push_back((*f)->frame.index);
+    std::this_thread::sleep_for(std::chrono::microseconds(200));  // a slow consumer
+  }
+  capture.stop();
+  EXPECT_TRUE(capture.ended());
+  const auto st = capture.stats();
+  EXPECT_EQ(st.captured, 500u);
+  EXPECT_EQ(st.errors, 1u);
+  EXPECT_EQ(capture.lastError(), "device lost: test");
+  EXPECT_EQ(seen.size() + q.dropped() + st.noBuffer, 500u);
+  EXPECT_EQ(seen.back(), 499);
+  for (std::size_t i = 1; i < seen.size(); ++i) EXPECT_LT(seen[i - 1], seen[i]);
+  EXPECT_LE(pool.created(), 8u);
+}
+
+TEST(CaptureThread, GivesUpAfterConsecutiveErrors) {
+  class Failing final : public FrameSource {
+   public:
+    const SourceInfo& info() const override { return info_; }
+    ReadStatus next(Frame&, std::string& error) override {
+      error = "no such device: /dev/video9";
+      return ReadStatus::Error;
+    }
+    SourceInfo info_;
+  } src;
+  FramePool pool(2);
+  FrameQueue q(2);
+  CaptureThread capture(src, pool, q, 3);
+  capture.start();
+  EXPECT_FALSE(q.pop().has_value());  // closed by the thread
+  capture.stop();
+  EXPECT_EQ(capture.stats().errors, 3u);
+  EXPECT_FALSE(capture.ended());
+}
+
+}  // namespace
+}  // namespace keyframed

@@ -1,0 +1,128 @@
+#include <linux/videodev2.h>
+
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <turbojpeg.h>
+
+#include "capture/mjpeg_decoder.h"
+#include "capture/v4l2_source.h"
+
+namespace keyframed {
+namespace {
+
+TEST(V4l2Source, ParsesFormatNames) {
+  EXPECT_EQ(V4l2Source::parseFormat("NV12"), V4L2_PIX_FMT_NV12);
+  EXPECT_EQ(V4l2Source::parseFormat("yuv420"), V4L2_PIX_FMT_YUV420);
+  EXPECT_EQ(V4l2Source::parseFormat("YU12"), V4L2_PIX_FMT_YUV420);
+  EXPECT_EQ(V4l2Source::parseFormat("yuyv"), V4L2_PIX_FMT_YUYV);
+  EXPECT_EQ(V4l2Source::parseFormat("MJPEG"), V4L2_PIX_FMT_MJPEG);
+  EXPECT_EQ(V4l2Source::parseFormat("MJPG"), V4L2_PIX_FMT_MJPEG);
+  EXPECT_EQ(V4l2Source::parseFormat("H264"), 0u);
+  EXPECT_EQ(V4l2Source::fourccString(V4L2_PIX_FMT_YUV420), "YU12");
+  EXPECT_EQ(V4l2Source::fourccString(V4L2_PIX_FMT_MJPEG), "MJPG");
+}
+
+TEST(V4l2Source, PrefersPlanarYuvThenYuyvThenMjpeg) {
+  using V = std::vector<std::uint32_t>;
+  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_NV12}),
+            V4L2_PIX_FMT_NV12);
+  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_YUV420}),
+            V4L2_PIX_FMT_YUV420);
+  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_YUYV}), V4L2_PIX_FMT_YUYV);
+  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_H264, V4L2_PIX_FMT_MJPEG}), V4L2_PIX_FMT_MJPEG);
+  EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_H264, V4L2_PIX_FMT_RGB565}), 0u);
+}
+
+TEST(V4l2Source, TimevalToNanoseconds) {
+  EXPECT_EQ(V4l2Source::timevalToNs(0, 0), 0);
+  EXPECT_EQ(V4l2Source::timevalToNs(12, 345678), 12'345'678'000LL);
+  // Beyond 2^32 seconds' worth of nanoseconds: no 32-bit overflow.
+  EXPECT_EQ(V4l2Source::timevalToNs(5'000'000, 1), 5'000'000'000'001'000LL);
+}
+
+TEST(V4l2Source, MissingDeviceIsAOneLineError) {
+  V4l2Options opt;
+  opt.device = "/dev/video-does-not-exist-42";
+  std::string err;
+  EXPECT_EQ(V4l2Source::open(opt, err), nullptr);
+  EXPECT_EQ(err, "no such device: /dev/video-does-not-exist-42");
+  EXPECT_EQ(err.find('\n'), std::string::npos);
+}
+
+TEST(V4l2Source, NonV4l2NodeIsRejected) {
+  V4l2Options opt;
+  opt.device = "/dev/null";
+  std::string err;
+  EXPECT_EQ(V4l2Source::open(opt, err), nullptr);
+  EXPECT_NE(err.find("/dev/null is not a V4L2 device"), std::string::npos) << err;
+}
+
+TEST(V4l2Source, RejectsBadBufferCount) {
+  V4l2Options opt;
+  opt.bufferCount = 1;
+  std::string err;
+  EXPECT_EQ(V4l2Source::open(opt, err), nullptr);
+  EXPECT_NE(err.find("buffer count"), std::string::npos) << err;
+}
+
+TEST(V4l2Source, ListDevicesDescribesEveryNode) {
+  // No camera on CI: the list may be empty, but whatever is there is described.
+  for (const V4l2DeviceInfo& d : V4l2Source::listDevices()) {
+    EXPECT_EQ(d.path.rfind("/dev/video", 0), 0u) << d.path;
+  }
+  V4l2DeviceInfo d;
+  std::string err;
+  EXPECT_FALSE(V4l2Source::describe("/dev/video-none", d, err));
+  EXPECT_EQ(err, "no such device: /dev/video-none");
+}
+
+std::vector<unsigned char> encodeJpeg(int w, int h) {
+  std::vector<unsigned char> bgr(static_cast<std::size_t>(w * h * 3));
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      unsigned char* p = &bgr[static_cast<std::size_t>((y * w + x) * 3)];
+      p[0] = static_cast<unsigned char>(x * 255 / w);  // B ramps left to right
+      p[1] = 100;
+      p[2] = static_cast<unsigned char>(y * 255 / h);  // R ramps top to bottom
+    }
+  }
+  tjhandle tj = tjInitCompress();
+  unsigned char* out = nullptr;
+  unsigned long size = 0;
+  EXPECT_EQ(tjCompress2(tj, bgr.data(), w, w * 3, h, TJPF_BGR, &out, &size, TJSAMP_422, 90, 0), 0);
+  std::vector<unsigned char> jpeg(out, out + size);
+  tjFree(out);
+  tjDestroy(tj);
+  return jpeg;
+}
+
+TEST(MjpegDecoder, DecodesToBgr) {
+  const auto jpeg = encodeJpeg(64, 48);
+  MjpegDecoder dec;
+  std::string err;
+  ASSERT_TRUE(dec.decode(jpeg.data(), jpeg.size(), err)) << err;
+  EXPECT_EQ(dec.width(), 64);
+  EXPECT_EQ(dec.height(), 48);
+  EXPECT_EQ(dec.stride(), 64 * 3);
+  const std::uint8_t* mid = dec.bgr() + (24 * 64 + 60) * 3;
+  EXPECT_NEAR(mid[0], 60 * 255 / 64, 12);
+  EXPECT_NEAR(mid[1], 100, 12);
+  EXPECT_NEAR(mid[2], 24 * 255 / 48, 12);
+}
+
+TEST(MjpegDecoder, RejectsGarbageWithOneLineError) {
+  MjpegDecoder dec;
+  std::string err;
+  const std::vector<std::uint8_t> zeros(100, 0);
+  EXPECT_FALSE(dec.decode(zeros.data(), zeros.size(), err));
+  EXPECT_NE(err.find("not a JPEG"), std::string::npos) << err;
+  auto jpeg = encodeJpeg(32, 32);
+  jpeg.resize(20);  // SOI and part of a header
+  EXPECT_FALSE(dec.decode(jpeg.data(), jpeg.size(), err));
+  EXPECT_EQ(err.find('\n'), std::string::npos);
+}
+
+}  // namespace
+}  // namespace keyframed
