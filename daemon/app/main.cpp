@@ -3,6 +3,8 @@
 #include <string>
 #include <vector>
 
+#include "app/config.h"
+#include "app/sd_notify.h"
 #include "app/select_command.h"
 
 namespace {
@@ -11,6 +13,7 @@ constexpr const char* kUsage = R"(usage: keyframed <command> [options]
 
 commands:
   select VIDEO --out DIR   pick keyframes from a video file (see: keyframed select --help)
+  check-config [FILE]      validate the daemon's configuration and print it (see --help)
   version                  print the version
 )";
 
@@ -26,6 +29,8 @@ int main(int argc, char** argv) {
   args.erase(args.begin());
   try {
     if (command == "select") return keyframed::selectMain(args);
+    if (command == "check-config") return keyframed::checkConfigMain(args);
+    if (command == "notify-selftest") return keyframed::notifySelftestMain();  // tests only
     if (command == "version" || command == "--version") {
       std::puts("keyframed " KEYFRAMED_VERSION);
       return 0;
