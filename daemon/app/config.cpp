@@ -230,7 +230,7 @@ std::string checkCalibration(const std::string& s) {
   if (s.empty()) return {};
   CameraModel model;
   std::string e;
-  if (!loadCameraModel(s, model, e)) return "cannot use " + quote(s) + ": " + e;
+  if (!loadCameraModel(s, model, e)) return e;  // names the file
   return {};
 }
 
