@@ -22,7 +22,7 @@ struct State {
   std::mutex mutex;
   LogTarget target = LogTarget::Auto;
   int journal = -1;  // -1: not decided yet (Auto), 0: stderr, 1: journald
-  log::Sink sink;
+  logging::Sink sink;
 };
 
 State& state() {
@@ -30,13 +30,14 @@ State& state() {
   return s;
 }
 
-// The first record decides, so that the environment is read once.
+// The first record decides, so that the environment is read once. sd_journal_send
+// drops records silently when journald is absent: then stderr it is.
 bool useJournal(State& s) {
   if (s.journal < 0) {
-    if (s.target == LogTarget::Auto)
-      s.journal = log::isJournalStream(STDERR_FILENO, std::getenv("JOURNAL_STREAM")) ? 1 : 0;
-    else
-      s.journal = s.target == LogTarget::Journal ? 1 : 0;
+    const bool wanted = s.target == LogTarget::Journal ||
+                        (s.target == LogTarget::Auto &&
+                         logging::isJournalStream(STDERR_FILENO, std::getenv("JOURNAL_STREAM")));
+    s.journal = wanted && access("/run/systemd/journal/socket", F_OK) == 0 ? 1 : 0;
   }
   return s.journal == 1;
 }
@@ -109,7 +110,7 @@ bool parseLogTarget(std::string_view text, LogTarget& target) {
   return false;
 }
 
-namespace log {
+namespace logging {
 
 void setLevel(LogCategory category, LogLevel level) {
   gThresholds[static_cast<int>(category)].store(static_cast<int>(level), std::memory_order_relaxed);
@@ -195,10 +196,11 @@ void write(LogCategory category, LogLevel level, std::string_view message, const
   std::lock_guard lock(s.mutex);
   if (s.sink) s.sink(category, level, message);
   const int length = static_cast<int>(message.size());
-  if (useJournal(s)) {
-    sd_journal_send("MESSAGE=%.*s", length, message.data(), "PRIORITY=%d", static_cast<int>(level),
-                    "KEYFRAMED_CATEGORY=%s", toString(category), "SYSLOG_IDENTIFIER=keyframed",
-                    "CODE_FILE=%s", file, "CODE_LINE=%d", line, nullptr);
+  // Should journald fail, the record still reaches stderr.
+  if (useJournal(s) && sd_journal_send("MESSAGE=%.*s", length, message.data(), "PRIORITY=%d",
+                                       static_cast<int>(level), "KEYFRAMED_CATEGORY=%s",
+                                       toString(category), "SYSLOG_IDENTIFIER=keyframed",
+                                       "CODE_FILE=%s", file, "CODE_LINE=%d", line, nullptr) >= 0) {
     return;
   }
   timespec ts{};
@@ -210,5 +212,5 @@ void write(LogCategory category, LogLevel level, std::string_view message, const
                message.data());
 }
 
-}  // namespace log
+}  // namespace logging
 }  // namespace keyframed

@@ -44,7 +44,7 @@ struct LogConfig {
   LogTarget target = LogTarget::Auto;                                // log.target
 };
 
-namespace log {
+namespace logging {
 
 // Per-category thresholds, read inline by KF_LOG.
 inline std::atomic<int> gThresholds[kLogCategories] = {6, 6, 6, 6, 6, 6};
@@ -81,7 +81,7 @@ void setSink(Sink sink);
 void write(LogCategory category, LogLevel level, std::string_view message, const char* file,
            int line);
 
-}  // namespace log
+}  // namespace logging
 
 // One record, written when it goes out of scope.
 class LogMessage {
@@ -90,7 +90,7 @@ class LogMessage {
       : category_(category), level_(level), file_(file), line_(line) {}
   LogMessage(const LogMessage&) = delete;
   LogMessage& operator=(const LogMessage&) = delete;
-  ~LogMessage() { log::write(category_, level_, stream_.view(), file_, line_); }
+  ~LogMessage() { logging::write(category_, level_, stream_.view(), file_, line_); }
 
   std::ostream& stream() { return stream_; }
 
@@ -109,10 +109,10 @@ struct LogVoidify {
 
 }  // namespace keyframed
 
-#define KF_LOG(category, level)                                                                 \
-  !::keyframed::log::enabled(::keyframed::LogCategory::category, ::keyframed::LogLevel::level)  \
-      ? (void)0                                                                                 \
-      : ::keyframed::LogVoidify() & ::keyframed::LogMessage(::keyframed::LogCategory::category, \
-                                                            ::keyframed::LogLevel::level,       \
-                                                            __FILE__, __LINE__)                 \
+#define KF_LOG(category, level)                                                                    \
+  !::keyframed::logging::enabled(::keyframed::LogCategory::category, ::keyframed::LogLevel::level) \
+      ? (void)0                                                                                    \
+      : ::keyframed::LogVoidify() & ::keyframed::LogMessage(::keyframed::LogCategory::category,    \
+                                                            ::keyframed::LogLevel::level,          \
+                                                            __FILE__, __LINE__)                    \
                                         .stream()

@@ -22,6 +22,23 @@ def build_dir() -> Path:
     return build
 
 
+def cached(name: str) -> str:
+    """A variable from the build's CMakeCache.txt."""
+    for line in (build_dir() / "CMakeCache.txt").read_text().splitlines():
+        if line.startswith(name + ":"):
+            return line.split("=", 1)[1]
+    raise KeyError(name)
+
+
+def require_usr_prefix() -> None:
+    prefix = cached("CMAKE_INSTALL_PREFIX")
+    if prefix != "/usr":
+        pytest.skip(
+            f"build configured with prefix {prefix} (a cache from before the /usr default):"
+            " reconfigure with -DCMAKE_INSTALL_PREFIX=/usr to build the .deb"
+        )
+
+
 def test_install_layout(tmp_path: Path):
     stage = tmp_path / "stage"
     p = subprocess.run(
@@ -32,26 +49,29 @@ def test_install_layout(tmp_path: Path):
         env={**os.environ, "DESTDIR": str(stage)},
     )
     assert p.returncode == 0, p.stderr
+    prefix = cached("CMAKE_INSTALL_PREFIX").lstrip("/")  # /usr unless configured otherwise
+    etc = cached("KEYFRAMED_CONFIG_DIR").lstrip("/")  # /etc/keyframed for /usr
     for f in (
-        "usr/bin/keyframed",
-        "usr/lib/systemd/system/keyframed.service",
-        "usr/lib/sysusers.d/keyframed.conf",
-        "etc/keyframed/keyframed.toml",
-        "usr/share/doc/keyframed/configuration.md",
-        "usr/share/doc/keyframed/README.md",
+        f"{prefix}/bin/keyframed",
+        f"{prefix}/lib/systemd/system/keyframed.service",
+        f"{prefix}/lib/sysusers.d/keyframed.conf",
+        f"{etc}/keyframed.toml",
+        f"{prefix}/share/doc/keyframed/configuration.md",
+        f"{prefix}/share/doc/keyframed/README.md",
     ):
         assert (stage / f).is_file(), f
-    assert (stage / "etc/keyframed/conf.d").is_dir()
-    assert os.access(stage / "usr/bin/keyframed", os.X_OK)
-    unit = (stage / "usr/lib/systemd/system/keyframed.service").read_text()
-    assert "ExecStart=/usr/bin/keyframed run" in unit
-    assert (stage / "etc/keyframed/keyframed.toml").read_text() == (
+    assert (stage / etc / "conf.d").is_dir()
+    assert os.access(stage / prefix / "bin/keyframed", os.X_OK)
+    unit = (stage / prefix / "lib/systemd/system/keyframed.service").read_text()
+    assert f"ExecStart=/{prefix}/bin/keyframed run" in unit  # follows the prefix
+    assert (stage / etc / "keyframed.toml").read_text() == (
         ROOT / "config/keyframed.toml"
     ).read_text()
 
 
 @pytest.mark.skipif(shutil.which("dpkg-deb") is None, reason="dpkg-deb not installed")
 def test_debian_package(tmp_path: Path):
+    require_usr_prefix()
     out = tmp_path / "pkg"
     p = subprocess.run(
         ["cpack", "-G", "DEB", "-B", str(out)],

@@ -22,23 +22,23 @@ struct Record {
 class LogTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    log::setAllLevels(LogLevel::Info);
-    log::setTarget(LogTarget::Stderr);
-    log::setSink([this](LogCategory c, LogLevel l, std::string_view m) {
+    logging::setAllLevels(LogLevel::Info);
+    logging::setTarget(LogTarget::Stderr);
+    logging::setSink([this](LogCategory c, LogLevel l, std::string_view m) {
       records_.push_back({c, l, std::string(m)});
     });
   }
   void TearDown() override {
-    log::setSink({});
-    log::setAllLevels(LogLevel::Info);
-    log::setTarget(LogTarget::Auto);
+    logging::setSink({});
+    logging::setAllLevels(LogLevel::Info);
+    logging::setTarget(LogTarget::Auto);
   }
   std::vector<Record> records_;
 };
 
 TEST_F(LogTest, LevelsFilterPerCategory) {
-  log::setLevel(LogCategory::Capture, LogLevel::Debug);
-  log::setLevel(LogCategory::Telemetry, LogLevel::Error);
+  logging::setLevel(LogCategory::Capture, LogLevel::Debug);
+  logging::setLevel(LogCategory::Telemetry, LogLevel::Error);
   KF_LOG(Capture, Debug) << "frame " << 1;
   KF_LOG(Telemetry, Warning) << "dropped";
   KF_LOG(Telemetry, Error) << "link lost";
@@ -72,14 +72,14 @@ TEST_F(LogTest, DisabledMessagesDoNotEvaluateTheirArguments) {
 }
 
 TEST_F(LogTest, LevelSpecs) {
-  EXPECT_EQ(log::applyLevelSpec("warning,capture:debug,telemetry:error"), "");
-  EXPECT_EQ(log::level(LogCategory::App), LogLevel::Warning);
-  EXPECT_EQ(log::level(LogCategory::Capture), LogLevel::Debug);
-  EXPECT_EQ(log::level(LogCategory::Telemetry), LogLevel::Error);
-  EXPECT_EQ(log::applyLevelSpec("*:notice"), "");
-  EXPECT_EQ(log::level(LogCategory::Capture), LogLevel::Notice);
-  EXPECT_EQ(log::applyLevelSpec("camera:debug"), "unknown log category 'camera'");
-  EXPECT_EQ(log::applyLevelSpec("capture:loud"), "unknown log level 'loud'");
+  EXPECT_EQ(logging::applyLevelSpec("warning,capture:debug,telemetry:error"), "");
+  EXPECT_EQ(logging::level(LogCategory::App), LogLevel::Warning);
+  EXPECT_EQ(logging::level(LogCategory::Capture), LogLevel::Debug);
+  EXPECT_EQ(logging::level(LogCategory::Telemetry), LogLevel::Error);
+  EXPECT_EQ(logging::applyLevelSpec("*:notice"), "");
+  EXPECT_EQ(logging::level(LogCategory::Capture), LogLevel::Notice);
+  EXPECT_EQ(logging::applyLevelSpec("camera:debug"), "unknown log category 'camera'");
+  EXPECT_EQ(logging::applyLevelSpec("capture:loud"), "unknown log level 'loud'");
 }
 
 TEST_F(LogTest, ConfigureAppliesConfigThenEnvironment) {
@@ -87,11 +87,24 @@ TEST_F(LogTest, ConfigureAppliesConfigThenEnvironment) {
   c.level = LogLevel::Warning;
   c.categories[static_cast<int>(LogCategory::Output)] = LogLevel::Debug;
   ::setenv("KEYFRAMED_LOG_LEVELS", "tagging:error", 1);
-  EXPECT_EQ(log::configure(c), "");
+  EXPECT_EQ(logging::configure(c), "");
   ::unsetenv("KEYFRAMED_LOG_LEVELS");
-  EXPECT_EQ(log::level(LogCategory::App), LogLevel::Warning);
-  EXPECT_EQ(log::level(LogCategory::Output), LogLevel::Debug);
-  EXPECT_EQ(log::level(LogCategory::Tagging), LogLevel::Error);
+  EXPECT_EQ(logging::level(LogCategory::App), LogLevel::Warning);
+  EXPECT_EQ(logging::level(LogCategory::Output), LogLevel::Debug);
+  EXPECT_EQ(logging::level(LogCategory::Tagging), LogLevel::Error);
+}
+
+TEST(LogJournal, FallsBackToStderrWithoutJournald) {
+  struct stat st {};
+  if (stat("/run/systemd/journal/socket", &st) == 0) GTEST_SKIP() << "journald is running";
+  logging::setTarget(LogTarget::Journal);
+  testing::internal::CaptureStderr();
+  KF_LOG(Output, Warning) << "disk " << 97 << "% full";
+  const std::string err = testing::internal::GetCapturedStderr();
+  logging::setTarget(LogTarget::Auto);
+  // "HH:MM:SS.mmm W output: disk 97% full"
+  EXPECT_EQ(err.size(), 13 + std::string("W output: disk 97% full\n").size()) << err;
+  EXPECT_NE(err.find(" W output: disk 97% full\n"), std::string::npos) << err;
 }
 
 TEST(LogJournal, DetectsTheJournalStreamByDeviceAndInode) {
@@ -102,10 +115,10 @@ TEST(LogJournal, DetectsTheJournalStreamByDeviceAndInode) {
   ASSERT_EQ(fstat(fd, &st), 0);
   const std::string match = std::to_string(st.st_dev) + ":" + std::to_string(st.st_ino);
   const std::string other = std::to_string(st.st_dev) + ":" + std::to_string(st.st_ino + 1);
-  EXPECT_TRUE(log::isJournalStream(fd, match.c_str()));
-  EXPECT_FALSE(log::isJournalStream(fd, other.c_str()));
-  EXPECT_FALSE(log::isJournalStream(fd, nullptr));
-  EXPECT_FALSE(log::isJournalStream(fd, "garbage"));
+  EXPECT_TRUE(logging::isJournalStream(fd, match.c_str()));
+  EXPECT_FALSE(logging::isJournalStream(fd, other.c_str()));
+  EXPECT_FALSE(logging::isJournalStream(fd, nullptr));
+  EXPECT_FALSE(logging::isJournalStream(fd, "garbage"));
   close(fd);
   unlink(path);
 }
