@@ -22,11 +22,11 @@
 
 namespace keyframed {
 
-const char* toString(CameraSource source) {
+const char* toString(DaemonConfig::Source source) {
   switch (source) {
-    case CameraSource::V4l2: return "v4l2";
-    case CameraSource::Libcamera: return "libcamera";
-    case CameraSource::File: return "file";
+    case DaemonConfig::Source::V4l2: return "v4l2";
+    case DaemonConfig::Source::Libcamera: return "libcamera";
+    case DaemonConfig::Source::File: return "file";
   }
   return "v4l2";
 }
@@ -107,7 +107,8 @@ using Check = std::function<std::string(const std::string&)>;
 
 // `get` is a generic lambda giving a reference to the member, const or not.
 template <typename Get>
-Field integer(std::string_view section, std::string_view key, Get get, Range<std::int64_t> range) {
+Field integer(std::string_view section, std::string_view key, Get get,
+              SettingRange<std::int64_t> range) {
   return {section, key, Kind::Integer,
           [get, range](const toml::node& n, DaemonConfig& c) -> std::string {
             const auto* v = n.as_integer();
@@ -122,8 +123,8 @@ Field integer(std::string_view section, std::string_view key, Get get, Range<std
 
 // An integer key in `unit` (ms, s) over a member in nanoseconds.
 template <typename Get>
-Field duration(std::string_view section, std::string_view key, Get get, Range<std::int64_t> range,
-               std::int64_t nsPerUnit) {
+Field duration(std::string_view section, std::string_view key, Get get,
+               SettingRange<std::int64_t> range, std::int64_t nsPerUnit) {
   return {section, key, Kind::Integer,
           [get, range, nsPerUnit](const toml::node& n, DaemonConfig& c) -> std::string {
             const auto* v = n.as_integer();
@@ -136,7 +137,7 @@ Field duration(std::string_view section, std::string_view key, Get get, Range<st
 }
 
 template <typename Get>
-Field real(std::string_view section, std::string_view key, Get get, Range<double> range) {
+Field real(std::string_view section, std::string_view key, Get get, SettingRange<double> range) {
   return {section, key, Kind::Real,
           [get, range](const toml::node& n, DaemonConfig& c) -> std::string {
             double d = 0;
@@ -195,8 +196,10 @@ Field choice(std::string_view section, std::string_view key, Get get, Parse pars
           [get, name](const DaemonConfig& c) { return quote(name(get(c))); }};
 }
 
-bool parseCameraSource(std::string_view s, CameraSource& out) {
-  for (CameraSource v : {CameraSource::V4l2, CameraSource::Libcamera, CameraSource::File}) {
+using Source = DaemonConfig::Source;
+
+bool parseCameraSource(std::string_view s, Source& out) {
+  for (Source v : {Source::V4l2, Source::Libcamera, Source::File}) {
     if (s == toString(v)) {
       out = v;
       return true;
@@ -252,7 +255,7 @@ std::string checkVehicle(const std::string& s) {
 Field autopilot() {
   return {"telemetry", "autopilot", Kind::String,
           [](const toml::node& n, DaemonConfig& c) -> std::string {
-            TelemetryConfig& t = c.telemetry;
+            TelemetryConfig& t = c.telemetry.link.decoder;
             if (const auto* i = n.as_integer()) {  // autopilot = 1
               if (!limits::kMavlinkId.contains(i->get()))
                 return rangeError(limits::kMavlinkId, i->get());
@@ -271,7 +274,7 @@ Field autopilot() {
             return e.empty() ? e : e + " (got " + quote(v->get()) + ")";
           },
           [](const DaemonConfig& c) {
-            const TelemetryConfig& t = c.telemetry;
+            const TelemetryConfig& t = c.telemetry.link.decoder;
             if (t.autopilotSystem == 0) return quote("");
             std::string s = std::to_string(t.autopilotSystem);
             if (t.autopilotComponent != 0) s += ":" + std::to_string(t.autopilotComponent);
@@ -305,12 +308,12 @@ Field categoryLevel(LogCategory category) {
 
 std::vector<Field> makeSchema() {
   namespace L = limits;
-  using R = Range<std::int64_t>;
+  using R = SettingRange<std::int64_t>;
   std::vector<Field> f;
   // [camera]
   f.push_back(choice(
       "camera", "source", [](auto& c) -> auto& { return c.camera.source; }, parseCameraSource,
-      [](CameraSource s) { return toString(s); }, "v4l2, libcamera, file"));
+      [](Source s) { return toString(s); }, "v4l2, libcamera, file"));
   f.push_back(text(
       "camera", "device", [](auto& c) -> auto& { return c.camera.device; }));
   f.push_back(text(
@@ -320,7 +323,8 @@ std::vector<Field> makeSchema() {
   f.push_back(integer(
       "camera", "height", [](auto& c) -> auto& { return c.camera.height; }, R{16, 16384}));
   f.push_back(real(
-      "camera", "fps", [](auto& c) -> auto& { return c.camera.fps; }, Range<double>{1.0, 240.0}));
+      "camera", "fps", [](auto& c) -> auto& { return c.camera.fps; },
+      SettingRange<double>{1.0, 240.0}));
   f.push_back(text(
       "camera", "pixel_format", [](auto& c) -> auto& { return c.camera.pixelFormat; },
       checkPixelFormat));
@@ -417,11 +421,20 @@ std::vector<Field> makeSchema() {
 
   // [telemetry]
   f.push_back(text(
-      "telemetry", "url", [](auto& c) -> auto& { return c.telemetry.url; }, checkMavlinkUrl));
+      "telemetry", "url", [](auto& c) -> auto& { return c.telemetry.link.url; }, checkMavlinkUrl));
   f.push_back(autopilot());
   f.push_back(integer(
-      "telemetry", "mavlink_sysid", [](auto& c) -> auto& { return c.telemetry.mavlinkSystemId; },
+      "telemetry", "mavlink_sysid", [](auto& c) -> auto& { return c.telemetry.link.systemId; },
       R{0, L::kMavlinkId.hi}));
+  f.push_back(integer(
+      "telemetry", "component_id", [](auto& c) -> auto& { return c.telemetry.link.componentId; },
+      L::kMavlinkId));
+  f.push_back(boolean(
+      "telemetry", "timesync", [](auto& c) -> auto& { return c.telemetry.link.timesync; }));
+  f.push_back(boolean(
+      "telemetry", "camera_component", [](auto& c) -> auto& { return c.telemetry.link.camera; }));
+  f.push_back(boolean(
+      "telemetry", "mavlink1", [](auto& c) -> auto& { return c.telemetry.link.mavlink1; }));
   f.push_back(integer(
       "telemetry", "wait_ms", [](auto& c) -> auto& { return c.telemetry.waitMs; },
       L::kTelemetryWaitMs));
@@ -429,20 +442,32 @@ std::vector<Field> makeSchema() {
       "telemetry", "start_wait_ms", [](auto& c) -> auto& { return c.telemetry.startWaitMs; },
       L::kTelemetryStartWaitMs));
   f.push_back(duration(
-      "telemetry", "stale_ms", [](auto& c) -> auto& { return c.telemetry.poses.maxHoldNs; },
-      R{0, 10000}, kNsPerMs));
+      "telemetry", "stale_ms",
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.store.maxHoldNs; }, R{0, 10000},
+      kNsPerMs));
   f.push_back(duration(
       "telemetry", "attitude_gap_ms",
-      [](auto& c) -> auto& { return c.telemetry.poses.maxAttitudeGapNs; }, R{1, 10000}, kNsPerMs));
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.store.maxAttitudeGapNs; }, R{1, 10000},
+      kNsPerMs));
   f.push_back(duration(
       "telemetry", "position_gap_ms",
-      [](auto& c) -> auto& { return c.telemetry.poses.maxPositionGapNs; }, R{1, 60000}, kNsPerMs));
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.store.maxPositionGapNs; }, R{1, 60000},
+      kNsPerMs));
   f.push_back(duration(
-      "telemetry", "history_s", [](auto& c) -> auto& { return c.telemetry.poses.historyNs; },
-      R{1, 3600}, kNsPerS));
+      "telemetry", "history_s",
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.store.historyNs; }, R{1, 3600},
+      kNsPerS));
   f.push_back(integer(
-      "telemetry", "min_fix_type", [](auto& c) -> auto& { return c.telemetry.poses.minFixType; },
-      R{0, 6}));
+      "telemetry", "min_fix_type",
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.store.minFixType; }, R{0, 6}));
+  f.push_back(duration(
+      "telemetry", "clock_window_s",
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.clock.arrivalWindowNs; }, R{1, 600},
+      kNsPerS));
+  f.push_back(duration(
+      "telemetry", "timesync_timeout_s",
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.clock.timesyncTimeoutNs; }, R{1, 600},
+      kNsPerS));
 
   // [tagging]
   f.push_back(text(
@@ -703,13 +728,13 @@ class Loader {
             "selection.min_inliers must not exceed selection.max_tracks");
     require(s.blur.warmup <= s.blur.window, {"selection.blur_warmup", "selection.blur_window"},
             "selection.blur_warmup must not exceed selection.blur_window");
-    require(c.camera.source != CameraSource::File || !c.camera.path.empty(),
+    require(c.camera.source != Source::File || !c.camera.path.empty(),
             {"camera.source", "camera.path"}, "source \"file\" needs camera.path");
     std::string e;
-    const std::string& url = c.telemetry.url;
+    const std::string& url = c.telemetry.link.url;
     const bool tlog = (url.starts_with("tlog:") ||
                        (url.ends_with(".tlog") && url.find(':') == std::string::npos));
-    require(!tlog || (c.camera.source == CameraSource::File && !c.camera.startTime.empty()),
+    require(!tlog || (c.camera.source == Source::File && !c.camera.startTime.empty()),
             {"telemetry.url", "camera.source", "camera.start_time"},
             "a tlog replays a recorded flight: it needs camera.source = \"file\" and "
             "camera.start_time");

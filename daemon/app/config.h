@@ -7,7 +7,7 @@
 
 #include "app/log.h"
 #include "core/selector.h"
-#include "telemetry/pose_store.h"
+#include "telemetry/telemetry_service.h"
 
 // The daemon's configuration (`keyframed run`, `keyframed check-config`). Every
 // field names its TOML key; config/keyframed.toml lists them all with their
@@ -16,62 +16,71 @@
 // with DIR = --config-dir, else $KEYFRAMED_CONFIG_DIR, else /etc/keyframed.
 namespace keyframed {
 
-enum class CameraSource { V4l2, Libcamera, File };
-const char* toString(CameraSource source);  // "v4l2" | "libcamera" | "file"
+namespace config_detail {
+inline TelemetryServiceConfig defaultLink() {
+  TelemetryServiceConfig link;
+  link.url = "udpin:0.0.0.0:14550";  // mavlink-router's usual endpoint for a companion
+  return link;
+}
+}  // namespace config_detail
 
-struct CameraConfig {
-  CameraSource source = CameraSource::V4l2;  // camera.source
-  std::string device;                        // camera.device ("": the first camera)
-  std::string path;                          // camera.path (source "file": the video)
-  int width = 1920;                          // camera.width
-  int height = 1080;                         // camera.height
-  double fps = 30.0;                         // camera.fps
-  std::string pixelFormat = "auto";          // camera.pixel_format (FourCC or "auto")
-  bool realtime = true;                      // camera.realtime (file: pace at the video's rate)
-  std::string startTime;                     // camera.start_time (file: UTC of frame 0)
-};
-
-struct TelemetryConfig {
-  std::string url = "udpin:0.0.0.0:14550";  // telemetry.url ("": no telemetry)
-  int autopilotSystem = 0;                  // telemetry.autopilot "SYS[:COMP]" ("": first heard)
-  int autopilotComponent = 0;
-  int mavlinkSystemId = 0;    // telemetry.mavlink_sysid (0: the autopilot's)
-  int waitMs = 1000;          // telemetry.wait_ms
-  int startWaitMs = 10000;    // telemetry.start_wait_ms
-  PoseStore::Config poses{};  // telemetry.stale_ms, attitude_gap_ms, position_gap_ms,
-                              // history_s, min_fix_type
-};
-
-struct TaggingConfig {
-  std::string calibration;     // tagging.calibration ("": no intrinsics)
-  double mountRollDeg = 0.0;   // tagging.mount_roll
-  double mountPitchDeg = -90;  // tagging.mount_pitch (-90: nadir)
-  double mountYawDeg = 0.0;    // tagging.mount_yaw
-  int jpegQuality = 92;        // tagging.jpeg_quality
-};
-
-struct OutputConfig {
-  std::string stateDir = "/var/lib/keyframed";  // output.state_dir
-  bool mcap = true;                             // output.mcap
-  std::int64_t mcapRotateMb = 1024;             // output.mcap_rotate_mb (0: never)
-  std::int64_t mcapRotateS = 1800;              // output.mcap_rotate_s (0: never)
-};
-
-struct ZenohConfig {
-  bool enabled = true;  // zenoh.enabled
-  std::string config;   // zenoh.config (JSON5 file; "": peer mode on all interfaces)
-  std::string vehicle;  // zenoh.vehicle (key expression keyframed/<vehicle>/...; "": host name)
-};
-
+// Section types are nested: names such as TelemetryConfig exist elsewhere in the
+// namespace, and two different definitions of one name would break the ODR.
 struct DaemonConfig {
-  CameraConfig camera;
-  SelectorConfig selection;  // [selection]
-  TelemetryConfig telemetry;
-  TaggingConfig tagging;
-  OutputConfig output;
-  ZenohConfig zenoh;
+  enum class Source { V4l2, Libcamera, File };
+
+  struct Camera {
+    Source source = Source::V4l2;      // camera.source
+    std::string device;                // camera.device ("": the first camera)
+    std::string path;                  // camera.path (source "file": the video)
+    int width = 1920;                  // camera.width
+    int height = 1080;                 // camera.height
+    double fps = 30.0;                 // camera.fps
+    std::string pixelFormat = "auto";  // camera.pixel_format (FourCC or "auto")
+    bool realtime = true;              // camera.realtime (file: pace at the video's rate)
+    std::string startTime;             // camera.start_time (file: UTC of frame 0)
+  };
+
+  struct Telemetry {
+    // telemetry.url, mavlink_sysid, component_id, timesync, camera_component, mavlink1,
+    // autopilot, stale_ms, attitude_gap_ms, position_gap_ms, history_s, min_fix_type,
+    // clock_window_s, timesync_timeout_s: handed to TelemetryService as they are.
+    TelemetryServiceConfig link = config_detail::defaultLink();
+    int waitMs = 1000;        // telemetry.wait_ms
+    int startWaitMs = 10000;  // telemetry.start_wait_ms
+  };
+
+  struct Tagging {
+    std::string calibration;     // tagging.calibration ("": no intrinsics)
+    double mountRollDeg = 0.0;   // tagging.mount_roll
+    double mountPitchDeg = -90;  // tagging.mount_pitch (-90: nadir)
+    double mountYawDeg = 0.0;    // tagging.mount_yaw
+    int jpegQuality = 92;        // tagging.jpeg_quality
+  };
+
+  struct Output {
+    std::string stateDir = "/var/lib/keyframed";  // output.state_dir
+    bool mcap = true;                             // output.mcap
+    std::int64_t mcapRotateMb = 1024;             // output.mcap_rotate_mb (0: never)
+    std::int64_t mcapRotateS = 1800;              // output.mcap_rotate_s (0: never)
+  };
+
+  struct Zenoh {
+    bool enabled = true;  // zenoh.enabled
+    std::string config;   // zenoh.config (JSON5 file; "": peer mode, Zenoh's defaults)
+    std::string vehicle;  // zenoh.vehicle (keyframed/<vehicle>/...; "": host name)
+  };
+
+  Camera camera;
+  SelectorConfig selection;  // [selection]: the same settings as `keyframed select`
+  Telemetry telemetry;
+  Tagging tagging;
+  Output output;
+  Zenoh zenoh;
   LogConfig log;
 };
+
+const char* toString(DaemonConfig::Source source);  // "v4l2" | "libcamera" | "file"
 
 // Where the layers come from.
 struct ConfigSources {

@@ -99,7 +99,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   SelectorConfig& c = o.selector;
   using Handler = std::function<std::string(const std::string&)>;
   // Ranges come from app/settings.h, shared with the daemon's config file.
-  auto number = [](double& dst, Range<double> range) -> Handler {
+  auto number = [](double& dst, SettingRange<double> range) -> Handler {
     return [&dst, range](const std::string& v) -> std::string {
       double d = 0;
       if (!parseDouble(v, d)) return "not a number: '" + v + "'";
@@ -108,7 +108,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       return {};
     };
   };
-  auto integer = [](auto& dst, Range<std::int64_t> range) -> Handler {
+  auto integer = [](auto& dst, SettingRange<std::int64_t> range) -> Handler {
     return [&dst, range](const std::string& v) -> std::string {
       std::int64_t n = 0;
       if (!parseInt(v, n)) return "not an integer: '" + v + "'";
@@ -183,7 +183,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return {};
        }},
       {"--jpeg-quality", integer(o.jpegQuality, limits::kJpegQuality)},
-      {"--max-frames", integer(o.maxFrames, Range<std::int64_t>{1, std::int64_t{1} << 40})},
+      {"--max-frames", integer(o.maxFrames, SettingRange<std::int64_t>{1, std::int64_t{1} << 40})},
       {"--telemetry",
        [&](const std::string& v) -> std::string {
          if (v.empty()) return "empty telemetry source";

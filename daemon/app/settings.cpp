@@ -35,12 +35,12 @@ bool parseDouble(const std::string& s, double& out) {
 
 }  // namespace
 
-std::string rangeError(Range<double> range, double value) {
+std::string rangeError(SettingRange<double> range, double value) {
   return "must be between " + number(range.lo) + " and " + number(range.hi) + " (got " +
          number(value) + ")";
 }
 
-std::string rangeError(Range<std::int64_t> range, std::int64_t value) {
+std::string rangeError(SettingRange<std::int64_t> range, std::int64_t value) {
   return "must be between " + std::to_string(range.lo) + " and " + std::to_string(range.hi) +
          " (got " + std::to_string(value) + ")";
 }

@@ -13,50 +13,50 @@
 namespace keyframed {
 
 template <typename T>
-struct Range {
+struct SettingRange {
   T lo;
   T hi;
   [[nodiscard]] constexpr bool contains(T v) const { return v >= lo && v <= hi; }
 };
 
 // "must be between LO and HI (got V)"
-std::string rangeError(Range<double> range, double value);
-std::string rangeError(Range<std::int64_t> range, std::int64_t value);
+std::string rangeError(SettingRange<double> range, double value);
+std::string rangeError(SettingRange<std::int64_t> range, std::int64_t value);
 
 namespace limits {
 // Selection.
-inline constexpr Range<double> kOverlapTarget{0.01, 0.99};
-inline constexpr Range<double> kOverlapBand{0.01, 0.99};
-inline constexpr Range<double> kMinOverlap{0.01, 0.99};
-inline constexpr Range<double> kMotionRatio{0.0, 100.0};
-inline constexpr Range<double> kMotionMinFraction{0.0, 0.99};
-inline constexpr Range<std::int64_t> kMotionWindow{5, 10000};
-inline constexpr Range<std::int64_t> kAnalysisWidth{0, 16384};
-inline constexpr Range<std::int64_t> kOrbFeatures{50, 50000};
-inline constexpr Range<double> kPaperThreshold{1.0, 256.0};
-inline constexpr Range<std::int64_t> kPaperMinMatches{4, 50000};
-inline constexpr Range<std::int64_t> kMaxTracks{20, 5000};
-inline constexpr Range<std::int64_t> kMinTracks{8, 5000};
-inline constexpr Range<std::int64_t> kMinInliers{4, 5000};
-inline constexpr Range<double> kRansacPixels{0.1, 49.0};
-inline constexpr Range<std::int64_t> kFastThreshold{1, 200};
-inline constexpr Range<std::int64_t> kLkWindow{5, 61};
-inline constexpr Range<std::int64_t> kLkLevels{0, 6};
+inline constexpr SettingRange<double> kOverlapTarget{0.01, 0.99};
+inline constexpr SettingRange<double> kOverlapBand{0.01, 0.99};
+inline constexpr SettingRange<double> kMinOverlap{0.01, 0.99};
+inline constexpr SettingRange<double> kMotionRatio{0.0, 100.0};
+inline constexpr SettingRange<double> kMotionMinFraction{0.0, 0.99};
+inline constexpr SettingRange<std::int64_t> kMotionWindow{5, 10000};
+inline constexpr SettingRange<std::int64_t> kAnalysisWidth{0, 16384};
+inline constexpr SettingRange<std::int64_t> kOrbFeatures{50, 50000};
+inline constexpr SettingRange<double> kPaperThreshold{1.0, 256.0};
+inline constexpr SettingRange<std::int64_t> kPaperMinMatches{4, 50000};
+inline constexpr SettingRange<std::int64_t> kMaxTracks{20, 5000};
+inline constexpr SettingRange<std::int64_t> kMinTracks{8, 5000};
+inline constexpr SettingRange<std::int64_t> kMinInliers{4, 5000};
+inline constexpr SettingRange<double> kRansacPixels{0.1, 49.0};
+inline constexpr SettingRange<std::int64_t> kFastThreshold{1, 200};
+inline constexpr SettingRange<std::int64_t> kLkWindow{5, 61};
+inline constexpr SettingRange<std::int64_t> kLkLevels{0, 6};
 // Blur.
-inline constexpr Range<double> kBlurThreshold{0.0, 1e9};
-inline constexpr Range<double> kBlurFloor{0.0, 1e9};
-inline constexpr Range<double> kBlurRatio{0.01, 2.0};
-inline constexpr Range<double> kBlurQuantile{0.0, 1.0};
-inline constexpr Range<std::int64_t> kBlurWindow{1, 10000};
-inline constexpr Range<std::int64_t> kBlurWarmup{0, 10000};
-inline constexpr Range<std::int64_t> kBlurStep{1, 16};
-inline constexpr Range<std::int64_t> kBlurWidth{0, 16384};
+inline constexpr SettingRange<double> kBlurThreshold{0.0, 1e9};
+inline constexpr SettingRange<double> kBlurFloor{0.0, 1e9};
+inline constexpr SettingRange<double> kBlurRatio{0.01, 2.0};
+inline constexpr SettingRange<double> kBlurQuantile{0.0, 1.0};
+inline constexpr SettingRange<std::int64_t> kBlurWindow{1, 10000};
+inline constexpr SettingRange<std::int64_t> kBlurWarmup{0, 10000};
+inline constexpr SettingRange<std::int64_t> kBlurStep{1, 16};
+inline constexpr SettingRange<std::int64_t> kBlurWidth{0, 16384};
 // Telemetry and tags.
-inline constexpr Range<std::int64_t> kMavlinkId{1, 255};
-inline constexpr Range<std::int64_t> kTelemetryWaitMs{0, 60000};
-inline constexpr Range<std::int64_t> kTelemetryStartWaitMs{0, 600000};
-inline constexpr Range<double> kMountAngleDeg{-360.0, 360.0};
-inline constexpr Range<std::int64_t> kJpegQuality{1, 100};
+inline constexpr SettingRange<std::int64_t> kMavlinkId{1, 255};
+inline constexpr SettingRange<std::int64_t> kTelemetryWaitMs{0, 60000};
+inline constexpr SettingRange<std::int64_t> kTelemetryStartWaitMs{0, 600000};
+inline constexpr SettingRange<double> kMountAngleDeg{-360.0, 360.0};
+inline constexpr SettingRange<std::int64_t> kJpegQuality{1, 100};
 }  // namespace limits
 
 // Names used on the command line and in the config file.

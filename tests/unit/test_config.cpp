@@ -124,17 +124,21 @@ TEST(Config, SchemaCoversEveryMember) {
     return n;
   };
   EXPECT_EQ(memberCount<DaemonConfig>(), configSections().size());
-  EXPECT_EQ(memberCount<CameraConfig>(), keysIn("camera"));
+  EXPECT_EQ(memberCount<DaemonConfig::Camera>(), keysIn("camera"));
   // The selector's own members hold the two nested structs.
   EXPECT_EQ(memberCount<SelectorConfig>() - 2 + memberCount<SharpnessConfig>() +
                 memberCount<OverlapConfig>(),
             keysIn("selection"));
-  // telemetry.autopilot is system and component; poses is PoseStore::Config.
-  EXPECT_EQ(memberCount<TelemetryConfig>() - 1 - 1 + memberCount<PoseStore::Config>(),
+  // [telemetry] is TelemetryServiceConfig (its decoder: TelemetryConfig, with a
+  // PoseStore::Config and a ClockMapper::Config) plus two waits; telemetry.autopilot
+  // sets both the system and the component.
+  EXPECT_EQ(memberCount<DaemonConfig::Telemetry>() - 1 + memberCount<TelemetryServiceConfig>() - 1 +
+                memberCount<TelemetryConfig>() - 2 + memberCount<PoseStore::Config>() +
+                memberCount<ClockMapper::Config>() - 1,
             keysIn("telemetry"));
-  EXPECT_EQ(memberCount<TaggingConfig>(), keysIn("tagging"));
-  EXPECT_EQ(memberCount<OutputConfig>(), keysIn("output"));
-  EXPECT_EQ(memberCount<ZenohConfig>(), keysIn("zenoh"));
+  EXPECT_EQ(memberCount<DaemonConfig::Tagging>(), keysIn("tagging"));
+  EXPECT_EQ(memberCount<DaemonConfig::Output>(), keysIn("output"));
+  EXPECT_EQ(memberCount<DaemonConfig::Zenoh>(), keysIn("zenoh"));
   // level, target, and one key per category.
   EXPECT_EQ(memberCount<LogConfig>() - 1 + kLogCategories, keysIn("log"));
 }
@@ -207,14 +211,14 @@ TEST(Config, SetOverridesTakeTomlValuesAndBareStrings) {
                     "tagging.calibration=", "zenoh.vehicle=\"quoted\"", "telemetry.autopilot=1:1",
                     "log.capture=debug", "camera.fps=29.97"});
   ASSERT_TRUE(r.ok()) << joined(r.errors);
-  EXPECT_EQ(r.config.camera.source, CameraSource::File);
+  EXPECT_EQ(r.config.camera.source, DaemonConfig::Source::File);
   EXPECT_EQ(r.config.camera.path, "/data/flight 1.mp4");
   EXPECT_FALSE(r.config.camera.realtime);
   EXPECT_DOUBLE_EQ(r.config.selection.target, 0.65);
   EXPECT_DOUBLE_EQ(r.config.selection.blur.floor, 12.0);  // an integer for a float key
   EXPECT_EQ(r.config.zenoh.vehicle, "quoted");
-  EXPECT_EQ(r.config.telemetry.autopilotSystem, 1);
-  EXPECT_EQ(r.config.telemetry.autopilotComponent, 1);
+  EXPECT_EQ(r.config.telemetry.link.decoder.autopilotSystem, 1);
+  EXPECT_EQ(r.config.telemetry.link.decoder.autopilotComponent, 1);
   EXPECT_EQ(r.config.log.categories[static_cast<int>(LogCategory::Capture)], LogLevel::Debug);
   EXPECT_DOUBLE_EQ(r.config.camera.fps, 29.97);
 }
@@ -348,8 +352,8 @@ TEST(Config, PrintedConfigLoadsBackTheSame) {
   const ConfigLoadResult b = loadConfig(s);
   ASSERT_TRUE(b.ok()) << joined(b.errors);
   EXPECT_EQ(toToml(b.config), text);
-  EXPECT_EQ(b.config.telemetry.poses.maxHoldNs, 300'000'000);
-  EXPECT_EQ(b.config.telemetry.poses.historyNs, 60'000'000'000);
+  EXPECT_EQ(b.config.telemetry.link.decoder.store.maxHoldNs, 300'000'000);
+  EXPECT_EQ(b.config.telemetry.link.decoder.store.historyNs, 60'000'000'000);
 }
 
 TEST(Config, TakeConfigArgsLeavesTheRest) {
