@@ -4,6 +4,8 @@
 #include <vector>
 
 #include "app/probe_v4l2.h"
+#include "app/config.h"
+#include "app/sd_notify.h"
 #include "app/select_command.h"
 
 namespace {
@@ -12,6 +14,7 @@ constexpr const char* kUsage = R"(usage: keyframed <command> [options]
 
 commands:
   select VIDEO --out DIR   pick keyframes from a video file (see: keyframed select --help)
+  check-config [FILE]      validate the daemon's configuration and print it (see --help)
   version                  print the version
 )";
 
@@ -29,6 +32,8 @@ int main(int argc, char** argv) {
     if (command == "select") return keyframed::selectMain(args);
     // Diagnostic, not in the usage text: V4L2 devices, formats and frame timing.
     if (command == "probe-v4l2") return keyframed::probeV4l2Main(args);
+    if (command == "check-config") return keyframed::checkConfigMain(args);
+    if (command == "notify-selftest") return keyframed::notifySelftestMain();  // tests only
     if (command == "version" || command == "--version") {
       std::puts("keyframed " KEYFRAMED_VERSION);
       return 0;

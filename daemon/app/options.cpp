@@ -3,7 +3,6 @@
 #include <cerrno>
 #include <cmath>
 #include <cstdlib>
-#include <ctime>
 #include <functional>
 #include <map>
 
@@ -37,44 +36,6 @@ bool parsePair(const std::string& s, std::string& a, std::string& b) {
 }
 
 }  // namespace
-
-bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
-  double seconds = 0;
-  if (parseDouble(text, seconds)) {
-    if (seconds < 0 || seconds > 4.1e9) return false;
-    unixNs = std::llround(seconds * 1e9);
-    return true;
-  }
-  std::tm tm{};
-  int consumed = 0;
-  if (std::sscanf(text.c_str(), "%4d-%2d-%2dT%2d:%2d:%2d%n", &tm.tm_year, &tm.tm_mon, &tm.tm_mday,
-                  &tm.tm_hour, &tm.tm_min, &tm.tm_sec, &consumed) != 6) {
-    return false;
-  }
-  if (tm.tm_mon < 1 || tm.tm_mon > 12 || tm.tm_mday < 1 || tm.tm_mday > 31 || tm.tm_hour > 23 ||
-      tm.tm_min > 59 || tm.tm_sec > 60) {
-    return false;
-  }
-  std::string rest = text.substr(static_cast<std::size_t>(consumed));
-  std::int64_t fracNs = 0;
-  if (!rest.empty() && rest[0] == '.') {
-    std::size_t i = 1;
-    std::int64_t scale = 100'000'000;
-    while (i < rest.size() && rest[i] >= '0' && rest[i] <= '9') {
-      fracNs += (rest[i] - '0') * scale;
-      scale /= 10;
-      ++i;
-    }
-    if (i == 1) return false;
-    rest = rest.substr(i);
-  }
-  if (rest != "Z" && rest != "+00:00" && !rest.empty()) return false;  // UTC only
-  tm.tm_year -= 1900;
-  tm.tm_mon -= 1;
-  const std::time_t t = timegm(&tm);
-  unixNs = static_cast<std::int64_t>(t) * 1'000'000'000 + fracNs;
-  return true;
-}
 
 std::string selectUsage() {
   return R"(usage: keyframed select VIDEO --out DIR [options]
@@ -137,24 +98,21 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   };
   SelectorConfig& c = o.selector;
   using Handler = std::function<std::string(const std::string&)>;
-  auto number = [](double& dst, double lo, double hi) -> Handler {
-    return [&dst, lo, hi](const std::string& v) -> std::string {
+  // Ranges come from app/settings.h, shared with the daemon's config file.
+  auto number = [](double& dst, SettingRange<double> range) -> Handler {
+    return [&dst, range](const std::string& v) -> std::string {
       double d = 0;
       if (!parseDouble(v, d)) return "not a number: '" + v + "'";
-      if (d < lo || d > hi)
-        return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) +
-               "]";
+      if (!range.contains(d)) return rangeError(range, d);
       dst = d;
       return {};
     };
   };
-  auto integer = [](auto& dst, std::int64_t lo, std::int64_t hi) -> Handler {
-    return [&dst, lo, hi](const std::string& v) -> std::string {
+  auto integer = [](auto& dst, SettingRange<std::int64_t> range) -> Handler {
+    return [&dst, range](const std::string& v) -> std::string {
       std::int64_t n = 0;
       if (!parseInt(v, n)) return "not an integer: '" + v + "'";
-      if (n < lo || n > hi)
-        return "value " + v + " out of range [" + std::to_string(lo) + ", " + std::to_string(hi) +
-               "]";
+      if (!range.contains(n)) return rangeError(range, n);
       dst = static_cast<std::remove_reference_t<decltype(dst)>>(n);
       return {};
     };
@@ -168,58 +126,52 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
        }},
       {"--mode",
        [&](const std::string& v) -> std::string {
-         if (v == "geometric")
-           c.overlap.mode = OverlapMode::Geometric;
-         else if (v == "paper")
-           c.overlap.mode = OverlapMode::Paper;
-         else
+         if (!parseOverlapMode(v, c.overlap.mode))
            return "unknown mode '" + v + "' (geometric or paper)";
          return {};
        }},
-      {"--target", number(c.target, 0.01, 0.99)},
+      {"--target", number(c.target, limits::kOverlapTarget)},
       {"--band",
        [&](const std::string& v) -> std::string {
          std::string a, b;
          if (!parsePair(v, a, b)) return "expected LO,HI";
          double lo = 0, hi = 0;
          if (!parseDouble(a, lo) || !parseDouble(b, hi)) return "expected two numbers LO,HI";
-         if (!(lo > 0 && lo < hi && hi < 1)) return "band must satisfy 0 < LO < HI < 1";
+         if (!limits::kOverlapBand.contains(lo) || !limits::kOverlapBand.contains(hi) || lo >= hi)
+           return "band must satisfy 0 < LO < HI < 1";
          c.bandLow = lo;
          c.bandHigh = hi;
          return {};
        }},
-      {"--analysis-width", integer(c.analysisWidth, 0, 16384)},
-      {"--min-overlap", number(c.minOverlap, 0.01, 0.99)},
-      {"--motion-ratio", number(c.motionRatio, 0, 100)},
-      {"--orb-features", integer(c.overlap.orbFeatures, 50, 50000)},
-      {"--paper-threshold", number(c.overlap.paperThreshold, 1, 256)},
-      {"--max-tracks", integer(c.overlap.maxTracks, 20, 5000)},
+      {"--analysis-width", integer(c.analysisWidth, limits::kAnalysisWidth)},
+      {"--min-overlap", number(c.minOverlap, limits::kMinOverlap)},
+      {"--motion-ratio", number(c.motionRatio, limits::kMotionRatio)},
+      {"--orb-features", integer(c.overlap.orbFeatures, limits::kOrbFeatures)},
+      {"--paper-threshold", number(c.overlap.paperThreshold, limits::kPaperThreshold)},
+      {"--max-tracks", integer(c.overlap.maxTracks, limits::kMaxTracks)},
       {"--blur-mode",
        [&](const std::string& v) -> std::string {
-         if (v == "adaptive")
-           c.blur.mode = BlurMode::Adaptive;
-         else if (v == "absolute")
-           c.blur.mode = BlurMode::Absolute;
-         else
+         if (!parseBlurMode(v, c.blur.mode))
            return "unknown blur mode '" + v + "' (adaptive or absolute)";
          return {};
        }},
-      {"--blur-threshold", number(c.blur.absoluteThreshold, 0, 1e9)},
-      {"--blur-floor", number(c.blur.floor, 0, 1e9)},
-      {"--blur-ratio", number(c.blur.ratio, 0.01, 2)},
-      {"--blur-quantile", number(c.blur.quantile, 0, 1)},
-      {"--blur-window", integer(c.blur.window, 1, 10000)},
+      {"--blur-threshold", number(c.blur.absoluteThreshold, limits::kBlurThreshold)},
+      {"--blur-floor", number(c.blur.floor, limits::kBlurFloor)},
+      {"--blur-ratio", number(c.blur.ratio, limits::kBlurRatio)},
+      {"--blur-quantile", number(c.blur.quantile, limits::kBlurQuantile)},
+      {"--blur-window", integer(c.blur.window, limits::kBlurWindow)},
       {"--blur-step",
        [&](const std::string& v) -> std::string {
          std::string a, b;
          std::int64_t rs = 0, cs = 0;
          if (!parsePair(v, a, b) || !parseInt(a, rs) || !parseInt(b, cs)) return "expected R,C";
-         if (rs < 1 || rs > 16 || cs < 1 || cs > 16) return "steps must be 1..16";
+         if (!limits::kBlurStep.contains(rs) || !limits::kBlurStep.contains(cs))
+           return "steps must be 1..16";
          c.blur.rowStep = static_cast<int>(rs);
          c.blur.colStep = static_cast<int>(cs);
          return {};
        }},
-      {"--blur-width", integer(c.blur.analysisWidth, 0, 16384)},
+      {"--blur-width", integer(c.blur.analysisWidth, limits::kBlurWidth)},
       {"--decisions",
        [&](const std::string& v) -> std::string {
          if (v == "csv")
@@ -230,8 +182,8 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
            return "unknown decisions format '" + v + "' (csv or jsonl)";
          return {};
        }},
-      {"--jpeg-quality", integer(o.jpegQuality, 1, 100)},
-      {"--max-frames", integer(o.maxFrames, 1, std::int64_t{1} << 40)},
+      {"--jpeg-quality", integer(o.jpegQuality, limits::kJpegQuality)},
+      {"--max-frames", integer(o.maxFrames, SettingRange<std::int64_t>{1, std::int64_t{1} << 40})},
       {"--telemetry",
        [&](const std::string& v) -> std::string {
          if (v.empty()) return "empty telemetry source";
@@ -261,7 +213,8 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
            if ((k < 2) != (comma != std::string::npos)) return "expected ROLL,PITCH,YAW in degrees";
            const std::string part =
                v.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
-           if (!parseDouble(part, a[k]) || std::fabs(a[k]) > 360) return "bad angle '" + part + "'";
+           if (!parseDouble(part, a[k]) || !limits::kMountAngleDeg.contains(a[k]))
+             return "bad angle '" + part + "'";
            start = comma + 1;
          }
          o.mountRollDeg = a[0];
@@ -269,22 +222,13 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          o.mountYawDeg = a[2];
          return {};
        }},
-      {"--telemetry-wait", integer(o.telemetryWaitMs, 0, 60000)},
-      {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, 0, 600000)},
+      {"--telemetry-wait", integer(o.telemetryWaitMs, limits::kTelemetryWaitMs)},
+      {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, limits::kTelemetryStartWaitMs)},
       {"--autopilot",
        [&](const std::string& v) -> std::string {
-         std::int64_t sys = 0, comp = 0;
-         const auto colon = v.find(':');
-         if (!parseInt(v.substr(0, colon), sys) || sys < 1 || sys > 255)
-           return "expected SYS[:COMP] with ids 1..255";
-         if (colon != std::string::npos &&
-             (!parseInt(v.substr(colon + 1), comp) || comp < 1 || comp > 255))
-           return "expected SYS[:COMP] with ids 1..255";
-         o.autopilotSystem = static_cast<int>(sys);
-         o.autopilotComponent = static_cast<int>(comp);
-         return {};
+         return parseAutopilot(v, o.autopilotSystem, o.autopilotComponent);
        }},
-      {"--mavlink-sysid", integer(o.mavlinkSystemId, 1, 255)},
+      {"--mavlink-sysid", integer(o.mavlinkSystemId, limits::kMavlinkId)},
   };
 
   for (std::size_t i = 0; i < args.size(); ++i) {

@@ -5,6 +5,7 @@
 #include <string>
 #include <vector>
 
+#include "app/settings.h"
 #include "core/selector.h"
 
 namespace keyframed {
@@ -36,10 +37,6 @@ struct SelectOptions {
   int autopilotComponent = 0;
   int mavlinkSystemId = 0;  // --mavlink-sysid N (0: the autopilot's)
 };
-
-// Parses an ISO 8601 UTC time (2026-06-01T10:00:00Z, fractions allowed) or a number
-// of unix seconds into unix nanoseconds.
-bool parseUtcTime(const std::string& text, std::int64_t& unixNs);
 
 struct ParseResult {
   bool ok = false;

@@ -1,0 +1,121 @@
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "app/log.h"
+#include "core/selector.h"
+#include "telemetry/telemetry_service.h"
+
+// The daemon's configuration (`keyframed run`, `keyframed check-config`). Every
+// field names its TOML key; config/keyframed.toml lists them all with their
+// defaults and docs/configuration.md explains them. Layers, later wins:
+//   built-in defaults < DIR/keyframed.toml < DIR/conf.d/*.toml (by name) < --set
+// with DIR = --config-dir, else $KEYFRAMED_CONFIG_DIR, else /etc/keyframed.
+namespace keyframed {
+
+namespace config_detail {
+inline TelemetryServiceConfig defaultLink() {
+  TelemetryServiceConfig link;
+  link.url = "udpin:0.0.0.0:14550";  // mavlink-router's usual endpoint for a companion
+  return link;
+}
+}  // namespace config_detail
+
+// Section types are nested: names such as TelemetryConfig exist elsewhere in the
+// namespace, and two different definitions of one name would break the ODR.
+struct DaemonConfig {
+  enum class Source { V4l2, Libcamera, File };
+
+  struct Camera {
+    Source source = Source::V4l2;      // camera.source
+    std::string device;                // camera.device ("": the first camera)
+    std::string path;                  // camera.path (source "file": the video)
+    int width = 1920;                  // camera.width
+    int height = 1080;                 // camera.height
+    double fps = 30.0;                 // camera.fps
+    std::string pixelFormat = "auto";  // camera.pixel_format (FourCC or "auto")
+    bool realtime = true;              // camera.realtime (file: pace at the video's rate)
+    std::string startTime;             // camera.start_time (file: UTC of frame 0)
+  };
+
+  struct Telemetry {
+    // telemetry.url, mavlink_sysid, component_id, timesync, camera_component, mavlink1,
+    // autopilot, stale_ms, attitude_gap_ms, position_gap_ms, history_s, min_fix_type,
+    // clock_window_s, timesync_timeout_s: handed to TelemetryService as they are.
+    TelemetryServiceConfig link = config_detail::defaultLink();
+    int waitMs = 1000;        // telemetry.wait_ms
+    int startWaitMs = 10000;  // telemetry.start_wait_ms
+  };
+
+  struct Tagging {
+    std::string calibration;     // tagging.calibration ("": no intrinsics)
+    double mountRollDeg = 0.0;   // tagging.mount_roll
+    double mountPitchDeg = -90;  // tagging.mount_pitch (-90: nadir)
+    double mountYawDeg = 0.0;    // tagging.mount_yaw
+    int jpegQuality = 92;        // tagging.jpeg_quality
+  };
+
+  struct Output {
+    std::string stateDir = "/var/lib/keyframed";  // output.state_dir
+    bool mcap = true;                             // output.mcap
+    std::int64_t mcapRotateMb = 1024;             // output.mcap_rotate_mb (0: never)
+    std::int64_t mcapRotateS = 1800;              // output.mcap_rotate_s (0: never)
+  };
+
+  struct Zenoh {
+    bool enabled = true;  // zenoh.enabled
+    std::string config;   // zenoh.config (JSON5 file; "": peer mode, Zenoh's defaults)
+    std::string vehicle;  // zenoh.vehicle (keyframed/<vehicle>/...; "": host name)
+  };
+
+  Camera camera;
+  SelectorConfig selection;  // [selection]: the same settings as `keyframed select`
+  Telemetry telemetry;
+  Tagging tagging;
+  Output output;
+  Zenoh zenoh;
+  LogConfig log;
+};
+
+const char* toString(DaemonConfig::Source source);  // "v4l2" | "libcamera" | "file"
+
+// Where the layers come from.
+struct ConfigSources {
+  std::string configDir;               // "": defaultConfigDir()
+  std::vector<std::string> files;      // when set: these files instead of the directory
+  std::vector<std::string> overrides;  // "section.key=value" (--set), applied last
+};
+
+struct ConfigLoadResult {
+  DaemonConfig config;
+  std::vector<std::string> layers;  // what was read, in order ("--set ..." included)
+  // One line each: "FILE:LINE: section.key: what is wrong".
+  std::vector<std::string> errors;
+  [[nodiscard]] bool ok() const { return errors.empty(); }
+};
+
+// $KEYFRAMED_CONFIG_DIR, else the built-in directory (/etc/keyframed).
+std::string defaultConfigDir();
+
+// Loads and validates every layer; all problems are reported, not just the first.
+ConfigLoadResult loadConfig(const ConfigSources& sources);
+
+// Takes --config-dir DIR and --set KEY=VALUE (also --opt=value forms) out of args,
+// leaving the rest. Empty, or a one-line error.
+std::string takeConfigArgs(std::vector<std::string>& args, ConfigSources& sources);
+
+// The configuration as TOML, every key, in the documented order. Loading it back
+// gives the same configuration.
+std::string toToml(const DaemonConfig& config);
+
+// Every key as "section.key", in order, and the sections.
+std::vector<std::string> configKeys();
+std::vector<std::string> configSections();
+
+// `keyframed check-config [FILE...] [--config-dir DIR] [--set KEY=VALUE]...`
+int checkConfigMain(const std::vector<std::string>& args);
+
+}  // namespace keyframed

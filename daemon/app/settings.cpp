@@ -1,0 +1,122 @@
+#include "app/settings.h"
+
+#include <cerrno>
+#include <charconv>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <ctime>
+
+namespace keyframed {
+namespace {
+
+std::string number(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.10g", v);
+  return buf;
+}
+
+bool parseId(std::string_view text, int& out) {
+  int v = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  if (ec != std::errc() || end != text.data() + text.size() || text.empty()) return false;
+  if (!limits::kMavlinkId.contains(v)) return false;
+  out = v;
+  return true;
+}
+
+bool parseDouble(const std::string& s, double& out) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  errno = 0;
+  out = std::strtod(s.c_str(), &end);
+  return errno == 0 && end == s.c_str() + s.size() && std::isfinite(out);
+}
+
+}  // namespace
+
+std::string rangeError(SettingRange<double> range, double value) {
+  return "must be between " + number(range.lo) + " and " + number(range.hi) + " (got " +
+         number(value) + ")";
+}
+
+std::string rangeError(SettingRange<std::int64_t> range, std::int64_t value) {
+  return "must be between " + std::to_string(range.lo) + " and " + std::to_string(range.hi) +
+         " (got " + std::to_string(value) + ")";
+}
+
+bool parseOverlapMode(std::string_view text, OverlapMode& mode) {
+  if (text == "geometric")
+    mode = OverlapMode::Geometric;
+  else if (text == "paper")
+    mode = OverlapMode::Paper;
+  else
+    return false;
+  return true;
+}
+
+const char* blurModeName(BlurMode mode) {
+  return mode == BlurMode::Absolute ? "absolute" : "adaptive";
+}
+
+bool parseBlurMode(std::string_view text, BlurMode& mode) {
+  if (text == "adaptive")
+    mode = BlurMode::Adaptive;
+  else if (text == "absolute")
+    mode = BlurMode::Absolute;
+  else
+    return false;
+  return true;
+}
+
+std::string parseAutopilot(std::string_view text, int& system, int& component) {
+  const auto colon = text.find(':');
+  int sys = 0;
+  int comp = 0;
+  if (!parseId(text.substr(0, colon), sys) ||
+      (colon != std::string_view::npos && !parseId(text.substr(colon + 1), comp)))
+    return "expected SYS[:COMP] with ids 1..255";
+  system = sys;
+  component = comp;
+  return {};
+}
+
+bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
+  double seconds = 0;
+  if (parseDouble(text, seconds)) {
+    if (seconds < 0 || seconds > 4.1e9) return false;
+    unixNs = std::llround(seconds * 1e9);
+    return true;
+  }
+  std::tm tm{};
+  int consumed = 0;
+  if (std::sscanf(text.c_str(), "%4d-%2d-%2dT%2d:%2d:%2d%n", &tm.tm_year, &tm.tm_mon, &tm.tm_mday,
+                  &tm.tm_hour, &tm.tm_min, &tm.tm_sec, &consumed) != 6) {
+    return false;
+  }
+  if (tm.tm_mon < 1 || tm.tm_mon > 12 || tm.tm_mday < 1 || tm.tm_mday > 31 || tm.tm_hour > 23 ||
+      tm.tm_min > 59 || tm.tm_sec > 60) {
+    return false;
+  }
+  std::string rest = text.substr(static_cast<std::size_t>(consumed));
+  std::int64_t fracNs = 0;
+  if (!rest.empty() && rest[0] == '.') {
+    std::size_t i = 1;
+    std::int64_t scale = 100'000'000;
+    while (i < rest.size() && rest[i] >= '0' && rest[i] <= '9') {
+      fracNs += (rest[i] - '0') * scale;
+      scale /= 10;
+      ++i;
+    }
+    if (i == 1) return false;
+    rest = rest.substr(i);
+  }
+  if (rest != "Z" && rest != "+00:00" && !rest.empty()) return false;  // UTC only
+  tm.tm_year -= 1900;
+  tm.tm_mon -= 1;
+  const std::time_t t = timegm(&tm);
+  unixNs = static_cast<std::int64_t>(t) * 1'000'000'000 + fracNs;
+  return true;
+}
+
+}  // namespace keyframed

@@ -1,0 +1,75 @@
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+
+#include "core/overlap.h"
+#include "core/sharpness.h"
+
+// The vocabulary shared by the `select` command line and the daemon's TOML
+// configuration: value ranges and names. Both front ends check against these, so
+// a setting accepted in one place is accepted in the other.
+namespace keyframed {
+
+template <typename T>
+struct SettingRange {
+  T lo;
+  T hi;
+  [[nodiscard]] constexpr bool contains(T v) const { return v >= lo && v <= hi; }
+};
+
+// "must be between LO and HI (got V)"
+std::string rangeError(SettingRange<double> range, double value);
+std::string rangeError(SettingRange<std::int64_t> range, std::int64_t value);
+
+namespace limits {
+// Selection.
+inline constexpr SettingRange<double> kOverlapTarget{0.01, 0.99};
+inline constexpr SettingRange<double> kOverlapBand{0.01, 0.99};
+inline constexpr SettingRange<double> kMinOverlap{0.01, 0.99};
+inline constexpr SettingRange<double> kMotionRatio{0.0, 100.0};
+inline constexpr SettingRange<double> kMotionMinFraction{0.0, 0.99};
+inline constexpr SettingRange<std::int64_t> kMotionWindow{5, 10000};
+inline constexpr SettingRange<std::int64_t> kAnalysisWidth{0, 16384};
+inline constexpr SettingRange<std::int64_t> kOrbFeatures{50, 50000};
+inline constexpr SettingRange<double> kPaperThreshold{1.0, 256.0};
+inline constexpr SettingRange<std::int64_t> kPaperMinMatches{4, 50000};
+inline constexpr SettingRange<std::int64_t> kMaxTracks{20, 5000};
+inline constexpr SettingRange<std::int64_t> kMinTracks{8, 5000};
+inline constexpr SettingRange<std::int64_t> kMinInliers{4, 5000};
+inline constexpr SettingRange<double> kRansacPixels{0.1, 49.0};
+inline constexpr SettingRange<std::int64_t> kFastThreshold{1, 200};
+inline constexpr SettingRange<std::int64_t> kLkWindow{5, 61};
+inline constexpr SettingRange<std::int64_t> kLkLevels{0, 6};
+// Blur.
+inline constexpr SettingRange<double> kBlurThreshold{0.0, 1e9};
+inline constexpr SettingRange<double> kBlurFloor{0.0, 1e9};
+inline constexpr SettingRange<double> kBlurRatio{0.01, 2.0};
+inline constexpr SettingRange<double> kBlurQuantile{0.0, 1.0};
+inline constexpr SettingRange<std::int64_t> kBlurWindow{1, 10000};
+inline constexpr SettingRange<std::int64_t> kBlurWarmup{0, 10000};
+inline constexpr SettingRange<std::int64_t> kBlurStep{1, 16};
+inline constexpr SettingRange<std::int64_t> kBlurWidth{0, 16384};
+// Telemetry and tags.
+inline constexpr SettingRange<std::int64_t> kMavlinkId{1, 255};
+inline constexpr SettingRange<std::int64_t> kTelemetryWaitMs{0, 60000};
+inline constexpr SettingRange<std::int64_t> kTelemetryStartWaitMs{0, 600000};
+inline constexpr SettingRange<double> kMountAngleDeg{-360.0, 360.0};
+inline constexpr SettingRange<std::int64_t> kJpegQuality{1, 100};
+}  // namespace limits
+
+// Names used on the command line and in the config file.
+// (The overlap mode's name is core's toString(OverlapMode).)
+bool parseOverlapMode(std::string_view text, OverlapMode& mode);
+const char* blurModeName(BlurMode mode);  // "adaptive" | "absolute"
+bool parseBlurMode(std::string_view text, BlurMode& mode);
+
+// "SYS[:COMP]" with ids 1..255 (COMP 0 when absent). Empty on success, else why not.
+std::string parseAutopilot(std::string_view text, int& system, int& component);
+
+// Parses an ISO 8601 UTC time (2026-06-01T10:00:00Z, fractions allowed) or a number
+// of unix seconds into unix nanoseconds.
+bool parseUtcTime(const std::string& text, std::int64_t& unixNs);
+
+}  // namespace keyframed

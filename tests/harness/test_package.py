@@ -1,0 +1,120 @@
+"""Installation layout and the Debian package, built from the tested build tree.
+
+`cpack` re-installs the build tree into a staging directory and runs dpkg-shlibdeps:
+about 2 s here. The build must be configured with the /usr prefix (the default).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import ROOT, keyframed_bin
+
+
+def build_dir() -> Path:
+    build = keyframed_bin().resolve().parent.parent  # BUILD/daemon/keyframed
+    if not (build / "CPackConfig.cmake").exists():
+        pytest.skip(f"{build} has no CPackConfig.cmake")
+    return build
+
+
+def cached(name: str) -> str:
+    """A variable from the build's CMakeCache.txt."""
+    for line in (build_dir() / "CMakeCache.txt").read_text().splitlines():
+        if line.startswith(name + ":"):
+            return line.split("=", 1)[1]
+    raise KeyError(name)
+
+
+def require_usr_prefix() -> None:
+    prefix = cached("CMAKE_INSTALL_PREFIX")
+    if prefix != "/usr":
+        pytest.skip(
+            f"build configured with prefix {prefix} (a cache from before the /usr default):"
+            " reconfigure with -DCMAKE_INSTALL_PREFIX=/usr to build the .deb"
+        )
+
+
+def test_install_layout(tmp_path: Path):
+    stage = tmp_path / "stage"
+    p = subprocess.run(
+        ["cmake", "--install", str(build_dir())],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "DESTDIR": str(stage)},
+    )
+    assert p.returncode == 0, p.stderr
+    prefix = cached("CMAKE_INSTALL_PREFIX").lstrip("/")  # /usr unless configured otherwise
+    etc = cached("KEYFRAMED_CONFIG_DIR").lstrip("/")  # /etc/keyframed for /usr
+    for f in (
+        f"{prefix}/bin/keyframed",
+        f"{prefix}/lib/systemd/system/keyframed.service",
+        f"{prefix}/lib/sysusers.d/keyframed.conf",
+        f"{etc}/keyframed.toml",
+        f"{prefix}/share/doc/keyframed/configuration.md",
+        f"{prefix}/share/doc/keyframed/README.md",
+    ):
+        assert (stage / f).is_file(), f
+    assert (stage / etc / "conf.d").is_dir()
+    assert os.access(stage / prefix / "bin/keyframed", os.X_OK)
+    unit = (stage / prefix / "lib/systemd/system/keyframed.service").read_text()
+    assert f"ExecStart=/{prefix}/bin/keyframed run" in unit  # follows the prefix
+    assert (stage / etc / "keyframed.toml").read_text() == (
+        ROOT / "config/keyframed.toml"
+    ).read_text()
+
+
+@pytest.mark.skipif(shutil.which("dpkg-deb") is None, reason="dpkg-deb not installed")
+def test_debian_package(tmp_path: Path):
+    require_usr_prefix()
+    out = tmp_path / "pkg"
+    p = subprocess.run(
+        ["cpack", "-G", "DEB", "-B", str(out)],
+        cwd=build_dir(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    debs = list(out.glob("keyframed_*_*.deb"))
+    assert len(debs) == 1, list(out.iterdir())
+    deb = debs[0]
+    arch = subprocess.check_output(["dpkg", "--print-architecture"], text=True).strip()
+    version = subprocess.check_output(["dpkg-deb", "-f", str(deb), "Version"], text=True).strip()
+    assert deb.name == f"keyframed_{version}_{arch}.deb"
+    print(f"{deb.name}: {deb.stat().st_size} bytes")
+
+    files = subprocess.check_output(["dpkg-deb", "-c", str(deb)], text=True)
+    paths = {line.split()[-1] for line in files.splitlines()}
+    for f in (
+        "./usr/bin/keyframed",
+        "./usr/lib/systemd/system/keyframed.service",
+        "./usr/lib/sysusers.d/keyframed.conf",
+        "./etc/keyframed/keyframed.toml",
+        "./etc/keyframed/conf.d/",
+        "./usr/share/doc/keyframed/configuration.md",
+    ):
+        assert f in paths, f
+
+    control = tmp_path / "control"
+    subprocess.run(["dpkg-deb", "-e", str(deb), str(control)], check=True)
+    assert (control / "conffiles").read_text().split() == ["/etc/keyframed/keyframed.toml"]
+    for script in ("postinst", "prerm", "postrm"):
+        assert os.access(control / script, os.X_OK), script
+        subprocess.run(["sh", "-n", str(control / script)], check=True)  # parses
+    postinst = (control / "postinst").read_text()
+    assert "systemd-sysusers keyframed.conf" in postinst
+    assert "adduser --system" in postinst
+    assert "systemctl daemon-reload" in postinst
+
+    info = subprocess.check_output(["dpkg-deb", "-I", str(deb)], text=True)
+    depends = subprocess.check_output(["dpkg-deb", "-f", str(deb), "Depends"], text=True)
+    # Computed by dpkg-shlibdeps from the binary's libraries.
+    for lib in ("libc6", "libsystemd0", "libtomlplusplus3", "libopencv-core"):
+        assert lib in depends, depends
+    assert "Package: keyframed" in info

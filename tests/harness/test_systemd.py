@@ -1,0 +1,159 @@
+"""The systemd unit, sysusers entry and sd_notify protocol, checked with systemd's tools.
+
+`systemd-analyze verify` insists that every Exec*= binary exists and is executable,
+so it runs on a copy of the unit whose /usr/bin/keyframed is the binary under test
+(the installed unit differs only in that path; CMake writes the same substitution
+for other prefixes).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import socket
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import ROOT
+
+UNIT = ROOT / "systemd/keyframed.service"
+SYSUSERS = ROOT / "systemd/keyframed.sysusers"
+
+pytestmark = pytest.mark.skipif(
+    shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed"
+)
+
+
+@pytest.fixture()
+def unit_copy(kf_bin: Path, tmp_path: Path) -> Path:
+    text = UNIT.read_text()
+    assert "ExecStart=/usr/bin/keyframed run" in text
+    path = tmp_path / "keyframed.service"
+    path.write_text(text.replace("/usr/bin/keyframed", str(kf_bin)))
+    return path
+
+
+def test_unit_verifies(unit_copy: Path):
+    p = subprocess.run(
+        ["systemd-analyze", "verify", str(unit_copy)], capture_output=True, text=True, timeout=60
+    )
+    # verify exits 0 on some warnings (unknown keys): require silence too.
+    assert p.returncode == 0, p.stderr
+    assert p.stderr.strip() == "", p.stderr
+
+
+def test_unit_has_the_agreed_settings():
+    settings: dict[str, list[str]] = {}
+    for line in UNIT.read_text().splitlines():
+        if "=" in line and not line.startswith("#"):
+            key, value = line.split("=", 1)
+            settings.setdefault(key, []).append(value)
+    one = {k: v[-1] for k, v in settings.items()}
+    assert one["Type"] == "notify"
+    assert one["ExecStart"] == "/usr/bin/keyframed run"
+    assert one["ExecReload"] == "/bin/kill -HUP $MAINPID"
+    assert one["WatchdogSec"] == "10"
+    assert one["Restart"] == "on-failure"
+    assert one["User"] == "keyframed" and one["DynamicUser"] == "no"
+    assert one["SupplementaryGroups"] == "video dialout"
+    assert one["DevicePolicy"] == "closed"
+    assert "char-video4linux rw" in settings["DeviceAllow"]
+    for tty in ("ttyS", "ttyAMA", "ttyUSB", "ttyACM"):
+        assert f"char-{tty} rw" in settings["DeviceAllow"]
+    assert one["CapabilityBoundingSet"] == ""
+    assert one["UMask"] == "0027"
+
+
+def test_security_exposure_is_ok(unit_copy: Path):
+    p = subprocess.run(
+        ["systemd-analyze", "security", "--offline=yes", "--no-pager", str(unit_copy)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert p.returncode == 0, p.stderr
+    m = re.search(r"Overall exposure level for \S+: (\d+\.\d) (\w+)", p.stdout)
+    assert m, p.stdout[-500:]
+    exposure, rating = float(m.group(1)), m.group(2)
+    # systemd 252 (analyze-security.c) rates exposure x10 >= 50 MEDIUM, >= 10 OK,
+    # >= 1 SAFE, 0 PERFECT: "OK or better" is an exposure under 5.0.
+    print(f"systemd-analyze security: exposure {exposure} {rating}")
+    assert rating in ("OK", "SAFE", "PERFECT"), p.stdout[-2000:]
+    assert exposure < 5.0
+
+
+def test_sysusers_creates_the_user_in_a_scratch_root(tmp_path: Path):
+    if shutil.which("systemd-sysusers") is None:
+        pytest.skip("systemd-sysusers not installed")
+    root = tmp_path / "root"
+    (root / "etc").mkdir(parents=True)
+    p = subprocess.run(
+        ["systemd-sysusers", f"--root={root}", str(SYSUSERS)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert p.returncode == 0, p.stderr
+    passwd = (root / "etc/passwd").read_text()
+    assert re.search(r"^keyframed:x:\d+:\d+:keyframed daemon:/var/lib/keyframed:", passwd, re.M)
+    groups = {line.split(":")[0]: line for line in (root / "etc/group").read_text().splitlines()}
+    assert groups["video"].endswith(":keyframed")
+    assert groups["dialout"].endswith(":keyframed")
+
+
+def run_selftest(kf_bin: Path, tmp_path: Path, **env: str):
+    """Runs `keyframed notify-selftest` with us as the service manager."""
+    path = tmp_path / "notify.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(str(path))
+        sock.settimeout(10)
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("WATCHDOG_")}
+        full_env.update(NOTIFY_SOCKET=str(path), **env)
+        p = subprocess.run(
+            [str(kf_bin), "notify-selftest"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            env=full_env,
+        )
+        datagrams = []
+        sock.setblocking(False)
+        while True:
+            try:
+                datagrams.append(sock.recv(4096).decode())
+            except BlockingIOError:
+                break
+    return p, datagrams
+
+
+def test_notifier_sends_the_exact_datagrams(kf_bin: Path, tmp_path: Path):
+    p, datagrams = run_selftest(kf_bin, tmp_path, WATCHDOG_USEC="4000000")
+    assert p.returncode == 0, p.stderr
+    assert "notify_socket=yes" in p.stdout
+    assert "watchdog_usec=4000000" in p.stdout
+    assert "ping_usec=2000000" in p.stdout
+    assert len(datagrams) == 6, datagrams
+    assert datagrams[0] == "STATUS=starting"
+    assert datagrams[1] == "READY=1\nSTATUS=selecting keyframes"  # newline flattened
+    assert datagrams[2] == "WATCHDOG=1"
+    assert re.fullmatch(r"RELOADING=1\nMONOTONIC_USEC=\d+", datagrams[3]), datagrams[3]
+    assert datagrams[4] == "READY=1"
+    assert datagrams[5] == "STOPPING=1\nSTATUS=bye"
+
+
+def test_watchdog_meant_for_another_process_is_ignored(kf_bin: Path, tmp_path: Path):
+    p, datagrams = run_selftest(kf_bin, tmp_path, WATCHDOG_USEC="4000000", WATCHDOG_PID="1")
+    assert p.returncode == 0, p.stderr
+    assert "watchdog_usec=0" in p.stdout
+    assert len(datagrams) == 6
+
+
+def test_without_notify_socket_nothing_is_sent(kf_bin: Path):
+    env = {k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"}
+    p = subprocess.run(
+        [str(kf_bin), "notify-selftest"], capture_output=True, text=True, timeout=30, env=env
+    )
+    assert p.returncode == 1  # every send reports "nobody listens"
+    assert "notify_socket=no" in p.stdout

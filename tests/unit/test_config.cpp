@@ -1,0 +1,372 @@
+#include <gtest/gtest.h>
+#include <stdlib.h>
+
+#include <cstddef>
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <sstream>
+#include <string>
+
+#include <toml++/toml.h>
+
+#include "app/config.h"
+
+namespace keyframed {
+namespace {
+
+namespace fs = std::filesystem;
+
+// Counts an aggregate's members (each member, nested structs included, counts once).
+struct AnyValue {
+  template <typename T>
+  operator T() const;  // never defined: unevaluated use only
+};
+
+template <typename T, typename... A>
+constexpr std::size_t memberCount() {
+  if constexpr (requires { T{A{}..., AnyValue{}}; })
+    return memberCount<T, A..., AnyValue>();
+  else
+    return sizeof...(A);
+}
+
+class TempDir {
+ public:
+  TempDir() {
+    char tmpl[] = "/tmp/keyframed-config-XXXXXX";
+    path_ = mkdtemp(tmpl);
+  }
+  ~TempDir() { fs::remove_all(path_); }
+  TempDir(const TempDir&) = delete;
+  TempDir& operator=(const TempDir&) = delete;
+
+  [[nodiscard]] std::string path() const { return path_.string(); }
+  std::string write(const std::string& name, const std::string& text) const {
+    const fs::path p = path_ / name;
+    fs::create_directories(p.parent_path());
+    std::ofstream(p) << text;
+    return p.string();
+  }
+
+ private:
+  fs::path path_;
+};
+
+ConfigLoadResult loadDir(const TempDir& dir, std::vector<std::string> overrides = {}) {
+  ConfigSources s;
+  s.configDir = dir.path();
+  s.overrides = std::move(overrides);
+  return loadConfig(s);
+}
+
+ConfigLoadResult loadText(const TempDir& dir, const std::string& text) {
+  ConfigSources s;
+  s.files = {dir.write("test.toml", text)};
+  return loadConfig(s);
+}
+
+std::string joined(const std::vector<std::string>& lines) {
+  std::string out;
+  for (const auto& l : lines) out += l + "\n";
+  return out;
+}
+
+// One error, exactly this text after the file name.
+void expectOneError(const TempDir& dir, const std::string& text, const std::string& expected) {
+  const ConfigLoadResult r = loadText(dir, text);
+  ASSERT_EQ(r.errors.size(), 1u) << joined(r.errors);
+  EXPECT_EQ(r.errors[0], dir.path() + "/test.toml:" + expected);
+}
+
+const std::string kSource = KEYFRAMED_SOURCE_DIR;
+
+TEST(Config, DefaultsAreValidAndEmptyDirectoryGivesThem) {
+  TempDir dir;
+  const ConfigLoadResult r = loadDir(dir);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(toToml(r.config), toToml(DaemonConfig{}));
+  EXPECT_EQ(r.layers, std::vector<std::string>{"built-in defaults"});
+}
+
+TEST(Config, ShippedFileIsExactlyTheDefaultsAndListsEveryKey) {
+  ConfigSources s;
+  s.files = {kSource + "/config/keyframed.toml"};
+  const ConfigLoadResult r = loadConfig(s);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);  // unknown keys would be errors
+  EXPECT_EQ(toToml(r.config), toToml(DaemonConfig{}));
+
+  const toml::table doc = toml::parse_file(kSource + "/config/keyframed.toml");
+  std::set<std::string> inFile;
+  for (auto&& [section, table] : doc) {
+    ASSERT_TRUE(table.is_table());
+    for (auto&& [key, value] : *table.as_table())
+      inFile.insert(std::string(section.str()) + "." + std::string(key.str()));
+  }
+  for (const std::string& key : configKeys()) EXPECT_TRUE(inFile.count(key)) << key;
+  EXPECT_EQ(inFile.size(), configKeys().size());
+}
+
+TEST(Config, EveryKeyIsDocumented) {
+  std::ifstream in(kSource + "/docs/configuration.md");
+  std::stringstream doc;
+  doc << in.rdbuf();
+  for (const std::string& key : configKeys())
+    EXPECT_NE(doc.str().find("`" + key + "`"), std::string::npos) << key << " not in docs";
+}
+
+// The schema must cover every member: a field added to a config struct without a
+// key fails here.
+TEST(Config, SchemaCoversEveryMember) {
+  auto keysIn = [](const std::string& section) {
+    std::size_t n = 0;
+    for (const std::string& k : configKeys()) n += k.rfind(section + ".", 0) == 0;
+    return n;
+  };
+  EXPECT_EQ(memberCount<DaemonConfig>(), configSections().size());
+  EXPECT_EQ(memberCount<DaemonConfig::Camera>(), keysIn("camera"));
+  // The selector's own members hold the two nested structs.
+  EXPECT_EQ(memberCount<SelectorConfig>() - 2 + memberCount<SharpnessConfig>() +
+                memberCount<OverlapConfig>(),
+            keysIn("selection"));
+  // [telemetry] is TelemetryServiceConfig (its decoder: TelemetryConfig, with a
+  // PoseStore::Config and a ClockMapper::Config) plus two waits; telemetry.autopilot
+  // sets both the system and the component.
+  EXPECT_EQ(memberCount<DaemonConfig::Telemetry>() - 1 + memberCount<TelemetryServiceConfig>() - 1 +
+                memberCount<TelemetryConfig>() - 2 + memberCount<PoseStore::Config>() +
+                memberCount<ClockMapper::Config>() - 1,
+            keysIn("telemetry"));
+  EXPECT_EQ(memberCount<DaemonConfig::Tagging>(), keysIn("tagging"));
+  EXPECT_EQ(memberCount<DaemonConfig::Output>(), keysIn("output"));
+  EXPECT_EQ(memberCount<DaemonConfig::Zenoh>(), keysIn("zenoh"));
+  // level, target, and one key per category.
+  EXPECT_EQ(memberCount<LogConfig>() - 1 + kLogCategories, keysIn("log"));
+}
+
+TEST(Config, LayersApplyInOrder) {
+  TempDir dir;
+  dir.write("keyframed.toml", "[camera]\nfps = 10\nwidth = 640\n[zenoh]\nvehicle = \"main\"\n");
+  dir.write("conf.d/20-b.toml", "[camera]\nfps = 20\n");
+  dir.write("conf.d/10-a.toml", "[camera]\nfps = 15\nheight = 480\n[zenoh]\nvehicle = \"a\"\n");
+  ConfigLoadResult r = loadDir(dir);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(r.config.camera.fps, 20.0);            // conf.d/20-b over 10-a over the main file
+  EXPECT_EQ(r.config.camera.width, 640);           // main file only
+  EXPECT_EQ(r.config.camera.height, 480);          // 10-a only
+  EXPECT_EQ(r.config.zenoh.vehicle, "a");          // conf.d over the main file
+  EXPECT_EQ(r.config.camera.pixelFormat, "auto");  // default
+  EXPECT_EQ(r.layers, (std::vector<std::string>{"built-in defaults", dir.path() + "/keyframed.toml",
+                                                dir.path() + "/conf.d/10-a.toml",
+                                                dir.path() + "/conf.d/20-b.toml"}));
+  r = loadDir(dir, {"camera.fps=25", "zenoh.vehicle=cli"});
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(r.config.camera.fps, 25.0);  // --set over everything
+  EXPECT_EQ(r.config.zenoh.vehicle, "cli");
+  EXPECT_EQ(r.layers.back(), "--set zenoh.vehicle=cli");
+}
+
+TEST(Config, DropInsSortByNameAndOnlyTomlFilesCount) {
+  TempDir dir;
+  dir.write("conf.d/9-b.toml", "[zenoh]\nvehicle = \"nine\"\n");
+  dir.write("conf.d/10-a.toml", "[zenoh]\nvehicle = \"ten\"\n");  // "10-a" < "9-b"
+  dir.write("conf.d/99-z.toml.dpkg-old", "[zenoh]\nvehicle = \"old\"\n");
+  dir.write("conf.d/.99-editor.toml", "[zenoh]\nvehicle = \"hidden\"\n");
+  dir.write("conf.d/README", "not toml at all [");
+  const ConfigLoadResult r = loadDir(dir);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(r.config.zenoh.vehicle, "nine");
+  EXPECT_EQ(r.layers.size(), 3u);
+}
+
+TEST(Config, DirectoryFromTheEnvironmentAndMissingDirectories) {
+  TempDir dir;
+  dir.write("keyframed.toml", "[camera]\nwidth = 800\n");
+  ::setenv("KEYFRAMED_CONFIG_DIR", dir.path().c_str(), 1);
+  EXPECT_EQ(defaultConfigDir(), dir.path());
+  ConfigLoadResult r = loadConfig({});
+  ::unsetenv("KEYFRAMED_CONFIG_DIR");
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(r.config.camera.width, 800);
+  // Built in from the install prefix: /etc/keyframed for /usr.
+  EXPECT_TRUE(defaultConfigDir().ends_with("/keyframed")) << defaultConfigDir();
+  EXPECT_NE(defaultConfigDir(), dir.path());
+
+  ConfigSources s;
+  s.configDir = dir.path() + "/nope";
+  r = loadConfig(s);
+  ASSERT_EQ(r.errors.size(), 1u);
+  EXPECT_EQ(r.errors[0], dir.path() + "/nope: no such directory");
+  s = {};
+  s.files = {dir.path() + "/missing.toml"};
+  r = loadConfig(s);
+  ASSERT_EQ(r.errors.size(), 1u);
+  EXPECT_EQ(r.errors[0], dir.path() + "/missing.toml: no such file");
+}
+
+TEST(Config, SetOverridesTakeTomlValuesAndBareStrings) {
+  TempDir dir;
+  const ConfigLoadResult r =
+      loadDir(dir, {"camera.source=file", "camera.path=/data/flight 1.mp4", "camera.realtime=false",
+                    "selection.target=0.65", "selection.blur_floor=12",
+                    "tagging.calibration=", "zenoh.vehicle=\"quoted\"", "telemetry.autopilot=1:1",
+                    "log.capture=debug", "camera.fps=29.97"});
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(r.config.camera.source, DaemonConfig::Source::File);
+  EXPECT_EQ(r.config.camera.path, "/data/flight 1.mp4");
+  EXPECT_FALSE(r.config.camera.realtime);
+  EXPECT_DOUBLE_EQ(r.config.selection.target, 0.65);
+  EXPECT_DOUBLE_EQ(r.config.selection.blur.floor, 12.0);  // an integer for a float key
+  EXPECT_EQ(r.config.zenoh.vehicle, "quoted");
+  EXPECT_EQ(r.config.telemetry.link.decoder.autopilotSystem, 1);
+  EXPECT_EQ(r.config.telemetry.link.decoder.autopilotComponent, 1);
+  EXPECT_EQ(r.config.log.categories[static_cast<int>(LogCategory::Capture)], LogLevel::Debug);
+  EXPECT_DOUBLE_EQ(r.config.camera.fps, 29.97);
+}
+
+TEST(Config, SetErrorsNameTheOverride) {
+  TempDir dir;
+  const ConfigLoadResult r = loadDir(dir, {"camera.fps=500", "camera.width=abc", "camera",
+                                           "camra.fps=1", "camera.fsp=1", "camera.realtime=1"});
+  EXPECT_EQ(joined(r.errors),
+            "--set camera.fps=500: camera.fps: must be between 1 and 240 (got 500)\n"
+            "--set camera.width=abc: camera.width: expected an integer (got \"abc\")\n"
+            "--set camera: expected --set SECTION.KEY=VALUE\n"
+            "--set camra.fps=1: camra: unknown section (did you mean 'camera'?)\n"
+            "--set camera.fsp=1: camera.fsp: unknown key (did you mean 'fps'?)\n"
+            "--set camera.realtime=1: camera.realtime: expected true or false, got an integer\n");
+}
+
+TEST(Config, UnknownKeyNamesFileLineAndKey) {
+  TempDir dir;
+  expectOneError(dir, "[camera]\nfps = 30\n\nframerate = 30\n", "4: camera.framerate: unknown key");
+  expectOneError(dir, "[camera]\nwidht = 640\n",
+                 "2: camera.widht: unknown key (did you mean 'width'?)");
+  expectOneError(dir, "[camera]\n[camera.extra]\nx = 1\n", "2: camera.extra: unknown key");
+}
+
+TEST(Config, UnknownSectionAndKeysOutsideSections) {
+  TempDir dir;
+  expectOneError(dir, "\n[cameras]\nfps = 30\n",
+                 "2: cameras: unknown section (did you mean 'camera'?)");
+  expectOneError(dir, "[video]\nfps = 30\n", "1: video: unknown section");
+  expectOneError(dir, "fps = 30\n", "1: fps: key outside any section (did you mean [camera]?)");
+  expectOneError(dir, "camera = 3\n", "1: camera: expected a [camera] table, got an integer");
+}
+
+TEST(Config, WrongTypes) {
+  TempDir dir;
+  expectOneError(dir, "[camera]\nwidth = \"640\"\n",
+                 "2: camera.width: expected an integer, got a string");
+  expectOneError(dir, "[camera]\nwidth = 640.0\n",
+                 "2: camera.width: expected an integer, got a float");
+  expectOneError(dir, "[selection]\ntarget = [0.7]\n",
+                 "2: selection.target: expected a number, got an array");
+  expectOneError(dir, "[output]\nmcap = \"yes\"\n",
+                 "2: output.mcap: expected true or false, got a string");
+  expectOneError(dir, "[zenoh]\nvehicle = 7\n",
+                 "2: zenoh.vehicle: expected a string, got an integer");
+}
+
+TEST(Config, OutOfRangeAndBadValues) {
+  TempDir dir;
+  expectOneError(dir, "[camera]\n\n\nfps = 500\n",
+                 "4: camera.fps: must be between 1 and 240 (got 500)");
+  expectOneError(dir, "[selection]\ntarget = 1.5\n",
+                 "2: selection.target: must be between 0.01 and 0.99 (got 1.5)");
+  expectOneError(dir, "[tagging]\njpeg_quality = 101\n",
+                 "2: tagging.jpeg_quality: must be between 1 and 100 (got 101)");
+  expectOneError(dir, "[selection]\nmode = \"fast\"\n",
+                 "2: selection.mode: must be one of geometric, paper (got \"fast\")");
+  expectOneError(dir, "[camera]\nsource = \"usb\"\n",
+                 "2: camera.source: must be one of v4l2, libcamera, file (got \"usb\")");
+  expectOneError(dir, "[camera]\npixel_format = \"yuyv422\"\n",
+                 "2: camera.pixel_format: must be \"auto\" or a V4L2 FourCC such as \"YUYV\" "
+                 "(got \"yuyv422\")");
+  expectOneError(dir, "[telemetry]\nurl = \"tcp:1.2.3.4\"\n",
+                 "2: telemetry.url: bad MAVLink link 'tcp:1.2.3.4': unknown scheme 'tcp'");
+  expectOneError(dir, "[telemetry]\nautopilot = \"1:300\"\n",
+                 "2: telemetry.autopilot: expected SYS[:COMP] with ids 1..255 (got \"1:300\")");
+  expectOneError(dir, "[output]\nstate_dir = \"var/lib\"\n",
+                 "2: output.state_dir: must be an absolute path (got \"var/lib\")");
+  expectOneError(dir, "[zenoh]\nvehicle = \"a/b\"\n",
+                 "2: zenoh.vehicle: may hold only letters, digits, '-', '_' and '.', at most 64 "
+                 "(got \"a/b\")");
+  expectOneError(dir, "[log]\ntelemetry = \"loud\"\n",
+                 "2: log.telemetry: must be \"\" (follow log.level) or one of debug, info, "
+                 "notice, warning, error (got \"loud\")");
+  expectOneError(dir, "[tagging]\ncalibration = \"/nonexistent/cam.yaml\"\n",
+                 "2: tagging.calibration: /nonexistent/cam.yaml: cannot open");
+}
+
+TEST(Config, CrossChecksNameTheLastKeySet) {
+  TempDir dir;
+  expectOneError(dir, "[selection]\nband_low = 0.75\n",
+                 "2: selection.band_low: selection.band_low (0.75) must not exceed "
+                 "selection.target (0.7)");
+  expectOneError(dir, "[selection]\nband_low = 0.5\ntarget = 0.55\nmin_overlap = 0.52\n",
+                 "4: selection.min_overlap: selection.min_overlap (0.52) must not exceed "
+                 "selection.band_low (0.5)");
+  expectOneError(dir, "[camera]\nsource = \"file\"\n",
+                 "2: camera.source: source \"file\" needs camera.path");
+  expectOneError(dir, "[telemetry]\nurl = \"flight.tlog\"\n",
+                 "2: telemetry.url: a tlog replays a recorded flight: it needs camera.source = "
+                 "\"file\" and camera.start_time");
+  // The core's own rules still apply (analysis width 0 or >= 64).
+  expectOneError(dir, "[selection]\nanalysis_width = 32\n",
+                 "2: selection.analysis_width: analysis width must be 0 (full) or >= 64");
+}
+
+TEST(Config, MalformedTomlGivesTheLine) {
+  TempDir dir;
+  const ConfigLoadResult r = loadText(dir, "[camera]\nfps = 30\nwidth = = 3\n");
+  ASSERT_EQ(r.errors.size(), 1u);
+  EXPECT_EQ(r.errors[0].rfind(dir.path() + "/test.toml:3: ", 0), 0u) << r.errors[0];
+  const ConfigLoadResult dup = loadText(dir, "[camera]\nfps = 30\nfps = 31\n");
+  ASSERT_EQ(dup.errors.size(), 1u);
+  EXPECT_EQ(dup.errors[0].rfind(dir.path() + "/test.toml:3: ", 0), 0u) << dup.errors[0];
+}
+
+TEST(Config, EveryErrorIsReportedInFileOrder) {
+  TempDir dir;
+  const ConfigLoadResult r =
+      loadText(dir, "[zenoh]\nvehicle = 1\n[camera]\nwidth = 0\nfps = 0\n[log]\nlevel = \"x\"\n");
+  ASSERT_EQ(r.errors.size(), 4u) << joined(r.errors);
+  EXPECT_NE(r.errors[0].find(":2: zenoh.vehicle"), std::string::npos);
+  EXPECT_NE(r.errors[1].find(":4: camera.width"), std::string::npos);
+  EXPECT_NE(r.errors[2].find(":5: camera.fps"), std::string::npos);
+  EXPECT_NE(r.errors[3].find(":7: log.level"), std::string::npos);
+}
+
+TEST(Config, PrintedConfigLoadsBackTheSame) {
+  TempDir dir;
+  const ConfigLoadResult a =
+      loadDir(dir, {"camera.source=libcamera", "camera.fps=24.5", "selection.mode=paper",
+                    "selection.blur_threshold=1e9", "telemetry.autopilot=7",
+                    "telemetry.stale_ms=300", "telemetry.history_s=60", "zenoh.config=/etc/z \"q\"",
+                    "log.level=debug", "log.output=error", "output.mcap_rotate_s=0"});
+  ASSERT_TRUE(a.ok()) << joined(a.errors);
+  const std::string text = toToml(a.config);
+  EXPECT_NE(toToml(DaemonConfig{}), text);
+  ConfigSources s;
+  s.files = {dir.write("printed.toml", text)};
+  const ConfigLoadResult b = loadConfig(s);
+  ASSERT_TRUE(b.ok()) << joined(b.errors);
+  EXPECT_EQ(toToml(b.config), text);
+  EXPECT_EQ(b.config.telemetry.link.decoder.store.maxHoldNs, 300'000'000);
+  EXPECT_EQ(b.config.telemetry.link.decoder.store.historyNs, 60'000'000'000);
+}
+
+TEST(Config, TakeConfigArgsLeavesTheRest) {
+  std::vector<std::string> args = {"--config-dir", "/x",    "run",      "--set=camera.fps=5",
+                                   "--set",        "a.b=c", "--verbose"};
+  ConfigSources s;
+  EXPECT_EQ(takeConfigArgs(args, s), "");
+  EXPECT_EQ(s.configDir, "/x");
+  EXPECT_EQ(s.overrides, (std::vector<std::string>{"camera.fps=5", "a.b=c"}));
+  EXPECT_EQ(args, (std::vector<std::string>{"run", "--verbose"}));
+  std::vector<std::string> bad = {"--set"};
+  EXPECT_EQ(takeConfigArgs(bad, s), "option --set needs a value");
+}
+
+}  // namespace
+}  // namespace keyframed
