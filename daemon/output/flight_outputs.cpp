@@ -106,6 +106,7 @@ void FlightOutputs::decision(const Decision& d, const std::string& decisionJson)
 
 void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uint8_t> jpeg) {
   if (!active()) return;
+  ++kept_;
   KeyframeMeta m;
   m.vehicle = options_.vehicle;
   m.sequence = rec.sequence;
@@ -181,7 +182,6 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
 
 void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
   framesRead_ = framesRead;
-  kept_ = kept;
   if (!publisher_) return;
   const std::int64_t now = wallNs();
   if (now - lastStatusNs_ < 1'000'000'000) return;
