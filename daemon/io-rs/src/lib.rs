@@ -139,7 +139,10 @@ pub struct KfioMcap {
 
 impl KfioMcap {
     fn with<T>(&self, f: impl FnOnce(&mut McapInner) -> mcap::McapResult<T>) -> Res<T> {
-        let mut guard = self.writer.lock().map_err(|_| "MCAP writer lock poisoned")?;
+        let mut guard = self
+            .writer
+            .lock()
+            .map_err(|_| "MCAP writer lock poisoned")?;
         let w = guard
             .as_mut()
             .ok_or_else(|| format!("{}: writer is closed after an earlier error", self.path))?;
@@ -174,10 +177,18 @@ pub extern "C" fn kfio_mcap_open(
             "zstd" => Some(mcap::Compression::Zstd),
             "lz4" => Some(mcap::Compression::Lz4),
             "" | "none" => None,
-            other => return Err(format!("unknown MCAP compression '{other}' (zstd, lz4, none)")),
+            other => {
+                return Err(format!(
+                    "unknown MCAP compression '{other}' (zstd, lz4, none)"
+                ))
+            }
         };
         let file = Arc::new(File::create(path).map_err(|e| format!("cannot create {path}: {e}"))?);
-        let chunk = if chunk_size == 0 { 64 * 1024 } else { chunk_size };
+        let chunk = if chunk_size == 0 {
+            64 * 1024
+        } else {
+            chunk_size
+        };
         let writer = mcap::WriteOptions::new()
             .compression(compression)
             .chunk_size(Some(chunk))
@@ -390,8 +401,7 @@ pub extern "C" fn kfio_session_open(
 ) -> *mut KfioSession {
     guard(err, err_len, std::ptr::null_mut(), || {
         let mut config = if let Some(path) = opt_cstr(config_path, "config path")? {
-            zenoh::Config::from_file(path)
-                .map_err(|e| format!("zenoh config {path}: {e}"))?
+            zenoh::Config::from_file(path).map_err(|e| format!("zenoh config {path}: {e}"))?
         } else if let Some(text) = opt_cstr(config_json5, "config")? {
             zenoh::Config::from_json5(text).map_err(|e| format!("zenoh config: {e}"))?
         } else {
