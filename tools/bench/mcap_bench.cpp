@@ -17,10 +17,11 @@ int main(int argc, char** argv) {
   const int count = argc > 2 ? std::atoi(argv[2]) : 300;
   const auto bytes = static_cast<std::size_t>(argc > 3 ? std::atol(argv[3]) : 200'000);
   const std::string compression = argc > 4 ? argv[4] : "zstd";
-  // Random bytes compress like JPEG data does: hardly at all.
-  std::vector<std::uint8_t> payload(bytes);
+  // Random bytes compress like JPEG data does: hardly at all. Each message is a
+  // different window, so the compressor cannot match one against the last.
+  std::vector<std::uint8_t> pool(bytes * 4);
   std::mt19937 rng(1);
-  for (auto& b : payload) b = static_cast<std::uint8_t>(rng());
+  for (auto& b : pool) b = static_cast<std::uint8_t>(rng() >> 24);
 
   McapRecorder rec;
   McapRecorderOptions o;
@@ -34,8 +35,11 @@ int main(int argc, char** argv) {
   }
   const auto t0 = std::chrono::steady_clock::now();
   for (int i = 0; i < count; ++i) {
-    rec.record(McapTopic::Keyframe, i * 33'000'000LL,
-               proto::compressedImage(i * 33'000'000LL, "camera", payload, "jpeg"));
+    rec.record(
+        McapTopic::Keyframe, i * 33'000'000LL,
+        proto::compressedImage(
+            i * 33'000'000LL, "camera",
+            std::span(pool).subspan(static_cast<std::size_t>(i % 4) * bytes, bytes), "jpeg"));
   }
   if (!rec.close(error)) {
     std::fprintf(stderr, "%s\n", error.c_str());
