@@ -6,11 +6,12 @@
 
 #include "tagging/camera_mount.h"
 
+#ifdef KEYFRAMED_HAVE_IO
+#include <map>
+
+#include "output/foxglove_proto.h"
 #include "output/keyframe_publisher.h"
 #include "output/mcap_recorder.h"
-
-#ifdef KEYFRAMED_HAVE_IO
-#include "output/foxglove_proto.h"
 #endif
 
 namespace keyframed {
@@ -40,16 +41,36 @@ std::string jnum(double v, int decimals) {
 
 }  // namespace
 
-FlightOutputs::FlightOutputs() = default;
+struct FlightOutputs::Impl {
+  struct Scores {
+    double sharpness, threshold, overlap;
+    int features;
+    std::string reason;
+  };
+  FlightOutputOptions options;
+  std::unique_ptr<McapRecorder> recorder;
+  std::unique_ptr<KeyframePublisher> publisher;
+  std::map<std::int64_t, Scores> scores;  // frames since the last keyframe
+  std::int64_t lastStatusNs = 0;
+  std::int64_t framesRead = 0;
+  std::int64_t kept = 0;
+  bool publishFailed = false;
+};
+
+FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
 
 FlightOutputs::~FlightOutputs() {
   std::string ignored;
   close("stopped", ignored);
 }
 
+bool FlightOutputs::active() const {
+  return impl_->recorder != nullptr || impl_->publisher != nullptr;
+}
+
 bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
                          const CameraModel* camera, std::string& error) {
-  options_ = o;
+  impl_->options = o;
   if (!o.mcapPath.empty()) {
     McapRecorderOptions ro;
     ro.path = o.mcapPath;
@@ -59,7 +80,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       error = "--mcap: " + error;
       return false;
     }
-    recorder_ = std::move(rec);
+    impl_->recorder = std::move(rec);
     if (camera != nullptr && camera->calibrated()) {
       // Intrinsics at the video's resolution, as the keyframes carry them.
       const CameraModel c = (camera->width != width || camera->height != height)
@@ -73,42 +94,43 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       if (m.d.size() > 5) m.distortionModel = "rational_polynomial";
       m.k = {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1};
       m.p = {c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0};
-      recorder_->record(McapTopic::Calibration, 0, proto::cameraCalibration(m));
+      impl_->recorder->record(McapTopic::Calibration, 0, proto::cameraCalibration(m));
     }
-    recorder_->record(McapTopic::Log, 0,
-                      proto::log(0, proto::LogLevel::Info,
-                                 "recording started (" + std::to_string(width) + "x" +
-                                     std::to_string(height) + ")",
-                                 "keyframed"));
+    impl_->recorder->record(McapTopic::Log, 0,
+                            proto::log(0, proto::LogLevel::Info,
+                                       "recording started (" + std::to_string(width) + "x" +
+                                           std::to_string(height) + ")",
+                                       "keyframed"));
   }
   if (!o.zenohConfig.empty()) {
     KeyframePublisherOptions po;
     po.configFile = o.zenohConfig;
     po.vehicle = o.vehicle;
     po.keyframeDir = o.keyframeDir;
-    publisher_ = KeyframePublisher::open(po, error);
-    if (!publisher_) {
+    impl_->publisher = KeyframePublisher::open(po, error);
+    if (!impl_->publisher) {
       error = "--zenoh-config: " + error;
-      recorder_.reset();
+      impl_->recorder.reset();
       return false;
     }
     std::string ignored;
-    publisher_->publishStatus("{\"state\":\"running\",\"frames\":0,\"kept\":0}", ignored);
+    impl_->publisher->publishStatus("{\"state\":\"running\",\"frames\":0,\"kept\":0}", ignored);
   }
   return true;
 }
 
 void FlightOutputs::decision(const Decision& d, const std::string& decisionJson) {
   if (active())
-    scores_[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
-  if (recorder_) recorder_->recordText(McapTopic::Decision, d.timestampNs, decisionJson);
+    impl_->scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
+  if (impl_->recorder)
+    impl_->recorder->recordText(McapTopic::Decision, d.timestampNs, decisionJson);
 }
 
 void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uint8_t> jpeg) {
   if (!active()) return;
-  ++kept_;
+  ++impl_->kept;
   KeyframeMeta m;
-  m.vehicle = options_.vehicle;
+  m.vehicle = impl_->options.vehicle;
   m.sequence = rec.sequence;
   m.frameIndex = rec.frameIndex;
   m.file = KeyframeWriter::fileName(rec.frameIndex);
@@ -135,22 +157,22 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
   m.hdop = num(p.gps.hdop, 2);
   if (p.position) m.fixType = std::to_string(p.gps.fixType);
   m.geotag = rec.geotag;
-  if (const auto it = scores_.find(rec.frameIndex); it != scores_.end()) {
-    const Scores& s = it->second;
+  if (const auto it = impl_->scores.find(rec.frameIndex); it != impl_->scores.end()) {
+    const Impl::Scores& s = it->second;
     m.scoresJson = "{\"sharpness\":" + jnum(s.sharpness, 3) +
                    ",\"threshold\":" + jnum(s.threshold, 3) + ",\"overlap\":" + jnum(s.overlap, 4) +
                    ",\"features\":" + std::to_string(s.features) + ",\"reason\":\"" + s.reason +
                    "\"}";
   }
   // Frames before this keyframe can no longer become keyframes.
-  scores_.erase(scores_.begin(), scores_.upper_bound(rec.frameIndex));
+  impl_->scores.erase(impl_->scores.begin(), impl_->scores.upper_bound(rec.frameIndex));
   const std::string meta = toJson(m);
 
-  if (recorder_) {
-    recorder_->record(McapTopic::Keyframe, rec.timeNs,
-                      proto::compressedImage(rec.timeNs, kCameraFrame, jpeg, "jpeg"),
-                      static_cast<std::uint32_t>(rec.sequence + 1));
-    recorder_->recordText(McapTopic::KeyframeMeta, rec.timeNs, meta);
+  if (impl_->recorder) {
+    impl_->recorder->record(McapTopic::Keyframe, rec.timeNs,
+                            proto::compressedImage(rec.timeNs, kCameraFrame, jpeg, "jpeg"),
+                            static_cast<std::uint32_t>(rec.sequence + 1));
+    impl_->recorder->recordText(McapTopic::KeyframeMeta, rec.timeNs, meta);
     if (p.position) {
       proto::LocationFixMsg f;
       f.timeNs = rec.timeNs;
@@ -162,61 +184,68 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
         const double h = p.gps.hAccuracyM * p.gps.hAccuracyM;
         f.varianceEnu = std::array<double, 3>{h, h, p.gps.vAccuracyM * p.gps.vAccuracyM};
       }
-      recorder_->record(McapTopic::Location, rec.timeNs, proto::locationFix(f));
+      impl_->recorder->record(McapTopic::Location, rec.timeNs, proto::locationFix(f));
     }
     if (rec.cameraToNed) {
       const Quaternion& q = *rec.cameraToNed;
-      recorder_->record(McapTopic::CameraPose, rec.timeNs,
-                        proto::poseInFrame(rec.timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
+      impl_->recorder->record(
+          McapTopic::CameraPose, rec.timeNs,
+          proto::poseInFrame(rec.timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
     }
   }
-  if (publisher_ && !publishFailed_) {
+  if (impl_->publisher && !impl_->publishFailed) {
     std::string error;
-    if (!publisher_->publishKeyframe(jpeg, meta, error)) {
+    if (!impl_->publisher->publishKeyframe(jpeg, meta, error)) {
       // Zenoh reconnects by itself; one line, then keep going.
       std::fprintf(stderr, "keyframed: zenoh: %s (further failures not reported)\n", error.c_str());
-      publishFailed_ = true;
+      impl_->publishFailed = true;
     }
   }
 }
 
 void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
-  framesRead_ = framesRead;
-  if (!publisher_) return;
+  impl_->framesRead = framesRead;
+  if (!impl_->publisher) return;
   const std::int64_t now = wallNs();
-  if (now - lastStatusNs_ < 1'000'000'000) return;
-  lastStatusNs_ = now;
+  if (now - impl_->lastStatusNs < 1'000'000'000) return;
+  impl_->lastStatusNs = now;
   std::string ignored;
-  publisher_->publishStatus("{\"state\":\"running\",\"frames\":" + std::to_string(framesRead) +
-                                ",\"kept\":" + std::to_string(kept) + "}",
-                            ignored);
+  impl_->publisher->publishStatus(
+      "{\"state\":\"running\",\"frames\":" + std::to_string(framesRead) +
+          ",\"kept\":" + std::to_string(kept) + "}",
+      ignored);
 }
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
-  if (publisher_) {
+  if (impl_->publisher) {
     std::string ignored;
-    publisher_->publishStatus("{\"state\":\"" + state +
-                                  "\",\"frames\":" + std::to_string(framesRead_) +
-                                  ",\"kept\":" + std::to_string(kept_) + "}",
-                              ignored);
-    publisher_.reset();
+    impl_->publisher->publishStatus("{\"state\":\"" + state +
+                                        "\",\"frames\":" + std::to_string(impl_->framesRead) +
+                                        ",\"kept\":" + std::to_string(impl_->kept) + "}",
+                                    ignored);
+    impl_->publisher.reset();
   }
-  if (recorder_) {
-    ok = recorder_->close(error);
-    recorder_.reset();
+  if (impl_->recorder) {
+    ok = impl_->recorder->close(error);
+    impl_->recorder.reset();
   }
   return ok;
 }
 
 #else  // built without the Rust I/O crate
 
-FlightOutputs::FlightOutputs() = default;
+struct FlightOutputs::Impl {};
+
+FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
 FlightOutputs::~FlightOutputs() = default;
+
+bool FlightOutputs::active() const {
+  return false;
+}
 
 bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraModel*,
                          std::string& error) {
-  options_ = o;
   if (!o.mcapPath.empty() || !o.zenohConfig.empty()) {
     error = "this keyframed was built without MCAP and Zenoh support (KEYFRAMED_WITH_IO=OFF)";
     return false;

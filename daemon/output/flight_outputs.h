@@ -1,7 +1,6 @@
 #pragma once
 
 #include <cstdint>
-#include <map>
 #include <memory>
 #include <span>
 #include <string>
@@ -11,9 +10,6 @@
 #include "tagging/camera_model.h"
 
 namespace keyframed {
-
-class McapRecorder;
-class KeyframePublisher;
 
 struct FlightOutputOptions {
   std::string mcapPath;         // --mcap FILE; empty: no recording
@@ -36,7 +32,7 @@ class FlightOutputs {
   // Opens what the options ask for; false with a one-line error when it cannot.
   bool open(const FlightOutputOptions& options, int width, int height, const CameraModel* camera,
             std::string& error);
-  [[nodiscard]] bool active() const { return recorder_ != nullptr || publisher_ != nullptr; }
+  [[nodiscard]] bool active() const;
 
   // Every analysed frame; decisionJson as DecisionLog::jsonRow writes it.
   void decision(const Decision& d, const std::string& decisionJson);
@@ -48,19 +44,8 @@ class FlightOutputs {
   bool close(const std::string& state, std::string& error);
 
  private:
-  struct Scores {
-    double sharpness, threshold, overlap;
-    int features;
-    std::string reason;
-  };
-  FlightOutputOptions options_;
-  std::unique_ptr<McapRecorder> recorder_;
-  std::unique_ptr<KeyframePublisher> publisher_;
-  std::map<std::int64_t, Scores> scores_;  // frames since the last keyframe
-  std::int64_t lastStatusNs_ = 0;
-  std::int64_t framesRead_ = 0;
-  std::int64_t kept_ = 0;
-  bool publishFailed_ = false;
+  struct Impl;  // empty when built without the I/O crate
+  std::unique_ptr<Impl> impl_;
 };
 
 }  // namespace keyframed
