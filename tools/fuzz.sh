@@ -19,6 +19,7 @@ if [ ! -f build/fuzz/build.ninja ]; then
   cmake -S . -B build/fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
     -DCMAKE_C_COMPILER="$CC_FUZZ" -DCMAKE_CXX_COMPILER="$CXX_FUZZ" -DKEYFRAMED_FUZZ=ON \
     -DKEYFRAMED_BUILD_DAEMON=OFF -DKEYFRAMED_BUILD_TESTS=OFF -DKEYFRAMED_BUILD_BENCHMARKS=OFF \
+    -DKEYFRAMED_WITH_IO=OFF -DKEYFRAMED_WITH_LIBCAMERA=OFF \
     -DKEYFRAMED_PYTHON="$ROOT/.venv/bin/python" >/dev/null
 fi
 ninja -C build/fuzz -j"$JOBS" fuzz_mavlink fuzz_mavlink_standalone

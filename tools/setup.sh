@@ -15,6 +15,7 @@ APT_PACKAGES=(
   libtomlplusplus-dev libgtest-dev libbenchmark-dev
   libimage-exiftool-perl clang-format
   clang-14 libclang-rt-14-dev
+  protobuf-compiler libprotobuf-dev
 )
 
 # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu.
@@ -58,4 +59,17 @@ if ! cmp -s "$REQ" "$STAMP_DIR/requirements.txt"; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
   "$VENV/bin/python" -m pip install -q -r "$REQ"
   cp "$REQ" "$STAMP_DIR/requirements.txt"
+fi
+
+# Rust crates of daemon/io-rs (zenoh, mcap), fetched once per Cargo.lock so that the
+# build itself needs no network. rustup's cargo; Debian's rustc is too old.
+export PATH="$HOME/.cargo/bin:/root/.cargo/bin:$PATH"
+LOCK="$ROOT/daemon/io-rs/Cargo.lock"
+if ! command -v cargo > /dev/null; then
+  echo "setup: cargo not found: install rustup (rustc 1.88 or newer), or configure" \
+       "with -DKEYFRAMED_WITH_IO=OFF to build without MCAP and Zenoh" >&2
+elif ! cmp -s "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"; then
+  echo "setup: fetching Rust crates (cargo fetch --locked)"
+  (cd "$ROOT/daemon/io-rs" && cargo fetch --locked -q)
+  cp "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"
 fi

@@ -20,7 +20,8 @@ ctest --test-dir build/release --output-on-failure -j"$JOBS"
 step "C++ unit tests (AddressSanitizer + UBSan)"
 if [ ! -f build/asan/build.ninja ]; then
   cmake -S . -B build/asan -G Ninja -DCMAKE_BUILD_TYPE=Debug -DKEYFRAMED_SANITIZE=ON \
-    -DKEYFRAMED_BUILD_BENCHMARKS=OFF -DKEYFRAMED_WERROR=ON
+    -DKEYFRAMED_BUILD_BENCHMARKS=OFF -DKEYFRAMED_WERROR=ON \
+    -DKEYFRAMED_CARGO_TARGET_DIR="$ROOT/build/release/io-rs"
 fi
 ninja -C build/asan -j"$JOBS" keyframed_unit keyframed fuzz_mavlink_standalone
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1

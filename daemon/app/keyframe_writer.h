@@ -50,6 +50,8 @@ class KeyframeWriter {
   bool close(std::string& error);
 
   [[nodiscard]] std::int64_t count() const { return count_; }
+  // The tagged JPEG bytes of the last keyframe written.
+  [[nodiscard]] const std::vector<std::uint8_t>& lastJpeg() const { return jpeg_; }
   [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
   [[nodiscard]] static std::string fileName(std::int64_t frameIndex);
   [[nodiscard]] static std::string indexHeader();

@@ -86,6 +86,12 @@ output:
   --max-frames N             stop after N frames
   --progress | --no-progress progress line on stderr (default: when a terminal)
   --quiet                    no summary on stdout
+recording and streaming:
+  --mcap FILE                record decisions, keyframes, calibration and poses to an
+                             MCAP file (Foxglove schemas; see docs/formats.md)
+  --zenoh-config FILE        publish keyframes on Zenoh (JSON5 zenoh config) under
+                             keyframed/<vehicle>/ and serve them by sequence number
+  --vehicle NAME             vehicle name in Zenoh keys (default uav)
   -h, --help                 this text
 )";
 }
@@ -229,6 +235,25 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return parseAutopilot(v, o.autopilotSystem, o.autopilotComponent);
        }},
       {"--mavlink-sysid", integer(o.mavlinkSystemId, limits::kMavlinkId)},
+      {"--mcap",
+       [&](const std::string& v) -> std::string {
+         if (v.empty()) return "empty MCAP path";
+         o.mcap = v;
+         return {};
+       }},
+      {"--zenoh-config",
+       [&](const std::string& v) -> std::string {
+         if (v.empty()) return "empty zenoh config path";
+         o.zenohConfig = v;
+         return {};
+       }},
+      {"--vehicle",
+       [&](const std::string& v) -> std::string {
+         if (v.empty() || v.find_first_of("/*$?# ") != std::string::npos)
+           return "vehicle name must be one key chunk (no / * $ ? # or spaces)";
+         o.vehicle = v;
+         return {};
+       }},
   };
 
   for (std::size_t i = 0; i < args.size(); ++i) {

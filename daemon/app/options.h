@@ -36,6 +36,11 @@ struct SelectOptions {
   int autopilotSystem = 0;           // --autopilot SYS[:COMP] (0: first autopilot)
   int autopilotComponent = 0;
   int mavlinkSystemId = 0;  // --mavlink-sysid N (0: the autopilot's)
+
+  // Recording and streaming (daemon/output/flight_outputs.h).
+  std::string mcap;             // --mcap FILE: MCAP flight record
+  std::string zenohConfig;      // --zenoh-config FILE: publish keyframes on Zenoh
+  std::string vehicle = "uav";  // --vehicle NAME: keyframed/<NAME>/... keys
 };
 
 struct ParseResult {

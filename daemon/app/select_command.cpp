@@ -15,6 +15,7 @@
 #include "app/decision_log.h"
 #include "app/keyframe_writer.h"
 #include "capture/file_source.h"
+#include "output/flight_outputs.h"
 #include "tagging/camera_model.h"
 #include "telemetry/telemetry_service.h"
 
@@ -203,6 +204,13 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       return s;
     }
   }
+  FlightOutputs outputs;  // --mcap, --zenoh-config
+  if (!outputs.open({opts.mcap, opts.zenohConfig, opts.vehicle, opts.outDir, !opts.realtime},
+                    source->info().width, source->info().height, camera ? &*camera : nullptr,
+                    error)) {
+    s.error = error;
+    return s;
+  }
 
   // Encodes, tags and writes one keyframe; returns its geotag note.
   auto writeKeyframe = [&](const cv::Mat& bgr, std::int64_t index, std::int64_t timeNs,
@@ -220,6 +228,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
     KeyframeRecord rec;
     if (!writer.write(bgr, index, timeNs, pose ? &*pose : nullptr, rec, error)) return false;
+    outputs.keyframe(rec, writer.lastJpeg());
     note = rec.geotag;
     if (telemetry && !telemetry->isReplay()) {
       CaptureReport report;
@@ -277,6 +286,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
     ++s.framesRead;
     const Decision d = selector.process(frame);
+    if (outputs.active()) outputs.decision(d, DecisionLog::jsonRow(d));
     analysisNs += static_cast<double>(d.times.totalNs);
     const cv::Mat bgr(frame.height, frame.width, CV_8UC3, const_cast<std::uint8_t*>(frame.data),
                       static_cast<size_t>(frame.stride));
@@ -318,6 +328,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       s.error = error;
       break;
     }
+    outputs.progress(s.framesRead, s.kept);
     const auto now = std::chrono::steady_clock::now();
     if (progress && now - lastProgress > std::chrono::milliseconds(250)) {
       lastProgress = now;
@@ -343,6 +354,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   }
   if (!log.close(error) && s.error.empty()) s.error = error;
   if (!writer.close(error) && s.error.empty()) s.error = error;
+  // A recorder that failed has said so; the keyframes are what must not be lost.
+  outputs.close(!s.error.empty() ? "failed" : (s.interrupted ? "interrupted" : "done"), error);
   if (telemetry) {
     // Let the telemetry thread send the last CAMERA_IMAGE_CAPTURED reports.
     if (!telemetry->isReplay()) std::this_thread::sleep_for(std::chrono::milliseconds(200));

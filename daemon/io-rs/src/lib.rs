@@ -1,0 +1,680 @@
+//! keyframed-io: a small C ABI over the `mcap` and `zenoh` crates.
+//!
+//! Rules of the ABI (see daemon/output/io_ffi.h, the C declarations):
+//! - Handles are opaque pointers, created by `*_open`/`*_declare` and released by
+//!   exactly one `*_close`/`*_undeclare` call (NULL is accepted and ignored).
+//! - Fallible calls return 0 on success and -1 on failure, writing a NUL-terminated,
+//!   possibly truncated message into the caller's `err` buffer (which may be NULL).
+//! - No panic crosses the boundary: every entry point runs under `catch_unwind`
+//!   and turns a panic into an error.
+
+use std::collections::BTreeMap;
+use std::ffi::{c_char, c_int, c_void, CStr};
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::mpsc::{sync_channel, Receiver, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::Wait;
+
+type Res<T> = Result<T, String>;
+
+/// Writes `msg` into the caller's buffer, truncated on a UTF-8 boundary, NUL-terminated.
+fn set_error(err: *mut c_char, err_len: usize, msg: &str) {
+    if err.is_null() || err_len == 0 {
+        return;
+    }
+    let mut n = msg.len().min(err_len - 1);
+    while n > 0 && !msg.is_char_boundary(n) {
+        n -= 1;
+    }
+    // SAFETY: the caller promises `err` points to `err_len` writable bytes.
+    unsafe {
+        std::ptr::copy_nonoverlapping(msg.as_ptr(), err.cast::<u8>(), n);
+        *err.add(n) = 0;
+    }
+}
+
+fn panic_message(p: Box<dyn std::any::Any + Send>) -> String {
+    if let Some(s) = p.downcast_ref::<&str>() {
+        format!("internal error (panic): {s}")
+    } else if let Some(s) = p.downcast_ref::<String>() {
+        format!("internal error (panic): {s}")
+    } else {
+        "internal error (panic)".to_string()
+    }
+}
+
+/// Runs `f`, mapping an error or a panic to `fallback` plus a message in `err`.
+fn guard<T>(err: *mut c_char, err_len: usize, fallback: T, f: impl FnOnce() -> Res<T>) -> T {
+    match catch_unwind(AssertUnwindSafe(f)) {
+        Ok(Ok(v)) => v,
+        Ok(Err(e)) => {
+            set_error(err, err_len, &e);
+            fallback
+        }
+        Err(p) => {
+            set_error(err, err_len, &panic_message(p));
+            fallback
+        }
+    }
+}
+
+/// Runs `f` where no error can be reported (release functions): swallows panics.
+fn guard_void(f: impl FnOnce()) {
+    let _ = catch_unwind(AssertUnwindSafe(f));
+}
+
+fn status(r: Res<()>) -> Res<c_int> {
+    r.map(|()| 0)
+}
+
+/// A NUL-terminated string argument; NULL is an error naming the argument.
+fn cstr<'a>(p: *const c_char, what: &str) -> Res<&'a str> {
+    if p.is_null() {
+        return Err(format!("{what} is NULL"));
+    }
+    // SAFETY: the caller passes a NUL-terminated string that outlives the call.
+    unsafe { CStr::from_ptr(p) }
+        .to_str()
+        .map_err(|_| format!("{what} is not valid UTF-8"))
+}
+
+fn opt_cstr<'a>(p: *const c_char, what: &str) -> Res<Option<&'a str>> {
+    if p.is_null() {
+        Ok(None)
+    } else {
+        cstr(p, what).map(Some)
+    }
+}
+
+fn bytes<'a>(p: *const u8, len: usize, what: &str) -> Res<&'a [u8]> {
+    if len == 0 {
+        return Ok(&[]);
+    }
+    if p.is_null() {
+        return Err(format!("{what} is NULL"));
+    }
+    // SAFETY: the caller passes `len` readable bytes that outlive the call.
+    Ok(unsafe { std::slice::from_raw_parts(p, len) })
+}
+
+fn handle<'a, T>(p: *mut T, what: &str) -> Res<&'a T> {
+    // SAFETY: non-null handles were made by Box::into_raw here and are still live.
+    unsafe { p.as_ref() }.ok_or_else(|| format!("{what} handle is NULL"))
+}
+
+// ---------------------------------------------------------------------------------
+// MCAP
+
+/// A file shared with the MCAP writer, so that flush can also fsync it.
+struct SharedFile(Arc<File>);
+
+impl Write for SharedFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        (&*self.0).write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        (&*self.0).flush()
+    }
+}
+
+impl Seek for SharedFile {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        (&*self.0).seek(pos)
+    }
+}
+
+type McapInner = mcap::Writer<BufWriter<SharedFile>>;
+
+pub struct KfioMcap {
+    // None once a write failed for good or the file was closed.
+    writer: Mutex<Option<McapInner>>,
+    file: Arc<File>,
+    path: String,
+}
+
+impl KfioMcap {
+    fn with<T>(&self, f: impl FnOnce(&mut McapInner) -> mcap::McapResult<T>) -> Res<T> {
+        let mut guard = self
+            .writer
+            .lock()
+            .map_err(|_| "MCAP writer lock poisoned")?;
+        let w = guard
+            .as_mut()
+            .ok_or_else(|| format!("{}: writer is closed after an earlier error", self.path))?;
+        match f(w) {
+            Ok(v) => Ok(v),
+            Err(e) => {
+                // A failed chunk leaves the file in an unknown state: stop writing to it.
+                let msg = format!("{}: {e}", self.path);
+                if matches!(e, mcap::McapError::Io(_)) {
+                    // Dropping tries to finish the file once more and ignores errors.
+                    drop(guard.take());
+                }
+                Err(msg)
+            }
+        }
+    }
+}
+
+/// Opens an MCAP file for writing (truncating it). compression: "zstd", "lz4" or
+/// "none"/""/NULL. chunk_size: target uncompressed chunk size in bytes (0: 64 KiB).
+#[no_mangle]
+pub extern "C" fn kfio_mcap_open(
+    path: *const c_char,
+    compression: *const c_char,
+    chunk_size: u64,
+    err: *mut c_char,
+    err_len: usize,
+) -> *mut KfioMcap {
+    guard(err, err_len, std::ptr::null_mut(), || {
+        let path = cstr(path, "path")?;
+        let compression = match opt_cstr(compression, "compression")?.unwrap_or("") {
+            "zstd" => Some(mcap::Compression::Zstd),
+            "lz4" => Some(mcap::Compression::Lz4),
+            "" | "none" => None,
+            other => {
+                return Err(format!(
+                    "unknown MCAP compression '{other}' (zstd, lz4, none)"
+                ))
+            }
+        };
+        let file = Arc::new(File::create(path).map_err(|e| format!("cannot create {path}: {e}"))?);
+        let chunk = if chunk_size == 0 {
+            64 * 1024
+        } else {
+            chunk_size
+        };
+        let writer = mcap::WriteOptions::new()
+            .compression(compression)
+            .chunk_size(Some(chunk))
+            // The daemon has few cores and other work: compress on the writer thread.
+            .compression_threads(0)
+            .library(concat!("keyframed-io ", env!("CARGO_PKG_VERSION")))
+            .create(BufWriter::with_capacity(
+                256 * 1024,
+                SharedFile(Arc::clone(&file)),
+            ))
+            .map_err(|e| format!("cannot start MCAP file {path}: {e}"))?;
+        Ok(Box::into_raw(Box::new(KfioMcap {
+            writer: Mutex::new(Some(writer)),
+            file,
+            path: path.to_string(),
+        })))
+    })
+}
+
+/// Adds a schema (returns its id in *id). encoding: "protobuf", "jsonschema", ...
+#[no_mangle]
+pub extern "C" fn kfio_mcap_add_schema(
+    mcap: *mut KfioMcap,
+    name: *const c_char,
+    encoding: *const c_char,
+    data: *const u8,
+    len: usize,
+    id: *mut u16,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let m = handle(mcap, "MCAP")?;
+        let name = cstr(name, "schema name")?;
+        let encoding = cstr(encoding, "schema encoding")?;
+        let data = bytes(data, len, "schema data")?;
+        let sid = m.with(|w| w.add_schema(name, encoding, data))?;
+        if !id.is_null() {
+            // SAFETY: the caller passes a writable u16.
+            unsafe { *id = sid };
+        }
+        Ok(0)
+    })
+}
+
+/// Adds a channel on a schema (0: no schema); returns its id in *id. Metadata is
+/// given as `count` key/value string pairs (arrays may be NULL when count is 0).
+#[no_mangle]
+pub extern "C" fn kfio_mcap_add_channel(
+    mcap: *mut KfioMcap,
+    schema_id: u16,
+    topic: *const c_char,
+    message_encoding: *const c_char,
+    meta_keys: *const *const c_char,
+    meta_values: *const *const c_char,
+    meta_count: usize,
+    id: *mut u16,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let m = handle(mcap, "MCAP")?;
+        let topic = cstr(topic, "topic")?;
+        let encoding = cstr(message_encoding, "message encoding")?;
+        let mut meta = BTreeMap::new();
+        if meta_count > 0 {
+            if meta_keys.is_null() || meta_values.is_null() {
+                return Err("channel metadata arrays are NULL".into());
+            }
+            for i in 0..meta_count {
+                // SAFETY: the caller passes `meta_count` pointers in each array.
+                let (k, v) = unsafe { (*meta_keys.add(i), *meta_values.add(i)) };
+                meta.insert(
+                    cstr(k, "metadata key")?.to_string(),
+                    cstr(v, "metadata value")?.to_string(),
+                );
+            }
+        }
+        let cid = m.with(|w| w.add_channel(schema_id, topic, encoding, &meta))?;
+        if !id.is_null() {
+            // SAFETY: the caller passes a writable u16.
+            unsafe { *id = cid };
+        }
+        Ok(0)
+    })
+}
+
+/// Writes one message. Times are nanoseconds (the recorder uses unix time).
+#[no_mangle]
+pub extern "C" fn kfio_mcap_write(
+    mcap: *mut KfioMcap,
+    channel_id: u16,
+    sequence: u32,
+    log_time: u64,
+    publish_time: u64,
+    data: *const u8,
+    len: usize,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let m = handle(mcap, "MCAP")?;
+        let data = bytes(data, len, "message data")?;
+        let header = mcap::records::MessageHeader {
+            channel_id,
+            sequence,
+            log_time,
+            publish_time,
+        };
+        status(m.with(|w| w.write_to_known_channel(&header, data)))
+    })
+}
+
+/// Finishes the current chunk and writes it out, so that everything written so far
+/// can be read back after a crash; with `sync` non-zero also fsyncs the file.
+#[no_mangle]
+pub extern "C" fn kfio_mcap_flush(
+    mcap: *mut KfioMcap,
+    sync: c_int,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let m = handle(mcap, "MCAP")?;
+        m.with(|w| w.flush())?;
+        if sync != 0 {
+            m.file
+                .sync_data()
+                .map_err(|e| format!("{}: fsync: {e}", m.path))?;
+        }
+        Ok(0)
+    })
+}
+
+/// Writes the summary and footer, closes the file and releases the handle (also
+/// on failure). NULL is accepted.
+#[no_mangle]
+pub extern "C" fn kfio_mcap_close(mcap: *mut KfioMcap, err: *mut c_char, err_len: usize) -> c_int {
+    if mcap.is_null() {
+        return 0;
+    }
+    // SAFETY: the handle was made by kfio_mcap_open and is released only here.
+    let m = unsafe { Box::from_raw(mcap) };
+    guard(err, err_len, -1, move || {
+        let taken = m.writer.lock().ok().and_then(|mut g| g.take());
+        let Some(mut w) = taken else {
+            return Err(format!("{}: not finished after an earlier error", m.path));
+        };
+        let finished = w.finish().map(|_| ());
+        let inner = w.into_inner();
+        finished.map_err(|e| format!("{}: {e}", m.path))?;
+        let shared = inner
+            .into_inner()
+            .map_err(|e| format!("{}: {}", m.path, e.error()))?;
+        drop(shared);
+        m.file
+            .sync_data()
+            .map_err(|e| format!("{}: fsync: {e}", m.path))?;
+        Ok(0)
+    })
+}
+
+// ---------------------------------------------------------------------------------
+// Zenoh
+
+pub struct KfioSession {
+    session: zenoh::Session,
+}
+
+pub struct KfioPublisher {
+    publisher: zenoh::pubsub::Publisher<'static>,
+}
+
+pub struct KfioQueryable {
+    queryable: Option<zenoh::query::Queryable<()>>,
+    worker: Option<JoinHandle<()>>,
+}
+
+/// What a query callback answers with (valid only during the callback).
+pub struct KfioReply<'a> {
+    query: &'a zenoh::query::Query,
+    replies: usize,
+}
+
+/// Called on the queryable's own thread (never on a zenoh runtime thread) with the
+/// query's key expression and parameters (NUL-terminated); answers with
+/// kfio_reply_ok / kfio_reply_err, any number of times, before returning.
+pub type KfioQueryFn = Option<
+    unsafe extern "C" fn(
+        user: *mut c_void,
+        key: *const c_char,
+        parameters: *const c_char,
+        reply: *mut KfioReply<'_>,
+    ),
+>;
+
+/// Opens a session. The configuration comes from a JSON5 file (config_path), a JSON5
+/// string (config_json5), or zenoh's defaults when both are NULL; then each
+/// override `keys[i]` = `values[i]` (JSON5 values, e.g. "mode" = "\"peer\"",
+/// "connect/endpoints" = "[\"tcp/127.0.0.1:7447\"]") is applied in order.
+#[no_mangle]
+pub extern "C" fn kfio_session_open(
+    config_path: *const c_char,
+    config_json5: *const c_char,
+    keys: *const *const c_char,
+    values: *const *const c_char,
+    count: usize,
+    err: *mut c_char,
+    err_len: usize,
+) -> *mut KfioSession {
+    guard(err, err_len, std::ptr::null_mut(), || {
+        let mut config = if let Some(path) = opt_cstr(config_path, "config path")? {
+            zenoh::Config::from_file(path).map_err(|e| format!("zenoh config {path}: {e}"))?
+        } else if let Some(text) = opt_cstr(config_json5, "config")? {
+            zenoh::Config::from_json5(text).map_err(|e| format!("zenoh config: {e}"))?
+        } else {
+            zenoh::Config::default()
+        };
+        if count > 0 && (keys.is_null() || values.is_null()) {
+            return Err("config override arrays are NULL".into());
+        }
+        for i in 0..count {
+            // SAFETY: the caller passes `count` pointers in each array.
+            let (k, v) = unsafe { (*keys.add(i), *values.add(i)) };
+            let k = cstr(k, "override key")?;
+            let v = cstr(v, "override value")?;
+            config
+                .insert_json5(k, v)
+                .map_err(|e| format!("zenoh config {k} = {v}: {e}"))?;
+        }
+        let session = zenoh::open(config)
+            .wait()
+            .map_err(|e| format!("cannot open zenoh session: {e}"))?;
+        Ok(Box::into_raw(Box::new(KfioSession { session })))
+    })
+}
+
+/// Closes the session (publishers and queryables declared on it stop working) and
+/// releases the handle. NULL is accepted.
+#[no_mangle]
+pub extern "C" fn kfio_session_close(session: *mut KfioSession) {
+    if session.is_null() {
+        return;
+    }
+    // SAFETY: made by kfio_session_open, released only here.
+    let s = unsafe { Box::from_raw(session) };
+    guard_void(move || {
+        let _ = s.session.close().wait();
+    });
+}
+
+/// The session's zenoh id as text (for logs).
+#[no_mangle]
+pub extern "C" fn kfio_session_zid(
+    session: *mut KfioSession,
+    out: *mut c_char,
+    out_len: usize,
+) -> c_int {
+    guard(std::ptr::null_mut(), 0, -1, || {
+        let s = handle(session, "session")?;
+        set_error(out, out_len, &s.session.zid().to_string());
+        Ok(0)
+    })
+}
+
+pub const KFIO_PUB_RELIABLE: c_int = 0;
+pub const KFIO_PUB_BEST_EFFORT: c_int = 1;
+
+/// Declares a publisher. kind 0 (KFIO_PUB_RELIABLE): congestion control Block, data
+/// priority: a put waits rather than drops (keyframes). kind 1 (KFIO_PUB_BEST_EFFORT):
+/// congestion control Drop, lower priority (preview, status).
+#[no_mangle]
+pub extern "C" fn kfio_publisher_declare(
+    session: *mut KfioSession,
+    key: *const c_char,
+    kind: c_int,
+    err: *mut c_char,
+    err_len: usize,
+) -> *mut KfioPublisher {
+    guard(err, err_len, std::ptr::null_mut(), || {
+        let s = handle(session, "session")?;
+        let key = cstr(key, "key expression")?.to_string();
+        let (cc, prio) = match kind {
+            KFIO_PUB_RELIABLE => (CongestionControl::Block, Priority::Data),
+            KFIO_PUB_BEST_EFFORT => (CongestionControl::Drop, Priority::DataLow),
+            k => return Err(format!("unknown publisher kind {k}")),
+        };
+        let publisher = s
+            .session
+            .declare_publisher(key.clone())
+            .congestion_control(cc)
+            .priority(prio)
+            .wait()
+            .map_err(|e| format!("cannot declare publisher on '{key}': {e}"))?;
+        Ok(Box::into_raw(Box::new(KfioPublisher { publisher })))
+    })
+}
+
+/// Publishes `data` with an optional attachment (att may be NULL when att_len is 0).
+#[no_mangle]
+pub extern "C" fn kfio_publisher_put(
+    publisher: *mut KfioPublisher,
+    data: *const u8,
+    len: usize,
+    att: *const u8,
+    att_len: usize,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let p = handle(publisher, "publisher")?;
+        let data = bytes(data, len, "payload")?;
+        let mut put = p.publisher.put(data.to_vec());
+        if att_len > 0 {
+            put = put.attachment(bytes(att, att_len, "attachment")?.to_vec());
+        }
+        status(
+            put.wait()
+                .map_err(|e| format!("put on '{}': {e}", p.publisher.key_expr())),
+        )
+    })
+}
+
+/// Undeclares the publisher and releases the handle. NULL is accepted.
+#[no_mangle]
+pub extern "C" fn kfio_publisher_undeclare(publisher: *mut KfioPublisher) {
+    if publisher.is_null() {
+        return;
+    }
+    // SAFETY: made by kfio_publisher_declare, released only here.
+    let p = unsafe { Box::from_raw(publisher) };
+    guard_void(move || {
+        let _ = p.publisher.undeclare().wait();
+    });
+}
+
+struct UserData(*mut c_void);
+// SAFETY: the C caller promises the callback and its user data may be used from the
+// queryable's thread (documented in io_ffi.h).
+unsafe impl Send for UserData {}
+
+fn serve_queries(rx: Receiver<zenoh::query::Query>, f: KfioQueryFn, user: UserData) {
+    let Some(f) = f else { return };
+    while let Ok(query) = rx.recv() {
+        let user = user.0;
+        let _ = catch_unwind(AssertUnwindSafe(|| {
+            let key = std::ffi::CString::new(query.key_expr().as_str()).unwrap_or_default();
+            let params = std::ffi::CString::new(query.parameters().as_str()).unwrap_or_default();
+            let mut reply = KfioReply {
+                query: &query,
+                replies: 0,
+            };
+            // SAFETY: the C callback receives pointers valid for the call's duration.
+            unsafe { f(user, key.as_ptr(), params.as_ptr(), &mut reply) };
+        }));
+        // Dropping the query ends it: the querier gets what was replied, or nothing.
+    }
+}
+
+/// Declares a queryable on `key` (wildcards allowed, e.g. "keyframed/uav1/keyframes/*").
+/// Queries are answered one at a time on a thread of the queryable's own, so the
+/// callback may block on disk I/O. At most 64 queries wait; more are dropped.
+#[no_mangle]
+pub extern "C" fn kfio_queryable_declare(
+    session: *mut KfioSession,
+    key: *const c_char,
+    callback: KfioQueryFn,
+    user: *mut c_void,
+    err: *mut c_char,
+    err_len: usize,
+) -> *mut KfioQueryable {
+    guard(err, err_len, std::ptr::null_mut(), || {
+        let s = handle(session, "session")?;
+        let key = cstr(key, "key expression")?.to_string();
+        if callback.is_none() {
+            return Err("query callback is NULL".into());
+        }
+        let (tx, rx) = sync_channel::<zenoh::query::Query>(64);
+        let queryable = s
+            .session
+            .declare_queryable(key.clone())
+            .callback(move |q| match tx.try_send(q) {
+                Ok(()) | Err(TrySendError::Disconnected(_)) => {}
+                Err(TrySendError::Full(_)) => {} // the querier times out
+            })
+            .wait()
+            .map_err(|e| format!("cannot declare queryable on '{key}': {e}"))?;
+        let user = UserData(user);
+        let worker = std::thread::Builder::new()
+            .name("kfio-queryable".into())
+            .spawn(move || serve_queries(rx, callback, user))
+            .map_err(|e| format!("cannot start queryable thread: {e}"))?;
+        Ok(Box::into_raw(Box::new(KfioQueryable {
+            queryable: Some(queryable),
+            worker: Some(worker),
+        })))
+    })
+}
+
+/// Undeclares the queryable, waits for a callback in progress to return, and
+/// releases the handle: the callback is not called after this returns.
+#[no_mangle]
+pub extern "C" fn kfio_queryable_undeclare(queryable: *mut KfioQueryable) {
+    if queryable.is_null() {
+        return;
+    }
+    // SAFETY: made by kfio_queryable_declare, released only here.
+    let mut q = unsafe { Box::from_raw(queryable) };
+    guard_void(move || {
+        if let Some(qq) = q.queryable.take() {
+            // Undeclaring drops the callback and with it the channel's sender.
+            let _ = qq.undeclare().wait();
+        }
+        if let Some(w) = q.worker.take() {
+            let _ = w.join();
+        }
+    });
+}
+
+/// Replies to the query with `data` (and an optional attachment) on `key`, or on the
+/// query's own key expression when `key` is NULL (only valid for a non-wildcard query).
+#[no_mangle]
+pub extern "C" fn kfio_reply_ok(
+    reply: *mut KfioReply<'_>,
+    key: *const c_char,
+    data: *const u8,
+    len: usize,
+    att: *const u8,
+    att_len: usize,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        // SAFETY: `reply` is the pointer handed to the callback, valid during it.
+        let r = unsafe { reply.as_mut() }.ok_or("reply is NULL")?;
+        let key = match opt_cstr(key, "reply key")? {
+            Some(k) => k.to_string(),
+            None => r.query.key_expr().as_str().to_string(),
+        };
+        let data = bytes(data, len, "reply payload")?.to_vec();
+        let mut b = r.query.reply(key.clone(), data);
+        if att_len > 0 {
+            b = b.attachment(bytes(att, att_len, "reply attachment")?.to_vec());
+        }
+        b.wait().map_err(|e| format!("reply on '{key}': {e}"))?;
+        r.replies += 1;
+        Ok(0)
+    })
+}
+
+/// Replies with an error message (for example "no such keyframe").
+#[no_mangle]
+pub extern "C" fn kfio_reply_err(
+    reply: *mut KfioReply<'_>,
+    message: *const c_char,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        // SAFETY: `reply` is the pointer handed to the callback, valid during it.
+        let r = unsafe { reply.as_mut() }.ok_or("reply is NULL")?;
+        let msg = cstr(message, "message")?.to_string();
+        r.query
+            .reply_err(msg.into_bytes())
+            .wait()
+            .map_err(|e| format!("error reply: {e}"))?;
+        r.replies += 1;
+        Ok(0)
+    })
+}
+
+/// The crate's version and its zenoh/mcap versions, for --version output.
+#[no_mangle]
+pub extern "C" fn kfio_version() -> *const c_char {
+    c"keyframed-io 0.1.0 (zenoh 1.10.2, mcap 0.26)".as_ptr()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_is_truncated_on_char_boundary() {
+        let mut buf = [1 as c_char; 4];
+        set_error(buf.as_mut_ptr(), buf.len(), "aéé");
+        let s = unsafe { CStr::from_ptr(buf.as_ptr()) };
+        assert_eq!(s.to_str().unwrap(), "aé");
+    }
+}

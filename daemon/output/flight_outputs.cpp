@@ -1,0 +1,264 @@
+#include "output/flight_outputs.h"
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+
+#include "tagging/camera_mount.h"
+
+#ifdef KEYFRAMED_HAVE_IO
+#include <map>
+
+#include "output/foxglove_proto.h"
+#include "output/keyframe_publisher.h"
+#include "output/mcap_recorder.h"
+#endif
+
+namespace keyframed {
+
+#ifdef KEYFRAMED_HAVE_IO
+namespace {
+
+constexpr const char* kCameraFrame = "camera";
+
+std::int64_t wallNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+std::string num(double v, int decimals) {
+  if (!std::isfinite(v)) return "";
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%.*f", decimals, v);
+  return buf;
+}
+
+std::string jnum(double v, int decimals) {
+  const std::string s = num(v, decimals);
+  return s.empty() ? "null" : s;
+}
+
+}  // namespace
+
+struct FlightOutputs::Impl {
+  struct Scores {
+    double sharpness, threshold, overlap;
+    int features;
+    std::string reason;
+  };
+  FlightOutputOptions options;
+  std::unique_ptr<McapRecorder> recorder;
+  std::unique_ptr<KeyframePublisher> publisher;
+  std::map<std::int64_t, Scores> scores;  // frames since the last keyframe
+  std::int64_t lastStatusNs = 0;
+  std::int64_t framesRead = 0;
+  std::int64_t kept = 0;
+  bool publishFailed = false;
+};
+
+FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
+
+FlightOutputs::~FlightOutputs() {
+  std::string ignored;
+  close("stopped", ignored);
+}
+
+bool FlightOutputs::active() const {
+  return impl_->recorder != nullptr || impl_->publisher != nullptr;
+}
+
+bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
+                         const CameraModel* camera, std::string& error) {
+  impl_->options = o;
+  if (!o.mcapPath.empty()) {
+    McapRecorderOptions ro;
+    ro.path = o.mcapPath;
+    ro.blockWhenFull = o.offline;
+    auto rec = std::make_unique<McapRecorder>();
+    if (!rec->open(ro, error)) {
+      error = "--mcap: " + error;
+      return false;
+    }
+    impl_->recorder = std::move(rec);
+    if (camera != nullptr && camera->calibrated()) {
+      // Intrinsics at the video's resolution, as the keyframes carry them.
+      const CameraModel c = (camera->width != width || camera->height != height)
+                                ? camera->scaledTo(width, height)
+                                : *camera;
+      proto::CameraCalibrationMsg m;
+      m.frameId = kCameraFrame;
+      m.width = static_cast<std::uint32_t>(width);
+      m.height = static_cast<std::uint32_t>(height);
+      m.d = c.distortion;
+      if (m.d.size() > 5) m.distortionModel = "rational_polynomial";
+      m.k = {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1};
+      m.p = {c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0};
+      impl_->recorder->record(McapTopic::Calibration, 0, proto::cameraCalibration(m));
+    }
+    impl_->recorder->record(McapTopic::Log, 0,
+                            proto::log(0, proto::LogLevel::Info,
+                                       "recording started (" + std::to_string(width) + "x" +
+                                           std::to_string(height) + ")",
+                                       "keyframed"));
+  }
+  if (!o.zenohConfig.empty()) {
+    KeyframePublisherOptions po;
+    po.configFile = o.zenohConfig;
+    po.vehicle = o.vehicle;
+    po.keyframeDir = o.keyframeDir;
+    impl_->publisher = KeyframePublisher::open(po, error);
+    if (!impl_->publisher) {
+      error = "--zenoh-config: " + error;
+      impl_->recorder.reset();
+      return false;
+    }
+    std::string ignored;
+    impl_->publisher->publishStatus("{\"state\":\"running\",\"frames\":0,\"kept\":0}", ignored);
+  }
+  return true;
+}
+
+void FlightOutputs::decision(const Decision& d, const std::string& decisionJson) {
+  if (active())
+    impl_->scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
+  if (impl_->recorder)
+    impl_->recorder->recordText(McapTopic::Decision, d.timestampNs, decisionJson);
+}
+
+void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uint8_t> jpeg) {
+  if (!active()) return;
+  ++impl_->kept;
+  KeyframeMeta m;
+  m.vehicle = impl_->options.vehicle;
+  m.sequence = rec.sequence;
+  m.frameIndex = rec.frameIndex;
+  m.file = KeyframeWriter::fileName(rec.frameIndex);
+  m.timeNs = rec.timeNs;
+  const Pose& p = rec.pose;
+  if (p.utcUs) m.utcUs = std::to_string(*p.utcUs);
+  if (p.position) {
+    m.lat = num(p.position->latDeg, 9);
+    m.lon = num(p.position->lonDeg, 9);
+    m.altAmsl = num(p.position->altAmslM, 4);
+    m.altRel = num(p.position->altRelM, 4);
+  }
+  if (rec.cameraToNed) {
+    const Quaternion& q = *rec.cameraToNed;
+    m.camQw = num(q.w, 9);
+    m.camQx = num(q.x, 9);
+    m.camQy = num(q.y, 9);
+    m.camQz = num(q.z, 9);
+    const Pix4dAngles a = pix4dAngles(q);
+    m.yaw = num(a.yawDeg, 4);
+    m.pitch = num(a.pitchDeg, 4);
+    m.roll = num(a.rollDeg, 4);
+  }
+  m.hdop = num(p.gps.hdop, 2);
+  if (p.position) m.fixType = std::to_string(p.gps.fixType);
+  m.geotag = rec.geotag;
+  if (const auto it = impl_->scores.find(rec.frameIndex); it != impl_->scores.end()) {
+    const Impl::Scores& s = it->second;
+    m.scoresJson = "{\"sharpness\":" + jnum(s.sharpness, 3) +
+                   ",\"threshold\":" + jnum(s.threshold, 3) + ",\"overlap\":" + jnum(s.overlap, 4) +
+                   ",\"features\":" + std::to_string(s.features) + ",\"reason\":\"" + s.reason +
+                   "\"}";
+  }
+  // Frames before this keyframe can no longer become keyframes.
+  impl_->scores.erase(impl_->scores.begin(), impl_->scores.upper_bound(rec.frameIndex));
+  const std::string meta = toJson(m);
+
+  if (impl_->recorder) {
+    impl_->recorder->record(McapTopic::Keyframe, rec.timeNs,
+                            proto::compressedImage(rec.timeNs, kCameraFrame, jpeg, "jpeg"),
+                            static_cast<std::uint32_t>(rec.sequence + 1));
+    impl_->recorder->recordText(McapTopic::KeyframeMeta, rec.timeNs, meta);
+    if (p.position) {
+      proto::LocationFixMsg f;
+      f.timeNs = rec.timeNs;
+      f.frameId = kCameraFrame;
+      f.latitude = p.position->latDeg;
+      f.longitude = p.position->lonDeg;
+      f.altitude = p.position->altAmslM;
+      if (std::isfinite(p.gps.hAccuracyM) && std::isfinite(p.gps.vAccuracyM)) {
+        const double h = p.gps.hAccuracyM * p.gps.hAccuracyM;
+        f.varianceEnu = std::array<double, 3>{h, h, p.gps.vAccuracyM * p.gps.vAccuracyM};
+      }
+      impl_->recorder->record(McapTopic::Location, rec.timeNs, proto::locationFix(f));
+    }
+    if (rec.cameraToNed) {
+      const Quaternion& q = *rec.cameraToNed;
+      impl_->recorder->record(
+          McapTopic::CameraPose, rec.timeNs,
+          proto::poseInFrame(rec.timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
+    }
+  }
+  if (impl_->publisher && !impl_->publishFailed) {
+    std::string error;
+    if (!impl_->publisher->publishKeyframe(jpeg, meta, error)) {
+      // Zenoh reconnects by itself; one line, then keep going.
+      std::fprintf(stderr, "keyframed: zenoh: %s (further failures not reported)\n", error.c_str());
+      impl_->publishFailed = true;
+    }
+  }
+}
+
+void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
+  impl_->framesRead = framesRead;
+  if (!impl_->publisher) return;
+  const std::int64_t now = wallNs();
+  if (now - impl_->lastStatusNs < 1'000'000'000) return;
+  impl_->lastStatusNs = now;
+  std::string ignored;
+  impl_->publisher->publishStatus(
+      "{\"state\":\"running\",\"frames\":" + std::to_string(framesRead) +
+          ",\"kept\":" + std::to_string(kept) + "}",
+      ignored);
+}
+
+bool FlightOutputs::close(const std::string& state, std::string& error) {
+  bool ok = true;
+  if (impl_->publisher) {
+    std::string ignored;
+    impl_->publisher->publishStatus("{\"state\":\"" + state +
+                                        "\",\"frames\":" + std::to_string(impl_->framesRead) +
+                                        ",\"kept\":" + std::to_string(impl_->kept) + "}",
+                                    ignored);
+    impl_->publisher.reset();
+  }
+  if (impl_->recorder) {
+    ok = impl_->recorder->close(error);
+    impl_->recorder.reset();
+  }
+  return ok;
+}
+
+#else  // built without the Rust I/O crate
+
+struct FlightOutputs::Impl {};
+
+FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
+FlightOutputs::~FlightOutputs() = default;
+
+bool FlightOutputs::active() const {
+  return false;
+}
+
+bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraModel*,
+                         std::string& error) {
+  if (!o.mcapPath.empty() || !o.zenohConfig.empty()) {
+    error = "this keyframed was built without MCAP and Zenoh support (KEYFRAMED_WITH_IO=OFF)";
+    return false;
+  }
+  return true;
+}
+void FlightOutputs::decision(const Decision&, const std::string&) {}
+void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
+void FlightOutputs::progress(std::int64_t, std::int64_t) {}
+bool FlightOutputs::close(const std::string&, std::string&) {
+  return true;
+}
+
+#endif
+
+}  // namespace keyframed

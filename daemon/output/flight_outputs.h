@@ -1,0 +1,51 @@
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string>
+
+#include "app/keyframe_writer.h"
+#include "core/selector.h"
+#include "tagging/camera_model.h"
+
+namespace keyframed {
+
+struct FlightOutputOptions {
+  std::string mcapPath;         // --mcap FILE; empty: no recording
+  std::string zenohConfig;      // --zenoh-config FILE; empty: no Zenoh
+  std::string vehicle = "uav";  // --vehicle NAME
+  std::string keyframeDir;      // where KeyframeWriter puts JPEGs + keyframes.csv
+  bool offline = true;          // offline: the recorder waits instead of dropping
+};
+
+// Everything a run sends beyond its keyframe directory: the MCAP flight record and
+// the Zenoh stream. The run calls it at each step; failures after open() are
+// logged and never stop the run (the keyframe directory is the durable store).
+class FlightOutputs {
+ public:
+  FlightOutputs();
+  ~FlightOutputs();
+  FlightOutputs(const FlightOutputs&) = delete;
+  FlightOutputs& operator=(const FlightOutputs&) = delete;
+
+  // Opens what the options ask for; false with a one-line error when it cannot.
+  bool open(const FlightOutputOptions& options, int width, int height, const CameraModel* camera,
+            std::string& error);
+  [[nodiscard]] bool active() const;
+
+  // Every analysed frame; decisionJson as DecisionLog::jsonRow writes it.
+  void decision(const Decision& d, const std::string& decisionJson);
+  // Every keyframe written, with its tagged JPEG bytes.
+  void keyframe(const KeyframeRecord& record, std::span<const std::uint8_t> jpeg);
+  // Progress (status on Zenoh about once a second).
+  void progress(std::int64_t framesRead, std::int64_t kept);
+  // Last status and close; false when the MCAP file is incomplete (error says why).
+  bool close(const std::string& state, std::string& error);
+
+ private:
+  struct Impl;  // empty when built without the I/O crate
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace keyframed

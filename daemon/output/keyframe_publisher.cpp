@@ -1,0 +1,242 @@
+#include "output/keyframe_publisher.h"
+
+#include <cerrno>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+
+namespace keyframed {
+namespace {
+
+std::string jsonString(const std::string& s) {
+  std::string out = "\"";
+  for (char c : s) {
+    if (c == '"' || c == '\\') out += '\\';
+    if (static_cast<unsigned char>(c) >= 0x20) out += c;
+  }
+  return out + "\"";
+}
+
+std::string orNull(const std::string& number) {
+  return number.empty() ? "null" : number;
+}
+
+// Splits one CSV line; fields may be "quoted" (no embedded quotes are written).
+std::vector<std::string> splitCsv(const std::string& line) {
+  std::vector<std::string> out(1);
+  bool quoted = false;
+  for (char c : line) {
+    if (c == '"') {
+      quoted = !quoted;
+    } else if (c == ',' && !quoted) {
+      out.emplace_back();
+    } else if (c != '\r') {
+      out.back() += c;
+    }
+  }
+  return out;
+}
+
+bool readFile(const std::string& path, std::vector<std::uint8_t>& out, std::string& error) {
+  std::FILE* f = std::fopen(path.c_str(), "rb");
+  if (f == nullptr) {
+    error = "cannot open " + path + ": " + std::strerror(errno);
+    return false;
+  }
+  out.clear();
+  std::uint8_t buf[65536];
+  std::size_t n = 0;
+  while ((n = std::fread(buf, 1, sizeof buf, f)) > 0) out.insert(out.end(), buf, buf + n);
+  const bool ok = std::ferror(f) == 0;
+  std::fclose(f);
+  if (!ok) error = "cannot read " + path;
+  return ok;
+}
+
+}  // namespace
+
+std::string toJson(const KeyframeMeta& m) {
+  std::string s =
+      "{\"vehicle\":" + jsonString(m.vehicle) + ",\"sequence\":" + std::to_string(m.sequence) +
+      ",\"frame_index\":" + std::to_string(m.frameIndex) + ",\"file\":" + jsonString(m.file) +
+      ",\"time_ns\":" + std::to_string(m.timeNs) + ",\"utc_us\":" + orNull(m.utcUs) +
+      ",\"lat\":" + orNull(m.lat) + ",\"lon\":" + orNull(m.lon) +
+      ",\"alt_amsl\":" + orNull(m.altAmsl) + ",\"alt_rel\":" + orNull(m.altRel) + ",\"cam_q\":";
+  if (m.camQw.empty()) {
+    s += "null";
+  } else {
+    s += "[" + m.camQw + "," + m.camQx + "," + m.camQy + "," + m.camQz + "]";
+  }
+  s += ",\"yaw\":" + orNull(m.yaw) + ",\"pitch\":" + orNull(m.pitch) +
+       ",\"roll\":" + orNull(m.roll) + ",\"hdop\":" + orNull(m.hdop) +
+       ",\"fix_type\":" + orNull(m.fixType) +
+       ",\"geotag\":" + (m.geotag.empty() ? std::string("null") : jsonString(m.geotag)) +
+       ",\"scores\":" + (m.scoresJson.empty() ? std::string("null") : m.scoresJson) + "}";
+  return s;
+}
+
+bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
+                       std::vector<StoredKeyframe>& out, std::string& error) {
+  const std::string path = dir + "/keyframes.csv";
+  std::ifstream f(path);
+  if (!f) {
+    error = "cannot open " + path + ": " + std::strerror(errno);
+    return false;
+  }
+  std::string line;
+  if (!std::getline(f, line)) return true;  // empty: no keyframes yet
+  const std::vector<std::string> header = splitCsv(line);
+  auto col = [&header](const char* name) -> int {
+    for (std::size_t i = 0; i < header.size(); ++i)
+      if (header[i] == name) return static_cast<int>(i);
+    return -1;
+  };
+  const int cSeq = col("sequence"), cIndex = col("index"), cFile = col("file");
+  if (cSeq < 0 || cIndex < 0 || cFile < 0) {
+    error = path + ": unexpected header";
+    return false;
+  }
+  out.clear();
+  while (std::getline(f, line)) {
+    const std::vector<std::string> v = splitCsv(line);
+    if (v.size() != header.size()) continue;  // a row being written
+    auto get = [&](const char* name) -> std::string {
+      const int c = col(name);
+      return c < 0 ? std::string() : v[static_cast<std::size_t>(c)];
+    };
+    KeyframeMeta m;
+    m.vehicle = vehicle;
+    try {
+      m.sequence = std::stoll(v[static_cast<std::size_t>(cSeq)]);
+      m.frameIndex = std::stoll(v[static_cast<std::size_t>(cIndex)]);
+      m.timeNs = std::stoll(get("time_ns"));
+    } catch (const std::exception&) {
+      continue;
+    }
+    m.file = v[static_cast<std::size_t>(cFile)];
+    m.utcUs = get("utc_us");
+    m.lat = get("lat");
+    m.lon = get("lon");
+    m.altAmsl = get("alt_amsl");
+    m.altRel = get("alt_rel");
+    m.camQw = get("cam_qw");
+    m.camQx = get("cam_qx");
+    m.camQy = get("cam_qy");
+    m.camQz = get("cam_qz");
+    if (m.camQx.empty() || m.camQy.empty() || m.camQz.empty()) m.camQw.clear();
+    m.yaw = get("yaw");
+    m.pitch = get("pitch");
+    m.roll = get("roll");
+    m.hdop = get("hdop");
+    m.fixType = get("fix_type");
+    m.geotag = get("geotag");
+    out.push_back(StoredKeyframe{m.sequence, m.file, toJson(m)});
+  }
+  return true;
+}
+
+std::string KeyframePublisher::checkVehicleName(const std::string& name) {
+  if (name.empty()) return "vehicle name is empty";
+  for (char c : name) {
+    if (c == '/' || c == '*' || c == '$' || c == '?' || c == '#' ||
+        static_cast<unsigned char>(c) <= 0x20)
+      return "vehicle name '" + name + "' must be one key chunk (no / * $ ? # or spaces)";
+  }
+  return {};
+}
+
+std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublisherOptions& o,
+                                                           std::string& error) {
+  if (std::string e = checkVehicleName(o.vehicle); !e.empty()) {
+    error = e;
+    return nullptr;
+  }
+  std::unique_ptr<KeyframePublisher> p(new KeyframePublisher());
+  p->prefix_ = "keyframed/" + o.vehicle;
+  p->dir_ = o.keyframeDir;
+  ZenohSession::Options so;
+  so.configFile = o.configFile;
+  so.overrides = o.overrides;
+  p->session_ = ZenohSession::open(so, error);
+  if (!p->session_) return nullptr;
+  p->keyframes_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/keyframe",
+                                          ZenohPublisher::Kind::Reliable, error);
+  if (!p->keyframes_) return nullptr;
+  p->status_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/status",
+                                       ZenohPublisher::Kind::BestEffort, error);
+  if (!p->status_) return nullptr;
+  if (!p->dir_.empty()) {
+    KeyframePublisher* self = p.get();
+    p->queryable_ = ZenohQueryable::declare(
+        *p->session_, p->prefix_ + "/keyframes/*",
+        [self](const std::string& key, const std::string&, ZenohReply& reply) {
+          self->answer(key, reply);
+        },
+        error);
+    if (!p->queryable_) return nullptr;
+  }
+  return p;
+}
+
+KeyframePublisher::~KeyframePublisher() {
+  // The queryable's thread may be inside answer(): stop it before the rest goes.
+  queryable_.reset();
+  keyframes_.reset();
+  status_.reset();
+  session_.reset();
+}
+
+void KeyframePublisher::answer(const std::string& key, ZenohReply& reply) {
+  std::string error;
+  const std::string last = key.substr(key.rfind('/') + 1);
+  const bool all = last == "*" || last == "**";
+  std::int64_t wanted = -1;
+  if (!all) {
+    char* end = nullptr;
+    errno = 0;
+    wanted = std::strtoll(last.c_str(), &end, 10);
+    if (last.empty() || errno != 0 || *end != '\0' || wanted < 0) {
+      reply.fail("not a keyframe sequence number: '" + last + "'", error);
+      return;
+    }
+  }
+  std::vector<StoredKeyframe> rows;
+  if (!readKeyframeIndex(dir_, prefix_.substr(prefix_.find('/') + 1), rows, error)) {
+    std::string ignored;
+    reply.fail(error, ignored);
+    return;
+  }
+  bool found = false;
+  std::vector<std::uint8_t> jpeg;
+  for (const StoredKeyframe& r : rows) {
+    if (!all && r.sequence != wanted) continue;
+    found = true;
+    if (!readFile(dir_ + "/" + r.file, jpeg, error)) {
+      std::string ignored;
+      reply.fail(error, ignored);
+      continue;
+    }
+    const std::string replyKey = prefix_ + "/keyframes/" + std::to_string(r.sequence);
+    const auto* att = reinterpret_cast<const std::uint8_t*>(r.metadataJson.data());
+    if (!reply.ok(replyKey, jpeg, {att, r.metadataJson.size()}, error)) return;
+  }
+  if (!found && !all) {
+    std::string ignored;
+    reply.fail("no keyframe " + std::to_string(wanted) + " (yet)", ignored);
+  }
+}
+
+bool KeyframePublisher::publishKeyframe(std::span<const std::uint8_t> jpeg,
+                                        const std::string& metadataJson, std::string& error) {
+  const auto* att = reinterpret_cast<const std::uint8_t*>(metadataJson.data());
+  return keyframes_->put(jpeg, {att, metadataJson.size()}, error);
+}
+
+bool KeyframePublisher::publishStatus(const std::string& json, std::string& error) {
+  const auto* p = reinterpret_cast<const std::uint8_t*>(json.data());
+  return status_->put({p, json.size()}, {}, error);
+}
+
+}  // namespace keyframed

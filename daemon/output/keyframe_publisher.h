@@ -1,0 +1,83 @@
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <span>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "output/io.h"
+
+namespace keyframed {
+
+struct KeyframePublisherOptions {
+  std::string configFile;  // zenoh JSON5 config; empty: zenoh's defaults (peer, scouting)
+  std::vector<std::pair<std::string, std::string>> overrides;  // key -> JSON5 value
+  std::string vehicle = "uav";  // one key chunk: keyframed/<vehicle>/...
+  std::string keyframeDir;      // served by the queryable (keyframes.csv + JPEGs)
+};
+
+// Publishes keyframes and status under keyframed/<vehicle>/ and answers queries for
+// any keyframe already on disk (keyframed/<vehicle>/keyframes/<seq>), so a ground
+// station that missed some fetches them again.
+class KeyframePublisher {
+ public:
+  static std::unique_ptr<KeyframePublisher> open(const KeyframePublisherOptions& options,
+                                                 std::string& error);
+  ~KeyframePublisher();
+  KeyframePublisher(const KeyframePublisher&) = delete;
+  KeyframePublisher& operator=(const KeyframePublisher&) = delete;
+
+  // Reliable, blocking congestion control: waits rather than drops.
+  bool publishKeyframe(std::span<const std::uint8_t> jpeg, const std::string& metadataJson,
+                       std::string& error);
+  // Best effort.
+  bool publishStatus(const std::string& json, std::string& error);
+
+  [[nodiscard]] const std::string& prefix() const { return prefix_; }
+  [[nodiscard]] std::string zid() const { return session_ ? session_->zid() : std::string(); }
+
+  // "" when `name` can be a vehicle name (one key chunk), else why not.
+  static std::string checkVehicleName(const std::string& name);
+
+ private:
+  KeyframePublisher() = default;
+  void answer(const std::string& key, ZenohReply& reply);
+
+  std::string prefix_;  // keyframed/<vehicle>
+  std::string dir_;
+  std::unique_ptr<ZenohSession> session_;
+  std::unique_ptr<ZenohPublisher> keyframes_;
+  std::unique_ptr<ZenohPublisher> status_;
+  std::unique_ptr<ZenohQueryable> queryable_;
+};
+
+// The metadata of one keyframe; numbers as text, empty = unknown (JSON null).
+struct KeyframeMeta {
+  std::string vehicle;
+  std::int64_t sequence = 0;
+  std::int64_t frameIndex = 0;
+  std::string file;  // name inside the keyframe directory
+  std::int64_t timeNs = 0;
+  std::string utcUs, lat, lon, altAmsl, altRel;
+  std::string camQw, camQx, camQy, camQz;  // camera -> NED
+  std::string yaw, pitch, roll, hdop, fixType;
+  std::string geotag;      // empty: null
+  std::string scoresJson;  // a JSON object, or empty: null
+};
+std::string toJson(const KeyframeMeta& m);
+
+// One row of <dir>/keyframes.csv (written by KeyframeWriter), as JSON: the same
+// field names as the live attachment.
+struct StoredKeyframe {
+  std::int64_t sequence = -1;
+  std::string file;
+  std::string metadataJson;
+};
+// Reads <dir>/keyframes.csv; false with an error when it cannot be read.
+bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
+                       std::vector<StoredKeyframe>& out, std::string& error);
+
+}  // namespace keyframed

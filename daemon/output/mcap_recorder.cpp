@@ -1,0 +1,263 @@
+#include "output/mcap_recorder.h"
+
+#include <chrono>
+#include <cstdio>
+
+#include "output/foxglove_proto.h"
+
+namespace keyframed {
+namespace {
+
+// JSON Schemas of the keyframed-specific JSON channels.
+constexpr const char* kDecisionSchema = R"json({
+  "title": "keyframed.Decision",
+  "description": "The selector's verdict on one analysed frame",
+  "type": "object",
+  "properties": {
+    "index": {"type": "integer", "description": "zero-based frame index"},
+    "timestamp_ns": {"type": "integer"},
+    "kept": {"type": "boolean"},
+    "reason": {"type": "string"},
+    "candidate": {"type": "boolean", "description": "best fallback since the last keyframe"},
+    "promoted": {"type": ["integer", "null"], "description": "earlier candidate kept now"},
+    "sharpness": {"type": ["number", "null"]},
+    "threshold": {"type": ["number", "null"]},
+    "sharp": {"type": "boolean"},
+    "overlap": {"type": ["number", "null"]},
+    "paper_distance": {"type": ["number", "null"]},
+    "tracking": {"type": "boolean"},
+    "motion_px": {"type": ["number", "null"]},
+    "fast_motion": {"type": "boolean"},
+    "features": {"type": "integer"},
+    "matches": {"type": "integer"},
+    "inliers": {"type": "integer"},
+    "luma_ms": {"type": "number"},
+    "blur_ms": {"type": "number"},
+    "resize_ms": {"type": "number"},
+    "overlap_ms": {"type": "number"},
+    "total_ms": {"type": "number"},
+    "geotag": {"type": ["string", "null"]}
+  }
+})json";
+
+constexpr const char* kKeyframeMetaSchema = R"json({
+  "title": "keyframed.KeyframeMeta",
+  "description": "What is known about one keyframe (also the Zenoh attachment)",
+  "type": "object",
+  "properties": {
+    "vehicle": {"type": "string"},
+    "sequence": {"type": "integer", "description": "0, 1, 2, ... in order of writing"},
+    "frame_index": {"type": "integer"},
+    "file": {"type": "string", "description": "file name in the keyframe directory"},
+    "time_ns": {"type": "integer", "description": "frame time on the run's clock"},
+    "utc_us": {"type": ["integer", "null"]},
+    "lat": {"type": ["number", "null"]},
+    "lon": {"type": ["number", "null"]},
+    "alt_amsl": {"type": ["number", "null"]},
+    "alt_rel": {"type": ["number", "null"]},
+    "cam_q": {"type": ["array", "null"], "items": {"type": "number"},
+              "description": "camera to NED quaternion w, x, y, z"},
+    "yaw": {"type": ["number", "null"]},
+    "pitch": {"type": ["number", "null"]},
+    "roll": {"type": ["number", "null"]},
+    "hdop": {"type": ["number", "null"]},
+    "fix_type": {"type": ["integer", "null"]},
+    "geotag": {"type": ["string", "null"]},
+    "scores": {"type": ["object", "null"]}
+  }
+})json";
+
+struct TopicSpec {
+  const char* topic;
+  const char* schema;
+  const char* schemaEncoding;
+  const char* messageEncoding;
+};
+
+constexpr TopicSpec kTopics[] = {
+    {"/keyframed/keyframe", "foxglove.CompressedImage", "protobuf", "protobuf"},
+    {"/keyframed/keyframe_meta", "keyframed.KeyframeMeta", "jsonschema", "json"},
+    {"/keyframed/decision", "keyframed.Decision", "jsonschema", "json"},
+    {"/mavlink/raw", "keyframed.MavlinkPacket", "protobuf", "protobuf"},
+    {"/keyframed/location", "foxglove.LocationFix", "protobuf", "protobuf"},
+    {"/keyframed/camera_pose", "foxglove.PoseInFrame", "protobuf", "protobuf"},
+    {"/camera/calibration", "foxglove.CameraCalibration", "protobuf", "protobuf"},
+    {"/keyframed/log", "foxglove.Log", "protobuf", "protobuf"},
+};
+static_assert(std::size(kTopics) == static_cast<std::size_t>(McapTopic::Count));
+
+std::span<const std::uint8_t> schemaData(const TopicSpec& t) {
+  if (std::string(t.schemaEncoding) == "protobuf") return proto::descriptorSet(t.schema);
+  const char* text =
+      std::string(t.schema) == "keyframed.Decision" ? kDecisionSchema : kKeyframeMetaSchema;
+  return {reinterpret_cast<const std::uint8_t*>(text), std::char_traits<char>::length(text)};
+}
+
+}  // namespace
+
+const char* McapRecorder::topicName(McapTopic topic) {
+  return kTopics[static_cast<int>(topic)].topic;
+}
+
+McapRecorder::~McapRecorder() {
+  std::string ignored;
+  close(ignored);
+}
+
+bool McapRecorder::open(const McapRecorderOptions& options, std::string& error) {
+  options_ = options;
+  McapWriterOptions wo;
+  wo.path = options.path;
+  wo.compression = options.compression;
+  wo.chunkSize = options.chunkSize;
+  writer_ = McapWriter::open(wo, error);
+  if (!writer_) return false;
+  for (int i = 0; i < static_cast<int>(McapTopic::Count); ++i) {
+    const TopicSpec& t = kTopics[i];
+    const auto data = schemaData(t);
+    if (data.empty()) {
+      error = std::string("no schema compiled in for ") + t.schema;
+      writer_.reset();
+      return false;
+    }
+    std::uint16_t schemaId = 0;
+    if (!writer_->addSchema(t.schema, t.schemaEncoding, data, schemaId, error) ||
+        !writer_->addChannel(schemaId, t.topic, t.messageEncoding, {}, channels_[i], error)) {
+      writer_.reset();
+      return false;
+    }
+  }
+  // Schemas and channels reach the disk now: a file cut short later still reads.
+  if (!writer_->flush(options.fsync, error)) {
+    writer_.reset();
+    return false;
+  }
+  thread_ = std::thread([this] { run(); });
+  return true;
+}
+
+void McapRecorder::record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
+                          std::uint32_t sequence) {
+  if (failed_.load() || !thread_.joinable()) return;
+  std::unique_lock lock(mutex_);
+  if (closing_) return;
+  const std::size_t n = message.size();
+  if (queuedBytes_ + n > options_.maxQueueBytes && !queue_.empty()) {
+    if (!options_.blockWhenFull) {
+      ++stats_.dropped;
+      return;
+    }
+    space_.wait(lock, [&] {
+      return queuedBytes_ + n <= options_.maxQueueBytes || queue_.empty() || failed_.load() ||
+             closing_;
+    });
+    if (failed_.load() || closing_) return;
+  }
+  queuedBytes_ += n;
+  queue_.push_back(Item{topic, sequence, timeNs, std::move(message)});
+  wake_.notify_one();
+}
+
+void McapRecorder::recordText(McapTopic topic, std::int64_t timeNs, const std::string& json) {
+  record(topic, timeNs, std::vector<std::uint8_t>(json.begin(), json.end()));
+}
+
+void McapRecorder::fail(const std::string& error) {
+  {
+    std::lock_guard lock(mutex_);
+    error_ = error;
+    stats_.dropped += queue_.size();
+    queue_.clear();
+    queuedBytes_ = 0;
+  }
+  failed_.store(true);
+  space_.notify_all();
+  std::fprintf(stderr, "keyframed: MCAP recorder stopped, the run goes on without it: %s\n",
+               error.c_str());
+}
+
+void McapRecorder::run() {
+  using Clock = std::chrono::steady_clock;
+  const auto interval = std::chrono::milliseconds(std::max(options_.flushIntervalMs, 10));
+  auto nextFlush = Clock::now() + interval;
+  bool dirty = false;
+  std::deque<Item> batch;
+  std::string error;
+  while (true) {
+    bool closing = false;
+    {
+      std::unique_lock lock(mutex_);
+      wake_.wait_until(lock, nextFlush, [&] { return !queue_.empty() || closing_; });
+      batch.swap(queue_);
+      queuedBytes_ = 0;
+      closing = closing_;
+    }
+    space_.notify_all();
+    std::uint64_t written = 0, bytes = 0;
+    for (Item& it : batch) {
+      if (failed_.load()) break;
+      const int t = static_cast<int>(it.topic);
+      const std::uint32_t seq = it.sequence != 0 ? it.sequence : ++sequences_[t];
+      const auto time = static_cast<std::uint64_t>(std::max<std::int64_t>(it.timeNs, 0));
+      if (!writer_->write(channels_[t], seq, time, time, it.data, error)) {
+        fail(error);
+        break;
+      }
+      ++written;
+      bytes += it.data.size();
+      dirty = true;
+    }
+    const std::size_t leftover = failed_.load() ? batch.size() - written : 0;
+    batch.clear();
+    if (!failed_.load() && dirty && (closing || Clock::now() >= nextFlush)) {
+      if (!writer_->flush(options_.fsync, error)) {
+        fail(error);
+      } else {
+        dirty = false;
+        std::lock_guard lock(mutex_);
+        ++stats_.flushes;
+      }
+    }
+    if (Clock::now() >= nextFlush) nextFlush = Clock::now() + interval;
+    {
+      std::lock_guard lock(mutex_);
+      stats_.written += written;
+      stats_.bytes += bytes;
+      stats_.dropped += leftover;
+      if (closing && queue_.empty()) break;
+    }
+  }
+}
+
+bool McapRecorder::close(std::string& error) {
+  if (!thread_.joinable()) {
+    if (writer_) writer_.reset();
+    return true;
+  }
+  {
+    std::lock_guard lock(mutex_);
+    closing_ = true;
+  }
+  wake_.notify_one();
+  space_.notify_all();
+  thread_.join();
+  bool ok = !failed_.load();
+  std::string e;
+  if (ok && !writer_->close(e)) {
+    fail(e);
+    ok = false;
+  }
+  writer_.reset();
+  if (!ok) {
+    std::lock_guard lock(mutex_);
+    error = error_;
+  }
+  return ok;
+}
+
+McapRecorderStats McapRecorder::stats() const {
+  std::lock_guard lock(mutex_);
+  return stats_;
+}
+
+}  // namespace keyframed

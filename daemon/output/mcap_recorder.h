@@ -1,0 +1,101 @@
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "output/io.h"
+
+namespace keyframed {
+
+// What the flight recorder writes; each is one MCAP channel (see docs/formats.md).
+enum class McapTopic : std::uint8_t {
+  Keyframe,      // /keyframed/keyframe       foxglove.CompressedImage (the tagged JPEG)
+  KeyframeMeta,  // /keyframed/keyframe_meta  JSON: sequence, frame index, pose, scores
+  Decision,      // /keyframed/decision       JSON: one per analysed frame
+  Mavlink,       // /mavlink/raw              keyframed.MavlinkPacket
+  Location,      // /keyframed/location       foxglove.LocationFix at each keyframe
+  CameraPose,    // /keyframed/camera_pose    foxglove.PoseInFrame (camera -> NED)
+  Calibration,   // /camera/calibration       foxglove.CameraCalibration
+  Log,           // /keyframed/log            foxglove.Log
+  Count
+};
+
+struct McapRecorderOptions {
+  std::string path;
+  std::string compression = "zstd";       // zstd | lz4 | none
+  std::uint64_t chunkSize = 256 * 1024;   // small chunks: a crash loses one at most
+  int flushIntervalMs = 1000;             // chunks end at least this often
+  bool fsync = false;                     // fsync at each timed flush (power loss)
+  std::size_t maxQueueBytes = 64u << 20;  // queued but unwritten message bytes
+  bool blockWhenFull = false;             // true: producers wait (offline); false: drop
+};
+
+struct McapRecorderStats {
+  std::uint64_t written = 0;  // messages
+  std::uint64_t bytes = 0;    // message payload bytes
+  std::uint64_t dropped = 0;  // queue full or recorder stopped
+  std::uint64_t flushes = 0;
+};
+
+// The flight recorder: one writer thread owns the MCAP file; any thread queues
+// messages. A write error (disk full, I/O error) stops the recorder with one log
+// line on stderr; the caller is never blocked or failed by it afterwards.
+class McapRecorder {
+ public:
+  McapRecorder() = default;
+  ~McapRecorder();
+  McapRecorder(const McapRecorder&) = delete;
+  McapRecorder& operator=(const McapRecorder&) = delete;
+
+  // Creates the file, writes every schema and channel and flushes them at once, so
+  // a file cut short at any later point still names its channels.
+  bool open(const McapRecorderOptions& options, std::string& error);
+  // Queues one encoded message (see foxglove_proto.h); log and publish time in ns.
+  // sequence 0: the channel's own counter.
+  void record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
+              std::uint32_t sequence = 0);
+  void recordText(McapTopic topic, std::int64_t timeNs, const std::string& json);
+  // Drains the queue, writes the summary and closes. False when the recorder failed
+  // at any point (error says why).
+  bool close(std::string& error);
+
+  [[nodiscard]] bool isOpen() const { return thread_.joinable(); }
+  [[nodiscard]] bool failed() const { return failed_.load(); }
+  [[nodiscard]] McapRecorderStats stats() const;
+  [[nodiscard]] static const char* topicName(McapTopic topic);
+
+ private:
+  struct Item {
+    McapTopic topic;
+    std::uint32_t sequence;
+    std::int64_t timeNs;
+    std::vector<std::uint8_t> data;
+  };
+  void run();
+  void fail(const std::string& error);
+
+  McapRecorderOptions options_;
+  std::unique_ptr<McapWriter> writer_;
+  std::uint16_t channels_[static_cast<int>(McapTopic::Count)] = {};
+  std::uint32_t sequences_[static_cast<int>(McapTopic::Count)] = {};
+  std::thread thread_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable wake_;   // writer: work or closing
+  std::condition_variable space_;  // producers: queue has room
+  std::deque<Item> queue_;
+  std::size_t queuedBytes_ = 0;
+  bool closing_ = false;
+  McapRecorderStats stats_;
+  std::string error_;
+  std::atomic<bool> failed_{false};
+};
+
+}  // namespace keyframed

@@ -1,0 +1,327 @@
+"""MCAP flight record and Zenoh stream of `keyframed select`, checked with independent
+tools: pymcap-cli's doctor, the Python `mcap` reader, Foxglove's own compiled protobuf
+schemas (foxglove-schemas-protobuf) and a Python eclipse-zenoh peer."""
+
+from __future__ import annotations
+
+import csv
+import json
+import resource
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from flights import flight
+from keyframed import synth
+
+mcap_reader = pytest.importorskip("mcap.reader")
+zenoh = pytest.importorskip("zenoh")
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration  # noqa: E402
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage  # noqa: E402
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix  # noqa: E402
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame  # noqa: E402
+from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
+
+PYMCAP_CLI = shutil.which("pymcap-cli") or str(Path(sys.executable).parent / "pymcap-cli")
+
+
+@pytest.fixture(scope="module")
+def short_nadir() -> Path:
+    return flight("nadir", width=480, height=270, seconds=8.0)
+
+
+def select(kf_bin: Path, video: Path, out: Path, *extra: str, **kw: Any) -> Any:
+    cmd = [str(kf_bin), "select", str(video), "--out", str(out), "--quiet", *extra]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=kw.pop("timeout", 180), **kw)
+
+
+def keyframe_rows(out: Path) -> list[dict[str, str]]:
+    with (out / "keyframes.csv").open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def messages(path: Path, *, seeking: bool = True) -> list[tuple[str, Any, Any]]:
+    """(topic, schema, message) for every message. A file cut short (seeking=False) is
+    read from the start with NonSeekingReader up to its torn last chunk, whose length
+    field is still the writer's placeholder: the reader stops there with an error."""
+    out = []
+    with path.open("rb") as fh:
+        if seeking:
+            it = mcap_reader.make_reader(fh).iter_messages(log_time_order=False)
+        else:
+            it = mcap_reader.NonSeekingReader(fh).iter_messages(log_time_order=False)
+        try:
+            for schema, ch, msg in it:
+                out.append((ch.topic, schema, msg))
+        except Exception:
+            if seeking:
+                raise
+    return out
+
+
+def by_topic(msgs: list[tuple[str, Any, Any]], topic: str) -> list[Any]:
+    return [m for t, _, m in msgs if t == topic]
+
+
+def doctor(path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [PYMCAP_CLI, "doctor", str(path)], capture_output=True, text=True, timeout=120
+    )
+
+
+# ---- (a) the record is valid and complete ------------------------------------------
+
+
+def test_mcap_record_is_valid_and_complete(kf_bin: Path, short_nadir: Path, tmp_path: Path):
+    out, rec = tmp_path / "out", tmp_path / "flight.mcap"
+    r = select(
+        kf_bin,
+        short_nadir / "video.avi",
+        out,
+        "--mcap",
+        str(rec),
+        "--telemetry",
+        str(short_nadir / "flight.tlog"),
+        "--video-start",
+        str(synth.EPOCH_UNIX_S),
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    d = doctor(rec)
+    assert d.returncode == 0 and "passed" in d.stdout, d.stdout + d.stderr
+
+    msgs = messages(rec)
+    rows = keyframe_rows(out)
+    assert len(rows) >= 5
+    summary = json.loads((out / "summary.json").read_text())
+
+    # One keyframe message per kept frame, byte-identical to the tagged JPEG, decoded
+    # with Foxglove's own schema (field numbers must match theirs).
+    kf = [(m, CompressedImage.FromString(m.data)) for m in by_topic(msgs, "/keyframed/keyframe")]
+    assert len(kf) == len(rows) == summary["kept"]
+    for (m, img), row in zip(sorted(kf, key=lambda x: x[0].sequence), rows, strict=True):
+        assert img.data == (out / row["file"]).read_bytes()
+        assert img.format == "jpeg" and img.frame_id == "camera"
+        assert m.sequence == int(row["sequence"]) + 1
+        assert m.log_time == int(row["time_ns"])
+        assert img.timestamp.seconds * 10**9 + img.timestamp.nanos == int(row["time_ns"])
+
+    meta = [json.loads(m.data) for m in by_topic(msgs, "/keyframed/keyframe_meta")]
+    assert [x["file"] for x in meta] == [row["file"] for row in rows]
+    assert all(x["scores"] is not None for x in meta)
+
+    # Every analysed frame has its decision.
+    dec = [json.loads(m.data) for m in by_topic(msgs, "/keyframed/decision")]
+    assert sorted(x["index"] for x in dec) == list(range(summary["frames_read"]))
+
+    # Poses and calibration, also with Foxglove's schemas.
+    fixes = [LocationFix.FromString(m.data) for m in by_topic(msgs, "/keyframed/location")]
+    assert len(fixes) == summary["telemetry"]["geotagged"] > 0
+    tagged = [row for row in rows if row["lat"]]
+    for fix, row in zip(fixes, tagged, strict=True):
+        assert fix.latitude == pytest.approx(float(row["lat"]), abs=1e-8)
+        assert fix.longitude == pytest.approx(float(row["lon"]), abs=1e-8)
+    poses = [PoseInFrame.FromString(m.data) for m in by_topic(msgs, "/keyframed/camera_pose")]
+    assert len(poses) == len([row for row in rows if row["cam_qw"]])
+    for p in poses:
+        q = p.pose.orientation
+        assert q.x**2 + q.y**2 + q.z**2 + q.w**2 == pytest.approx(1.0, abs=1e-6)
+    (cal_msg,) = by_topic(msgs, "/camera/calibration")
+    cal = CameraCalibration.FromString(cal_msg.data)
+    intr = json.loads((short_nadir / "intrinsics.json").read_text())
+    assert (cal.width, cal.height) == (480, 270)
+    assert cal.K[0] == pytest.approx(intr["fx"] * 480 / intr["width"], rel=1e-6)
+
+    # The schemas in the file decode the messages on their own (mcap-protobuf-support).
+    with rec.open("rb") as fh:
+        reader = mcap_reader.make_reader(fh, decoder_factories=[DecoderFactory()])
+        channels = reader.get_summary().channels.values()
+        proto_topics = [c.topic for c in channels if c.message_encoding == "protobuf"]
+        decoded = [m for _, _, _, m in reader.iter_decoded_messages(topics=proto_topics)]
+    assert len(decoded) == len(kf) + len(fixes) + len(poses) + 2  # + calibration + log
+
+
+# ---- (b) crash safety ----------------------------------------------------------------
+
+
+def test_sigkill_loses_at_most_the_last_second(kf_bin: Path, short_nadir: Path, tmp_path: Path):
+    out, rec = tmp_path / "out", tmp_path / "killed.mcap"
+    # --realtime: frames come at the video's 30 fps, as from a camera.
+    p = subprocess.Popen(
+        [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(out), "--quiet"]
+        + ["--realtime", "--mcap", str(rec)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    time.sleep(4.0)
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=10)
+    rows = keyframe_rows(out)  # flushed row by row
+    msgs = messages(rec, seeking=False)
+    dec = sorted(json.loads(m.data)["index"] for m in by_topic(msgs, "/keyframed/decision"))
+    # About 4 s at 30 fps were analysed; the timed flush (1 s) keeps all but the last
+    # second or so (allow 1.5 s for start-up and a loaded machine).
+    assert dec == list(range(len(dec)))
+    assert len(dec) >= 30 * 4 - 30 * 2.5, len(dec)
+    # Every keyframe before the last recovered decision is there, byte-identical.
+    images = {
+        m.sequence - 1: CompressedImage.FromString(m.data).data
+        for m in by_topic(msgs, "/keyframed/keyframe")
+    }
+    expected = [row for row in rows if int(row["index"]) <= dec[-1]]
+    assert len(expected) >= 1
+    for row in expected:
+        assert images[int(row["sequence"])] == (out / row["file"]).read_bytes()
+
+
+# ---- disk full: the recorder stops, the run goes on ----------------------------------
+
+
+def test_write_error_stops_only_the_recorder(kf_bin: Path, pan_video: Path, tmp_path: Path):
+    out, rec = tmp_path / "out", tmp_path / "full.mcap"
+
+    def limit_file_size() -> None:
+        # Any file larger than 200 kB fails to grow (EFBIG), as on a full disk;
+        # keyframes (about 50 kB each) still fit.
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+
+    r = select(kf_bin, pan_video, out, "--mcap", str(rec), preexec_fn=limit_file_size)
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if "MCAP recorder stopped" in ln]
+    assert len(lines) == 1, r.stderr
+    assert str(rec) in lines[0]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kept"] == len(keyframe_rows(out)) >= 2
+
+
+# ---- (c) Zenoh --------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def peer_config(listen: list[str] | None = None, connect: list[str] | None = None) -> str:
+    return json.dumps(
+        {
+            "mode": "peer",
+            "scouting": {"multicast": {"enabled": False}},
+            "listen": {"endpoints": listen or []},
+            "connect": {"endpoints": connect or []},
+        }
+    )
+
+
+def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
+    kf_bin: Path, pan_video: Path, tmp_path: Path
+):
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg = tmp_path / "zenoh.json5"
+    cfg.write_text(peer_config(connect=[endpoint]))
+    out = tmp_path / "out"
+
+    received: list[tuple[str, bytes, dict[str, Any]]] = []
+    status: list[dict[str, Any]] = []
+    session = zenoh.open(zenoh.Config.from_json5(peer_config(listen=[endpoint])))
+    try:
+        sub = session.declare_subscriber(
+            "keyframed/test1/keyframe",
+            lambda s: received.append(
+                (str(s.key_expr), s.payload.to_bytes(), json.loads(s.attachment.to_bytes()))
+            ),
+        )
+        st = session.declare_subscriber(
+            "keyframed/test1/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
+        )
+        # --realtime keeps the daemon (and its queryable) up for the video's 3 s.
+        p = subprocess.Popen(
+            [str(kf_bin), "select", str(pan_video), "--out", str(out), "--quiet", "--realtime"]
+            + ["--zenoh-config", str(cfg), "--vehicle", "test1"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        deadline = time.monotonic() + 20
+        while not received and time.monotonic() < deadline and p.poll() is None:
+            time.sleep(0.01)
+        assert received, "no keyframe arrived"
+        # The daemon is still running: fetch keyframe 0 from its store, and all of them.
+        replies = list(session.get("keyframed/test1/keyframes/0", timeout=5.0))
+        one = [r.ok for r in replies if r.ok is not None]
+        assert len(one) == 1, [r.err.payload.to_string() for r in replies if r.err]
+        assert str(one[0].key_expr) == "keyframed/test1/keyframes/0"
+        first_file = json.loads(one[0].attachment.to_bytes())["file"]
+        assert one[0].payload.to_bytes() == (out / first_file).read_bytes()
+        missing = list(session.get("keyframed/test1/keyframes/999999", timeout=5.0))
+        assert missing and missing[0].err is not None
+        assert "no keyframe" in missing[0].err.payload.to_string()
+        stdout, stderr = p.communicate(timeout=60)
+        assert p.returncode == 0, stderr
+        time.sleep(0.2)
+        sub.undeclare()
+        st.undeclare()
+    finally:
+        session.close()
+
+    rows = keyframe_rows(out)
+    assert len(rows) >= 2
+    assert len(received) == len(rows)
+    for (key, payload, meta), row in zip(received, rows, strict=True):
+        assert key == "keyframed/test1/keyframe"
+        assert payload == (out / row["file"]).read_bytes()
+        assert meta["vehicle"] == "test1"
+        assert meta["sequence"] == int(row["sequence"])
+        assert meta["frame_index"] == int(row["index"])
+        assert meta["time_ns"] == int(row["time_ns"])
+        assert meta["file"] == row["file"]
+        assert set(meta["scores"]) >= {"sharpness", "threshold", "overlap", "features"}
+    assert status and status[-1]["state"] == "done"
+    assert status[-1]["kept"] == len(rows)
+
+
+# ---- (d) bad input ---------------------------------------------------------------------
+
+
+def test_unwritable_mcap_path_is_a_clear_error(kf_bin: Path, pan_video: Path, tmp_path: Path):
+    bad = tmp_path / "no-such-dir" / "x.mcap"
+    r = select(kf_bin, pan_video, tmp_path / "out", "--mcap", str(bad))
+    assert r.returncode != 0
+    assert "--mcap" in r.stderr and str(bad) in r.stderr, r.stderr
+    assert r.stderr.count("\n") <= 2, r.stderr
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("{ mode: 'peer', this is not json5 ", "zenoh config"),
+        ('{ "mode": "satellite" }', "zenoh config"),
+        (None, "zenoh config"),  # missing file
+    ],
+)
+def test_bad_zenoh_config_is_a_clear_error(
+    kf_bin: Path, pan_video: Path, tmp_path: Path, text: str | None, words: str
+):
+    cfg = tmp_path / "zenoh.json5"
+    if text is not None:
+        cfg.write_text(text)
+    r = select(kf_bin, pan_video, tmp_path / "out", "--zenoh-config", str(cfg), timeout=60)
+    assert r.returncode != 0
+    assert "--zenoh-config" in r.stderr and words in r.stderr, r.stderr
+    assert "panic" not in r.stderr
+
+
+def test_bad_vehicle_name_is_rejected(kf_bin: Path, pan_video: Path, tmp_path: Path):
+    r = select(kf_bin, pan_video, tmp_path / "out", "--vehicle", "a/b", "--zenoh-config", "x")
+    assert r.returncode == 2
+    assert "--vehicle" in r.stderr

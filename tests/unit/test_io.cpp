@@ -1,0 +1,239 @@
+// The Rust I/O crate through its C++ wrappers: MCAP writing and Zenoh in-process.
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "output/foxglove_proto.h"
+#include "output/io.h"
+#include "output/io_ffi.h"
+#include "output/keyframe_publisher.h"
+#include "output/mcap_recorder.h"
+
+namespace keyframed {
+namespace {
+
+std::string tempPath(const std::string& name) {
+  const auto dir =
+      std::filesystem::temp_directory_path() / ("keyframed_io_" + std::to_string(getpid()));
+  std::filesystem::create_directories(dir);
+  return (dir / name).string();
+}
+
+std::vector<std::uint8_t> readAll(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
+}
+
+const std::uint8_t kMagic[] = {0x89, 'M', 'C', 'A', 'P', 0x30, '\r', '\n'};
+
+bool hasMagic(const std::vector<std::uint8_t>& b, bool atEnd) {
+  if (b.size() < 16) return false;
+  const std::size_t off = atEnd ? b.size() - 8 : 0;
+  return std::equal(std::begin(kMagic), std::end(kMagic), b.begin() + static_cast<long>(off));
+}
+
+TEST(McapWriter, WritesAFileWithHeaderAndFooterMagic) {
+  const std::string path = tempPath("basic.mcap");
+  std::string error;
+  auto w = McapWriter::open({path, "zstd", 4096}, error);
+  ASSERT_TRUE(w) << error;
+  std::uint16_t schema = 0, channel = 0;
+  const std::string js = R"({"type":"object"})";
+  ASSERT_TRUE(w->addSchema("test.Msg", "jsonschema",
+                           {reinterpret_cast<const std::uint8_t*>(js.data()), js.size()}, schema,
+                           error))
+      << error;
+  EXPECT_GT(schema, 0);
+  ASSERT_TRUE(w->addChannel(schema, "/test", "json", {{"k", "v"}}, channel, error)) << error;
+  const std::string msg = R"({"a":1})";
+  for (std::uint32_t i = 0; i < 100; ++i) {
+    ASSERT_TRUE(w->write(channel, i, 1000 + i, 1000 + i,
+                         {reinterpret_cast<const std::uint8_t*>(msg.data()), msg.size()}, error))
+        << error;
+  }
+  ASSERT_TRUE(w->flush(true, error)) << error;
+  // After a flush the file already starts with the magic and holds the messages.
+  EXPECT_TRUE(hasMagic(readAll(path), false));
+  ASSERT_TRUE(w->close(error)) << error;
+  const auto bytes = readAll(path);
+  EXPECT_TRUE(hasMagic(bytes, false));
+  EXPECT_TRUE(hasMagic(bytes, true));
+  // Closing twice is harmless.
+  EXPECT_TRUE(w->close(error));
+}
+
+TEST(McapWriter, UnwritablePathIsAnError) {
+  std::string error;
+  auto w = McapWriter::open({"/nonexistent-dir/x.mcap", "zstd", 0}, error);
+  EXPECT_FALSE(w);
+  EXPECT_NE(error.find("/nonexistent-dir/x.mcap"), std::string::npos) << error;
+}
+
+TEST(McapWriter, BadArgumentsAreErrorsNotCrashes) {
+  char err[128] = {};
+  EXPECT_EQ(kfio_mcap_open(nullptr, "zstd", 0, err, sizeof err), nullptr);
+  EXPECT_NE(std::string(err).find("NULL"), std::string::npos);
+  EXPECT_EQ(kfio_mcap_open(tempPath("c.mcap").c_str(), "brotli", 0, err, sizeof err), nullptr);
+  EXPECT_NE(std::string(err).find("brotli"), std::string::npos);
+  EXPECT_EQ(kfio_mcap_write(nullptr, 1, 0, 0, 0, nullptr, 0, err, sizeof err), -1);
+  // A tiny error buffer is truncated, NUL-terminated.
+  char small[4] = {1, 1, 1, 1};
+  EXPECT_EQ(kfio_mcap_write(nullptr, 1, 0, 0, 0, nullptr, 0, small, sizeof small), -1);
+  EXPECT_EQ(small[3], '\0');
+  EXPECT_EQ(kfio_mcap_close(nullptr, nullptr, 0), 0);
+
+  std::string error;
+  auto w = McapWriter::open({tempPath("d.mcap"), "lz4", 0}, error);
+  ASSERT_TRUE(w) << error;
+  const std::uint8_t data[] = {1, 2, 3};
+  EXPECT_FALSE(w->write(42, 0, 0, 0, data, error));  // unknown channel
+  EXPECT_FALSE(error.empty());
+  std::uint16_t id = 0;
+  EXPECT_FALSE(w->addChannel(7, "/x", "json", {}, id, error));  // unknown schema
+  EXPECT_TRUE(w->close(error)) << error;
+}
+
+TEST(McapWriter, WriteErrorIsReportedOnce) {
+  // /dev/full accepts the open and fails every write with ENOSPC.
+  std::string error;
+  auto w = McapWriter::open({"/dev/full", "none", 0}, error);
+  ASSERT_TRUE(w) << error;
+  EXPECT_FALSE(w->flush(false, error));
+  EXPECT_NE(error.find("/dev/full"), std::string::npos) << error;
+  EXPECT_FALSE(w->close(error));
+}
+
+TEST(McapRecorder, RecordsEverythingQueued) {
+  const std::string path = tempPath("rec.mcap");
+  McapRecorder rec;
+  std::string error;
+  McapRecorderOptions o;
+  o.path = path;
+  o.blockWhenFull = true;
+  o.maxQueueBytes = 4096;  // producers wait for the writer
+  ASSERT_TRUE(rec.open(o, error)) << error;
+  std::vector<std::uint8_t> jpeg(3000, 0xAB);
+  for (int i = 0; i < 50; ++i) {
+    rec.record(McapTopic::Keyframe, i * 1'000'000LL,
+               proto::compressedImage(i, "camera", jpeg, "jpeg"),
+               static_cast<std::uint32_t>(i + 1));
+    rec.recordText(McapTopic::Decision, i * 1'000'000LL, "{\"index\":" + std::to_string(i) + "}");
+  }
+  ASSERT_TRUE(rec.close(error)) << error;
+  const McapRecorderStats s = rec.stats();
+  EXPECT_EQ(s.written, 100u);
+  EXPECT_EQ(s.dropped, 0u);
+  EXPECT_TRUE(hasMagic(readAll(path), true));
+}
+
+TEST(McapRecorder, OpenFailsOnUnwritablePath) {
+  McapRecorder rec;
+  std::string error;
+  McapRecorderOptions o;
+  o.path = "/proc/keyframed-cannot-write.mcap";
+  EXPECT_FALSE(rec.open(o, error));
+  EXPECT_FALSE(error.empty());
+  EXPECT_FALSE(rec.isOpen());
+}
+
+TEST(FoxgloveProto, EveryRecordedSchemaHasADescriptorSet) {
+  for (const char* name :
+       {"foxglove.CompressedImage", "foxglove.LocationFix", "foxglove.PoseInFrame",
+        "foxglove.CameraCalibration", "foxglove.Log", "keyframed.MavlinkPacket"}) {
+    EXPECT_GT(proto::descriptorSet(name).size(), 100u) << name;
+  }
+  EXPECT_TRUE(proto::descriptorSet("foxglove.Nope").empty());
+}
+
+TEST(FoxgloveProto, CompressedImageWireFormat) {
+  const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
+  const auto m = proto::compressedImage(1'500'000'000LL, "cam", jpeg, "jpeg");
+  // timestamp {seconds: 1, nanos: 500000000}, frame_id = 4, data = 2, format = 3.
+  const std::vector<std::uint8_t> expected = {0x0A, 0x08, 0x08, 0x01, 0x10, 0x80,
+                                              0xCA, 0xB5, 0xEE, 0x01,              // field 1
+                                              0x22, 0x03, 'c',  'a',  'm',         // field 4
+                                              0x12, 0x04, 0xFF, 0xD8, 0xFF, 0xD9,  // field 2
+                                              0x1A, 0x04, 'j',  'p',  'e',  'g'};  // field 3
+  EXPECT_EQ(m, expected);
+}
+
+TEST(KeyframeIndex, ReadsKeyframesCsvAsJson) {
+  const std::string dir = tempPath("kf");
+  std::filesystem::create_directories(dir);
+  {
+    std::ofstream f(dir + "/keyframes.csv");
+    f << "sequence,index,file,time_ns,utc_us,lat,lon,alt_amsl,alt_rel,cam_qw,cam_qx,cam_qy,"
+         "cam_qz,yaw,pitch,roll,hdop,fix_type,geotag\n"
+         "0,5,000005.jpg,166666666,,,,,,,,,,,,,,,\"\"\n"
+         "1,42,000042.jpg,1400000000,1700000000000000,47.1,8.5,500.0,50.0,1,0,0,0,0,-90,0,0.8,"
+         "3,\"ok, fresh\"\n";
+  }
+  std::vector<StoredKeyframe> rows;
+  std::string error;
+  ASSERT_TRUE(readKeyframeIndex(dir, "uav1", rows, error)) << error;
+  ASSERT_EQ(rows.size(), 2u);
+  EXPECT_EQ(rows[1].sequence, 1);
+  EXPECT_EQ(rows[1].file, "000042.jpg");
+  EXPECT_NE(rows[0].metadataJson.find("\"lat\":null"), std::string::npos) << rows[0].metadataJson;
+  EXPECT_NE(rows[1].metadataJson.find("\"frame_index\":42"), std::string::npos);
+  EXPECT_NE(rows[1].metadataJson.find("\"cam_q\":[1,0,0,0]"), std::string::npos);
+  EXPECT_NE(rows[1].metadataJson.find("\"geotag\":\"ok, fresh\""), std::string::npos);
+  EXPECT_FALSE(readKeyframeIndex(dir + "/missing", "uav1", rows, error));
+}
+
+TEST(Zenoh, BadConfigIsAClearError) {
+  std::string error;
+  ZenohSession::Options o;
+  o.configJson5 = "{ this is not json5";
+  EXPECT_FALSE(ZenohSession::open(o, error));
+  EXPECT_NE(error.find("zenoh config"), std::string::npos) << error;
+  o.configJson5.clear();
+  o.configFile = "/nonexistent/zenoh.json5";
+  EXPECT_FALSE(ZenohSession::open(o, error));
+  EXPECT_NE(error.find("/nonexistent/zenoh.json5"), std::string::npos) << error;
+  EXPECT_FALSE(KeyframePublisher::checkVehicleName("a/b").empty());
+  EXPECT_TRUE(KeyframePublisher::checkVehicleName("uav-1").empty());
+}
+
+TEST(Zenoh, PublisherAndQueryableDeclareAndUndeclare) {
+  // One isolated session (no scouting, no listeners); queries are tested end to end
+  // in tests/harness/test_mcap_zenoh.py.
+  std::string error;
+  ZenohSession::Options o;
+  o.configJson5 = R"({mode: "peer", scouting: {multicast: {enabled: false}},
+                      listen: {endpoints: []}, connect: {endpoints: []}})";
+  auto session = ZenohSession::open(o, error);
+  ASSERT_TRUE(session) << error;
+  EXPECT_FALSE(session->zid().empty());
+  std::atomic<int> calls{0};
+  auto q = ZenohQueryable::declare(
+      *session, "test/kf/*",
+      [&calls](const std::string& key, const std::string&, ZenohReply& reply) {
+        ++calls;
+        std::string e;
+        const std::string body = "payload for " + key;
+        reply.ok({}, {reinterpret_cast<const std::uint8_t*>(body.data()), body.size()}, {}, e);
+      },
+      error);
+  ASSERT_TRUE(q) << error;
+  auto pub =
+      ZenohPublisher::declare(*session, "test/kf/frames", ZenohPublisher::Kind::Reliable, error);
+  ASSERT_TRUE(pub) << error;
+  const std::uint8_t data[] = {1, 2, 3};
+  EXPECT_TRUE(pub->put(data, data, error)) << error;
+  q.reset();  // undeclare joins the queryable thread
+  pub.reset();
+  session.reset();
+  SUCCEED();
+}
+
+}  // namespace
+}  // namespace keyframed
