@@ -3,8 +3,8 @@
 #include <string>
 #include <vector>
 
-#include "app/probe_v4l2.h"
 #include "app/config.h"
+#include "app/probe_v4l2.h"
 #include "app/sd_notify.h"
 #include "app/select_command.h"
 
