@@ -93,6 +93,19 @@ const CameraModel* KeyframeWriter::cameraFor(int width, int height) {
 bool KeyframeWriter::write(const cv::Mat& bgr, std::int64_t frameIndex, std::int64_t timeNs,
                            const Pose* pose, KeyframeRecord& rec, std::string& error) {
   if (!encoder_.encode(bgr, config_.quality, jpeg_, error)) return false;
+  return finishWrite(bgr.cols, bgr.rows, frameIndex, timeNs, pose, rec, error);
+}
+
+bool KeyframeWriter::write(const Frame& frame, const Pose* pose, KeyframeRecord& rec,
+                           std::string& error) {
+  // Straight from the camera's YUV where the frame is YUV: no colour conversion.
+  if (!encoder_.encode(frame, config_.quality, jpeg_, error)) return false;
+  return finishWrite(frame.width, frame.height, frame.index, frame.timestampNs, pose, rec, error);
+}
+
+bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
+                                 std::int64_t timeNs, const Pose* pose, KeyframeRecord& rec,
+                                 std::string& error) {
   rec = KeyframeRecord{};
   rec.sequence = count_;
   rec.frameIndex = frameIndex;
@@ -100,7 +113,7 @@ bool KeyframeWriter::write(const cv::Mat& bgr, std::int64_t frameIndex, std::int
   rec.file = config_.dir + "/" + fileName(frameIndex);
 
   TagSet tags;
-  tags.camera = cameraFor(bgr.cols, bgr.rows);
+  tags.camera = cameraFor(width, height);
   tags.frameIndex = frameIndex;
   if (pose != nullptr) {
     rec.pose = *pose;

@@ -8,6 +8,7 @@
 
 #include <opencv2/core/mat.hpp>
 
+#include "core/frame.h"
 #include "tagging/camera_model.h"
 #include "tagging/camera_mount.h"
 #include "tagging/jpeg_encoder.h"
@@ -47,6 +48,9 @@ class KeyframeWriter {
   // pose: nullptr when there is no telemetry. False with a one-line error.
   bool write(const cv::Mat& bgr, std::int64_t frameIndex, std::int64_t timeNs, const Pose* pose,
              KeyframeRecord& record, std::string& error);
+  // The same from a frame in any pixel format (JPEG straight from YUV); the
+  // frame's index and timestamp name and date the keyframe.
+  bool write(const Frame& frame, const Pose* pose, KeyframeRecord& record, std::string& error);
   bool close(std::string& error);
 
   [[nodiscard]] std::int64_t count() const { return count_; }
@@ -58,6 +62,8 @@ class KeyframeWriter {
 
  private:
   const CameraModel* cameraFor(int width, int height);
+  bool finishWrite(int width, int height, std::int64_t frameIndex, std::int64_t timeNs,
+                   const Pose* pose, KeyframeRecord& record, std::string& error);
 
   KeyframeWriterConfig config_;
   JpegEncoder encoder_;

@@ -13,6 +13,8 @@
 #include <opencv2/core/utils/logger.hpp>
 
 #include "app/decision_log.h"
+#include "app/keyframe_output.h"
+#include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "capture/file_source.h"
 #include "output/flight_outputs.h"
@@ -212,49 +214,21 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     return s;
   }
 
-  // Encodes, tags and writes one keyframe; returns its geotag note.
-  auto writeKeyframe = [&](const cv::Mat& bgr, std::int64_t index, std::int64_t timeNs,
-                           std::string& note) -> bool {
-    std::optional<Pose> pose;
-    if (telemetry) {
-      if (!telemetry->isReplay()) {
-        // Telemetry for this instant may still be on its way: wait a little.
-        const std::int64_t deadline = monotonicNowNs() + opts.telemetryWaitMs * 1'000'000LL;
-        while (!telemetry->decoder().covers(timeNs) && monotonicNowNs() < deadline) {
-          std::this_thread::sleep_for(std::chrono::milliseconds(2));
-        }
-      }
-      pose = telemetry->decoder().poseAt(timeNs);
-    }
-    KeyframeRecord rec;
-    if (!writer.write(bgr, index, timeNs, pose ? &*pose : nullptr, rec, error)) return false;
-    outputs.keyframe(rec, writer.lastJpeg());
-    note = rec.geotag;
-    if (telemetry && !telemetry->isReplay()) {
-      CaptureReport report;
-      report.timeNs = timeNs;
-      report.imageIndex = static_cast<std::int32_t>(rec.sequence);
-      report.pose = rec.pose;
-      report.cameraAttitude = rec.cameraToNed;
-      report.fileUrl = "file://" + rec.file;
-      telemetry->reportCapture(report);
-    }
-    return true;
-  };
+  KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs);
+  bool outputFailed = false;
 
   SteadyClock clock;
-  KeyframeSelector selector(opts.selector, &clock);
-  cv::Mat candidate;  // pixels of the current fallback candidate (buffer reused)
-  std::int64_t candidateIndex = -1;
-  std::int64_t candidateTimeNs = 0;
-  bool candidateBlur = false;  // the candidate was counted as rejected for blur
-  double analysisNs = 0.0;
+  KeyframeStage stage(opts.selector, &clock, [&](KeyframeEvent&& ev) {
+    if (!outputFailed && !output.handle(ev, error)) {
+      outputFailed = true;
+      s.error = error;
+    }
+  });
 
   const auto start = std::chrono::steady_clock::now();
   const std::int64_t startNs = monotonicNowNs();
   auto lastProgress = start;
   Frame frame;
-  std::string note;
   while (true) {
     if (stop != nullptr && stop->load()) {
       s.interrupted = true;
@@ -284,50 +258,10 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     } else if (opts.videoStartUnixNs) {
       frame.timestampNs += *opts.videoStartUnixNs;
     }
-    ++s.framesRead;
-    const Decision d = selector.process(frame);
-    if (outputs.active()) outputs.decision(d, DecisionLog::jsonRow(d));
-    analysisNs += static_cast<double>(d.times.totalNs);
-    const cv::Mat bgr(frame.height, frame.width, CV_8UC3, const_cast<std::uint8_t*>(frame.data),
-                      static_cast<size_t>(frame.stride));
-    // Each frame is counted once by its decision; a candidate promoted later
-    // moves from its rejection counter to the kept one.
-    auto uncount = [&s](bool blur) { --(blur ? s.rejectedBlur : s.rejectedOverlap); };
-    if (d.promotedIndex >= 0) {
-      if (d.promotedIndex == candidateIndex && !candidate.empty()) {
-        if (!writeKeyframe(candidate, candidateIndex, candidateTimeNs, note)) {
-          s.error = error;
-          break;
-        }
-        log.setGeotag(candidateIndex, note);
-      }
-      ++s.kept;
-      ++s.promoted;
-      uncount(candidateBlur);
-      candidateIndex = -1;
-    }
-    const bool blur = d.reason == Reason::Blurry || d.reason == Reason::Lost;
-    note.clear();
-    if (d.kept) {
-      if (!writeKeyframe(bgr, d.index, frame.timestampNs, note)) {
-        s.error = error;
-        break;
-      }
-      ++s.kept;
-      candidateIndex = -1;
-    } else {
-      ++(blur ? s.rejectedBlur : s.rejectedOverlap);
-      if (d.candidate) {
-        bgr.copyTo(candidate);
-        candidateIndex = d.index;
-        candidateTimeNs = frame.timestampNs;
-        candidateBlur = blur;
-      }
-    }
-    if (!log.add(d, error, note)) {
-      s.error = error;
-      break;
-    }
+    stage.process(frame);
+    s.framesRead = stage.counts().framesRead;
+    s.kept = stage.counts().kept;
+    if (outputFailed) break;
     outputs.progress(s.framesRead, s.kept);
     const auto now = std::chrono::steady_clock::now();
     if (progress && now - lastProgress > std::chrono::milliseconds(250)) {
@@ -338,19 +272,16 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   }
   // The end of the flight needs covering too: keep the pending candidate.
-  if (s.error.empty()) {
-    const std::int64_t last = selector.finish();
-    if (last >= 0 && last == candidateIndex && !candidate.empty()) {
-      if (writeKeyframe(candidate, candidateIndex, candidateTimeNs, note)) {
-        log.markGapFill(last);
-        log.setGeotag(last, note);
-        ++s.kept;
-        ++s.promoted;
-        --(candidateBlur ? s.rejectedBlur : s.rejectedOverlap);
-      } else {
-        s.error = error;
-      }
-    }
+  // (also after a read error: the video up to the break is covered; not after
+  // an output error, which is already the run's failure)
+  if (!outputFailed) stage.finish();
+  {
+    const StageCounts& c = stage.counts();
+    s.framesRead = c.framesRead;
+    s.kept = c.kept;
+    s.rejectedBlur = c.rejectedBlur;
+    s.rejectedOverlap = c.rejectedOverlap;
+    s.promoted = c.promoted;
   }
   if (!log.close(error) && s.error.empty()) s.error = error;
   if (!writer.close(error) && s.error.empty()) s.error = error;
@@ -377,7 +308,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   }
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;
-  s.analysisMsMean = s.framesRead > 0 ? analysisNs / static_cast<double>(s.framesRead) / 1e6 : 0.0;
+  s.analysisMsMean =
+      s.framesRead > 0 ? stage.counts().analysisNs / static_cast<double>(s.framesRead) / 1e6 : 0.0;
   if (progress) progress(s.framesRead, source->info().frameCount, s.kept, s.framesPerSecond);
   if (!writeSummary(s.summaryPath, opts, source->info(), s, error) && s.error.empty())
     s.error = error;

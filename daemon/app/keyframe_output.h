@@ -1,0 +1,38 @@
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "app/decision_log.h"
+#include "app/keyframe_stage.h"
+#include "app/keyframe_writer.h"
+#include "output/flight_outputs.h"
+#include "telemetry/telemetry_service.h"
+
+namespace keyframed {
+
+// The output end of the data path, shared by `select` (inline) and `run` (on the
+// output thread): for each KeyframeEvent, tags and writes the keyframes it carries
+// (pose at the frame's time, waiting briefly on a live link for telemetry newer
+// than the frame), logs the decision, feeds the MCAP/Zenoh outputs and reports
+// the capture to the autopilot. Events must arrive in frame order.
+class KeyframeOutput {
+ public:
+  KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
+                 TelemetryService* telemetry, int telemetryWaitMs);
+
+  // False with a one-line error when a keyframe or the decision log cannot be
+  // written (the keyframes written so far stay complete).
+  bool handle(const KeyframeEvent& event, std::string& error);
+
+ private:
+  bool writeKeyframe(const Frame& frame, std::string& note, std::string& error);
+
+  KeyframeWriter& writer_;
+  DecisionLog& log_;
+  FlightOutputs& outputs_;
+  TelemetryService* telemetry_;
+  int telemetryWaitMs_;
+};
+
+}  // namespace keyframed

@@ -1,0 +1,63 @@
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "capture/frame_queue.h"
+#include "core/selector.h"
+
+namespace keyframed {
+
+// What the analysis hands to the output for one frame (or at the end of the
+// stream): the decision, and the pixels of whatever became a keyframe with it.
+struct KeyframeEvent {
+  Decision decision;
+  FramePtr keyframe;         // decision.kept: this frame's pixels (owned copy)
+  FramePtr promoted;         // a candidate promoted to keyframe with this decision (gap fill)
+  bool endOfStream = false;  // the selector's finish(): only `promoted` is meaningful
+};
+
+struct StageCounts {
+  std::int64_t framesRead = 0;
+  std::int64_t kept = 0;
+  std::int64_t rejectedBlur = 0;     // Reason::Blurry or Lost, never promoted
+  std::int64_t rejectedOverlap = 0;  // Reason::Redundant, never promoted
+  std::int64_t promoted = 0;         // kept later as gap fills (included in kept)
+  double analysisNs = 0.0;           // selector time, summed
+};
+
+// The analysis end of the data path, shared by `keyframed select` (called inline)
+// and `keyframed run` (on the analysis thread): runs the selector on each frame,
+// keeps a copy of the fallback candidate so that a later gap fill still has its
+// pixels, counts, and emits one KeyframeEvent per frame. No I/O.
+class KeyframeStage {
+ public:
+  using Emit = std::function<void(KeyframeEvent&&)>;
+
+  KeyframeStage(const SelectorConfig& config, const Clock* clock, Emit emit);
+
+  void process(const Frame& frame);
+  // End of the stream: the pending candidate becomes a keyframe (emitted with
+  // endOfStream) so the last stretch is covered too.
+  void finish();
+  // New settings (SIGHUP). The pending candidate is kept first, as at the end of a
+  // stream, so changing settings never opens a coverage gap.
+  void reconfigure(const SelectorConfig& config);
+
+  [[nodiscard]] const StageCounts& counts() const { return counts_; }
+  [[nodiscard]] const SelectorConfig& config() const { return selector_.config(); }
+
+ private:
+  FramePtr copyOf(const Frame& frame);
+
+  KeyframeSelector selector_;
+  Emit emit_;
+  StageCounts counts_;
+  FramePool pool_;         // keyframe copies on their way to the output
+  FrameBuffer candidate_;  // the fallback candidate's pixels (storage reused)
+  std::int64_t candidateIndex_ = -1;
+  bool candidateBlur_ = false;  // the candidate was counted as rejected for blur
+};
+
+}  // namespace keyframed
