@@ -5,6 +5,7 @@
 
 #include "app/config.h"
 #include "app/probe_v4l2.h"
+#include "app/run_command.h"
 #include "app/sd_notify.h"
 #include "app/select_command.h"
 
@@ -13,6 +14,7 @@ namespace {
 constexpr const char* kUsage = R"(usage: keyframed <command> [options]
 
 commands:
+  run                      the live daemon (see: keyframed run --help)
   select VIDEO --out DIR   pick keyframes from a video file (see: keyframed select --help)
   check-config [FILE]      validate the daemon's configuration and print it (see --help)
   version                  print the version
@@ -30,6 +32,7 @@ int main(int argc, char** argv) {
   args.erase(args.begin());
   try {
     if (command == "select") return keyframed::selectMain(args);
+    if (command == "run") return keyframed::runMain(args);
     // Diagnostic, not in the usage text: V4L2 devices, formats and frame timing.
     if (command == "probe-v4l2") return keyframed::probeV4l2Main(args);
     if (command == "check-config") return keyframed::checkConfigMain(args);

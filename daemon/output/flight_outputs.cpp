@@ -102,7 +102,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
                                            std::to_string(height) + ")",
                                        "keyframed"));
   }
-  if (!o.zenohConfig.empty()) {
+  if (o.zenoh || !o.zenohConfig.empty()) {
     KeyframePublisherOptions po;
     po.configFile = o.zenohConfig;
     po.vehicle = o.vehicle;
@@ -246,7 +246,7 @@ bool FlightOutputs::active() const {
 
 bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraModel*,
                          std::string& error) {
-  if (!o.mcapPath.empty() || !o.zenohConfig.empty()) {
+  if (!o.mcapPath.empty() || !o.zenohConfig.empty() || o.zenoh) {
     error = "this keyframed was built without MCAP and Zenoh support (KEYFRAMED_WITH_IO=OFF)";
     return false;
   }

@@ -17,6 +17,7 @@ struct FlightOutputOptions {
   std::string vehicle = "uav";  // --vehicle NAME
   std::string keyframeDir;      // where KeyframeWriter puts JPEGs + keyframes.csv
   bool offline = true;          // offline: the recorder waits instead of dropping
+  bool zenoh = false;           // publish even without a config file (Zenoh's defaults)
 };
 
 // Everything a run sends beyond its keyframe directory: the MCAP flight record and

@@ -1,0 +1,623 @@
+// `keyframed run`: the live daemon. Threads as in docs/design.md:
+//   capture  (CaptureThread: source -> pooled copy -> bounded queue, drops the oldest)
+//   analysis (KeyframeStage: selector; never blocks capture)
+//   output   (KeyframeOutput: tags, writes, logs, records, publishes; never drops a keyframe)
+//   telemetry (TelemetryService: MAVLink link, pose history, camera protocol)
+//   main     (signals, systemd notify, watchdog, status, SIGHUP reload)
+#include "app/run_command.h"
+
+#include <pthread.h>
+#include <sys/resource.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <cerrno>
+#include <chrono>
+#include <condition_variable>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <ctime>
+#include <deque>
+#include <filesystem>
+#include <fstream>
+#include <mutex>
+#include <optional>
+#include <thread>
+
+#include <opencv2/core/utils/logger.hpp>
+
+#include "app/config.h"
+#include "app/decision_log.h"
+#include "app/keyframe_output.h"
+#include "app/keyframe_stage.h"
+#include "app/keyframe_writer.h"
+#include "app/log.h"
+#include "app/sd_notify.h"
+#include "app/settings.h"
+#include "capture/capture_thread.h"
+#include "capture/file_source.h"
+#include "capture/v4l2_source.h"
+#include "output/flight_outputs.h"
+#include "tagging/camera_model.h"
+#include "telemetry/telemetry_service.h"
+#ifdef KEYFRAMED_WITH_LIBCAMERA
+#include "capture/libcamera_source.h"
+#endif
+
+namespace keyframed {
+
+namespace {
+
+constexpr const char* kUsage =
+    R"(usage: keyframed run [--config-dir DIR] [--set SECTION.KEY=VALUE]...
+
+Runs the daemon: captures from the configured camera (or video file), selects
+keyframes, tags them with the autopilot's telemetry, writes them under
+output.state_dir/flights/<UTC start time>/ (state_dir/latest points at the newest),
+records the flight to MCAP and publishes keyframes over Zenoh, until SIGINT or
+SIGTERM (or the end of a video file). SIGHUP reloads the selection settings.
+
+Configuration: built-in defaults < DIR/keyframed.toml < DIR/conf.d/*.toml < --set
+(DIR: --config-dir, else $KEYFRAMED_CONFIG_DIR, else /etc/keyframed); see
+`keyframed check-config` and docs/configuration.md.
+)";
+
+std::int64_t monotonicNs() {
+  timespec ts{};
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000LL + ts.tv_nsec;
+}
+
+class SteadyClock final : public Clock {
+ public:
+  [[nodiscard]] std::int64_t nowNs() const override { return monotonicNs(); }
+};
+
+// A file played as a camera would deliver it: at its own frame rate, each frame
+// stamped with CLOCK_MONOTONIC on arrival (what the telemetry clock is mapped to);
+// or as fast as it decodes, stamped from camera.start_time when given.
+class PacedFileSource final : public FrameSource {
+ public:
+  PacedFileSource(std::unique_ptr<FileSource> inner, bool realtime,
+                  std::optional<std::int64_t> startUnixNs)
+      : inner_(std::move(inner)), realtime_(realtime), startUnixNs_(startUnixNs) {}
+  [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
+  ReadStatus next(Frame& frame, std::string& error) override {
+    const ReadStatus st = inner_->next(frame, error);
+    if (st != ReadStatus::Frame) return st;
+    if (realtime_) {
+      if (startNs_ < 0) startNs_ = monotonicNs() - frame.timestampNs;
+      const std::int64_t due = startNs_ + frame.timestampNs;
+      const std::int64_t now = monotonicNs();
+      if (due > now) std::this_thread::sleep_for(std::chrono::nanoseconds(due - now));
+      frame.timestampNs = monotonicNs();
+    } else if (startUnixNs_) {
+      frame.timestampNs += *startUnixNs_;
+    }
+    return st;
+  }
+
+ private:
+  std::unique_ptr<FileSource> inner_;
+  bool realtime_;
+  std::optional<std::int64_t> startUnixNs_;
+  std::int64_t startNs_ = -1;
+};
+
+// Analysis -> output: blocks the analysis when the output falls behind, so that
+// no keyframe is ever dropped (frames are dropped earlier, at the capture queue).
+class EventQueue {
+ public:
+  explicit EventQueue(std::size_t capacity) : capacity_(capacity) {}
+  void push(KeyframeEvent&& ev) {
+    std::unique_lock lock(mutex_);
+    notFull_.wait(lock, [&] { return items_.size() < capacity_; });
+    items_.push_back(std::move(ev));
+    notEmpty_.notify_one();
+  }
+  // nullopt once closed and drained.
+  std::optional<KeyframeEvent> pop() {
+    std::unique_lock lock(mutex_);
+    notEmpty_.wait(lock, [&] { return !items_.empty() || closed_; });
+    if (items_.empty()) return std::nullopt;
+    std::optional<KeyframeEvent> ev(std::move(items_.front()));
+    items_.pop_front();
+    notFull_.notify_one();
+    return ev;
+  }
+  void close() {
+    std::lock_guard lock(mutex_);
+    closed_ = true;
+    notEmpty_.notify_all();
+  }
+
+ private:
+  std::size_t capacity_;
+  std::mutex mutex_;
+  std::condition_variable notEmpty_, notFull_;
+  std::deque<KeyframeEvent> items_;
+  bool closed_ = false;
+};
+
+std::string utcStamp() {
+  const std::time_t t = std::time(nullptr);
+  std::tm tm{};
+  gmtime_r(&t, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y%m%dT%H%M%SZ", &tm);
+  return buf;
+}
+
+// <state_dir>/flights/<stamp>[-N], and <state_dir>/latest -> it.
+bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& error) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  const fs::path flights = fs::path(stateDir) / "flights";
+  fs::create_directories(flights, ec);
+  if (ec) {
+    error = "cannot create " + flights.string() + ": " + ec.message();
+    return false;
+  }
+  const std::string stamp = utcStamp();
+  fs::path p = flights / stamp;
+  for (int n = 1; fs::exists(p); ++n) p = flights / (stamp + "-" + std::to_string(n));
+  fs::create_directories(p / "keyframes", ec);
+  if (ec) {
+    error = "cannot create " + p.string() + ": " + ec.message();
+    return false;
+  }
+  dir = p.string();
+  const fs::path latest = fs::path(stateDir) / "latest";
+  const fs::path tmp = fs::path(stateDir) / ".latest.tmp";
+  fs::remove(tmp, ec);
+  fs::create_directory_symlink(fs::path("flights") / p.filename(), tmp, ec);
+  if (!ec) fs::rename(tmp, latest, ec);
+  if (ec) KF_LOG(App, Warning) << "cannot update " << latest.string() << ": " << ec.message();
+  return true;
+}
+
+std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::string& error) {
+  switch (c.source) {
+    case DaemonConfig::Source::File: {
+      auto file = FileSource::open(c.path, error);
+      if (!file) return nullptr;
+      std::optional<std::int64_t> start;
+      if (!c.startTime.empty()) {
+        std::int64_t ns = 0;
+        if (!parseUtcTime(c.startTime, ns)) {
+          error = "camera.start_time: not an ISO 8601 UTC time or unix seconds: " + c.startTime;
+          return nullptr;
+        }
+        start = ns;
+      }
+      return std::make_unique<PacedFileSource>(std::move(file), c.realtime, start);
+    }
+    case DaemonConfig::Source::V4l2: {
+      V4l2Options o;
+      o.device = c.device;
+      if (o.device.empty()) {
+        for (const auto& d : V4l2Source::listDevices()) {
+          if (d.capture) {
+            o.device = d.path;
+            break;
+          }
+        }
+        if (o.device.empty()) {
+          error = "no V4L2 capture device found (camera.device to name one)";
+          return nullptr;
+        }
+      }
+      o.format = c.pixelFormat == "auto" ? "" : c.pixelFormat;
+      o.width = c.width;
+      o.height = c.height;
+      o.fps = c.fps;
+      o.autoReopen = true;  // an unplugged camera is waited for, not fatal
+      return V4l2Source::open(o, error);
+    }
+    case DaemonConfig::Source::Libcamera: {
+#ifdef KEYFRAMED_WITH_LIBCAMERA
+      LibcameraOptions o;
+      o.cameraId = c.device;
+      o.format = c.pixelFormat == "auto" ? "" : c.pixelFormat;
+      o.width = c.width;
+      o.height = c.height;
+      o.fps = c.fps;
+      return LibcameraSource::open(o, error);
+#else
+      error = "camera.source = \"libcamera\": this keyframed was built without libcamera";
+      return nullptr;
+#endif
+    }
+  }
+  error = "unknown camera source";
+  return nullptr;
+}
+
+struct RunStats {
+  std::atomic<std::int64_t> analysed{0};
+  std::atomic<std::int64_t> kept{0};
+  std::atomic<std::int64_t> written{0};
+  std::atomic<std::int64_t> writeErrors{0};
+  std::atomic<std::int64_t> lastFrameNs{0};
+};
+
+double cpuSeconds() {
+  rusage ru{};
+  getrusage(RUSAGE_SELF, &ru);
+  return static_cast<double>(ru.ru_utime.tv_sec + ru.ru_stime.tv_sec) +
+         static_cast<double>(ru.ru_utime.tv_usec + ru.ru_stime.tv_usec) / 1e6;
+}
+
+// Peak RSS of this process image. Not getrusage's ru_maxrss: Linux carries that
+// over execve, so it would report the parent's peak when the parent was larger.
+double maxRssMb() {
+  std::ifstream f("/proc/self/status");
+  std::string line;
+  while (std::getline(f, line)) {
+    if (line.rfind("VmHWM:", 0) == 0) return std::strtod(line.c_str() + 6, nullptr) / 1024.0;
+  }
+  return 0.0;
+}
+
+class Daemon {
+ public:
+  Daemon(DaemonConfig config, ConfigSources sources)
+      : config_(std::move(config)), sources_(std::move(sources)) {}
+  int run();
+
+ private:
+  void analysisLoop();
+  void outputLoop();
+  void reload();
+  bool writeSummary(double seconds, const std::string& state);
+
+  DaemonConfig config_;
+  ConfigSources sources_;
+  Notifier notifier_;
+  std::string flightDir_;
+  std::unique_ptr<FrameSource> source_;
+  std::unique_ptr<FramePool> pool_;
+  std::unique_ptr<FrameQueue> queue_;
+  std::unique_ptr<CaptureThread> capture_;
+  std::unique_ptr<TelemetryService> telemetry_;
+  std::optional<CameraModel> camera_;
+  KeyframeWriter writer_;
+  DecisionLog log_;
+  FlightOutputs outputs_;
+  std::unique_ptr<KeyframeStage> stage_;
+  std::unique_ptr<KeyframeOutput> output_;
+  EventQueue events_{16};
+  RunStats stats_;
+  std::atomic<bool> stopAnalysis_{false};
+  std::mutex reloadMutex_;
+  std::optional<SelectorConfig> pendingSelection_;
+  StageCounts finalCounts_;
+};
+
+void Daemon::analysisLoop() {
+  while (true) {
+    {
+      std::lock_guard lock(reloadMutex_);
+      if (pendingSelection_) {
+        stage_->reconfigure(*pendingSelection_);
+        pendingSelection_.reset();
+        KF_LOG(Select, Notice) << "selection settings reloaded";
+      }
+    }
+    if (stopAnalysis_.load()) break;
+    std::optional<FramePtr> item = queue_->pop(std::chrono::milliseconds(200));
+    if (!item) {
+      if (queue_->closed() && queue_->size() == 0) break;
+      continue;
+    }
+    stats_.lastFrameNs.store(monotonicNs());
+    stage_->process((*item)->frame);
+    stats_.analysed.store(stage_->counts().framesRead);
+    stats_.kept.store(stage_->counts().kept);
+  }
+  stage_->finish();  // the last stretch is covered too
+  finalCounts_ = stage_->counts();
+  stats_.kept.store(finalCounts_.kept);
+  events_.close();
+}
+
+void Daemon::outputLoop() {
+  std::string error;
+  while (std::optional<KeyframeEvent> ev = events_.pop()) {
+    if (!output_->handle(*ev, error)) {
+      // A keyframe that cannot be written (disk full, ...) is reported each time;
+      // selection, recording and publishing of what can be go on.
+      stats_.writeErrors.fetch_add(1);
+      KF_LOG(Output, Error) << error;
+    }
+    stats_.written.store(writer_.count());
+    outputs_.progress(stats_.analysed.load(), writer_.count());
+  }
+}
+
+void Daemon::reload() {
+  notifier_.reloading();
+  ConfigLoadResult r = loadConfig(sources_);
+  if (!r.ok()) {
+    for (const auto& e : r.errors) KF_LOG(App, Error) << "reload: " << e;
+    KF_LOG(App, Error) << "reload: configuration invalid, keeping the running settings";
+  } else {
+    std::lock_guard lock(reloadMutex_);
+    pendingSelection_ = r.config.selection;
+    config_.selection = r.config.selection;
+    logging::configure(r.config.log);
+  }
+  notifier_.ready();
+}
+
+bool Daemon::writeSummary(double seconds, const std::string& state) {
+  const CaptureThread::Stats cs = capture_->stats();
+  const StageCounts& c = finalCounts_;
+  const std::uint64_t dropped = queue_->dropped() + cs.noBuffer;
+  std::string tel = "null";
+  if (telemetry_) {
+    const TelemetryServiceStats ts = telemetry_->stats();
+    char b[512];
+    const auto off = telemetry_->decoder().clockOffsetNs();
+    std::snprintf(b, sizeof b,
+                  "{\"source\": \"%s\", \"geotagged\": %lld, \"clock\": \"%s\", "
+                  "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
+                  "\"skipped_bytes\": %llu, \"captures_sent\": %llu}",
+                  config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
+                  toString(telemetry_->decoder().clockSource()),
+                  off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
+                  static_cast<unsigned long long>(ts.parser.messages),
+                  static_cast<unsigned long long>(ts.parser.rejected),
+                  static_cast<unsigned long long>(ts.parser.skippedBytes),
+                  static_cast<unsigned long long>(ts.capturesSent));
+    tel = b;
+  }
+  const SourceInfo& info = source_->info();
+  char buf[4096];
+  std::snprintf(
+      buf, sizeof buf,
+      "{\n  \"state\": \"%s\",\n  \"source\": \"%s\",\n  \"width\": %d,\n  \"height\": %d,\n"
+      "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n  \"frames_read\": %lld,\n"
+      "  \"kept\": %lld,\n  \"written\": %lld,\n  \"write_errors\": %lld,\n"
+      "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
+      "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
+      "  \"analysis_ms_mean\": %.3f,\n  \"cpu_seconds\": %.3f,\n  \"cpu_percent\": %.1f,\n"
+      "  \"max_rss_mb\": %.1f,\n  \"telemetry\": %s\n}\n",
+      state.c_str(), info.description.c_str(), info.width, info.height,
+      static_cast<unsigned long long>(cs.captured), static_cast<unsigned long long>(dropped),
+      static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
+      static_cast<long long>(writer_.count()), static_cast<long long>(stats_.writeErrors.load()),
+      static_cast<long long>(c.rejectedBlur), static_cast<long long>(c.rejectedOverlap),
+      static_cast<long long>(c.promoted), static_cast<unsigned long long>(cs.errors), seconds,
+      seconds > 0 ? static_cast<double>(c.framesRead) / seconds : 0.0,
+      c.framesRead > 0 ? c.analysisNs / static_cast<double>(c.framesRead) / 1e6 : 0.0, cpuSeconds(),
+      seconds > 0 ? 100.0 * cpuSeconds() / seconds : 0.0, maxRssMb(), tel.c_str());
+  const std::string path = flightDir_ + "/summary.json";
+  const std::string tmp = path + ".tmp";
+  {
+    std::ofstream f(tmp, std::ios::trunc);
+    f << buf;
+    if (!f.flush()) return false;
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  return !ec;
+}
+
+int Daemon::run() {
+  std::string error;
+  // Signals are taken by the main thread alone (sigtimedwait below): block them
+  // before any thread starts so every thread inherits the mask.
+  sigset_t sigs;
+  sigemptyset(&sigs);
+  sigaddset(&sigs, SIGINT);
+  sigaddset(&sigs, SIGTERM);
+  sigaddset(&sigs, SIGHUP);
+  pthread_sigmask(SIG_BLOCK, &sigs, nullptr);
+
+  if (!config_.tagging.calibration.empty()) {
+    CameraModel m;
+    if (!loadCameraModel(config_.tagging.calibration, m, error)) {
+      KF_LOG(App, Error) << "tagging.calibration: " << error;
+      return 1;
+    }
+    camera_ = m;
+  } else {
+    KF_LOG(Tagging, Warning) << "no tagging.calibration: keyframes carry no intrinsics";
+  }
+  source_ = openSource(config_.camera, error);
+  if (!source_) {
+    KF_LOG(Capture, Error) << toString(config_.camera.source) << ": " << error;
+    return 1;
+  }
+  const SourceInfo& info = source_->info();
+  KF_LOG(Capture, Notice) << "capturing from " << info.description << " (" << info.width << "x"
+                          << info.height << " @ " << info.fps << " fps)";
+  if (!makeFlightDir(config_.output.stateDir, flightDir_, error)) {
+    KF_LOG(Output, Error) << error;
+    return 1;
+  }
+  KF_LOG(Output, Notice) << "flight directory " << flightDir_;
+
+  if (!config_.telemetry.link.url.empty()) {
+    CameraDescription cd;
+    cd.width = info.width;
+    cd.height = info.height;
+    if (camera_) {
+      cd.vendor = camera_->make;
+      cd.model = camera_->model;
+      cd.focalLengthMm = static_cast<float>(camera_->focalLengthMm);
+      cd.sensorWidthMm = static_cast<float>(camera_->sensorWidthMm);
+      cd.sensorHeightMm = static_cast<float>(camera_->sensorHeightMm);
+    }
+    telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
+    if (!telemetry_->start(error)) {
+      KF_LOG(Telemetry, Error) << "telemetry.url: " << error;
+      return 1;
+    }
+  }
+  if (!log_.open(flightDir_ + "/decisions.csv", DecisionFormat::Csv, error)) {
+    KF_LOG(Output, Error) << error;
+    return 1;
+  }
+  KeyframeWriterConfig wc;
+  wc.dir = flightDir_ + "/keyframes";
+  wc.quality = config_.tagging.jpegQuality;
+  wc.camera = camera_;
+  wc.mount = {config_.tagging.mountRollDeg, config_.tagging.mountPitchDeg,
+              config_.tagging.mountYawDeg};
+  if (!writer_.open(wc, error)) {
+    KF_LOG(Output, Error) << error;
+    return 1;
+  }
+  FlightOutputOptions fo;
+  if (config_.output.mcap) fo.mcapPath = flightDir_ + "/flight.mcap";
+  fo.zenoh = config_.zenoh.enabled;
+  fo.zenohConfig = config_.zenoh.config;
+  fo.vehicle = config_.zenoh.vehicle;
+  if (fo.vehicle.empty()) {
+    char host[256] = {};
+    gethostname(host, sizeof host - 1);
+    fo.vehicle = host[0] != '\0' ? host : "uav";
+  }
+  fo.keyframeDir = wc.dir;
+  fo.offline = false;  // live: the recorder drops (and counts) rather than stall
+  if (!outputs_.open(fo, info.width, info.height, camera_ ? &*camera_ : nullptr, error)) {
+    KF_LOG(Output, Error) << error;
+    return 1;
+  }
+
+  SteadyClock clock;
+  stage_ = std::make_unique<KeyframeStage>(
+      config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.push(std::move(ev)); });
+  output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
+                                             config_.telemetry.waitMs);
+  constexpr std::size_t kQueueFrames = 4;
+  queue_ = std::make_unique<FrameQueue>(kQueueFrames);
+  pool_ = std::make_unique<FramePool>(kQueueFrames + 3);  // + analysing, + capturing, + spare
+  capture_ = std::make_unique<CaptureThread>(*source_, *pool_, *queue_);
+
+  const auto start = std::chrono::steady_clock::now();
+  std::thread output([this] { outputLoop(); });
+  std::thread analysis([this] { analysisLoop(); });
+  capture_->start();
+
+  bool ready = false;
+  std::string state = "done";
+  auto lastStatus = std::chrono::steady_clock::now();
+  std::int64_t lastAnalysed = 0;
+  const auto ping =
+      notifier_.watchdogPingInterval().count() > 0
+          ? std::chrono::duration_cast<std::chrono::milliseconds>(notifier_.watchdogPingInterval())
+          : std::chrono::milliseconds(1000);
+  auto lastPing = std::chrono::steady_clock::now();
+  while (true) {
+    timespec wait{0, 100'000'000};
+    const int sig = sigtimedwait(&sigs, nullptr, &wait);
+    if (sig == SIGINT || sig == SIGTERM) {
+      KF_LOG(App, Notice) << (sig == SIGINT ? "SIGINT" : "SIGTERM") << ": stopping";
+      state = "stopped";
+      break;
+    }
+    if (sig == SIGHUP) reload();
+    const std::int64_t last = stats_.lastFrameNs.load();
+    const bool framesArrive = last > 0 && monotonicNs() - last < 2'000'000'000LL;
+    if (!ready && last > 0) {
+      ready = true;  // the camera has delivered its first frame
+      notifier_.ready("first frame received");
+      KF_LOG(App, Notice) << "ready: first frame received";
+    }
+    const auto now = std::chrono::steady_clock::now();
+    if (framesArrive && now - lastPing >= ping) {
+      notifier_.watchdog();  // only while frames really arrive
+      lastPing = now;
+    }
+    if (now - lastStatus >= std::chrono::seconds(1)) {
+      const double el = std::chrono::duration<double>(now - lastStatus).count();
+      const std::int64_t analysed = stats_.analysed.load();
+      char buf[160];
+      std::snprintf(buf, sizeof buf, "%.1f fps, %lld keyframes, %llu dropped%s",
+                    static_cast<double>(analysed - lastAnalysed) / el,
+                    static_cast<long long>(stats_.written.load()),
+                    static_cast<unsigned long long>(queue_->dropped() + capture_->stats().noBuffer),
+                    framesArrive || !ready ? "" : ", no frames");
+      notifier_.status(buf);
+      lastStatus = now;
+      lastAnalysed = analysed;
+    }
+    if (!capture_->running()) {
+      if (!capture_->ended()) {
+        KF_LOG(Capture, Error) << "capture stopped: " << capture_->lastError();
+        state = "capture_failed";
+      }
+      break;
+    }
+  }
+  notifier_.stopping("flushing");
+  capture_->stop();
+  queue_->close();
+  if (state != "done") stopAnalysis_.store(true);  // a signal: stop now, keep the candidate
+  analysis.join();
+  output.join();
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  bool ok = true;
+  if (!log_.close(error)) {
+    KF_LOG(Output, Error) << error;
+    ok = false;
+  }
+  if (!writer_.close(error)) {
+    KF_LOG(Output, Error) << error;
+    ok = false;
+  }
+  if (telemetry_) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));  // last capture reports
+    telemetry_->stop();
+  }
+  if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
+  if (!writeSummary(seconds, state)) {
+    KF_LOG(Output, Error) << "cannot write " << flightDir_ << "/summary.json";
+    ok = false;
+  }
+  const CaptureThread::Stats cs = capture_->stats();
+  KF_LOG(App, Notice) << "stopped (" << state << "): " << cs.captured << " frames captured, "
+                      << queue_->dropped() + cs.noBuffer << " dropped, " << writer_.count()
+                      << " keyframes in " << flightDir_;
+  if (!ok || state == "capture_failed") return 1;
+  return 0;
+}
+
+}  // namespace
+
+int runMain(const std::vector<std::string>& argsIn) {
+  std::vector<std::string> args = argsIn;
+  ConfigSources sources;
+  if (std::string e = takeConfigArgs(args, sources); !e.empty()) {
+    std::fprintf(stderr, "keyframed run: %s\n", e.c_str());
+    return 2;
+  }
+  for (const auto& a : args) {
+    if (a == "-h" || a == "--help") {
+      std::fputs(kUsage, stdout);
+      return 0;
+    }
+    std::fprintf(stderr, "keyframed run: unknown argument '%s' (see keyframed run --help)\n",
+                 a.c_str());
+    return 2;
+  }
+  cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
+  ConfigLoadResult r = loadConfig(sources);
+  if (!r.ok()) {
+    for (const auto& e : r.errors) std::fprintf(stderr, "keyframed: %s\n", e.c_str());
+    return 1;
+  }
+  if (std::string w = logging::configure(r.config.log); !w.empty()) {
+    std::fprintf(stderr, "keyframed: %s\n", w.c_str());
+  }
+  Daemon daemon(std::move(r.config), std::move(sources));
+  return daemon.run();
+}
+
+}  // namespace keyframed

@@ -1,0 +1,343 @@
+"""`keyframed run`, the live daemon, started as a process on sample flights: the file
+source at the video's own rate (as a camera), overload, signals, sd_notify through a
+socket of the test's, SIGHUP reload, bad input; with a fake autopilot and a Zenoh
+subscriber for the whole chain."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fake_autopilot import autopilot_fixture
+from flights import flight
+
+fake_autopilot = autopilot_fixture()
+
+
+@pytest.fixture(scope="module")
+def short_nadir() -> Path:
+    return flight("nadir", width=480, height=270, seconds=8.0)
+
+
+def start(
+    kf_bin: Path,
+    tmp_path: Path,
+    *sets: str,
+    config: str = "",
+    env: dict[str, str] | None = None,
+) -> subprocess.Popen[str]:
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True, exist_ok=True)
+    (cfg / "keyframed.toml").write_text(config)
+    args = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    base = [
+        f"output.state_dir={tmp_path / 'state'}",
+        "telemetry.url=",
+        "zenoh.enabled=false",
+        "camera.source=file",
+    ]
+    for s in base + list(sets):
+        args += ["--set", s]
+    return subprocess.Popen(
+        args,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def flight_dir(tmp_path: Path) -> Path:
+    return (tmp_path / "state" / "latest").resolve()
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    video = short_nadir / "video.avi"
+    proc = start(kf_bin, tmp_path, f"camera.path={video}", "output.mcap=false")
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "done"
+    assert summary["frames_captured"] == 240
+    assert summary["frames_dropped"] == 0, "30 fps in real time: nothing dropped"
+    assert summary["frames_read"] == 240
+    assert 28.0 < summary["frames_per_second"] < 31.0
+
+    offline = tmp_path / "offline"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(video), "--out", str(offline), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    live_rows, off_rows = rows(fd / "decisions.csv"), rows(offline / "decisions.csv")
+    assert len(live_rows) == len(off_rows) == 240
+    for a, b in zip(live_rows, off_rows, strict=True):
+        assert (a["index"], a["kept"], a["reason"]) == (b["index"], b["kept"], b["reason"])
+        assert float(a["sharpness"]) == pytest.approx(float(b["sharpness"]), rel=1e-9)
+    live_jpgs = sorted(p.name for p in (fd / "keyframes").glob("*.jpg"))
+    assert live_jpgs == sorted(p.name for p in offline.glob("*.jpg"))
+    assert len(rows(fd / "keyframes" / "keyframes.csv")) == len(live_jpgs) == summary["written"]
+
+
+def test_sigterm_stops_within_a_second_with_everything_flushed(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    proc = start(kf_bin, tmp_path, f"camera.path={short_nadir / 'video.avi'}")
+    time.sleep(3.0)
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=20)
+    took = time.monotonic() - t0
+    assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "stopped"
+    assert 60 < summary["frames_read"] < 240
+    assert len(rows(fd / "decisions.csv")) == summary["frames_read"]
+    jpgs = list((fd / "keyframes").glob("*.jpg"))
+    assert len(jpgs) == summary["written"] == len(rows(fd / "keyframes" / "keyframes.csv"))
+    assert not list(fd.rglob("*.tmp"))
+    from mcap.reader import make_reader
+
+    with open(fd / "flight.mcap", "rb") as f:  # closed properly: the summary section reads
+        stats = make_reader(f).get_summary().statistics
+    assert stats is not None and stats.message_count > summary["frames_read"]
+
+
+def test_overload_drops_frames_counts_them_and_stays_flat(kf_bin: Path, tmp_path: Path) -> None:
+    # Paper mode at full 1080p resolution costs ~50 ms a frame here, far slower than
+    # decoding: the capture queue must drop the oldest frames, count them, and the
+    # daemon's memory must not grow with the backlog.
+    fl = flight("nadir", width=1920, height=1080, seconds=4.0)
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={fl / 'video.avi'}",
+        "camera.realtime=false",
+        "selection.mode=paper",
+        "selection.analysis_width=0",
+        "output.mcap=false",
+    )
+    _, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr
+    s = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+    assert s["frames_captured"] == 120
+    assert s["frames_dropped"] > 0
+    assert s["frames_read"] + s["frames_dropped"] == s["frames_captured"]
+    assert len(rows(flight_dir(tmp_path) / "decisions.csv")) == s["frames_read"]
+    # 4 queued + 3 pooled 1080p BGR frames are 44 MB; OpenCV and the decoder add some.
+    assert s["max_rss_mb"] < 400, s
+
+
+class NotifySocket:
+    def __init__(self, path: Path) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.2)
+        self.path = path
+        self.messages: list[tuple[float, str]] = []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while not self.stop.is_set():
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            self.messages.append((time.monotonic(), data.decode()))
+
+    def has(self, prefix: str) -> list[str]:
+        return [m for _, m in self.messages if m.startswith(prefix) or f"\n{prefix}" in m]
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.sock.close()
+
+
+def test_sd_notify_ready_watchdog_status_reload_and_stopping(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    ns = NotifySocket(tmp_path / "notify.sock")
+    cfg_text = "[selection]\ntarget = 0.7\n"
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        config=cfg_text,
+        env={"NOTIFY_SOCKET": str(ns.path), "WATCHDOG_USEC": "1000000"},
+    )
+    try:
+        time.sleep(3.0)
+        # a bad configuration on reload: refused, the daemon goes on
+        (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 7\n")
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(0.5)
+        (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 0.75\n")
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(0.8)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        time.sleep(0.2)
+        ns.close()
+    assert proc.returncode == 0, stderr
+    ready = ns.has("READY=1")
+    assert ready and "first frame" in ready[0]
+    assert len(ns.has("WATCHDOG=1")) >= 4, "pinged every half second while frames arrive"
+    status = ns.has("STATUS=")
+    assert any("fps" in m and "keyframes" in m and "dropped" in m for m in status)
+    assert len(ns.has("RELOADING=1")) == 2
+    assert ns.has("STOPPING=1")
+    assert "reload:" in stderr and "keeping the running settings" in stderr
+    assert "selection settings reloaded" in stderr
+
+
+def test_no_watchdog_pings_when_frames_stop(kf_bin: Path, tmp_path: Path) -> None:
+    """A V4L2 device that delivers nothing must not keep the watchdog fed."""
+    ns = NotifySocket(tmp_path / "notify.sock")
+    proc = start(
+        kf_bin,
+        tmp_path,
+        "camera.source=v4l2",
+        "camera.device=/dev/null",
+        env={"NOTIFY_SOCKET": str(ns.path), "WATCHDOG_USEC": "500000"},
+    )
+    try:
+        _, stderr = proc.communicate(timeout=20)
+    finally:
+        ns.close()
+    assert proc.returncode == 1
+    assert "v4l2" in stderr and "/dev/null" in stderr
+    assert not ns.has("WATCHDOG=1") and not ns.has("READY=1")
+
+
+@pytest.mark.parametrize(
+    ("sets", "message"),
+    [
+        (["camera.source=v4l2", "camera.device=/dev/video-missing"], "/dev/video-missing"),
+        (["camera.path=/nonexistent/flight.avi"], "/nonexistent/flight.avi"),
+        (["camera.fps=500"], "camera.fps"),
+        (["camera.nonsense=1"], "camera.nonsense"),
+        (["tagging.calibration=/nonexistent/cal.yaml"], "cal.yaml"),
+    ],
+)
+def test_bad_input_is_a_clear_error(
+    any_bin: Path, tmp_path: Path, sets: list[str], message: str
+) -> None:
+    proc = start(any_bin, tmp_path, *sets)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode in (1, 2), stderr
+    assert message in stderr
+    assert "Sanitizer" not in stderr and "runtime error" not in stderr
+
+
+def test_corrupt_video_is_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.avi"
+    bad.write_bytes(b"RIFF\x00\x00\x00\x00AVI garbage" * 100)
+    proc = start(any_bin, tmp_path, f"camera.path={bad}")
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1, stderr
+    assert "bad.avi" in stderr
+    assert "Sanitizer" not in stderr and "runtime error" not in stderr
+
+
+def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
+    proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
+    _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 1
+    assert "keyframed.toml:3" in stderr and "camera.fps" in stderr
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_whole_chain_autopilot_daemon_zenoh_ground_station(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The README's main job, checked: the daemon on a sample flight with a fake
+    autopilot streaming MAVLink to it, publishing over Zenoh to the ground station."""
+    import sys
+
+    zport, mport = free_port(), free_port(socket.SOCK_DGRAM)
+    zconf = tmp_path / "zenoh.json5"
+    zconf.write_text(
+        json.dumps(
+            {
+                "mode": "peer",
+                "listen": {"endpoints": [f"tcp/127.0.0.1:{zport}"]},
+                "scouting": {"multicast": {"enabled": False}},
+            }
+        )
+    )
+    ground_out = tmp_path / "dataset"
+    ground = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(ground_out), "--quiet"]
+        + ["--connect", f"tcp/127.0.0.1:{zport}", "--until-idle", "4"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", mport))
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{mport}",
+        f"tagging.calibration={short_nadir / 'intrinsics.json'}",
+        "zenoh.enabled=true",
+        f"zenoh.config={zconf}",
+        "zenoh.vehicle=uav7",
+    )
+    try:
+        time.sleep(0.3)
+        ap.start()
+        _, stderr = proc.communicate(timeout=120)
+        g_out, g_err = ground.communicate(timeout=60)
+    finally:
+        for p in (proc, ground):
+            if p.poll() is None:
+                p.kill()
+    assert proc.returncode == 0, stderr
+    assert ground.returncode == 0, g_err
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    kfs = rows(fd / "keyframes" / "keyframes.csv")
+    assert len(kfs) >= 5 and summary["written"] == len(kfs)
+    ok = [k for k in kfs if k["geotag"] == "ok"]
+    assert len(ok) >= len(kfs) - 1, [k["geotag"] for k in kfs]
+    assert summary["telemetry"]["captures_sent"] == len(kfs)
+    assert len(ap.received("CAMERA_IMAGE_CAPTURED")) == len(kfs)
+    # the ground station holds every keyframe, byte for byte
+    result = json.loads(g_out.strip().splitlines()[-1])
+    assert result["vehicle"] == "uav7" and result["keyframes"] == len(kfs)
+    for k in kfs:
+        got = (ground_out / "uav7" / "images" / k["file"]).read_bytes()
+        assert got == (fd / "keyframes" / k["file"]).read_bytes()
