@@ -499,6 +499,23 @@ int Daemon::run() {
   pool_ = std::make_unique<FramePool>(kQueueFrames + 3);  // + analysing, + capturing, + spare
   capture_ = std::make_unique<CaptureThread>(*source_, *pool_, *queue_);
 
+  if (telemetry_ && !telemetry_->isReplay() && config_.telemetry.startWaitMs > 0) {
+    // Keyframes taken before the autopilot is heard would go untagged: give the link
+    // a moment (telemetry.start_wait_ms) to deliver a first pose. Signals still work.
+    KF_LOG(Telemetry, Notice) << "waiting up to " << config_.telemetry.startWaitMs
+                              << " ms for telemetry on " << config_.telemetry.link.url;
+    const std::int64_t deadline = monotonicNs() + config_.telemetry.startWaitMs * 1'000'000LL;
+    while (!telemetry_->decoder().hasPose() && monotonicNs() < deadline) {
+      timespec wait{0, 20'000'000};
+      const int sig = sigtimedwait(&sigs, nullptr, &wait);
+      if (sig == SIGINT || sig == SIGTERM) return 0;
+    }
+    if (!telemetry_->decoder().hasPose()) {
+      KF_LOG(Telemetry, Warning) << "no attitude and position yet from "
+                                 << config_.telemetry.link.url
+                                 << "; keyframes are tagged once telemetry arrives";
+    }
+  }
   const auto start = std::chrono::steady_clock::now();
   std::thread output([this] { outputLoop(); });
   std::thread analysis([this] { analysisLoop(); });

@@ -661,3 +661,36 @@ def autopilot_fixture(name: str = "fake_autopilot", scope: str = "function") -> 
                 raise errors[0]
 
     return _fixture
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Replays a tlog to a UDP address in real time (tools/demo.sh uses it):
+    ``python tests/harness/fake_autopilot.py FLIGHT.tlog --target 127.0.0.1:14550``."""
+    import argparse
+    import signal
+    import sys
+
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("tlog", type=Path)
+    p.add_argument("--target", required=True, help="HOST:PORT the daemon listens on (udpin)")
+    p.add_argument("--start-delay", type=float, default=0.0, help="seconds before the first record")
+    args = p.parse_args(argv)
+    host, _, port = args.target.rpartition(":")
+    ap = FakeAutopilot(args.tlog, target=(host, int(port)), start_delay_s=args.start_delay)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    ap.start()
+    while not stop.is_set() and not ap.finished.wait(0.2):
+        pass
+    n = len(ap.received("CAMERA_IMAGE_CAPTURED"))
+    ap.stop()
+    print(
+        f"fake autopilot: replayed {args.tlog.name}; heard {n} CAMERA_IMAGE_CAPTURED",
+        file=sys.stderr,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

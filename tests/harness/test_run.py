@@ -300,7 +300,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     ground_out = tmp_path / "dataset"
     ground = subprocess.Popen(
         [sys.executable, "-m", "keyframed.ground", "--out", str(ground_out), "--quiet"]
-        + ["--connect", f"tcp/127.0.0.1:{zport}", "--until-idle", "4"],
+        + ["--connect", f"tcp/127.0.0.1:{zport}", "--until-done", "--duration", "100"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 KEY_PREFIX = "keyframed"
+FINAL_STATES = ("done", "stopped", "failed", "interrupted", "capture_failed")
 GAP_GRACE_S = 1.0  # how long a gap may last before it is filled by query
 
 
@@ -258,6 +259,8 @@ class VehicleDataset:
         self.fetched = 0
         self.announced = -1  # highest sequence the vehicle says it has written
         self.missing_since: dict[int, float] = {}
+        self.done = False  # the vehicle said its flight ended
+        self.done_at = 0.0
         self.first_time = time.monotonic()
         self.sift = sift
         self.sift_jobs: list[Future[int]] = []
@@ -407,10 +410,14 @@ class GroundStation:
     def _on_status(self, sample: Any) -> None:
         try:
             status = json.loads(sample.payload.to_bytes())
+            ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
+            if status.get("state") in FINAL_STATES and not ds.done:
+                ds.done = True
+                ds.done_at = time.monotonic()
+                self.wake.set()
             n = status.get("keyframes", status.get("kept"))
             if n is None:
                 return
-            ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
             ds.announced = max(ds.announced, int(n) - 1)
             if ds.missing():
                 self.wake.set()
@@ -450,7 +457,13 @@ class GroundStation:
             parts.append(f"{ds.vehicle}: {n} keyframes, {rate * 60:.0f}/min{last}")
         return "; ".join(parts) or "waiting for keyframes"
 
-    def run(self, duration: float | None, until_idle: float | None, stop: threading.Event) -> None:
+    def run(
+        self,
+        duration: float | None,
+        until_idle: float | None,
+        stop: threading.Event,
+        until_done: bool = False,
+    ) -> None:
         start = time.monotonic()
         last_print = 0.0
         while not stop.is_set():
@@ -462,6 +475,13 @@ class GroundStation:
                 print("\r" + self.progress() + "   ", end="", file=sys.stderr, flush=True)
                 last_print = now
             if duration is not None and now - start > duration:
+                break
+            # Its last keyframes may still be in flight behind the final status.
+            if (
+                until_done
+                and self.datasets
+                and all(d.done and now - d.done_at > GAP_GRACE_S for d in self.datasets.values())
+            ):
                 break
             if (
                 until_idle is not None
@@ -514,6 +534,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--until-idle", type=float, help="stop once no keyframe arrived for this many seconds"
     )
+    p.add_argument(
+        "--until-done", action="store_true", help="stop once every vehicle's flight has ended"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress line")
     args = p.parse_args(argv)
     if args.zenoh_config and not args.zenoh_config.is_file():
@@ -537,7 +560,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     station = GroundStation(session, args.out, args.vehicle, args.sift, args.quiet)
     try:
-        station.run(args.duration, args.until_idle, stop)
+        station.run(args.duration, args.until_idle, stop, args.until_done)
     finally:
         results = station.close()
         session.close()
