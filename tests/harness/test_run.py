@@ -341,3 +341,81 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     for k in kfs:
         got = (ground_out / "uav7" / "images" / k["file"]).read_bytes()
         assert got == (fd / "keyframes" / k["file"]).read_bytes()
+
+
+def test_fleet_three_vehicles_one_router_one_ground_station(kf_bin: Path, tmp_path: Path) -> None:
+    """Three daemons on three flights, each a Zenoh client of one router (a
+    router-mode eclipse-zenoh session here; zenohd in a deployment), and one ground
+    station subscribed to every vehicle: each vehicle's keyframes arrive complete,
+    in its own dataset."""
+    import sys
+
+    import zenoh
+
+    port = free_port()
+    rconf = zenoh.Config()
+    rconf.insert_json5("mode", '"router"')
+    rconf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    rconf.insert_json5("scouting/multicast/enabled", "false")
+    router = zenoh.open(rconf)
+    client = tmp_path / "client.json5"
+    client.write_text(
+        json.dumps(
+            {
+                "mode": "client",
+                "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                "scouting": {"multicast": {"enabled": False}},
+            }
+        )
+    )
+    flights = {
+        "uav-a": flight("nadir", width=480, height=270, seconds=6.0),
+        "uav-b": flight("orbit", width=480, height=270, seconds=6.0),
+        "uav-c": flight("nadir", width=320, height=180, seconds=6.0),
+    }
+    out = tmp_path / "dataset"
+    ground = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet", "--mode"]
+        + ["client", "--connect", f"tcp/127.0.0.1:{port}", "--until-done", "--duration", "120"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    procs = {}
+    try:
+        time.sleep(1.0)
+        for name, fl in flights.items():
+            d = tmp_path / name
+            d.mkdir()
+            procs[name] = start(
+                kf_bin,
+                d,
+                f"camera.path={fl / 'video.avi'}",
+                "zenoh.enabled=true",
+                f"zenoh.config={client}",
+                f"zenoh.vehicle={name}",
+                "output.mcap=false",
+            )
+        for name, p in procs.items():
+            _, err = p.communicate(timeout=120)
+            assert p.returncode == 0, (name, err)
+        g_out, g_err = ground.communicate(timeout=120)
+    finally:
+        for p in [ground, *procs.values()]:
+            if p.poll() is None:
+                p.kill()
+        router.close()
+    assert ground.returncode == 0, g_err
+    results = {r["vehicle"]: r for r in map(json.loads, g_out.strip().splitlines())}
+    assert sorted(results) == sorted(flights)
+    for name in flights:
+        fd = flight_dir(tmp_path / name)
+        kfs = rows(fd / "keyframes" / "keyframes.csv")
+        assert results[name]["keyframes"] == len(kfs) > 0
+        assert results[name]["duplicates_ignored"] == 0
+        got = sorted(p.name for p in (out / name / "images").glob("*.jpg"))
+        assert got == sorted(k["file"] for k in kfs)
+        for k in kfs:
+            assert (out / name / "images" / k["file"]).read_bytes() == (
+                fd / "keyframes" / k["file"]
+            ).read_bytes()
