@@ -1,0 +1,108 @@
+"""Keyframe latency on loopback: from the frame's capture to its arrival at a Zenoh
+subscriber (what a ground station sees), for `keyframed run` on a sample flight
+played in real time. Both ends are on this machine's CLOCK_MONOTONIC: the daemon
+stamps each frame on arrival (`time_ns` in the keyframe's metadata) and the
+subscriber stamps receipt. Gap fills (promoted candidates) are left out: they are
+by design an earlier frame kept later. Also prints the MCAP file's size and the keyframes' sizes.
+
+    .venv/bin/python tools/bench/latency_bench.py [--flight nadir] [--width 1920 --height 1080]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import zenoh
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--flight", default="nadir")
+    p.add_argument("--width", type=int, default=1920)
+    p.add_argument("--height", type=int, default=1080)
+    p.add_argument("--seconds", type=float, default=20.0)
+    args = p.parse_args()
+    sys.path.insert(0, str(ROOT / "tests" / "harness"))
+    from flights import flight  # the tests' cached sample flights
+
+    fl = flight(args.flight, width=args.width, height=args.height, seconds=args.seconds)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    arrivals: list[tuple[int, dict, int]] = []
+
+    def on_keyframe(sample: zenoh.Sample) -> None:
+        now = time.monotonic_ns()
+        meta = json.loads(sample.attachment.to_bytes())
+        arrivals.append((now, meta, len(sample.payload.to_bytes())))
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    sub = session.declare_subscriber("keyframed/*/keyframe", on_keyframe)
+    with tempfile.TemporaryDirectory() as tmp:
+        zconf = Path(tmp) / "zenoh.json5"
+        zconf.write_text(
+            json.dumps(
+                {
+                    "mode": "peer",
+                    "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                    "scouting": {"multicast": {"enabled": False}},
+                }
+            )
+        )
+        (Path(tmp) / "etc").mkdir()
+        sets = [
+            "camera.source=file",
+            f"camera.path={fl / 'video.avi'}",
+            f"output.state_dir={tmp}/state",
+            "telemetry.url=",
+            f"zenoh.config={zconf}",
+            "zenoh.vehicle=bench",
+        ]
+        cmd = [str(ROOT / "build/release/daemon/keyframed"), "run", "--config-dir", f"{tmp}/etc"]
+        for s in sets:
+            cmd += ["--set", s]
+        subprocess.run(cmd, check=True, stderr=subprocess.DEVNULL)
+        time.sleep(0.5)
+        state = Path(tmp) / "state" / "latest"
+        summary = json.loads((state / "summary.json").read_text())
+        mcap_mb = (state / "flight.mcap").stat().st_size / 1e6
+    sub.undeclare()
+    session.close()
+    lat = sorted(
+        (now - int(m["time_ns"])) / 1e6
+        for now, m, _ in arrivals
+        # kept on their own decision; a promoted candidate carries its earlier
+        # "redundant"/"blurry" reason and was kept later by design
+        if (m.get("scores") or {}).get("reason") in ("first", "overlap_target", "paper_distance")
+    )
+    if not lat:
+        print("no keyframes received", file=sys.stderr)
+        return 1
+    p99 = lat[min(len(lat) - 1, round(0.99 * (len(lat) - 1)))]
+    print(f"keyframed run, {args.width}x{args.height} {args.flight} flight, {args.seconds:.0f} s")
+    print(f"  keyframes received      {len(arrivals)} of {summary['written']} written")
+    print(
+        f"  latency (ms)            median {statistics.median(lat):.1f}, p99 {p99:.1f}, "
+        f"max {lat[-1]:.1f} ({len(lat)} keyframes, gap fills excluded)"
+    )
+    print(f"  keyframe size           {statistics.mean(n for _, _, n in arrivals) / 1e3:.0f} KB")
+    print(f"  MCAP file               {mcap_mb:.1f} MB for {summary['frames_read']} frames")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
