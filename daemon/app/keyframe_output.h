@@ -16,6 +16,10 @@ namespace keyframed {
 // (pose at the frame's time, waiting briefly on a live link for telemetry newer
 // than the frame), logs the decision, feeds the MCAP/Zenoh outputs and reports
 // the capture to the autopilot. Events must arrive in frame order.
+// Records every MAVLink packet a live link receives into the flight outputs (MCAP
+// /mavlink/raw); nothing for a tlog, which is the raw record already.
+void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs);
+
 class KeyframeOutput {
  public:
   KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,

@@ -514,6 +514,7 @@ int Daemon::run() {
     return 1;
   }
 
+  if (telemetry_) recordRawMavlink(*telemetry_, outputs_);
   SteadyClock clock;
   stage_ = std::make_unique<KeyframeStage>(
       config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.push(std::move(ev)); });
@@ -617,6 +618,7 @@ int Daemon::run() {
   if (telemetry_) {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));  // last capture reports
     telemetry_->stop();
+    telemetry_->setRawSink({});
   }
   if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
   if (!writeSummary(seconds, state)) {

@@ -215,6 +215,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   }
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs);
+  if (telemetry) recordRawMavlink(*telemetry, outputs);
   bool outputFailed = false;
 
   SteadyClock clock;
@@ -286,6 +287,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   if (!log.close(error) && s.error.empty()) s.error = error;
   if (!writer.close(error) && s.error.empty()) s.error = error;
   // A recorder that failed has said so; the keyframes are what must not be lost.
+  if (telemetry) telemetry->setRawSink({});
   outputs.close(!s.error.empty() ? "failed" : (s.interrupted ? "interrupted" : "done"), error);
   if (telemetry) {
     // Let the telemetry thread send the last CAMERA_IMAGE_CAPTURED reports.

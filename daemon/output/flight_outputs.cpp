@@ -126,6 +126,13 @@ void FlightOutputs::decision(const Decision& d, const std::string& decisionJson)
     impl_->recorder->recordText(McapTopic::Decision, d.timestampNs, decisionJson);
 }
 
+void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
+                            std::uint32_t messageId, std::span<const std::uint8_t> packet) {
+  if (impl_->recorder)
+    impl_->recorder->record(McapTopic::Mavlink, timeNs,
+                            proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+}
+
 void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uint8_t> jpeg) {
   if (!active()) return;
   ++impl_->kept;
@@ -254,6 +261,8 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
 }
 void FlightOutputs::decision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
+void FlightOutputs::mavlink(std::int64_t, std::uint32_t, std::uint32_t, std::uint32_t,
+                            std::span<const std::uint8_t>) {}
 void FlightOutputs::progress(std::int64_t, std::int64_t) {}
 bool FlightOutputs::close(const std::string&, std::string&) {
   return true;

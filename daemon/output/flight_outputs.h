@@ -39,6 +39,9 @@ class FlightOutputs {
   void decision(const Decision& d, const std::string& decisionJson);
   // Every keyframe written, with its tagged JPEG bytes.
   void keyframe(const KeyframeRecord& record, std::span<const std::uint8_t> jpeg);
+  // A raw MAVLink packet as received (thread-safe; the telemetry thread calls it).
+  void mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
+               std::uint32_t messageId, std::span<const std::uint8_t> packet);
   // Progress (status on Zenoh about once a second).
   void progress(std::int64_t framesRead, std::int64_t kept);
   // Last status and close; false when the MCAP file is incomplete (error says why).

@@ -43,6 +43,11 @@ void TelemetryService::stop() {
   if (thread_.joinable()) thread_.join();
 }
 
+void TelemetryService::setRawSink(RawSink sink) {
+  std::lock_guard lock(sinkMutex_);
+  sink_ = std::move(sink);
+}
+
 void TelemetryService::reportCapture(const CaptureReport& report) {
   std::lock_guard lock(mutex_);
   queue_.push_back(report);
@@ -235,7 +240,11 @@ void TelemetryService::run() {
     switch (link_->read(buf.data(), buf.size(), n, t, 50, error)) {
       case MavlinkLink::Status::Data:
         lastData = t;
-        parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) { onMessage(m, t); });
+        parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) {
+          onMessage(m, t);
+          std::lock_guard lock(sinkMutex_);
+          if (sink_) sink_(m, t);
+        });
         {
           std::lock_guard lock(mutex_);
           stats_.parser = parser_.stats();

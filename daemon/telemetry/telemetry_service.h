@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -73,6 +74,10 @@ class TelemetryService {
   [[nodiscard]] bool isReplay() const { return replay_; }
   // Queues a capture report; the telemetry thread sends it. Thread-safe.
   void reportCapture(const CaptureReport& report);
+  // Every MAVLink message received on a live link, with its arrival time (e.g. for
+  // the flight record). Called on the telemetry thread; set or clear at any time.
+  using RawSink = std::function<void(const mavlink_message_t& msg, std::int64_t timeNs)>;
+  void setRawSink(RawSink sink);
   [[nodiscard]] TelemetryServiceStats stats() const;
 
  private:
@@ -96,6 +101,8 @@ class TelemetryService {
   std::unique_ptr<MavlinkEncoder> encoder_;
   std::thread thread_;
   std::atomic<bool> stop_{false};
+  std::mutex sinkMutex_;
+  RawSink sink_;
   bool replay_ = false;
   std::int64_t startNs_ = 0;
 

@@ -335,6 +335,14 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     assert len(ok) >= len(kfs) - 1, [k["geotag"] for k in kfs]
     assert summary["telemetry"]["captures_sent"] == len(kfs)
     assert len(ap.received("CAMERA_IMAGE_CAPTURED")) == len(kfs)
+    # the flight record holds the raw MAVLink stream too
+    from mcap.reader import make_reader
+
+    with open(fd / "flight.mcap", "rb") as f:
+        summ = make_reader(f).get_summary()
+    topics = {c.id: c.topic for c in summ.channels.values()}
+    counts = {topics[cid]: n for cid, n in summ.statistics.channel_message_counts.items()}
+    assert counts.get("/mavlink/raw", 0) > 100, counts
     # the ground station holds every keyframe, byte for byte
     result = json.loads(g_out.strip().splitlines()[-1])
     assert result["vehicle"] == "uav7" and result["keyframes"] == len(kfs)
