@@ -499,6 +499,8 @@ int Daemon::run() {
   }
   FlightOutputOptions fo;
   if (config_.output.mcap) fo.mcapPath = flightDir_ + "/flight.mcap";
+  fo.mcapRotateBytes = static_cast<std::uint64_t>(config_.output.mcapRotateMb) << 20;
+  fo.mcapRotateSeconds = config_.output.mcapRotateS;
   fo.zenoh = config_.zenoh.enabled;
   fo.zenohConfig = config_.zenoh.config;
   fo.vehicle = config_.zenoh.vehicle;

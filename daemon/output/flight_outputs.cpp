@@ -75,6 +75,8 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     McapRecorderOptions ro;
     ro.path = o.mcapPath;
     ro.blockWhenFull = o.offline;
+    ro.rotateBytes = o.mcapRotateBytes;
+    ro.rotateSeconds = o.mcapRotateSeconds;
     auto rec = std::make_unique<McapRecorder>();
     if (!rec->open(ro, error)) {
       error = "--mcap: " + error;

@@ -12,12 +12,14 @@
 namespace keyframed {
 
 struct FlightOutputOptions {
-  std::string mcapPath;         // --mcap FILE; empty: no recording
-  std::string zenohConfig;      // --zenoh-config FILE; empty: no Zenoh
-  std::string vehicle = "uav";  // --vehicle NAME
-  std::string keyframeDir;      // where KeyframeWriter puts JPEGs + keyframes.csv
-  bool offline = true;          // offline: the recorder waits instead of dropping
-  bool zenoh = false;           // publish even without a config file (Zenoh's defaults)
+  std::string mcapPath;                // --mcap FILE; empty: no recording
+  std::string zenohConfig;             // --zenoh-config FILE; empty: no Zenoh
+  std::string vehicle = "uav";         // --vehicle NAME
+  std::string keyframeDir;             // where KeyframeWriter puts JPEGs + keyframes.csv
+  bool offline = true;                 // offline: the recorder waits instead of dropping
+  bool zenoh = false;                  // publish even without a config file (Zenoh's defaults)
+  std::uint64_t mcapRotateBytes = 0;   // a new MCAP part after this many bytes (0: never)
+  std::int64_t mcapRotateSeconds = 0;  // ... or seconds (0: never)
 };
 
 // Everything a run sends beyond its keyframe directory: the MCAP flight record and

@@ -1,7 +1,9 @@
 #include "output/mcap_recorder.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <filesystem>
 
 #include "output/foxglove_proto.h"
 
@@ -106,8 +108,39 @@ McapRecorder::~McapRecorder() {
 
 bool McapRecorder::open(const McapRecorderOptions& options, std::string& error) {
   options_ = options;
+  if (!openFile(options.path, error)) return false;
+  thread_ = std::thread([this] { run(); });
+  return true;
+}
+
+std::string McapRecorder::partPath(int part) const {
+  if (part == 0) return options_.path;
+  const std::filesystem::path p(options_.path);
+  char suffix[16];
+  std::snprintf(suffix, sizeof suffix, "-%03d", part);
+  return (p.parent_path() / (p.stem().string() + suffix + p.extension().string())).string();
+}
+
+bool McapRecorder::rotate(std::string& error) {
+  if (!writer_->close(error)) return false;
+  writer_.reset();
+  ++part_;
+  if (!openFile(partPath(part_), error)) return false;
+  if (!latchedCalibration_.empty()) {
+    const int t = static_cast<int>(McapTopic::Calibration);
+    const auto now = static_cast<std::uint64_t>(std::max<std::int64_t>(lastTimeNs_, 0));
+    if (!writer_->write(channels_[t], ++sequences_[t], now, now, latchedCalibration_, error))
+      return false;
+  }
+  return true;
+}
+
+bool McapRecorder::openFile(const std::string& path, std::string& error) {
+  const McapRecorderOptions& options = options_;
+  fileBytes_ = 0;
+  fileStart_ = std::chrono::steady_clock::now();
   McapWriterOptions wo;
-  wo.path = options.path;
+  wo.path = path;
   wo.compression = options.compression;
   wo.chunkSize = options.chunkSize;
   writer_ = McapWriter::open(wo, error);
@@ -132,7 +165,8 @@ bool McapRecorder::open(const McapRecorderOptions& options, std::string& error) 
     writer_.reset();
     return false;
   }
-  thread_ = std::thread([this] { run(); });
+  std::lock_guard lock(mutex_);
+  ++stats_.files;
   return true;
 }
 
@@ -205,7 +239,20 @@ void McapRecorder::run() {
       }
       ++written;
       bytes += it.data.size();
+      fileBytes_ += it.data.size();
+      lastTimeNs_ = it.timeNs;
+      if (it.topic == McapTopic::Calibration) latchedCalibration_ = it.data;
       dirty = true;
+      const bool full = options_.rotateBytes > 0 && fileBytes_ >= options_.rotateBytes;
+      const bool old = options_.rotateSeconds > 0 &&
+                       Clock::now() - fileStart_ >= std::chrono::seconds(options_.rotateSeconds);
+      if (full || old) {
+        if (!rotate(error)) {
+          fail("rotating to " + partPath(part_) + ": " + error);
+          break;
+        }
+        dirty = false;
+      }
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;
     batch.clear();

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
@@ -35,6 +36,12 @@ struct McapRecorderOptions {
   bool fsync = false;                     // fsync at each timed flush (power loss)
   std::size_t maxQueueBytes = 64u << 20;  // queued but unwritten message bytes
   bool blockWhenFull = false;             // true: producers wait (offline); false: drop
+  // Rotation: a new file once this many message bytes (uncompressed) or seconds went
+  // into the current one (0: never). Parts after the first are named
+  // <stem>-001<ext>, <stem>-002<ext>, ...; each is a complete MCAP file with every
+  // schema and channel, and the latest calibration repeated.
+  std::uint64_t rotateBytes = 0;
+  std::int64_t rotateSeconds = 0;
 };
 
 struct McapRecorderStats {
@@ -42,6 +49,7 @@ struct McapRecorderStats {
   std::uint64_t bytes = 0;    // message payload bytes
   std::uint64_t dropped = 0;  // queue full or recorder stopped
   std::uint64_t flushes = 0;
+  std::uint64_t files = 0;  // parts written (1 without rotation)
 };
 
 // The flight recorder: one writer thread owns the MCAP file; any thread queues
@@ -80,12 +88,20 @@ class McapRecorder {
   };
   void run();
   void fail(const std::string& error);
+  bool openFile(const std::string& path, std::string& error);
+  bool rotate(std::string& error);
+  [[nodiscard]] std::string partPath(int part) const;
 
   McapRecorderOptions options_;
   std::unique_ptr<McapWriter> writer_;
   std::uint16_t channels_[static_cast<int>(McapTopic::Count)] = {};
   std::uint32_t sequences_[static_cast<int>(McapTopic::Count)] = {};
   std::thread thread_;
+  int part_ = 0;
+  std::uint64_t fileBytes_ = 0;
+  std::int64_t lastTimeNs_ = 0;
+  std::chrono::steady_clock::time_point fileStart_;
+  std::vector<std::uint8_t> latchedCalibration_;  // repeated at the start of each part
 
   mutable std::mutex mutex_;
   std::condition_variable wake_;   // writer: work or closing
