@@ -498,6 +498,9 @@ std::vector<Field> makeSchema() {
   f.push_back(integer(
       "output", "mcap_rotate_s", [](auto& c) -> auto& { return c.output.mcapRotateS; },
       R{0, 86400}));
+  f.push_back(integer(
+      "output", "preview_width", [](auto& c) -> auto& { return c.output.previewWidth; },
+      R{0, 16384}));
 
   // [zenoh]
   f.push_back(boolean(

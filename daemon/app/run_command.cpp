@@ -27,6 +27,8 @@
 #include <thread>
 
 #include <opencv2/core/utils/logger.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "app/config.h"
 #include "app/decision_log.h"
@@ -41,6 +43,7 @@
 #include "capture/v4l2_source.h"
 #include "output/flight_outputs.h"
 #include "tagging/camera_model.h"
+#include "tagging/jpeg_encoder.h"
 #include "telemetry/telemetry_service.h"
 #ifdef KEYFRAMED_WITH_LIBCAMERA
 #include "capture/libcamera_source.h"
@@ -256,6 +259,58 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
   return nullptr;
 }
 
+// The preview stream: each frame in colour, scaled to `width` (0: off; at or above
+// the frame's width: full resolution), as a JPEG for the flight record.
+class PreviewEncoder {
+ public:
+  explicit PreviewEncoder(int width) : width_(width) {}
+  bool encode(const Frame& f, std::vector<std::uint8_t>& jpeg) {
+    if (width_ <= 0) return false;
+    const cv::Mat src(f.height, f.width, CV_8UC1, const_cast<std::uint8_t*>(f.data),
+                      static_cast<std::size_t>(f.stride));
+    switch (f.format) {
+      case PixelFormat::BGR24:
+        bgr_ = cv::Mat(f.height, f.width, CV_8UC3, const_cast<std::uint8_t*>(f.data),
+                       static_cast<std::size_t>(f.stride));
+        break;
+      case PixelFormat::Gray8: cv::cvtColor(src, bgr_, cv::COLOR_GRAY2BGR); break;
+      case PixelFormat::NV12:
+        cv::cvtColor(cv::Mat(f.height * 3 / 2, f.width, CV_8UC1, const_cast<std::uint8_t*>(f.data),
+                             static_cast<std::size_t>(f.stride)),
+                     bgr_, cv::COLOR_YUV2BGR_NV12);
+        break;
+      case PixelFormat::YUV420:
+        cv::cvtColor(cv::Mat(f.height * 3 / 2, f.width, CV_8UC1, const_cast<std::uint8_t*>(f.data),
+                             static_cast<std::size_t>(f.stride)),
+                     bgr_, cv::COLOR_YUV2BGR_I420);
+        break;
+      case PixelFormat::YUYV:
+        cv::cvtColor(cv::Mat(f.height, f.width, CV_8UC2, const_cast<std::uint8_t*>(f.data),
+                             static_cast<std::size_t>(f.stride)),
+                     bgr_, cv::COLOR_YUV2BGR_YUYV);
+        break;
+    }
+    if (width_ >= f.width) {
+      // Full resolution: lossless (PNG), so that a replay sees the very pixels the
+      // live selection saw and reproduces its decisions exactly.
+      format_ = "png";
+      return cv::imencode(".png", bgr_, jpeg, {cv::IMWRITE_PNG_COMPRESSION, 1});
+    }
+    format_ = "jpeg";
+    cv::resize(bgr_, small_, cv::Size(width_, f.height * width_ / f.width), 0, 0, cv::INTER_AREA);
+    std::string error;
+    return encoder_.encode(small_, kQuality, jpeg, error);
+  }
+  [[nodiscard]] const char* format() const { return format_; }
+
+ private:
+  static constexpr int kQuality = 85;
+  int width_;
+  const char* format_ = "jpeg";
+  cv::Mat bgr_, small_;
+  JpegEncoder encoder_;
+};
+
 struct RunStats {
   std::atomic<std::int64_t> analysed{0};
   std::atomic<std::int64_t> kept{0};
@@ -315,6 +370,8 @@ class Daemon {
   std::mutex reloadMutex_;
   std::optional<SelectorConfig> pendingSelection_;
   StageCounts finalCounts_;
+  PreviewEncoder preview_{static_cast<int>(config_.output.previewWidth)};
+  std::vector<std::uint8_t> previewJpeg_;
 };
 
 void Daemon::analysisLoop() {
@@ -335,6 +392,9 @@ void Daemon::analysisLoop() {
     }
     stats_.lastFrameNs.store(monotonicNs());
     stage_->process((*item)->frame);
+    if (outputs_.recording() && preview_.encode((*item)->frame, previewJpeg_)) {
+      outputs_.preview((*item)->frame.timestampNs, previewJpeg_, preview_.format());
+    }
     stats_.analysed.store(stage_->counts().framesRead);
     stats_.kept.store(stage_->counts().kept);
   }

@@ -18,6 +18,7 @@
 #include "app/keyframe_writer.h"
 #include "capture/file_source.h"
 #include "output/flight_outputs.h"
+#include "output/mcap_replay.h"
 #include "tagging/camera_model.h"
 #include "telemetry/telemetry_service.h"
 
@@ -118,9 +119,27 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   SelectSummary s;
   cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
   std::string error;
-  auto source = FileSource::open(opts.video, error);
+  // A video file, or a flight record (MCAP from `keyframed run`) to replay.
+  std::unique_ptr<FrameSource> source;
+  FileSource* file = nullptr;
+  McapReplaySource* replay = nullptr;
+  if (isMcapFile(opts.video)) {
+    auto r = McapReplaySource::open(opts.video, error);
+    replay = r.get();
+    source = std::move(r);
+  } else {
+    auto f = FileSource::open(opts.video, error);
+    file = f.get();
+    source = std::move(f);
+  }
   if (!source) {
     s.error = error;
+    return s;
+  }
+  if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs)) {
+    s.error =
+        "a flight record replays on its own recorded clock: no --realtime, "
+        "--video-start or live --telemetry with it";
     return s;
   }
   std::optional<CameraModel> camera;
@@ -148,7 +167,16 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
 
   // Telemetry: a tlog is read whole now; a live link gets its own thread.
   std::unique_ptr<TelemetryService> telemetry;
-  if (!opts.telemetry.empty()) {
+  if (replay != nullptr && opts.telemetry.empty() && !replay->mavlink().empty()) {
+    // The flight record's own MAVLink stream, with its arrival times: the frames'
+    // timestamps are on the same clock.
+    std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>> packets;
+    packets.reserve(replay->mavlink().size());
+    for (const auto& p : replay->mavlink()) packets.emplace_back(p.timeNs, p.bytes);
+    telemetry = std::make_unique<TelemetryService>(TelemetryServiceConfig{}, CameraDescription{});
+    telemetry->startFromPackets(packets);
+    s.telemetry.source = opts.video + " (/mavlink/raw)";
+  } else if (!opts.telemetry.empty()) {
     TelemetryServiceConfig tc;
     tc.url = opts.telemetry;
     tc.systemId = opts.mavlinkSystemId;
@@ -243,7 +271,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     if (st == ReadStatus::End) break;
     if (st == ReadStatus::Error) {
       s.error = error;
-      s.truncated = source->truncated();
+      s.truncated = file != nullptr && file->truncated();
       break;
     }
     // The frame's time on the telemetry's clock.

@@ -68,6 +68,10 @@ bool FlightOutputs::active() const {
   return impl_->recorder != nullptr || impl_->publisher != nullptr;
 }
 
+bool FlightOutputs::recording() const {
+  return impl_->recorder != nullptr;
+}
+
 bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
                          const CameraModel* camera, std::string& error) {
   impl_->options = o;
@@ -133,6 +137,13 @@ void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::ui
   if (impl_->recorder)
     impl_->recorder->record(McapTopic::Mavlink, timeNs,
                             proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+}
+
+void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
+                            const char* format) {
+  if (impl_->recorder)
+    impl_->recorder->record(McapTopic::Preview, timeNs,
+                            proto::compressedImage(timeNs, kCameraFrame, image, format));
 }
 
 void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uint8_t> jpeg) {
@@ -252,6 +263,9 @@ FlightOutputs::~FlightOutputs() = default;
 bool FlightOutputs::active() const {
   return false;
 }
+bool FlightOutputs::recording() const {
+  return false;
+}
 
 bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraModel*,
                          std::string& error) {
@@ -263,6 +277,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
 }
 void FlightOutputs::decision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
+void FlightOutputs::preview(std::int64_t, std::span<const std::uint8_t>, const char*) {}
 void FlightOutputs::mavlink(std::int64_t, std::uint32_t, std::uint32_t, std::uint32_t,
                             std::span<const std::uint8_t>) {}
 void FlightOutputs::progress(std::int64_t, std::int64_t) {}

@@ -36,6 +36,7 @@ class FlightOutputs {
   bool open(const FlightOutputOptions& options, int width, int height, const CameraModel* camera,
             std::string& error);
   [[nodiscard]] bool active() const;
+  [[nodiscard]] bool recording() const;  // an MCAP file is being written
 
   // Every analysed frame; decisionJson as DecisionLog::jsonRow writes it.
   void decision(const Decision& d, const std::string& decisionJson);
@@ -44,6 +45,8 @@ class FlightOutputs {
   // A raw MAVLink packet as received (thread-safe; the telemetry thread calls it).
   void mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                std::uint32_t messageId, std::span<const std::uint8_t> packet);
+  // One frame of the preview stream (a JPEG), for replay.
+  void preview(std::int64_t timeNs, std::span<const std::uint8_t> image, const char* format);
   // Progress (status on Zenoh about once a second).
   void progress(std::int64_t framesRead, std::int64_t kept);
   // Last status and close; false when the MCAP file is incomplete (error says why).

@@ -40,6 +40,17 @@ int kfio_mcap_flush(kfio_mcap* mcap, int sync, char* err, size_t err_len);
 /* Writes summary and footer, closes the file, releases the handle (also on error). */
 int kfio_mcap_close(kfio_mcap* mcap, char* err, size_t err_len);
 
+/* Reading (replay): the messages of `count` topics, in file order, whole file in
+ * memory. next() returns 1 with the topic's index in `topics`, the log time and the
+ * data (valid until close), 0 at the end. truncated(): the file was cut short. */
+typedef struct KfioMcapReader kfio_mcap_reader;
+kfio_mcap_reader* kfio_mcap_reader_open(const char* path, const char* const* topics, size_t count,
+                                        char* err, size_t err_len);
+int kfio_mcap_reader_next(kfio_mcap_reader* reader, uint32_t* topic, uint64_t* log_time,
+                          const uint8_t** data, size_t* len);
+int kfio_mcap_reader_truncated(const kfio_mcap_reader* reader);
+void kfio_mcap_reader_close(kfio_mcap_reader* reader);
+
 /* ---- Zenoh ---- */
 
 /* Configuration from a JSON5 file (config_path) or string (config_json5), or the

@@ -85,6 +85,7 @@ constexpr TopicSpec kTopics[] = {
     {"/keyframed/camera_pose", "foxglove.PoseInFrame", "protobuf", "protobuf"},
     {"/camera/calibration", "foxglove.CameraCalibration", "protobuf", "protobuf"},
     {"/keyframed/log", "foxglove.Log", "protobuf", "protobuf"},
+    {"/camera/preview", "foxglove.CompressedImage", "protobuf", "protobuf"},
 };
 static_assert(std::size(kTopics) == static_cast<std::size_t>(McapTopic::Count));
 

@@ -25,6 +25,7 @@ enum class McapTopic : std::uint8_t {
   CameraPose,    // /keyframed/camera_pose    foxglove.PoseInFrame (camera -> NED)
   Calibration,   // /camera/calibration       foxglove.CameraCalibration
   Log,           // /keyframed/log            foxglove.Log
+  Preview,       // /camera/preview           foxglove.CompressedImage (every frame, JPEG)
   Count
 };
 

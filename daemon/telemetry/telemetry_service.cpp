@@ -38,6 +38,19 @@ bool TelemetryService::start(std::string& error) {
   return true;
 }
 
+void TelemetryService::startFromPackets(
+    const std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>>& packets) {
+  replay_ = true;
+  startNs_ = monotonicNowNs();
+  for (const auto& [t, bytes] : packets) {
+    parser_.feed(bytes.data(), bytes.size(),
+                 [&](const mavlink_message_t& m) { decoder_.handle(m, t); });
+  }
+  std::lock_guard lock(mutex_);
+  stats_.replayDone = true;
+  stats_.parser = parser_.stats();
+}
+
 void TelemetryService::stop() {
   stop_ = true;
   if (thread_.joinable()) thread_.join();

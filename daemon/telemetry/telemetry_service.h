@@ -9,6 +9,8 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <utility>
+#include <vector>
 
 #include "telemetry/link.h"
 #include "telemetry/mavlink_codec.h"
@@ -68,6 +70,10 @@ class TelemetryService {
   TelemetryService& operator=(const TelemetryService&) = delete;
 
   bool start(std::string& error);
+  // A replay of recorded packets (arrival time in ns, bytes), e.g. a flight
+  // record's /mavlink/raw: parsed now, like a tlog; no link, nothing sent.
+  void startFromPackets(
+      const std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>>& packets);
   void stop();
 
   [[nodiscard]] const TelemetryDecoder& decoder() const { return decoder_; }

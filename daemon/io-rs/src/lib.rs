@@ -161,6 +161,108 @@ impl KfioMcap {
     }
 }
 
+/// Messages of some topics of an MCAP file, read in file order (a replay source).
+pub struct KfioMcapReader {
+    messages: Vec<(u32, u64, Vec<u8>)>, // (topic index, log time, data)
+    next: usize,
+    truncated: bool,
+}
+
+/// Reads the messages of `topics` (`count` NUL-terminated names) from an MCAP file,
+/// whole, into memory. A file cut short (SIGKILL, power cut) gives what precedes the
+/// cut and reports itself truncated.
+#[no_mangle]
+pub extern "C" fn kfio_mcap_reader_open(
+    path: *const c_char,
+    topics: *const *const c_char,
+    count: usize,
+    err: *mut c_char,
+    err_len: usize,
+) -> *mut KfioMcapReader {
+    guard(err, err_len, std::ptr::null_mut(), || {
+        let path = cstr(path, "path")?;
+        let mut wanted: Vec<String> = Vec::with_capacity(count);
+        for i in 0..count {
+            // SAFETY: the caller passes `count` string pointers.
+            let t = unsafe { *topics.add(i) };
+            wanted.push(cstr(t, "topic")?.to_string());
+        }
+        let buf = std::fs::read(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+        let stream = mcap::MessageStream::new(&buf)
+            .map_err(|e| format!("{path}: not an MCAP file ({e})"))?;
+        let mut messages = Vec::new();
+        let mut truncated = false;
+        for m in stream {
+            match m {
+                Ok(m) => {
+                    if let Some(i) = wanted.iter().position(|t| *t == m.channel.topic) {
+                        messages.push((i as u32, m.log_time, m.data.into_owned()));
+                    }
+                }
+                Err(_) => {
+                    truncated = true;
+                    break;
+                }
+            }
+        }
+        Ok(Box::into_raw(Box::new(KfioMcapReader {
+            messages,
+            next: 0,
+            truncated,
+        })))
+    })
+}
+
+/// The next message: 1 with its topic index, log time and data (valid until the
+/// reader is closed), 0 at the end.
+#[no_mangle]
+pub extern "C" fn kfio_mcap_reader_next(
+    reader: *mut KfioMcapReader,
+    topic: *mut u32,
+    log_time: *mut u64,
+    data: *mut *const u8,
+    len: *mut usize,
+) -> c_int {
+    if reader.is_null() || topic.is_null() || log_time.is_null() || data.is_null() || len.is_null()
+    {
+        return 0;
+    }
+    // SAFETY: a live handle from kfio_mcap_reader_open and valid out pointers.
+    let r = unsafe { &mut *reader };
+    if r.next >= r.messages.len() {
+        return 0;
+    }
+    let (t, time, bytes) = &r.messages[r.next];
+    r.next += 1;
+    unsafe {
+        *topic = *t;
+        *log_time = *time;
+        *data = bytes.as_ptr();
+        *len = bytes.len();
+    }
+    1
+}
+
+/// 1 when the file ended before its end record (cut short), else 0.
+#[no_mangle]
+pub extern "C" fn kfio_mcap_reader_truncated(reader: *const KfioMcapReader) -> c_int {
+    if reader.is_null() {
+        return 0;
+    }
+    // SAFETY: a live handle.
+    c_int::from(unsafe { &*reader }.truncated)
+}
+
+#[no_mangle]
+pub extern "C" fn kfio_mcap_reader_close(reader: *mut KfioMcapReader) {
+    guard_void(|| {
+        if !reader.is_null() {
+            // SAFETY: the handle came from Box::into_raw and is released once.
+            drop(unsafe { Box::from_raw(reader) });
+        }
+    });
+}
+
 /// Opens an MCAP file for writing (truncating it). compression: "zstd", "lz4" or
 /// "none"/""/NULL. chunk_size: target uncompressed chunk size in bytes (0: 64 KiB).
 #[no_mangle]
