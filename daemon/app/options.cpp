@@ -42,7 +42,9 @@ std::string selectUsage() {
 
 Reads VIDEO, keeps sharp frames that overlap the previous keyframe by the
 target amount, writes them to DIR as NNNNNN.jpg (zero-based frame index),
-DIR/decisions.csv (one row per frame) and DIR/summary.json.
+DIR/decisions.csv (one row per frame) and DIR/summary.json. VIDEO may also be
+a flight record (MCAP from `keyframed run`): its preview stream is replayed, with
+its recorded MAVLink as telemetry.
 
 selection:
   --mode geometric|paper     overlap test (default geometric)
