@@ -347,6 +347,7 @@ class Daemon {
   void analysisLoop();
   void outputLoop();
   void reload();
+  void publishPose();
   bool writeSummary(double seconds, const std::string& state);
 
   DaemonConfig config_;
@@ -392,7 +393,8 @@ void Daemon::analysisLoop() {
     }
     stats_.lastFrameNs.store(monotonicNs());
     stage_->process((*item)->frame);
-    if (outputs_.recording() && preview_.encode((*item)->frame, previewJpeg_)) {
+    if ((outputs_.recording() || outputs_.publishing()) &&
+        preview_.encode((*item)->frame, previewJpeg_)) {
       outputs_.preview((*item)->frame.timestampNs, previewJpeg_, preview_.format());
     }
     stats_.analysed.store(stage_->counts().framesRead);
@@ -416,6 +418,31 @@ void Daemon::outputLoop() {
     stats_.written.store(writer_.count());
     outputs_.progress(stats_.analysed.load(), writer_.count());
   }
+}
+
+// About once a second, keyframed/<vehicle>/telemetry: the pose a quarter second ago
+// (so that samples on both sides have arrived), or why there is none.
+void Daemon::publishPose() {
+  const std::int64_t t = monotonicNs() - 250'000'000;
+  const Pose p = telemetry_->decoder().poseAt(t);
+  char buf[512];
+  if (p.position && p.attitude) {
+    const auto& g = *p.position;
+    const auto& q = *p.attitude;
+    std::snprintf(buf, sizeof buf,
+                  "{\"time_ns\":%lld,\"lat\":%.9f,\"lon\":%.9f,\"alt_amsl\":%.3f,"
+                  "\"alt_rel\":%.3f,\"q\":[%.6f,%.6f,%.6f,%.6f],\"fix_type\":%d,"
+                  "\"keyframes\":%lld}",
+                  static_cast<long long>(t), g.latDeg, g.lonDeg, g.altAmslM, g.altRelM, q.w, q.x,
+                  q.y, q.z, p.gps.fixType, static_cast<long long>(stats_.written.load()));
+  } else {
+    std::string why;
+    for (char c : p.staleReason) why += (c == '"' || c == '\\') ? ' ' : c;
+    std::snprintf(buf, sizeof buf, "{\"time_ns\":%lld,\"stale\":\"%s\",\"keyframes\":%lld}",
+                  static_cast<long long>(t), why.c_str(),
+                  static_cast<long long>(stats_.written.load()));
+  }
+  outputs_.telemetry(buf);
 }
 
 void Daemon::reload() {
@@ -650,6 +677,7 @@ int Daemon::run() {
                     framesArrive || !ready ? "" : ", no frames");
       notifier_.status(buf);
       lastStatus = now;
+      if (telemetry_) publishPose();
       lastAnalysed = analysed;
     }
     if (!capture_->running()) {

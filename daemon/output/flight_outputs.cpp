@@ -3,6 +3,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <string_view>
 
 #include "tagging/camera_mount.h"
 
@@ -52,6 +53,7 @@ struct FlightOutputs::Impl {
   std::unique_ptr<KeyframePublisher> publisher;
   std::map<std::int64_t, Scores> scores;  // frames since the last keyframe
   std::int64_t lastStatusNs = 0;
+  std::int64_t lastPreviewNs = 0;
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
   bool publishFailed = false;
@@ -144,6 +146,25 @@ void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> i
   if (impl_->recorder)
     impl_->recorder->record(McapTopic::Preview, timeNs,
                             proto::compressedImage(timeNs, kCameraFrame, image, format));
+  // Zenoh gets a JPEG twice a second at most (a lossless full-size PNG stays local).
+  if (impl_->publisher && std::string_view(format) == "jpeg") {
+    const std::int64_t now = wallNs();
+    if (now - impl_->lastPreviewNs >= 500'000'000) {
+      impl_->lastPreviewNs = now;
+      std::string ignored;
+      impl_->publisher->publishPreview(image, ignored);
+    }
+  }
+}
+
+void FlightOutputs::telemetry(const std::string& json) {
+  if (!impl_->publisher) return;
+  std::string ignored;
+  impl_->publisher->publishTelemetry(json, ignored);
+}
+
+bool FlightOutputs::publishing() const {
+  return impl_->publisher != nullptr;
 }
 
 void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uint8_t> jpeg) {
@@ -278,6 +299,10 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
 void FlightOutputs::decision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
 void FlightOutputs::preview(std::int64_t, std::span<const std::uint8_t>, const char*) {}
+void FlightOutputs::telemetry(const std::string&) {}
+bool FlightOutputs::publishing() const {
+  return false;
+}
 void FlightOutputs::mavlink(std::int64_t, std::uint32_t, std::uint32_t, std::uint32_t,
                             std::span<const std::uint8_t>) {}
 void FlightOutputs::progress(std::int64_t, std::int64_t) {}

@@ -47,6 +47,9 @@ class FlightOutputs {
                std::uint32_t messageId, std::span<const std::uint8_t> packet);
   // One frame of the preview stream (a JPEG), for replay.
   void preview(std::int64_t timeNs, std::span<const std::uint8_t> image, const char* format);
+  // The vehicle's pose (JSON) on Zenoh's .../telemetry key.
+  void telemetry(const std::string& json);
+  [[nodiscard]] bool publishing() const;  // a Zenoh session is open
   // Progress (status on Zenoh about once a second).
   void progress(std::int64_t framesRead, std::int64_t kept);
   // Last status and close; false when the MCAP file is incomplete (error says why).

@@ -167,6 +167,12 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   p->status_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/status",
                                        ZenohPublisher::Kind::BestEffort, error);
   if (!p->status_) return nullptr;
+  p->preview_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/preview",
+                                        ZenohPublisher::Kind::BestEffort, error);
+  if (!p->preview_) return nullptr;
+  p->telemetry_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/telemetry",
+                                          ZenohPublisher::Kind::BestEffort, error);
+  if (!p->telemetry_) return nullptr;
   if (!p->dir_.empty()) {
     KeyframePublisher* self = p.get();
     p->queryable_ = ZenohQueryable::declare(
@@ -232,6 +238,15 @@ bool KeyframePublisher::publishKeyframe(std::span<const std::uint8_t> jpeg,
                                         const std::string& metadataJson, std::string& error) {
   const auto* att = reinterpret_cast<const std::uint8_t*>(metadataJson.data());
   return keyframes_->put(jpeg, {att, metadataJson.size()}, error);
+}
+
+bool KeyframePublisher::publishPreview(std::span<const std::uint8_t> jpeg, std::string& error) {
+  return preview_->put(jpeg, {}, error);
+}
+
+bool KeyframePublisher::publishTelemetry(const std::string& json, std::string& error) {
+  const auto* p = reinterpret_cast<const std::uint8_t*>(json.data());
+  return telemetry_->put({p, json.size()}, {}, error);
 }
 
 bool KeyframePublisher::publishStatus(const std::string& json, std::string& error) {

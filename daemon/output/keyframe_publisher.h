@@ -35,6 +35,10 @@ class KeyframePublisher {
                        std::string& error);
   // Best effort.
   bool publishStatus(const std::string& json, std::string& error);
+  // Best effort, dropped under congestion: a low-rate JPEG of the live view.
+  bool publishPreview(std::span<const std::uint8_t> jpeg, std::string& error);
+  // Best effort: the vehicle's pose now (JSON).
+  bool publishTelemetry(const std::string& json, std::string& error);
 
   [[nodiscard]] const std::string& prefix() const { return prefix_; }
   [[nodiscard]] std::string zid() const { return session_ ? session_->zid() : std::string(); }
@@ -51,6 +55,8 @@ class KeyframePublisher {
   std::unique_ptr<ZenohSession> session_;
   std::unique_ptr<ZenohPublisher> keyframes_;
   std::unique_ptr<ZenohPublisher> status_;
+  std::unique_ptr<ZenohPublisher> preview_;
+  std::unique_ptr<ZenohPublisher> telemetry_;
   std::unique_ptr<ZenohQueryable> queryable_;
 };
 

@@ -315,7 +315,24 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         "zenoh.enabled=true",
         f"zenoh.config={zconf}",
         "zenoh.vehicle=uav7",
+        "output.preview_width=240",
     )
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    watcher = zenoh.open(conf)
+    previews: list[bytes] = []
+    poses: list[dict[str, Any]] = []
+    subs = [
+        watcher.declare_subscriber(
+            "keyframed/uav7/preview", lambda s: previews.append(s.payload.to_bytes())
+        ),
+        watcher.declare_subscriber(
+            "keyframed/uav7/telemetry", lambda s: poses.append(json.loads(s.payload.to_bytes()))
+        ),
+    ]
     try:
         time.sleep(0.3)
         ap.start()
@@ -325,6 +342,13 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         for p in (proc, ground):
             if p.poll() is None:
                 p.kill()
+        for s in subs:
+            s.undeclare()
+        watcher.close()
+    # the live view (best effort, about 2 Hz) and the pose (about 1 Hz)
+    assert len(previews) >= 5 and all(p[:2] == b"\xff\xd8" for p in previews)
+    located = [p for p in poses if "lat" in p]
+    assert len(located) >= 4 and all(abs(p["lat"] - 51.89) < 0.01 for p in located), poses
     assert proc.returncode == 0, stderr
     assert ground.returncode == 0, g_err
     fd = flight_dir(tmp_path)
