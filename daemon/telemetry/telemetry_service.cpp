@@ -42,8 +42,9 @@ void TelemetryService::startFromPackets(
     const std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>>& packets) {
   replay_ = true;
   startNs_ = monotonicNowNs();
-  for (const auto& [t, bytes] : packets) {
-    parser_.feed(bytes.data(), bytes.size(),
+  for (const auto& packet : packets) {
+    const std::int64_t t = packet.first;  // (clang 14 cannot capture a structured binding)
+    parser_.feed(packet.second.data(), packet.second.size(),
                  [&](const mavlink_message_t& m) { decoder_.handle(m, t); });
   }
   std::lock_guard lock(mutex_);
