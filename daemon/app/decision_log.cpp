@@ -4,22 +4,17 @@
 #include <cmath>
 #include <cstring>
 
+#include "app/text_io.h"
+
 namespace keyframed {
 namespace {
 
-std::string num(double v, int decimals) {
-  if (!std::isfinite(v)) return "";
-  char buf[64];
-  std::snprintf(buf, sizeof buf, "%.*f", decimals, v);
-  return buf;
-}
-
 std::string ms(std::int64_t ns) {
-  return num(static_cast<double>(ns) / 1e6, 3);
+  return formatFixed(static_cast<double>(ns) / 1e6, 3);
 }
 
 std::string jnum(double v, int decimals) {
-  const std::string s = num(v, decimals);
+  const std::string s = formatFixed(v, decimals);
   return s.empty() ? "null" : s;
 }
 
@@ -41,13 +36,14 @@ std::string DecisionLog::csvRow(const Decision& d, const std::string& geotag) {
   s.reserve(160);
   s += std::to_string(d.index) + "," + std::to_string(d.timestampNs) + "," + (d.kept ? "1" : "0") +
        "," + toString(d.reason) + "," + (d.candidate ? "1" : "0") + "," +
-       (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "") + "," + num(d.sharpness, 3) +
-       "," + num(d.threshold, 3) + "," + (d.sharp ? "1" : "0") + "," + num(d.overlap, 4) + "," +
-       num(d.paperDistance, 3) + "," + (d.tracking ? "1" : "0") + "," + num(d.motionPx, 2) + "," +
-       (d.fastMotion ? "1" : "0") + "," + std::to_string(d.features) + "," +
-       std::to_string(d.matches) + "," + std::to_string(d.inliers) + "," + ms(d.times.lumaNs) +
-       "," + ms(d.times.blurNs) + "," + ms(d.times.resizeNs) + "," + ms(d.times.overlapNs) + "," +
-       ms(d.times.totalNs) + ",";
+       (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "") + "," +
+       formatFixed(d.sharpness, 3) + "," + formatFixed(d.threshold, 3) + "," +
+       (d.sharp ? "1" : "0") + "," + formatFixed(d.overlap, 4) + "," +
+       formatFixed(d.paperDistance, 3) + "," + (d.tracking ? "1" : "0") + "," +
+       formatFixed(d.motionPx, 2) + "," + (d.fastMotion ? "1" : "0") + "," +
+       std::to_string(d.features) + "," + std::to_string(d.matches) + "," +
+       std::to_string(d.inliers) + "," + ms(d.times.lumaNs) + "," + ms(d.times.blurNs) + "," +
+       ms(d.times.resizeNs) + "," + ms(d.times.overlapNs) + "," + ms(d.times.totalNs) + ",";
   // The note is free text: quote it, doubling quotes, as CSV does.
   if (!geotag.empty()) {
     s += '"';

@@ -8,14 +8,6 @@
 
 namespace keyframed {
 
-namespace {
-std::int64_t monotonicNs() {
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000LL + ts.tv_nsec;
-}
-}  // namespace
-
 void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
   if (telemetry.isReplay()) return;
   telemetry.setRawSink([&outputs](const mavlink_message_t& msg, std::int64_t timeNs) {
@@ -39,8 +31,8 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
   if (telemetry_ != nullptr) {
     if (!telemetry_->isReplay()) {
       // Telemetry for this instant may still be on its way: wait a little.
-      const std::int64_t deadline = monotonicNs() + telemetryWaitMs_ * 1'000'000LL;
-      while (!telemetry_->decoder().covers(frame.timestampNs) && monotonicNs() < deadline) {
+      const std::int64_t deadline = monotonicNowNs() + telemetryWaitMs_ * 1'000'000LL;
+      while (!telemetry_->decoder().covers(frame.timestampNs) && monotonicNowNs() < deadline) {
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

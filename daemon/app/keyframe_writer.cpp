@@ -5,43 +5,10 @@
 #include <cstring>
 #include <filesystem>
 
+#include "app/text_io.h"
 #include "tagging/exif_writer.h"
 
 namespace keyframed {
-
-namespace {
-
-std::string num(double v, int decimals) {
-  if (!std::isfinite(v)) return "";
-  char buf[64];
-  std::snprintf(buf, sizeof buf, "%.*f", decimals, v);
-  return buf;
-}
-
-bool writeFileAtomically(const std::string& path, const std::vector<std::uint8_t>& bytes,
-                         std::string& error) {
-  const std::string tmp = path + ".tmp";
-  std::FILE* f = std::fopen(tmp.c_str(), "wb");
-  if (f == nullptr) {
-    error = "cannot create " + tmp + ": " + std::strerror(errno);
-    return false;
-  }
-  const bool ok = std::fwrite(bytes.data(), 1, bytes.size(), f) == bytes.size();
-  const int err = errno;
-  if (std::fclose(f) != 0 || !ok) {
-    error = "cannot write " + tmp + ": " + std::strerror(ok ? errno : err);
-    std::remove(tmp.c_str());
-    return false;
-  }
-  if (std::rename(tmp.c_str(), path.c_str()) != 0) {
-    error = "cannot rename " + tmp + ": " + std::strerror(errno);
-    std::remove(tmp.c_str());
-    return false;
-  }
-  return true;
-}
-
-}  // namespace
 
 KeyframeWriter::~KeyframeWriter() {
   std::string ignored;
@@ -136,21 +103,22 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
                       fileName(frameIndex) + "," + std::to_string(timeNs) + "," +
                       (p.utcUs ? std::to_string(*p.utcUs) : "") + ",";
     if (p.position) {
-      row += num(p.position->latDeg, 9) + "," + num(p.position->lonDeg, 9) + "," +
-             num(p.position->altAmslM, 4) + "," + num(p.position->altRelM, 4) + ",";
+      row += formatFixed(p.position->latDeg, 9) + "," + formatFixed(p.position->lonDeg, 9) + "," +
+             formatFixed(p.position->altAmslM, 4) + "," + formatFixed(p.position->altRelM, 4) + ",";
     } else {
       row += ",,,,";
     }
     if (rec.cameraToNed) {
       const Quaternion& q = *rec.cameraToNed;
       const Pix4dAngles a = pix4dAngles(q);
-      row += num(q.w, 9) + "," + num(q.x, 9) + "," + num(q.y, 9) + "," + num(q.z, 9) + "," +
-             num(a.yawDeg, 4) + "," + num(a.pitchDeg, 4) + "," + num(a.rollDeg, 4) + ",";
+      row += formatFixed(q.w, 9) + "," + formatFixed(q.x, 9) + "," + formatFixed(q.y, 9) + "," +
+             formatFixed(q.z, 9) + "," + formatFixed(a.yawDeg, 4) + "," +
+             formatFixed(a.pitchDeg, 4) + "," + formatFixed(a.rollDeg, 4) + ",";
     } else {
       row += ",,,,,,,";
     }
-    row += num(p.gps.hdop, 2) + "," + (pose != nullptr ? std::to_string(p.gps.fixType) : "") +
-           ",\"" + rec.geotag + "\"";
+    row += formatFixed(p.gps.hdop, 2) + "," +
+           (pose != nullptr ? std::to_string(p.gps.fixType) : "") + ",\"" + rec.geotag + "\"";
     if (std::fprintf(index_, "%s\n", row.c_str()) < 0 || std::fflush(index_) != 0) {
       error = "cannot write " + indexPath_ + ": " + std::strerror(errno);
       return false;

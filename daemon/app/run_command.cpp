@@ -13,13 +13,11 @@
 #include <atomic>
 #include <cerrno>
 #include <chrono>
-#include <condition_variable>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <ctime>
-#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
@@ -36,8 +34,10 @@
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "app/log.h"
+#include "app/paced_source.h"
 #include "app/sd_notify.h"
 #include "app/settings.h"
+#include "app/text_io.h"
 #include "capture/capture_thread.h"
 #include "capture/file_source.h"
 #include "capture/v4l2_source.h"
@@ -67,103 +67,11 @@ Configuration: built-in defaults < DIR/keyframed.toml < DIR/conf.d/*.toml < --se
 `keyframed check-config` and docs/configuration.md.
 )";
 
-std::int64_t monotonicNs() {
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000LL + ts.tv_nsec;
-}
-
-std::int64_t threadCpuNs() {
-  timespec ts{};
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-  return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000LL + ts.tv_nsec;
-}
-
-class SteadyClock final : public Clock {
- public:
-  [[nodiscard]] std::int64_t nowNs() const override { return monotonicNs(); }
-};
-
-// A file played as a camera would deliver it: at its own frame rate, each frame
-// stamped with CLOCK_MONOTONIC on arrival (what the telemetry clock is mapped to);
-// or as fast as it decodes, stamped from camera.start_time when given.
-class PacedFileSource final : public FrameSource {
- public:
-  PacedFileSource(std::unique_ptr<FileSource> inner, bool realtime,
-                  std::optional<std::int64_t> startUnixNs)
-      : inner_(std::move(inner)), realtime_(realtime), startUnixNs_(startUnixNs) {}
-  [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
-  ReadStatus next(Frame& frame, std::string& error) override {
-    // Decoding is what a camera does in hardware: its CPU time is counted apart.
-    const std::int64_t cpu0 = threadCpuNs();
-    const ReadStatus st = inner_->next(frame, error);
-    decodeCpuNs_.fetch_add(threadCpuNs() - cpu0);
-    if (st != ReadStatus::Frame) return st;
-    if (realtime_) {
-      if (startNs_ < 0) startNs_ = monotonicNs() - frame.timestampNs;
-      const std::int64_t due = startNs_ + frame.timestampNs;
-      const std::int64_t now = monotonicNs();
-      if (due > now) std::this_thread::sleep_for(std::chrono::nanoseconds(due - now));
-      frame.timestampNs = monotonicNs();
-    } else if (startUnixNs_) {
-      frame.timestampNs += *startUnixNs_;
-    }
-    return st;
-  }
-
- private:
-  std::unique_ptr<FileSource> inner_;
-  bool realtime_;
-  std::optional<std::int64_t> startUnixNs_;
-  std::int64_t startNs_ = -1;
-  std::atomic<std::int64_t> decodeCpuNs_{0};
-
- public:
-  [[nodiscard]] double decodeCpuSeconds() const {
-    return static_cast<double>(decodeCpuNs_.load()) / 1e9;
-  }
-};
-
 // CPU seconds spent decoding video (0 for cameras).
 double decodeCpuSeconds(const FrameSource& source) {
-  const auto* paced = dynamic_cast<const PacedFileSource*>(&source);
+  const auto* paced = dynamic_cast<const PacedSource*>(&source);
   return paced != nullptr ? paced->decodeCpuSeconds() : 0.0;
 }
-
-// Analysis -> output: blocks the analysis when the output falls behind, so that
-// no keyframe is ever dropped (frames are dropped earlier, at the capture queue).
-class EventQueue {
- public:
-  explicit EventQueue(std::size_t capacity) : capacity_(capacity) {}
-  void push(KeyframeEvent&& ev) {
-    std::unique_lock lock(mutex_);
-    notFull_.wait(lock, [&] { return items_.size() < capacity_; });
-    items_.push_back(std::move(ev));
-    notEmpty_.notify_one();
-  }
-  // nullopt once closed and drained.
-  std::optional<KeyframeEvent> pop() {
-    std::unique_lock lock(mutex_);
-    notEmpty_.wait(lock, [&] { return !items_.empty() || closed_; });
-    if (items_.empty()) return std::nullopt;
-    std::optional<KeyframeEvent> ev(std::move(items_.front()));
-    items_.pop_front();
-    notFull_.notify_one();
-    return ev;
-  }
-  void close() {
-    std::lock_guard lock(mutex_);
-    closed_ = true;
-    notEmpty_.notify_all();
-  }
-
- private:
-  std::size_t capacity_;
-  std::mutex mutex_;
-  std::condition_variable notEmpty_, notFull_;
-  std::deque<KeyframeEvent> items_;
-  bool closed_ = false;
-};
 
 std::string utcStamp() {
   const std::time_t t = std::time(nullptr);
@@ -216,7 +124,7 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
         }
         start = ns;
       }
-      return std::make_unique<PacedFileSource>(std::move(file), c.realtime, start);
+      return std::make_unique<PacedSource>(std::move(file), c.realtime, start);
     }
     case DaemonConfig::Source::V4l2: {
       V4l2Options o;
@@ -365,7 +273,9 @@ class Daemon {
   FlightOutputs outputs_;
   std::unique_ptr<KeyframeStage> stage_;
   std::unique_ptr<KeyframeOutput> output_;
-  EventQueue events_{16};
+  // Analysis -> output: blocks the analysis when the output falls behind, so that no
+  // keyframe is ever dropped (frames are dropped earlier, at the capture queue).
+  BoundedQueue<KeyframeEvent> events_{16};
   RunStats stats_;
   std::atomic<bool> stopAnalysis_{false};
   std::mutex reloadMutex_;
@@ -391,7 +301,7 @@ void Daemon::analysisLoop() {
       if (queue_->closed() && queue_->size() == 0) break;
       continue;
     }
-    stats_.lastFrameNs.store(monotonicNs());
+    stats_.lastFrameNs.store(monotonicNowNs());
     stage_->process((*item)->frame);
     if ((outputs_.recording() || outputs_.publishing()) &&
         preview_.encode((*item)->frame, previewJpeg_)) {
@@ -423,7 +333,7 @@ void Daemon::outputLoop() {
 // About once a second, keyframed/<vehicle>/telemetry: the pose a quarter second ago
 // (so that samples on both sides have arrived), or why there is none.
 void Daemon::publishPose() {
-  const std::int64_t t = monotonicNs() - 250'000'000;
+  const std::int64_t t = monotonicNowNs() - 250'000'000;
   const Pose p = telemetry_->decoder().poseAt(t);
   char buf[512];
   if (p.position && p.attitude) {
@@ -436,8 +346,7 @@ void Daemon::publishPose() {
                   static_cast<long long>(t), g.latDeg, g.lonDeg, g.altAmslM, g.altRelM, q.w, q.x,
                   q.y, q.z, p.gps.fixType, static_cast<long long>(stats_.written.load()));
   } else {
-    std::string why;
-    for (char c : p.staleReason) why += (c == '"' || c == '\\') ? ' ' : c;
+    const std::string why = jsonEscape(p.staleReason);
     std::snprintf(buf, sizeof buf, "{\"time_ns\":%lld,\"stale\":\"%s\",\"keyframes\":%lld}",
                   static_cast<long long>(t), why.c_str(),
                   static_cast<long long>(stats_.written.load()));
@@ -506,16 +415,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state) {
       c.framesRead > 0 ? c.analysisNs / static_cast<double>(c.framesRead) / 1e6 : 0.0, cpu,
       seconds > 0 ? 100.0 * cpu / seconds : 0.0, decode,
       seconds > 0 ? 100.0 * (cpu - decode) / seconds : 0.0, maxRssMb(), tel.c_str());
-  const std::string path = flightDir_ + "/summary.json";
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream f(tmp, std::ios::trunc);
-    f << buf;
-    if (!f.flush()) return false;
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  return !ec;
+  std::string error;
+  return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(buf), error);
 }
 
 int Daemon::run() {
@@ -604,9 +505,9 @@ int Daemon::run() {
   }
 
   if (telemetry_) recordRawMavlink(*telemetry_, outputs_);
-  SteadyClock clock;
+  MonotonicClock clock;
   stage_ = std::make_unique<KeyframeStage>(
-      config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.push(std::move(ev)); });
+      config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
   output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
                                              config_.telemetry.waitMs);
   constexpr std::size_t kQueueFrames = 4;
@@ -619,8 +520,8 @@ int Daemon::run() {
     // a moment (telemetry.start_wait_ms) to deliver a first pose. Signals still work.
     KF_LOG(Telemetry, Notice) << "waiting up to " << config_.telemetry.startWaitMs
                               << " ms for telemetry on " << config_.telemetry.link.url;
-    const std::int64_t deadline = monotonicNs() + config_.telemetry.startWaitMs * 1'000'000LL;
-    while (!telemetry_->decoder().hasPose() && monotonicNs() < deadline) {
+    const std::int64_t deadline = monotonicNowNs() + config_.telemetry.startWaitMs * 1'000'000LL;
+    while (!telemetry_->decoder().hasPose() && monotonicNowNs() < deadline) {
       timespec wait{0, 20'000'000};
       const int sig = sigtimedwait(&sigs, nullptr, &wait);
       if (sig == SIGINT || sig == SIGTERM) return 0;
@@ -655,7 +556,7 @@ int Daemon::run() {
     }
     if (sig == SIGHUP) reload();
     const std::int64_t last = stats_.lastFrameNs.load();
-    const bool framesArrive = last > 0 && monotonicNs() - last < 2'000'000'000LL;
+    const bool framesArrive = last > 0 && monotonicNowNs() - last < 2'000'000'000LL;
     if (!ready && last > 0) {
       ready = true;  // the camera has delivered its first frame
       notifier_.ready("first frame received");

@@ -6,7 +6,6 @@
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
 #include <optional>
 #include <thread>
 
@@ -16,6 +15,8 @@
 #include "app/keyframe_output.h"
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
+#include "app/paced_source.h"
+#include "app/text_io.h"
 #include "capture/file_source.h"
 #include "output/flight_outputs.h"
 #include "output/mcap_replay.h"
@@ -24,25 +25,6 @@
 
 namespace keyframed {
 namespace {
-
-class SteadyClock final : public Clock {
- public:
-  [[nodiscard]] std::int64_t nowNs() const override {
-    return std::chrono::duration_cast<std::chrono::nanoseconds>(
-               std::chrono::steady_clock::now().time_since_epoch())
-        .count();
-  }
-};
-
-std::string jsonEscape(const std::string& s) {
-  std::string out;
-  for (char ch : s) {
-    if (ch == '"' || ch == '\\') out += '\\';
-    if (static_cast<unsigned char>(ch) < 0x20) continue;
-    out += ch;
-  }
-  return out;
-}
 
 bool writeSummary(const std::string& path, const SelectOptions& o, const SourceInfo& info,
                   const SelectSummary& s, std::string& error) {
@@ -88,23 +70,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
       c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
       c.blur.analysisWidth, c.overlap.orbFeatures, c.overlap.paperThreshold);
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream f(tmp, std::ios::trunc);
-    f << buf;
-    f.flush();
-    if (!f) {
-      error = "cannot write " + tmp;
-      return false;
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    error = "cannot rename " + tmp + ": " + ec.message();
-    return false;
-  }
-  return true;
+  return writeFileAtomically(path, std::string_view(buf), error);
 }
 
 std::atomic<bool> gStop{false};
@@ -130,7 +96,13 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   } else {
     auto f = FileSource::open(opts.video, error);
     file = f.get();
-    source = std::move(f);
+    // The frame's time on the telemetry's clock: as a camera stamps it (realtime),
+    // or the container time from --video-start (a tlog's unix times).
+    if (f && (opts.realtime || opts.videoStartUnixNs)) {
+      source = std::make_unique<PacedSource>(std::move(f), opts.realtime, opts.videoStartUnixNs);
+    } else {
+      source = std::move(f);
+    }
   }
   if (!source) {
     s.error = error;
@@ -246,7 +218,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   if (telemetry) recordRawMavlink(*telemetry, outputs);
   bool outputFailed = false;
 
-  SteadyClock clock;
+  MonotonicClock clock;
   KeyframeStage stage(opts.selector, &clock, [&](KeyframeEvent&& ev) {
     if (!outputFailed && !output.handle(ev, error)) {
       outputFailed = true;
@@ -255,7 +227,6 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   });
 
   const auto start = std::chrono::steady_clock::now();
-  const std::int64_t startNs = monotonicNowNs();
   auto lastProgress = start;
   Frame frame;
   while (true) {
@@ -273,19 +244,6 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       s.error = error;
       s.truncated = file != nullptr && file->truncated();
       break;
-    }
-    // The frame's time on the telemetry's clock.
-    if (opts.realtime) {
-      // As a camera: the frame exists at its presentation time, stamped on arrival.
-      const std::int64_t due = startNs + frame.timestampNs;
-      while (monotonicNowNs() < due) {
-        if (stop != nullptr && stop->load()) break;
-        std::this_thread::sleep_for(
-            std::chrono::nanoseconds(std::min<std::int64_t>(due - monotonicNowNs(), 20'000'000)));
-      }
-      frame.timestampNs = monotonicNowNs();
-    } else if (opts.videoStartUnixNs) {
-      frame.timestampNs += *opts.videoStartUnixNs;
     }
     stage.process(frame);
     s.framesRead = stage.counts().framesRead;

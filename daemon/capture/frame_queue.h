@@ -90,6 +90,24 @@ class BoundedQueue {
     return kept;
   }
 
+  // For a consumer that must not lose items (analysis -> output): waits while the
+  // queue is full instead of dropping. False (item dropped) once closed.
+  bool pushWait(T item) {
+    {
+      std::unique_lock lock(mutex_);
+      notFull_.wait(lock, [&] { return size_ < ring_.size() || closed_; });
+      if (closed_) {
+        ++dropped_;
+        return false;
+      }
+      ring_[(head_ + size_) % ring_.size()] = std::move(item);
+      ++size_;
+      ++pushed_;
+    }
+    ready_.notify_one();
+    return true;
+  }
+
   // The oldest item, waiting up to `timeout`; nullopt on timeout, or when the
   // queue is closed and empty.
   template <typename Rep, typename Period>
@@ -119,6 +137,7 @@ class BoundedQueue {
       closed_ = true;
     }
     ready_.notify_all();
+    notFull_.notify_all();
   }
 
   [[nodiscard]] std::size_t capacity() const { return ring_.size(); }
@@ -146,11 +165,13 @@ class BoundedQueue {
     ring_[head_] = T{};
     head_ = (head_ + 1) % ring_.size();
     --size_;
+    notFull_.notify_one();
     return out;
   }
 
   mutable std::mutex mutex_;
   std::condition_variable ready_;
+  std::condition_variable notFull_;  // pushWait(): room again
   std::vector<T> ring_;
   std::size_t head_ = 0;
   std::size_t size_ = 0;

@@ -161,18 +161,17 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   so.overrides = o.overrides;
   p->session_ = ZenohSession::open(so, error);
   if (!p->session_) return nullptr;
-  p->keyframes_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/keyframe",
-                                          ZenohPublisher::Kind::Reliable, error);
-  if (!p->keyframes_) return nullptr;
-  p->status_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/status",
-                                       ZenohPublisher::Kind::BestEffort, error);
-  if (!p->status_) return nullptr;
-  p->preview_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/preview",
-                                        ZenohPublisher::Kind::BestEffort, error);
-  if (!p->preview_) return nullptr;
-  p->telemetry_ = ZenohPublisher::declare(*p->session_, p->prefix_ + "/telemetry",
-                                          ZenohPublisher::Kind::BestEffort, error);
-  if (!p->telemetry_) return nullptr;
+  using Kind = ZenohPublisher::Kind;
+  const auto declare = [&](std::unique_ptr<ZenohPublisher>& to, const char* key, Kind kind) {
+    to = ZenohPublisher::declare(*p->session_, p->prefix_ + key, kind, error);
+    return to != nullptr;
+  };
+  if (!declare(p->keyframes_, "/keyframe", Kind::Reliable) ||
+      !declare(p->status_, "/status", Kind::BestEffort) ||
+      !declare(p->preview_, "/preview", Kind::BestEffort) ||
+      !declare(p->telemetry_, "/telemetry", Kind::BestEffort)) {
+    return nullptr;
+  }
   if (!p->dir_.empty()) {
     KeyframePublisher* self = p.get();
     p->queryable_ = ZenohQueryable::declare(

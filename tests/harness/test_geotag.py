@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import shutil
+import socket
 import struct
 import subprocess
 from pathlib import Path
@@ -17,6 +18,7 @@ import pytest
 from fake_autopilot import FakeAutopilot, Noise, autopilot_fixture, read_tlog
 from flights import flight
 from keyframed import synth
+from ports import free_port
 from pymavlink.dialects.v20 import common as mav2
 
 fake_autopilot = autopilot_fixture()
@@ -445,14 +447,6 @@ def test_live_link_drop_garbage_and_return(
     assert stale and last_ok > max(int(k["index"]) for k in stale), "tags resume after the drop"
 
 
-def free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @needs_exiftool
 def test_live_udpin_daemon_listens(
     kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
@@ -461,7 +455,7 @@ def test_live_udpin_daemon_listens(
     router) streams to it without waiting to hear from it first."""
     import time
 
-    port = free_udp_port()
+    port = free_port(socket.SOCK_DGRAM)
     ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
     out = tmp_path / "live"
     proc = subprocess.Popen(

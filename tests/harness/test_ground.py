@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import json
-import socket
 import subprocess
 import sys
 import threading
@@ -21,14 +20,9 @@ from typing import Any
 import numpy as np
 import pytest
 from flights import flight
+from ports import free_port
 
 zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is installed by tools/setup.sh")
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +145,7 @@ def wait_connected(vehicle: Vehicle, timeout: float = 10.0) -> None:
 def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     tagged: Path, tmp_path: Path
 ) -> None:
-    port = free_tcp_port()
+    port = free_port()
     vehicle = Vehicle("uav1", tagged, port)
     out = tmp_path / "dataset"
     proc = ground(out, port, "--sift")
@@ -263,7 +257,7 @@ def test_bad_command_lines(tmp_path: Path) -> None:
 
 
 def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path) -> None:
-    port = free_tcp_port()
+    port = free_port()
     vehicle = Vehicle("uav2", tagged, port)
     vehicle.unavailable = {1}
     out = tmp_path / "dataset"

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
+from ports import free_port
 
 fake_autopilot = autopilot_fixture()
 
@@ -271,12 +272,6 @@ def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> No
     _, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 1
     assert "keyframed.toml:3" in stderr and "camera.fps" in stderr
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_whole_chain_autopilot_daemon_zenoh_ground_station(

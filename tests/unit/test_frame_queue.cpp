@@ -38,6 +38,38 @@ TEST(BoundedQueue, DropsOldestWhenFullAndCounts) {
   EXPECT_EQ(q.tryPop().value(), 4);
 }
 
+TEST(BoundedQueue, PushWaitBlocksWhenFullAndLosesNothing) {
+  // analysis -> output: the producer waits for room instead of dropping.
+  BoundedQueue<int> q(2);
+  std::atomic<int> pushed{0};
+  std::thread producer([&] {
+    for (int i = 0; i < 100; ++i) {
+      ASSERT_TRUE(q.pushWait(i));
+      pushed.fetch_add(1);
+    }
+  });
+  std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  EXPECT_LE(pushed.load(), 3) << "a full queue must hold the producer back";
+  for (int i = 0; i < 100; ++i) {
+    const auto v = q.pop(std::chrono::seconds(5));
+    ASSERT_TRUE(v.has_value());
+    EXPECT_EQ(*v, i);
+  }
+  producer.join();
+  EXPECT_EQ(q.dropped(), 0u);
+}
+
+TEST(BoundedQueue, CloseReleasesAWaitingPusher) {
+  BoundedQueue<int> q(1);
+  ASSERT_TRUE(q.pushWait(1));
+  std::thread producer([&] { EXPECT_FALSE(q.pushWait(2)); });
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  q.close();
+  producer.join();
+  EXPECT_EQ(q.dropped(), 1u);
+  EXPECT_EQ(q.pop(std::chrono::milliseconds(1)).value_or(-1), 1);  // queued items still pop
+}
+
 TEST(BoundedQueue, PopTimesOutWhenEmpty) {
   BoundedQueue<int> q(2);
   const auto t0 = std::chrono::steady_clock::now();

@@ -1,0 +1,44 @@
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "capture/frame_source.h"
+#include "core/selector.h"
+
+namespace keyframed {
+
+// The selector's stage clock on CLOCK_MONOTONIC (what frames and telemetry use).
+class MonotonicClock final : public Clock {
+ public:
+  [[nodiscard]] std::int64_t nowNs() const override;
+};
+
+// A video file played as a camera would deliver it (`realtime`): at its own frame
+// rate, each frame stamped with CLOCK_MONOTONIC on arrival, the clock live
+// telemetry is mapped to. Otherwise as fast as it decodes, with container times
+// shifted by `startUnixNs` when given (to meet a tlog's unix times). Shared by
+// `select --realtime` and the daemon's file source. The decoding's CPU time is
+// counted apart: a camera delivers frames decoded.
+class PacedSource final : public FrameSource {
+ public:
+  PacedSource(std::unique_ptr<FrameSource> inner, bool realtime,
+              std::optional<std::int64_t> startUnixNs);
+  [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
+  ReadStatus next(Frame& frame, std::string& error) override;
+  [[nodiscard]] double decodeCpuSeconds() const {
+    return static_cast<double>(decodeCpuNs_.load()) / 1e9;
+  }
+
+ private:
+  std::unique_ptr<FrameSource> inner_;
+  bool realtime_;
+  std::optional<std::int64_t> startUnixNs_;
+  std::int64_t startNs_ = -1;
+  std::atomic<std::int64_t> decodeCpuNs_{0};
+};
+
+}  // namespace keyframed

@@ -1,0 +1,40 @@
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <span>
+#include <string>
+#include <string_view>
+
+// Small text and file helpers shared by the files keyframed writes.
+namespace keyframed {
+
+// Fixed-point text of v; "" for NaN or infinity (an empty CSV field, "unknown").
+inline std::string formatFixed(double v, int decimals) {
+  if (!std::isfinite(v)) return "";
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%.*f", decimals, v);
+  return buf;
+}
+
+// s for the inside of a JSON string: quotes and backslashes escaped, control
+// characters dropped.
+inline std::string jsonEscape(std::string_view s) {
+  std::string out;
+  out.reserve(s.size());
+  for (char ch : s) {
+    if (static_cast<unsigned char>(ch) < 0x20) continue;
+    if (ch == '"' || ch == '\\') out += '\\';
+    out += ch;
+  }
+  return out;
+}
+
+// Writes path.tmp and renames it to path, so a reader never sees a partial file.
+// False with a one-line error.
+bool writeFileAtomically(const std::string& path, std::span<const std::uint8_t> bytes,
+                         std::string& error);
+bool writeFileAtomically(const std::string& path, std::string_view text, std::string& error);
+
+}  // namespace keyframed
