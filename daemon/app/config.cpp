@@ -473,6 +473,14 @@ std::vector<Field> makeSchema() {
   f.push_back(text(
       "tagging", "calibration", [](auto& c) -> auto& { return c.tagging.calibration; },
       checkCalibration));
+  f.push_back(choice(
+      "tagging", "mount", [](auto& c) -> auto& { return c.tagging.mountGimbal; },
+      [](std::string_view s, bool& g) {
+        if (s != "fixed" && s != "gimbal") return false;
+        g = s == "gimbal";
+        return true;
+      },
+      [](bool g) { return std::string(g ? "gimbal" : "fixed"); }, "fixed, gimbal"));
   f.push_back(real(
       "tagging", "mount_roll", [](auto& c) -> auto& { return c.tagging.mountRollDeg; },
       L::kMountAngleDeg));

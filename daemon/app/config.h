@@ -55,6 +55,7 @@ struct DaemonConfig {
     double mountRollDeg = 0.0;   // tagging.mount_roll
     double mountPitchDeg = -90;  // tagging.mount_pitch (-90: nadir)
     double mountYawDeg = 0.0;    // tagging.mount_yaw
+    bool mountGimbal = false;    // tagging.mount = "gimbal" (else "fixed")
     int jpegQuality = 92;        // tagging.jpeg_quality
   };
 

@@ -84,12 +84,24 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
   tags.frameIndex = frameIndex;
   if (pose != nullptr) {
     rec.pose = *pose;
-    if (pose->attitude) rec.cameraToNed = cameraToNed(*pose->attitude, config_.mount);
+    if (config_.mount.gimbal) {
+      if (pose->gimbal) rec.cameraToNed = cameraToNedFromGimbal(*pose->gimbal);
+    } else if (pose->attitude) {
+      rec.cameraToNed = cameraToNed(*pose->attitude, config_.mount);
+    }
     tags.cameraToNed = rec.cameraToNed;
     tags.position = pose->position;
     tags.gps = pose->gps;
     tags.utcUs = pose->utcUs;
-    rec.geotag = (pose->position && pose->attitude) ? "ok" : pose->staleReason;
+    if (pose->position && rec.cameraToNed) {
+      rec.geotag = "ok";
+    } else {
+      rec.geotag = pose->staleReason;
+      if (config_.mount.gimbal && !pose->gimbal) {
+        if (!rec.geotag.empty()) rec.geotag += "; ";
+        rec.geotag += pose->gimbalReason.empty() ? "no gimbal attitude" : pose->gimbalReason;
+      }
+    }
     if (rec.geotag.empty()) rec.geotag = "incomplete";
   }
   if (!writeTags(jpeg_, tags, error)) return false;

@@ -74,7 +74,8 @@ telemetry and tags:
   --video-start TIME         UTC time of the video's first frame (ISO 8601 or unix
                              seconds); needed with a tlog
   --calibration FILE         camera intrinsics (OpenCV YAML/XML, TOML or JSON)
-  --mount R,P,Y              camera mount on the body, degrees (default 0,-90,0: nadir)
+  --mount R,P,Y|gimbal       camera mount on the body, degrees (default 0,-90,0: nadir),
+                             or 'gimbal': the attitude of GIMBAL_DEVICE_ATTITUDE_STATUS
   --autopilot SYS[:COMP]     follow this autopilot (default: the first one heard)
   --mavlink-sysid N          our system id on a live link (default: the autopilot's)
   --telemetry-wait MS        wait this long for telemetry newer than a keyframe (default 1000)
@@ -214,11 +215,17 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
        }},
       {"--mount",
        [&](const std::string& v) -> std::string {
+         if (v == "gimbal") {
+           o.mountGimbal = true;
+           return {};
+         }
+         o.mountGimbal = false;
          double a[3];
          std::size_t start = 0;
          for (int k = 0; k < 3; ++k) {
            const auto comma = v.find(',', start);
-           if ((k < 2) != (comma != std::string::npos)) return "expected ROLL,PITCH,YAW in degrees";
+           if ((k < 2) != (comma != std::string::npos))
+             return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
            const std::string part =
                v.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
            if (!parseDouble(part, a[k]) || !limits::kMountAngleDeg.contains(a[k]))

@@ -30,6 +30,7 @@ struct SelectOptions {
   double mountRollDeg = 0.0;                     // --mount ROLL,PITCH,YAW (degrees, body FRD)
   double mountPitchDeg = -90.0;
   double mountYawDeg = 0.0;
+  bool mountGimbal = false;          // --mount gimbal
   bool realtime = false;             // --realtime: deliver frames at the video's rate
   int telemetryWaitMs = 1000;        // --telemetry-wait MS: wait for poses this long
   int telemetryStartWaitMs = 10000;  // --telemetry-start-wait MS: first pose, live links

@@ -391,14 +391,15 @@ bool Daemon::writeSummary(double seconds, const std::string& state) {
     std::snprintf(b, sizeof b,
                   "{\"source\": \"%s\", \"geotagged\": %lld, \"clock\": \"%s\", "
                   "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
-                  "\"skipped_bytes\": %llu, \"captures_sent\": %llu}",
+                  "\"skipped_bytes\": %llu, \"captures_sent\": %llu, \"gimbal_messages\": %llu}",
                   config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
                   toString(telemetry_->decoder().clockSource()),
                   off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
                   static_cast<unsigned long long>(ts.parser.messages),
                   static_cast<unsigned long long>(ts.parser.rejected),
                   static_cast<unsigned long long>(ts.parser.skippedBytes),
-                  static_cast<unsigned long long>(ts.capturesSent));
+                  static_cast<unsigned long long>(ts.capturesSent),
+                  static_cast<unsigned long long>(ts.decoder.gimbal));
     tel = b;
   }
   const SourceInfo& info = source_->info();
@@ -490,7 +491,7 @@ int Daemon::run() {
   wc.quality = config_.tagging.jpegQuality;
   wc.camera = camera_;
   wc.mount = {config_.tagging.mountRollDeg, config_.tagging.mountPitchDeg,
-              config_.tagging.mountYawDeg};
+              config_.tagging.mountYawDeg, config_.tagging.mountGimbal};
   if (!writer_.open(wc, error)) {
     KF_LOG(Output, Error) << error;
     return 1;

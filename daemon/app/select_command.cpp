@@ -35,6 +35,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
                   "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
                   "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
+                  "    \"gimbal_messages\": %llu,\n"
                   "    \"captures_sent\": %llu,\n    \"truncated\": %s\n  }",
                   jsonEscape(s.telemetry.source).c_str(),
                   static_cast<long long>(s.telemetry.geotagged), s.telemetry.clock.c_str(),
@@ -43,6 +44,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.rejected),
                   static_cast<unsigned long long>(s.telemetry.skippedBytes),
                   static_cast<unsigned long long>(s.telemetry.otherSources),
+                  static_cast<unsigned long long>(s.telemetry.gimbal),
                   static_cast<unsigned long long>(s.telemetry.capturesSent),
                   s.telemetry.truncated ? "true" : "false");
   }
@@ -200,7 +202,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     wc.dir = opts.outDir;
     wc.quality = opts.jpegQuality;
     wc.camera = camera;
-    wc.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg};
+    wc.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg, opts.mountGimbal};
     if (!writer.open(wc, error)) {
       s.error = error;
       return s;
@@ -291,6 +293,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     s.telemetry.rejected = ts.parser.rejected;
     s.telemetry.skippedBytes = ts.parser.skippedBytes;
     s.telemetry.otherSources = ts.decoder.otherSources;
+    s.telemetry.gimbal = ts.decoder.gimbal;
     s.telemetry.capturesSent = ts.capturesSent;
     s.telemetry.truncated = ts.truncated;
   }

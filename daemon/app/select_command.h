@@ -30,6 +30,7 @@ struct SelectSummary {
     std::uint64_t rejected = 0;
     std::uint64_t skippedBytes = 0;
     std::uint64_t otherSources = 0;
+    std::uint64_t gimbal = 0;  // gimbal attitude messages used
     std::uint64_t capturesSent = 0;
     bool truncated = false;
   } telemetry;

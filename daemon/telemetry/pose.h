@@ -43,6 +43,10 @@ struct Pose {
   GpsQuality gps;                       // latest GPS_RAW_INT before timeNs
   std::optional<std::int64_t> utcUs;    // UTC of timeNs (unix microseconds) when known
   std::string staleReason;              // why attitude or position is absent; "" when fresh
+  // A gimbal's attitude (gimbal FRD -> local NED; x is the camera's optical axis), when
+  // the autopilot's system reports GIMBAL_DEVICE_ATTITUDE_STATUS; else why not.
+  std::optional<Quaternion> gimbal;
+  std::string gimbalReason;
 };
 
 }  // namespace keyframed

@@ -39,6 +39,17 @@ Quaternion quaternionFromEuler(double roll, double pitch, double yaw) {
           cr * cp * sy - sr * sp * cy};
 }
 
+Quaternion multiply(const Quaternion& a, const Quaternion& b) {
+  return {
+      a.w * b.w - a.x * b.x - a.y * b.y - a.z * b.z, a.w * b.x + a.x * b.w + a.y * b.z - a.z * b.y,
+      a.w * b.y - a.x * b.z + a.y * b.w + a.z * b.x, a.w * b.z + a.x * b.y - a.y * b.x + a.z * b.w};
+}
+
+double yawOf(const Quaternion& q0) {
+  const Quaternion q = normalized(q0);
+  return std::atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z));
+}
+
 double angleBetween(const Quaternion& a, const Quaternion& b) {
   const double d = std::fabs(a.w * b.w + a.x * b.x + a.y * b.y + a.z * b.z);
   return 2.0 * std::acos(std::min(d, 1.0));
@@ -77,8 +88,14 @@ void PoseStore::addGps(std::int64_t timeNs, const GpsQuality& gps) {
   append(gps_, timeNs, gps, config_.historyNs);
 }
 
+void PoseStore::addGimbal(std::int64_t timeNs, const Quaternion& q, bool earthFrame) {
+  std::lock_guard lock(mutex_);
+  append(gimbal_, timeNs, GimbalSample{normalized(q), earthFrame}, config_.historyNs);
+}
+
 void PoseStore::clear() {
   std::lock_guard lock(mutex_);
+  gimbal_.clear();
   attitude_.clear();
   position_.clear();
   gps_.clear();
@@ -179,6 +196,35 @@ Pose PoseStore::at(std::int64_t timeNs) const {
     pose.position = p;
   } else {
     reasons.push_back(why);
+  }
+
+  if (bracket(gimbal_, timeNs, config_.maxAttitudeGapNs, config_.maxHoldNs, i0, i1, why,
+              "gimbal attitude")) {
+    const auto& a = gimbal_[i0];
+    const auto& b = gimbal_[i1];
+    Quaternion q = a.value.q;
+    bool earth = a.value.earthFrame;
+    if (i0 != i1) {
+      const double t =
+          static_cast<double>(timeNs - a.timeNs) / static_cast<double>(b.timeNs - a.timeNs);
+      if (a.value.earthFrame == b.value.earthFrame) {
+        q = slerp(a.value.q, b.value.q, t);
+      } else if (t >= 0.5) {  // the gimbal switched frames: no blend across the switch
+        q = b.value.q;
+        earth = b.value.earthFrame;
+      }
+    }
+    if (earth) {
+      pose.gimbal = q;
+    } else if (pose.attitude) {
+      // Vehicle frame: NED turned by the heading. q_earth = q_yaw * q_vehicle.
+      const double yaw = yawOf(*pose.attitude);
+      pose.gimbal = normalized(multiply({std::cos(yaw / 2), 0.0, 0.0, std::sin(yaw / 2)}, q));
+    } else {
+      pose.gimbalReason = "gimbal attitude is relative to the heading, and attitude is missing";
+    }
+  } else {
+    pose.gimbalReason = why;
   }
 
   for (const auto& r : reasons) {

@@ -33,6 +33,10 @@ class PoseStore {
   void addAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
   void addPosition(std::int64_t timeNs, const GeoPosition& position);
   void addGps(std::int64_t timeNs, const GpsQuality& gps);
+  // A gimbal's attitude (gimbal FRD -> NED when earthFrame, else relative to the
+  // vehicle frame: NED turned by the vehicle's heading, roll and pitch still to the
+  // horizon, as GIMBAL_DEVICE_ATTITUDE_STATUS defines them).
+  void addGimbal(std::int64_t timeNs, const Quaternion& q, bool earthFrame);
   void clear();
 
   // The pose at timeNs (same timeline as the samples). Pose::timeNs = timeNs;
@@ -60,6 +64,11 @@ class PoseStore {
   std::deque<Sample<Quaternion>> attitude_;
   std::deque<Sample<GeoPosition>> position_;
   std::deque<Sample<GpsQuality>> gps_;
+  struct GimbalSample {
+    Quaternion q;
+    bool earthFrame = true;
+  };
+  std::deque<Sample<GimbalSample>> gimbal_;
 };
 
 // Spherical linear interpolation between unit quaternions (shortest path).
@@ -67,6 +76,10 @@ Quaternion slerp(const Quaternion& a, const Quaternion& b, double t);
 Quaternion normalized(const Quaternion& q);
 // ZYX (yaw, pitch, roll) aeronautical Euler angles in radians -> body->NED quaternion.
 Quaternion quaternionFromEuler(double roll, double pitch, double yaw);
+// Hamilton product a * b (rotate by b, then by a).
+Quaternion multiply(const Quaternion& a, const Quaternion& b);
+// The heading (ZYX yaw, radians) of a body -> NED attitude.
+double yawOf(const Quaternion& bodyToNed);
 // Angle between two attitudes in radians.
 double angleBetween(const Quaternion& a, const Quaternion& b);
 

@@ -1,5 +1,6 @@
 #include "telemetry/telemetry_decoder.h"
 
+#include <cmath>
 #include <limits>
 
 namespace keyframed {
@@ -45,8 +46,51 @@ void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
   clock_.observeArrival(bootMs, localNs);
 }
 
+void TelemetryDecoder::handleGimbal(const mavlink_message_t& msg, std::int64_t localNs) {
+  mavlink_gimbal_device_attitude_status_t g;
+  mavlink_msg_gimbal_device_attitude_status_decode(&msg, &g);
+  if (gimbalComponent_ < 0) {
+    gimbalComponent_ = msg.compid;
+    gimbalDevice_ = g.gimbal_device_id;
+  }
+  if (msg.compid != gimbalComponent_ || g.gimbal_device_id != gimbalDevice_) {
+    ++stats_.otherSources;
+    return;
+  }
+  const Quaternion q{g.q[0], g.q[1], g.q[2], g.q[3]};
+  if (!std::isfinite(q.w) || !std::isfinite(q.x) || !std::isfinite(q.y) || !std::isfinite(q.z) ||
+      q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z < 0.5) {
+    return;  // NaN or no rotation: nothing to use
+  }
+  // The frame of yaw: the explicit flags, else (older gimbals) YAW_LOCK means earth.
+  bool earth = (g.flags & GIMBAL_DEVICE_FLAGS_YAW_LOCK) != 0;
+  if (g.flags & GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME)
+    earth = true;
+  else if (g.flags & GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME)
+    earth = false;
+  std::int64_t t = 0;
+  if (msg.compid == component_) {
+    t = static_cast<std::int64_t>(g.time_boot_ms) * kMs;  // the autopilot's own clock
+  } else {
+    // A separate gimbal component counts time from its own boot: stamp the sample with
+    // its arrival instead, mapped onto the autopilot's timeline.
+    const auto offset = clock_.offsetNs();
+    if (!offset) return;
+    t = localNs - *offset;
+  }
+  store_.addGimbal(t, q, earth);
+  ++stats_.accepted;
+  ++stats_.gimbal;
+}
+
 void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs) {
   std::lock_guard lock(mutex_);
+  if (msg.msgid == MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS && system_ != 0 &&
+      component_ != 0 && msg.sysid == system_) {
+    // From the autopilot itself (ArduPilot) or the vehicle's gimbal component.
+    handleGimbal(msg, localNs);
+    return;
+  }
   if (!accept(msg)) {
     ++stats_.otherSources;
     return;

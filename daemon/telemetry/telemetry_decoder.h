@@ -23,6 +23,7 @@ struct TelemetryStats {
   std::uint64_t attitude = 0;
   std::uint64_t position = 0;
   std::uint64_t gps = 0;
+  std::uint64_t gimbal = 0;   // GIMBAL_DEVICE_ATTITUDE_STATUS used
   std::uint64_t reboots = 0;  // time_boot_ms went backwards: history cleared
 };
 
@@ -53,6 +54,7 @@ class TelemetryDecoder {
 
  private:
   bool accept(const mavlink_message_t& msg);
+  void handleGimbal(const mavlink_message_t& msg, std::int64_t localNs);
   void observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
 
   TelemetryConfig config_;
@@ -62,6 +64,8 @@ class TelemetryDecoder {
   TelemetryStats stats_;
   int system_ = 0;
   int component_ = 0;
+  int gimbalComponent_ = -1;  // the first gimbal heard (component, device id) is used
+  int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;
   std::int64_t lastQuaternionNs_ = -1;  // ATTITUDE_QUATERNION seen: ignore ATTITUDE
 };

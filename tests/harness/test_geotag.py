@@ -544,3 +544,136 @@ def test_serial_link_over_a_pty(kf_bin: Path, short_nadir: Path, tmp_path: Path)
         assert e[0] < 0.1 and e[1] < 0.1 and e[2] < 0.2, (k["index"], e)
     # keyframed spoke on the serial line too: its HEARTBEATs (MAVLink 2 frames)
     assert heard.count(0xFD) >= 1 and len(heard) > 20
+
+
+def _rx(a: float) -> np.ndarray:
+    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+
+
+def _ry(a: float) -> np.ndarray:
+    return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+
+
+def _rz(a: float) -> np.ndarray:
+    return np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+
+
+def gimbal_tlog(
+    src: Path, dst: Path, mount_pitch_deg: float, frame: str, gap_s: tuple[float, float]
+) -> None:
+    """The flight as if its camera hung on a stabilising gimbal under a wobbling body.
+
+    The reported body attitude gets an extra roll/pitch wobble of several degrees; a
+    GIMBAL_DEVICE_ATTITUDE_STATUS after each ATTITUDE_QUATERNION reports the true
+    camera's attitude (gimbal FRD, x along the optical axis), in the vehicle frame (a
+    separate gimbal component on its own boot clock) or the earth frame (from the
+    autopilot, device id 1, as ArduPilot sends it). No gimbal report inside gap_s.
+    """
+    epoch_us = synth.EPOCH_UNIX_S * 1_000_000
+    body = mav2.MAVLink(None, srcSystem=1, srcComponent=1)
+    if frame == "vehicle":
+        gim = mav2.MAVLink(None, srcSystem=1, srcComponent=mav2.MAV_COMP_ID_GIMBAL)
+        flags, device, boot0 = mav2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, 0, 555_000
+    else:
+        gim = body
+        flags, device, boot0 = mav2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, 1, 0
+    mount = _ry(math.radians(mount_pitch_deg))
+    out = bytearray()
+    for rec in read_tlog(src):
+        msg = rec.msg
+        t = (rec.unix_us - epoch_us) / 1e6
+        extra = None
+        if msg.get_type() in ("ATTITUDE", "ATTITUDE_QUATERNION"):
+            if msg.get_type() == "ATTITUDE":
+                r_true = synth._euler_to_rotmat(
+                    np.array([msg.roll]), np.array([msg.pitch]), np.array([msg.yaw])
+                )[0]
+            else:
+                q = np.array([[msg.q1, msg.q2, msg.q3, msg.q4]])
+                r_true = synth._quat_to_rotmat(q)[0]
+            wobble = _rx(math.radians(8.0) * math.sin(2 * math.pi * 0.4 * t)) @ _ry(
+                math.radians(6.0) * math.sin(2 * math.pi * 0.3 * t + 1.0)
+            )
+            r_rep = r_true @ wobble
+            yaw = math.atan2(r_rep[1, 0], r_rep[0, 0])
+            if msg.get_type() == "ATTITUDE":
+                msg.roll = math.atan2(r_rep[2, 1], r_rep[2, 2])
+                msg.pitch = math.asin(max(-1.0, min(1.0, -r_rep[2, 0])))
+                msg.yaw = yaw
+            else:
+                msg.q1, msg.q2, msg.q3, msg.q4 = (
+                    float(v) for v in synth._rotmat_to_quat(r_rep[None])[0]
+                )
+                r_gimbal = r_true @ mount
+                if frame == "vehicle":
+                    r_gimbal = _rz(-yaw) @ r_gimbal
+                if not gap_s[0] <= t < gap_s[1]:
+                    extra = gim.gimbal_device_attitude_status_encode(
+                        0,
+                        0,
+                        boot0 + msg.time_boot_ms,
+                        flags,
+                        [float(v) for v in synth._rotmat_to_quat(r_gimbal[None])[0]],
+                        math.nan,
+                        math.nan,
+                        math.nan,
+                        0,
+                        math.nan,
+                        math.nan,
+                        device,
+                    )
+        body.seq = msg.get_seq()
+        out += struct.pack(">Q", rec.unix_us) + msg.pack(body)
+        if extra is not None:
+            out += struct.pack(">Q", rec.unix_us) + extra.pack(gim)
+            if gim is not body:
+                gim.seq = (gim.seq + 1) % 256
+    dst.write_bytes(bytes(out))
+
+
+@needs_exiftool
+@pytest.mark.parametrize("frame", ["vehicle", "earth"])
+def test_gimbal_attitude_tags_the_camera_not_the_body(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, frame: str
+) -> None:
+    meta = json.loads((short_nadir / "meta.json").read_text())
+    gap = (3.0, 5.0)
+    tlog = tmp_path / "gimbal.tlog"
+    gimbal_tlog(short_nadir / "flight.tlog", tlog, meta["mount_pitch_deg"], frame, gap)
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    common = ["--telemetry", str(tlog), "--video-start", str(synth.EPOCH_UNIX_S)]
+
+    out = tmp_path / "gimbal"
+    r = run_select(kf_bin, short_nadir, out, *common, "--mount", "gimbal")
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    tags = exif([out / k["file"] for k in kfs])
+    dec = decisions(out)
+    worst, inside = 0.0, 0
+    for k in kfs:
+        idx = int(k["index"])
+        t = tags[k["file"]]
+        assert "GPS:GPSLatitude" in t, "position does not depend on the gimbal"
+        if gap[0] + 0.05 <= idx / fps < gap[1]:
+            inside += 1
+            assert "XMP-Camera:Yaw" not in t, k["file"]
+            assert "gimbal" in dec[idx]["geotag"], dec[idx]["geotag"]
+        elif idx / fps < gap[0] - 0.05 or idx / fps >= gap[1] + 0.3:
+            assert dec[idx]["geotag"] == "ok", dec[idx]["geotag"]
+            worst = max(worst, tag_errors(t, truth.at(idx / fps))[2])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["telemetry"]["gimbal_messages"] > 100
+    print(f"gimbal ({frame} frame): attitude error max {worst:.4f} deg; {inside} in the gap")
+    assert inside >= 1
+    assert worst < 0.2, f"attitude error {worst:.3f} deg"
+
+    # The same flight with the camera taken as fixed to the wobbling body is off by the
+    # wobble: the gimbal's report is what made the tags right.
+    fixed = tmp_path / "fixed"
+    r = run_select(kf_bin, short_nadir, fixed, *common)
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(fixed)
+    tags = exif([fixed / k["file"] for k in kfs])
+    errs = [tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps))[2] for k in kfs]
+    assert max(errs) > 3.0, max(errs)

@@ -10,6 +10,7 @@
 
 #include "tagging/camera_model.h"
 #include "tagging/camera_mount.h"
+#include "telemetry/pose_store.h"
 
 namespace keyframed {
 namespace {
@@ -201,6 +202,23 @@ TEST(CameraMount, HeadingEastTurnsYawBy90) {
   EXPECT_NEAR(a.pitchDeg, 0, 1e-9);
   const Pix4dAngles w = pix4dAngles(cameraToNed(headingQ(-90), CameraMount{}));
   EXPECT_NEAR(w.yawDeg, 270, 1e-9);  // Pix4D's own example: 270 = top to the west
+}
+
+TEST(CameraMount, GimbalAttitudeIsTheCamerasWhateverTheBody) {
+  // A gimbal 55 deg down, heading 200: the same camera as a fixed 55 deg mount on a
+  // level body heading 200, and independent of how the body is tilted.
+  const Quaternion gimbal =
+      quaternionFromEuler(0, -55 * std::numbers::pi / 180, 200 * std::numbers::pi / 180);
+  const Pix4dAngles g = pix4dAngles(cameraToNedFromGimbal(gimbal));
+  const Pix4dAngles f = pix4dAngles(cameraToNed(headingQ(200), CameraMount{0, -55, 0}));
+  EXPECT_NEAR(g.pitchDeg, f.pitchDeg, 1e-9);
+  EXPECT_NEAR(angleDiff(g.yawDeg, f.yawDeg), 0, 1e-9);
+  EXPECT_NEAR(angleDiff(g.rollDeg, f.rollDeg), 0, 1e-9);
+  // Straight down with the gimbal's nose north: Pix4D's all-zero.
+  const Pix4dAngles n =
+      pix4dAngles(cameraToNedFromGimbal(quaternionFromEuler(0, -std::numbers::pi / 2, 0)));
+  EXPECT_NEAR(n.pitchDeg, 0, 1e-6);
+  EXPECT_NEAR(angleDiff(n.yawDeg, 0), 0, 1e-6);
 }
 
 TEST(CameraMount, ForwardCameraHasPitch90AndObliqueInBetween) {

@@ -275,6 +275,8 @@ TEST(Config, OutOfRangeAndBadValues) {
                  "2: selection.target: must be between 0.01 and 0.99 (got 1.5)");
   expectOneError(dir, "[tagging]\njpeg_quality = 101\n",
                  "2: tagging.jpeg_quality: must be between 1 and 100 (got 101)");
+  expectOneError(dir, "[tagging]\nmount = \"gimbal2\"\n",
+                 "2: tagging.mount: must be one of fixed, gimbal (got \"gimbal2\")");
   expectOneError(dir, "[selection]\nmode = \"fast\"\n",
                  "2: selection.mode: must be one of geometric, paper (got \"fast\")");
   expectOneError(dir, "[camera]\nsource = \"usb\"\n",

@@ -58,6 +58,18 @@ std::vector<std::uint8_t> gpsRaw(MavlinkEncoder& enc, std::uint8_t fix) {
       });
 }
 
+std::vector<std::uint8_t> gimbalStatus(MavlinkEncoder& enc, std::uint32_t bootMs,
+                                       const Quaternion& q, std::uint16_t flags,
+                                       std::uint8_t deviceId = 0) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        const float qq[4] = {static_cast<float>(q.w), static_cast<float>(q.x),
+                             static_cast<float>(q.y), static_cast<float>(q.z)};
+        mavlink_msg_gimbal_device_attitude_status_pack_status(s, c, st, m, 0, 0, bootMs, flags, qq,
+                                                              NAN, NAN, NAN, 0, NAN, NAN, deviceId);
+      });
+}
+
 TEST(PoseStore, InterpolatesAttitudeBySlerpAndPositionLinearly) {
   PoseStore store;
   const Quaternion a = quaternionFromEuler(0, 0, 10 * kDeg);
@@ -248,6 +260,101 @@ TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
   ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
   EXPECT_NEAR(p.position->latDeg, 10.0 + 5.5e-5, 1e-9);
   EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 45 * kDeg)), 0.0, 1e-6);
+}
+
+TEST(PoseStore, GimbalInTheVehicleFrameTurnsWithTheHeading) {
+  PoseStore store;
+  // The vehicle heads 60 deg and banks 10 deg; the gimbal looks 30 deg right of the
+  // nose, pitched 45 deg down, level to the horizon.
+  store.addAttitude(1000 * kMs, quaternionFromEuler(10 * kDeg, 0, 60 * kDeg));
+  store.addAttitude(1020 * kMs, quaternionFromEuler(10 * kDeg, 0, 60 * kDeg));
+  store.addGimbal(990 * kMs, quaternionFromEuler(0, -45 * kDeg, 20 * kDeg), false);
+  store.addGimbal(1030 * kMs, quaternionFromEuler(0, -45 * kDeg, 40 * kDeg), false);
+  Pose p = store.at(1010 * kMs);
+  ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
+  EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -45 * kDeg, 90 * kDeg)), 0.0, 1e-9);
+
+  // In the earth frame the heading does not matter.
+  PoseStore earth;
+  earth.addAttitude(1000 * kMs, quaternionFromEuler(0, 0, 60 * kDeg));
+  earth.addGimbal(1000 * kMs, quaternionFromEuler(0, -90 * kDeg, 0), true);
+  p = earth.at(1000 * kMs);
+  ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
+  EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -90 * kDeg, 0)), 0.0, 1e-9);
+}
+
+TEST(PoseStore, GimbalGapsAreSaidNotInvented) {
+  PoseStore store;
+  store.addAttitude(1000 * kMs, quaternionFromEuler(0, 0, 0));
+  Pose p = store.at(1000 * kMs);
+  EXPECT_FALSE(p.gimbal.has_value());
+  EXPECT_EQ(p.gimbalReason, "no gimbal attitude");
+  store.addGimbal(1000 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), true);
+  store.addGimbal(2000 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), true);
+  p = store.at(1500 * kMs);
+  EXPECT_FALSE(p.gimbal.has_value());
+  EXPECT_NE(p.gimbalReason.find("gap"), std::string::npos) << p.gimbalReason;
+  // Relative to a heading that is not known: no attitude.
+  PoseStore noHeading;
+  noHeading.addGimbal(1000 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), false);
+  p = noHeading.at(1000 * kMs);
+  EXPECT_FALSE(p.gimbal.has_value());
+  EXPECT_NE(p.gimbalReason.find("heading"), std::string::npos) << p.gimbalReason;
+}
+
+TEST(TelemetryDecoder, ReadsTheVehiclesGimbalInItsFrame) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1), gimbal(1, MAV_COMP_ID_GIMBAL), second(1, MAV_COMP_ID_GIMBAL2),
+      otherVehicle(2, MAV_COMP_ID_GIMBAL);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  // Before the autopilot is known, gimbal messages are not used.
+  push(gimbalStatus(gimbal, 5, quaternionFromEuler(0, -30 * kDeg, 0),
+                    GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME));
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  EXPECT_EQ(dec.stats().gimbal, 0U);
+  for (int i = 0; i <= 10; ++i) {
+    now = (10'000 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(i * 100);
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
+    push(position(ap, boot, 10.0, 20.0, 50.0));
+    // The gimbal's own clock is unrelated: 777 s since its boot.
+    push(gimbalStatus(gimbal, 777'000 + boot, quaternionFromEuler(0, -30 * kDeg, 0),
+                      GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME));
+    push(gimbalStatus(second, boot, quaternionFromEuler(0, 0, 0), 0));
+    push(gimbalStatus(otherVehicle, boot, quaternionFromEuler(0, 0, 0), 0));
+  }
+  EXPECT_EQ(dec.stats().gimbal, 11U);
+  const Pose p = dec.poseAt(10'550 * kMs);
+  ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
+  // 30 deg down, looking east (the vehicle's heading).
+  EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -30 * kDeg, 90 * kDeg)), 0.0, 1e-6);
+}
+
+TEST(TelemetryDecoder, LegacyYawLockMeansEarthFrame) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  for (int i = 0; i <= 5; ++i) {
+    now = (10'000 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(i * 100);
+    push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
+    // ArduPilot sends it from the autopilot component, device id 1, on its boot clock.
+    push(gimbalStatus(ap, boot, quaternionFromEuler(0, -60 * kDeg, 10 * kDeg),
+                      GIMBAL_DEVICE_FLAGS_YAW_LOCK | GIMBAL_DEVICE_FLAGS_ROLL_LOCK, 1));
+  }
+  const Pose p = dec.poseAt(10'250 * kMs);
+  ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
+  EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -60 * kDeg, 10 * kDeg)), 0.0, 1e-6);
 }
 
 TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
