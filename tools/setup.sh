@@ -21,6 +21,17 @@ APT_PACKAGES=(
 # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu.
 APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
 
+# Rust 1.88+ for daemon/io-rs: rustup's toolchain when there is one, else Debian 12's
+# rustc-web/cargo-web (1.96 from bookworm-security; Debian's plain rustc is 1.63).
+export PATH="$HOME/.cargo/bin:/root/.cargo/bin:$PATH"
+rust_ok() {
+  command -v cargo > /dev/null && command -v rustc > /dev/null || return 1
+  local v
+  v="$(rustc --version | awk '{print $2}')"
+  [ "$(printf '%s\n1.88.0\n' "$v" | sort -V | head -1)" = "1.88.0" ]
+}
+if ! rust_ok; then APT_PACKAGES+=(rustc-web cargo-web); fi
+
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 
@@ -62,11 +73,10 @@ if ! cmp -s "$REQ" "$STAMP_DIR/requirements.txt"; then
 fi
 
 # Rust crates of daemon/io-rs (zenoh, mcap), fetched once per Cargo.lock so that the
-# build itself needs no network. rustup's cargo; Debian's rustc is too old.
-export PATH="$HOME/.cargo/bin:/root/.cargo/bin:$PATH"
+# build itself needs no network.
 LOCK="$ROOT/daemon/io-rs/Cargo.lock"
-if ! command -v cargo > /dev/null; then
-  echo "setup: cargo not found: install rustup (rustc 1.88 or newer), or configure" \
+if ! rust_ok; then
+  echo "setup: no cargo with rustc 1.88 or newer (rustup, or apt rustc-web cargo-web), or configure" \
        "with -DKEYFRAMED_WITH_IO=OFF to build without MCAP and Zenoh" >&2
 elif ! cmp -s "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"; then
   echo "setup: fetching Rust crates (cargo fetch --locked)"

@@ -40,9 +40,10 @@ int kfio_mcap_flush(kfio_mcap* mcap, int sync, char* err, size_t err_len);
 /* Writes summary and footer, closes the file, releases the handle (also on error). */
 int kfio_mcap_close(kfio_mcap* mcap, char* err, size_t err_len);
 
-/* Reading (replay): the messages of `count` topics, in file order, whole file in
- * memory. next() returns 1 with the topic's index in `topics`, the log time and the
- * data (valid until close), 0 at the end. truncated(): the file was cut short. */
+/* Reading (replay): the messages of `count` topics, streamed in file order (one chunk
+ * in memory at a time). next() returns 1 with the topic's index in `topics`, the log
+ * time and the data (valid until the next call or close), 0 at the end.
+ * truncated(), once next() has returned 0: the file was cut short or is corrupt. */
 typedef struct KfioMcapReader kfio_mcap_reader;
 kfio_mcap_reader* kfio_mcap_reader_open(const char* path, const char* const* topics, size_t count,
                                         char* err, size_t err_len);

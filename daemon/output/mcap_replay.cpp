@@ -64,12 +64,14 @@ bool isMcapFile(const std::string& path) {
 }
 
 struct McapReplaySource::Impl {
-  struct Image {
-    std::int64_t timeNs;
-    std::vector<std::uint8_t> jpeg;
-  };
-  std::vector<Image> images;
-  std::size_t next = 0;
+#ifdef KEYFRAMED_HAVE_IO
+  ~Impl() {
+    if (images != nullptr) kfio_mcap_reader_close(images);
+  }
+  kfio_mcap_reader* images = nullptr;  // the preview stream, read as frames are asked for
+#endif
+  std::int64_t frames = 0;  // preview frames the first pass found
+  std::vector<std::uint8_t> jpeg;
   cv::Mat bgr;
 };
 
@@ -78,6 +80,9 @@ McapReplaySource::~McapReplaySource() = default;
 std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path,
                                                          std::string& error) {
 #ifdef KEYFRAMED_HAVE_IO
+  // Two passes, each one chunk at a time: the first keeps the MAVLink packets (small;
+  // telemetry must be known ahead of the frames) and counts the preview frames; the
+  // second streams the frames. Memory does not grow with the file.
   const char* topics[] = {"/camera/preview", "/mavlink/raw"};
   char err[512] = {};
   kfio_mcap_reader* r = kfio_mcap_reader_open(path.c_str(), topics, 2, err, sizeof err);
@@ -87,38 +92,54 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   }
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
+  Impl& impl = *s->impl_;
   std::uint32_t topic = 0;
   std::uint64_t time = 0;
   const std::uint8_t* data = nullptr;
   std::size_t len = 0;
+  std::int64_t firstNs = 0;
+  std::int64_t lastNs = 0;
   while (kfio_mcap_reader_next(r, &topic, &time, &data, &len) == 1) {
     const std::span<const std::uint8_t> msg(data, len);
     const auto field = bytesField(msg, topic == 0 ? 2 : 5);
     if (!field) continue;
     if (topic == 0) {
-      s->impl_->images.push_back({static_cast<std::int64_t>(time), {field->begin(), field->end()}});
+      if (impl.frames == 0) {
+        impl.jpeg.assign(field->begin(), field->end());
+        firstNs = static_cast<std::int64_t>(time);
+      }
+      lastNs = static_cast<std::int64_t>(time);
+      ++impl.frames;
     } else {
       s->mavlink_.push_back({static_cast<std::int64_t>(time), {field->begin(), field->end()}});
     }
   }
   s->truncated_ = kfio_mcap_reader_truncated(r) != 0;
   kfio_mcap_reader_close(r);
-  auto& images = s->impl_->images;
-  if (images.empty()) {
+  if (impl.frames == 0 && s->truncated_) {
+    error = path + ": corrupt or cut short before its first preview frame";
+    return nullptr;
+  }
+  if (impl.frames == 0) {
     error = path +
             ": no preview stream (/camera/preview) to replay: record with output.preview_width > 0";
     return nullptr;
   }
-  const cv::Mat first = cv::imdecode(images.front().jpeg, cv::IMREAD_COLOR);
+  const cv::Mat first = cv::imdecode(impl.jpeg, cv::IMREAD_COLOR);
   if (first.empty()) {
     error = path + ": the first preview frame is not a JPEG";
     return nullptr;
   }
+  impl.images = kfio_mcap_reader_open(path.c_str(), topics, 1, err, sizeof err);
+  if (impl.images == nullptr) {
+    error = err;
+    return nullptr;
+  }
   s->info_.width = first.cols;
   s->info_.height = first.rows;
-  s->info_.frameCount = static_cast<std::int64_t>(images.size());
-  const double span = static_cast<double>(images.back().timeNs - images.front().timeNs) / 1e9;
-  s->info_.fps = span > 0 ? static_cast<double>(images.size() - 1) / span : 0.0;
+  s->info_.frameCount = impl.frames;
+  const double span = static_cast<double>(lastNs - firstNs) / 1e9;
+  s->info_.fps = span > 0 ? static_cast<double>(impl.frames - 1) / span : 0.0;
   s->info_.description = "mcap:" + path;
   return s;
 #else
@@ -128,16 +149,32 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
 }
 
 ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
-  auto& images = impl_->images;
-  if (impl_->next >= images.size()) return ReadStatus::End;
-  const auto& img = images[impl_->next++];
-  impl_->bgr = cv::imdecode(img.jpeg, cv::IMREAD_COLOR);
-  if (impl_->bgr.empty() || impl_->bgr.cols != info_.width || impl_->bgr.rows != info_.height) {
-    error = "preview frame " + std::to_string(index_) + " cannot be decoded";
-    return ReadStatus::Error;
+#ifdef KEYFRAMED_HAVE_IO
+  Impl& impl = *impl_;
+  if (index_ >= impl.frames) return ReadStatus::End;
+  std::uint32_t topic = 0;
+  std::uint64_t time = 0;
+  const std::uint8_t* data = nullptr;
+  std::size_t len = 0;
+  while (kfio_mcap_reader_next(impl.images, &topic, &time, &data, &len) == 1) {
+    const auto field = bytesField(std::span<const std::uint8_t>(data, len), 2);
+    if (!field) continue;  // skipped by the first pass too
+    impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
+                                    const_cast<std::uint8_t*>(field->data())),
+                            cv::IMREAD_COLOR);
+    if (impl.bgr.empty() || impl.bgr.cols != info_.width || impl.bgr.rows != info_.height) {
+      error = "preview frame " + std::to_string(index_) + " cannot be decoded";
+      return ReadStatus::Error;
+    }
+    frame = Frame::ofBgr(impl.bgr, index_++, static_cast<std::int64_t>(time));
+    return ReadStatus::Frame;
   }
-  frame = Frame::ofBgr(impl_->bgr, index_++, img.timeNs);
-  return ReadStatus::Frame;
+  return ReadStatus::End;
+#else
+  (void)frame;
+  (void)error;
+  return ReadStatus::End;
+#endif
 }
 
 }  // namespace keyframed

@@ -17,8 +17,9 @@ struct TimedPacket {
 
 // A flight record (MCAP written by `keyframed run`) as a frame source: the preview
 // stream (/camera/preview, JPEG) decoded frame by frame with the live capture
-// timestamps, and the raw MAVLink packets (/mavlink/raw) for the telemetry. The
-// whole file is read at open(). A file cut short replays up to the cut.
+// timestamps, and the raw MAVLink packets (/mavlink/raw) for the telemetry. open()
+// reads the file once for the MAVLink packets; frames are then streamed, one chunk
+// in memory at a time. A file cut short replays up to the cut.
 class McapReplaySource final : public FrameSource {
  public:
   static std::unique_ptr<McapReplaySource> open(const std::string& path, std::string& error);

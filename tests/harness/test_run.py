@@ -533,6 +533,30 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
     assert "mavlink/raw" in summary["telemetry"]["source"]
     assert (tmp_path / "r.mcap").stat().st_size > 0
 
+    # Replay streams the record: its memory does not grow with the file. The same
+    # record cut to a third replays in about the same peak RSS.
+    full = fd / "flight.mcap"
+    third = tmp_path / "third.mcap"
+    third.write_bytes(full.read_bytes()[: full.stat().st_size // 3])
+    rss = {}
+    for name, path in (("full", full), ("third", third)):
+        p = subprocess.Popen(
+            [str(kf_bin), "select", str(path), "--out", str(tmp_path / f"rss-{name}"), "--quiet"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        _, status, usage = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        assert p.returncode == 0, name
+        rss[name] = usage.ru_maxrss * 1024
+    grown = rss["full"] - rss["third"]
+    data = full.stat().st_size - third.stat().st_size
+    print(
+        f"replay peak RSS {rss['full'] / 1e6:.0f} MB for {full.stat().st_size / 1e6:.0f} MB, "
+        f"{rss['third'] / 1e6:.0f} MB for a third of it"
+    )
+    assert grown < 0.25 * data, f"replay RSS grew by {grown / 1e6:.0f} MB for {data / 1e6:.0f} MB"
+
 
 def test_replay_of_a_reduced_preview_and_of_a_cut_file(
     kf_bin: Path, short_nadir: Path, tmp_path: Path

@@ -161,16 +161,19 @@ impl KfioMcap {
     }
 }
 
-/// Messages of some topics of an MCAP file, read in file order (a replay source).
+/// Messages of some topics of an MCAP file, streamed in file order (a replay source):
+/// one chunk is decompressed at a time, so memory does not grow with the file.
 pub struct KfioMcapReader {
-    messages: Vec<(u32, u64, Vec<u8>)>, // (topic index, log time, data)
-    next: usize,
+    stream: mcap::io::MessageReader<std::io::BufReader<std::fs::File>>,
+    wanted: Vec<String>,
+    current: Vec<u8>, // the data handed out by the last next()
     truncated: bool,
+    done: bool,
 }
 
-/// Reads the messages of `topics` (`count` NUL-terminated names) from an MCAP file,
-/// whole, into memory. A file cut short (SIGKILL, power cut) gives what precedes the
-/// cut and reports itself truncated.
+/// Opens an MCAP file to stream the messages of `topics` (`count` NUL-terminated
+/// names). A file cut short (SIGKILL, power cut) gives what precedes the cut and
+/// reports itself truncated once read to the cut.
 #[no_mangle]
 pub extern "C" fn kfio_mcap_reader_open(
     path: *const c_char,
@@ -180,6 +183,7 @@ pub extern "C" fn kfio_mcap_reader_open(
     err_len: usize,
 ) -> *mut KfioMcapReader {
     guard(err, err_len, std::ptr::null_mut(), || {
+        use std::io::Read;
         let path = cstr(path, "path")?;
         let mut wanted: Vec<String> = Vec::with_capacity(count);
         for i in 0..count {
@@ -187,34 +191,40 @@ pub extern "C" fn kfio_mcap_reader_open(
             let t = unsafe { *topics.add(i) };
             wanted.push(cstr(t, "topic")?.to_string());
         }
-        let buf = std::fs::read(path).map_err(|e| format!("cannot read {path}: {e}"))?;
-        let stream = mcap::MessageStream::new(&buf)
-            .map_err(|e| format!("{path}: not an MCAP file ({e})"))?;
-        let mut messages = Vec::new();
-        let mut truncated = false;
-        for m in stream {
-            match m {
-                Ok(m) => {
-                    if let Some(i) = wanted.iter().position(|t| *t == m.channel.topic) {
-                        messages.push((i as u32, m.log_time, m.data.into_owned()));
-                    }
-                }
-                Err(_) => {
-                    truncated = true;
-                    break;
-                }
-            }
+        let mut file = std::fs::File::open(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+        let mut magic = [0u8; 8];
+        let n = file
+            .read(&mut magic)
+            .map_err(|e| format!("cannot read {path}: {e}"))?;
+        if n < magic.len() || magic[..] != *mcap::MAGIC {
+            return Err(format!("{path}: not an MCAP file (no MCAP magic)"));
         }
+        let file = std::fs::File::open(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+        let size = file
+            .metadata()
+            .map_err(|e| format!("cannot read {path}: {e}"))?
+            .len();
+        // A corrupt record length must be an error, not a huge allocation: no record is
+        // longer than the file, or (decompressed, inside a chunk) than the file plus a
+        // generous 256 MiB.
+        let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
+        let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
+        let stream = mcap::io::MessageReader::new_with_options(
+            std::io::BufReader::with_capacity(1 << 20, file),
+            options,
+        );
         Ok(Box::into_raw(Box::new(KfioMcapReader {
-            messages,
-            next: 0,
-            truncated,
+            stream,
+            wanted,
+            current: Vec::new(),
+            truncated: false,
+            done: false,
         })))
     })
 }
 
-/// The next message: 1 with its topic index, log time and data (valid until the
-/// reader is closed), 0 at the end.
+/// The next message of the wanted topics: 1 with its topic index, log time and data
+/// (valid until the next call or close), 0 at the end (or at a cut: see truncated).
 #[no_mangle]
 pub extern "C" fn kfio_mcap_reader_next(
     reader: *mut KfioMcapReader,
@@ -227,18 +237,36 @@ pub extern "C" fn kfio_mcap_reader_next(
     {
         return 0;
     }
-    // SAFETY: a live handle from kfio_mcap_reader_open and valid out pointers.
-    let r = unsafe { &mut *reader };
-    if r.next >= r.messages.len() {
+    let found = catch_unwind(AssertUnwindSafe(|| {
+        // SAFETY: a live handle from kfio_mcap_reader_open.
+        let r = unsafe { &mut *reader };
+        while !r.done {
+            match r.stream.next() {
+                Some(Ok(m)) => {
+                    if let Some(i) = r.wanted.iter().position(|t| *t == m.channel.topic) {
+                        r.current = m.data.into_owned();
+                        return Some((i as u32, m.log_time));
+                    }
+                }
+                Some(Err(_)) => {
+                    r.truncated = true;
+                    r.done = true;
+                }
+                None => r.done = true,
+            }
+        }
+        None
+    }));
+    let Ok(Some((t, time))) = found else {
         return 0;
-    }
-    let (t, time, bytes) = &r.messages[r.next];
-    r.next += 1;
+    };
+    // SAFETY: a live handle and valid out pointers.
     unsafe {
-        *topic = *t;
-        *log_time = *time;
-        *data = bytes.as_ptr();
-        *len = bytes.len();
+        let r = &*reader;
+        *topic = t;
+        *log_time = time;
+        *data = r.current.as_ptr();
+        *len = r.current.len();
     }
     1
 }
