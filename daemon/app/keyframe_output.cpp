@@ -39,7 +39,10 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
     pose = telemetry_->decoder().poseAt(frame.timestampNs);
   }
   KeyframeRecord rec;
-  if (!writer_.write(frame, pose ? &*pose : nullptr, rec, error)) return false;
+  const bool saved = writer_.write(frame, pose ? &*pose : nullptr, rec, error);
+  if (!rec.encoded) return false;
+  // Published and recorded even when it could not be saved (disk full): a keyframe
+  // the ground station receives is not lost.
   outputs_.keyframe(rec, writer_.lastJpeg());
   note = rec.geotag;
   if (telemetry_ != nullptr && !telemetry_->isReplay()) {
@@ -51,29 +54,40 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
     report.fileUrl = "file://" + rec.file;
     telemetry_->reportCapture(report);
   }
-  return true;
+  return saved;
 }
 
 bool KeyframeOutput::handle(const KeyframeEvent& ev, std::string& error) {
+  // Every part is attempted even when one fails (disk full): the decision is still
+  // published and recorded, the keyframe still sent. The first error is returned.
   std::string note;
+  bool ok = true;
+  auto failed = [&](const std::string& e) {
+    if (ok) error = e;
+    ok = false;
+  };
+  auto write = [&](const Frame& f) {
+    std::string e;
+    if (!writeKeyframe(f, note, e)) failed(e);
+  };
   if (ev.endOfStream) {
     if (!ev.promoted) return true;
-    if (!writeKeyframe(ev.promoted->frame, note, error)) return false;
+    write(ev.promoted->frame);
     log_.markGapFill(ev.promoted->frame.index);
     log_.setGeotag(ev.promoted->frame.index, note);
-    return true;
+    return ok;
   }
   const Decision& d = ev.decision;
   if (outputs_.active()) outputs_.decision(d, DecisionLog::jsonRow(d));
   if (ev.promoted) {
-    if (!writeKeyframe(ev.promoted->frame, note, error)) return false;
+    write(ev.promoted->frame);
     log_.setGeotag(ev.promoted->frame.index, note);
   }
   note.clear();
-  if (d.kept && ev.keyframe) {
-    if (!writeKeyframe(ev.keyframe->frame, note, error)) return false;
-  }
-  return log_.add(d, error, note);
+  if (d.kept && ev.keyframe) write(ev.keyframe->frame);
+  std::string e;
+  if (!log_.add(d, e, note)) failed(e);
+  return ok;
 }
 
 }  // namespace keyframed

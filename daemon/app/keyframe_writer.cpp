@@ -105,9 +105,16 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     if (rec.geotag.empty()) rec.geotag = "incomplete";
   }
   if (!writeTags(jpeg_, tags, error)) return false;
-  if (!writeFileAtomically(rec.file, jpeg_, error)) return false;
+  rec.encoded = true;
+  // The sequence number is taken whether or not the file can be saved: a receiver
+  // sees one gap-free sequence, and what it missed is served from disk when it is there.
   ++count_;
   if (rec.pose.position) ++geotagged_;
+  if (!writeFileAtomically(rec.file, jpeg_, error)) {
+    rec.file.clear();
+    ++unsaved_;
+    return false;
+  }
 
   if (index_ != nullptr) {
     const auto& p = rec.pose;

@@ -31,7 +31,8 @@ struct KeyframeRecord {
   std::string file;  // absolute path
   Pose pose;
   std::optional<Quaternion> cameraToNed;
-  std::string geotag;  // "ok", why a part is missing, or "" without telemetry
+  std::string geotag;    // "ok", why a part is missing, or "" without telemetry
+  bool encoded = false;  // the tagged JPEG is in lastJpeg() (even when saving it failed)
 };
 
 // Encodes keyframes (libjpeg-turbo), tags them (EXIF/XMP with the pose at the frame
@@ -45,7 +46,9 @@ class KeyframeWriter {
   KeyframeWriter& operator=(const KeyframeWriter&) = delete;
 
   bool open(KeyframeWriterConfig config, std::string& error);
-  // pose: nullptr when there is no telemetry. False with a one-line error.
+  // pose: nullptr when there is no telemetry. False with a one-line error. When only
+  // saving failed (disk full), record.encoded is still true and the keyframe keeps
+  // its sequence number: it can be published from lastJpeg(), and file is ""..
   bool write(const cv::Mat& bgr, std::int64_t frameIndex, std::int64_t timeNs, const Pose* pose,
              KeyframeRecord& record, std::string& error);
   // The same from a frame in any pixel format (JPEG straight from YUV); the
@@ -53,7 +56,9 @@ class KeyframeWriter {
   bool write(const Frame& frame, const Pose* pose, KeyframeRecord& record, std::string& error);
   bool close(std::string& error);
 
+  // Keyframes given a sequence number (saved or not), and those saved to disk.
   [[nodiscard]] std::int64_t count() const { return count_; }
+  [[nodiscard]] std::int64_t saved() const { return count_ - unsaved_; }
   // The tagged JPEG bytes of the last keyframe written.
   [[nodiscard]] const std::vector<std::uint8_t>& lastJpeg() const { return jpeg_; }
   [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
@@ -72,6 +77,7 @@ class KeyframeWriter {
   std::FILE* index_ = nullptr;
   std::string indexPath_;
   std::int64_t count_ = 0;
+  std::int64_t unsaved_ = 0;
   std::int64_t geotagged_ = 0;
 };
 

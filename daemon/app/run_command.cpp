@@ -328,12 +328,29 @@ void Daemon::analysisLoop() {
 
 void Daemon::outputLoop() {
   std::string error;
+  std::string lastError;
+  std::int64_t lastLoggedNs = 0;
+  std::uint64_t unlogged = 0;
   while (std::optional<KeyframeEvent> ev = events_.pop()) {
     if (!output_->handle(*ev, error)) {
-      // A keyframe that cannot be written (disk full, ...) is reported each time;
-      // selection, recording and publishing of what can be go on.
+      // Something could not be saved (disk full, ...): selection, recording and
+      // publishing of what can be go on. Said once per kind, then every 10 s.
       stats_.writeErrors.fetch_add(1);
-      KF_LOG(Output, Error) << error;
+      const std::int64_t now = monotonicNowNs();
+      // The kind: the reason after the last ": " ("No space left on device"), not the path.
+      const auto colon = error.rfind(": ");
+      const std::string kind = colon == std::string::npos ? error : error.substr(colon + 2);
+      if (kind != lastError || now - lastLoggedNs > 10'000'000'000) {
+        KF_LOG(Output, Error) << error
+                              << (unlogged > 0
+                                      ? " (and " + std::to_string(unlogged) + " more write errors)"
+                                      : std::string());
+        lastError = kind;
+        lastLoggedNs = now;
+        unlogged = 0;
+      } else {
+        ++unlogged;
+      }
     }
     stats_.written.store(writer_.count());
     outputs_.progress(stats_.analysed.load(), writer_.count());
@@ -410,7 +427,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state) {
       buf, sizeof buf,
       "{\n  \"state\": \"%s\",\n  \"source\": \"%s\",\n  \"width\": %d,\n  \"height\": %d,\n"
       "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n  \"frames_read\": %lld,\n"
-      "  \"kept\": %lld,\n  \"written\": %lld,\n  \"write_errors\": %lld,\n"
+      "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"write_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
       "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
       "  \"analysis_ms_mean\": %.3f,\n  \"cpu_seconds\": %.3f,\n  \"cpu_percent\": %.1f,\n"
@@ -419,9 +436,11 @@ bool Daemon::writeSummary(double seconds, const std::string& state) {
       state.c_str(), info.description.c_str(), info.width, info.height,
       static_cast<unsigned long long>(cs.captured), static_cast<unsigned long long>(dropped),
       static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
-      static_cast<long long>(writer_.count()), static_cast<long long>(stats_.writeErrors.load()),
-      static_cast<long long>(c.rejectedBlur), static_cast<long long>(c.rejectedOverlap),
-      static_cast<long long>(c.promoted), static_cast<unsigned long long>(cs.errors), seconds,
+      static_cast<long long>(writer_.saved()),
+      static_cast<long long>(writer_.count() - writer_.saved()),
+      static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
+      static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
+      static_cast<unsigned long long>(cs.errors), seconds,
       seconds > 0 ? static_cast<double>(c.framesRead) / seconds : 0.0,
       c.framesRead > 0 ? c.analysisNs / static_cast<double>(c.framesRead) / 1e6 : 0.0, cpu,
       seconds > 0 ? 100.0 * cpu / seconds : 0.0, decode,

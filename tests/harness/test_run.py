@@ -603,3 +603,77 @@ def test_replay_bad_flight_records(any_bin: Path, tmp_path: Path) -> None:
     )
     assert r.returncode == 3 and "garbage.mcap" in r.stderr, r.stderr
     assert "Sanitizer" not in r.stderr and "runtime error" not in r.stderr
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0, reason="mounting a small tmpfs (the full disk) needs root; CI runs as root"
+)
+def test_full_disk_loses_no_keyframe_on_the_link(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The state directory fills up mid-flight: the MCAP recorder stops, keyframes can
+    no longer be saved, but every keyframe still reaches the Zenoh subscriber, in one
+    gap-free sequence; errors are logged once per kind, not per frame."""
+    zenoh = pytest.importorskip("zenoh")
+    state = tmp_path / "state"
+    state.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(state)], check=True)
+    try:
+        port = free_port()
+        zconf = tmp_path / "zenoh.json5"
+        conf = {"mode": "peer", "scouting": {"multicast": {"enabled": False}}}
+        zconf.write_text(json.dumps({**conf, "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]}}))
+        received: list[tuple[bytes, dict[str, Any]]] = []
+        status: list[dict[str, Any]] = []
+        listen = {**conf, "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]}}
+        session = zenoh.open(zenoh.Config.from_json5(json.dumps(listen)))
+        try:
+            session.declare_subscriber(
+                "keyframed/full/keyframe",
+                lambda s: received.append(
+                    (s.payload.to_bytes(), json.loads(s.attachment.to_bytes()))
+                ),
+            )
+            session.declare_subscriber(
+                "keyframed/full/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
+            )
+            proc = start(
+                kf_bin,
+                tmp_path,
+                f"camera.path={short_nadir / 'video.avi'}",
+                "zenoh.enabled=true",
+                f"zenoh.config={zconf}",
+                "zenoh.vehicle=full",
+            )
+            _, stderr = proc.communicate(timeout=120)
+            time.sleep(0.3)
+        finally:
+            session.close()
+        assert "Sanitizer" not in stderr and "terminate" not in stderr, stderr
+        assert "No space left on device" in stderr, stderr
+        errors = [ln for ln in stderr.splitlines() if "No space left" in ln]
+        assert len(errors) < 10, f"{len(errors)} error lines: logged per frame"
+
+        offline = tmp_path / "offline"
+        r = subprocess.run(
+            [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(offline)]
+            + ["--quiet"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert r.returncode == 0, r.stderr
+        expected = json.loads((offline / "summary.json").read_text())["kept"]
+        seqs = [m["sequence"] for _, m in received]
+        print(
+            f"full disk: {len(received)} keyframes received of {expected}; exit {proc.returncode}"
+        )
+        assert seqs == list(range(expected)), seqs
+        assert status and status[-1]["kept"] == expected
+        saved = {p.name: p.read_bytes() for p in state.rglob("*.jpg")}
+        assert 0 < len(saved) < expected, "the disk was meant to fill up part way"
+        for payload, meta in received:
+            if meta["file"] in saved:
+                assert saved[meta["file"]] == payload
+    finally:
+        subprocess.run(["umount", "-l", str(state)], check=False)
