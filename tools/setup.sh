@@ -18,6 +18,9 @@ APT_PACKAGES=(
   protobuf-compiler libprotobuf-dev
 )
 
+# tests/harness/test_zenoh_security.py: a throw-away CA and server certificate.
+APT_PACKAGES+=(openssl)
+
 # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu.
 APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
 
