@@ -4,8 +4,6 @@
 #include <cmath>
 #include <limits>
 
-#include <opencv2/video/tracking.hpp>
-
 #include "core/polygon.h"
 
 namespace keyframed {
@@ -29,6 +27,7 @@ double stepMotion(const cv::Matx33d& h, cv::Size size) {
 
 GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
     : config_(config),
+      lk_(LkConfig{config.lkWindow, config.lkLevels}),
       perCell_(
           std::max(1, (config.maxTracks + kGridCols * kGridRows - 1) / (kGridCols * kGridRows))),
       cellCount_(kGridCols * kGridRows, 0),
@@ -41,14 +40,12 @@ GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
   goodPrev_.reserve(n);
   goodCur_.reserve(n);
   status_.reserve(n);
-  err_.reserve(n);
   inlierMask_.reserve(n);
   keypoints_.reserve(8192);
 }
 
 OverlapResult GeometricOverlap::observe(GrayView gray) {
   const cv::Mat img = gray.mat();
-  const cv::Size win(config_.lkWindow, config_.lkWindow);
   if (img.size() != size_) {
     // A new stream or a resolution change: start over.
     size_ = img.size();
@@ -57,7 +54,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
     haveCandidate_ = false;
     prevPts_.clear();
   }
-  cv::buildOpticalFlowPyramid(img, curPyr_, win, config_.lkLevels, true);
+  curPyr_.build(gray, config_.lkLevels, config_.lkWindow);
 
   bool tracked = false;
   lastMotion_ = std::numeric_limits<double>::quiet_NaN();
@@ -65,9 +62,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
   lastInliers_ = 0;
   curPts_.clear();
   if (havePrev_ && static_cast<int>(prevPts_.size()) >= config_.minInliers) {
-    cv::calcOpticalFlowPyrLK(
-        prevPyr_, curPyr_, prevPts_, curPts_, status_, err_, win, config_.lkLevels,
-        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 0.03));
+    lk_.track(prevPyr_, curPyr_, prevPts_, curPts_, status_);
     goodPrev_.clear();
     goodCur_.clear();
     const float w = static_cast<float>(size_.width);

@@ -6,6 +6,7 @@
 #include <opencv2/features2d.hpp>
 
 #include "core/homography.h"
+#include "core/lk_tracker.h"
 #include "core/overlap.h"
 
 namespace keyframed {
@@ -32,14 +33,14 @@ class GeometricOverlap final : public OverlapEstimator {
 
   OverlapConfig config_;
   cv::Size size_;
-  std::vector<cv::Mat> prevPyr_;
-  std::vector<cv::Mat> curPyr_;
+  LkPyramid prevPyr_;
+  LkPyramid curPyr_;
+  LkTracker lk_;
   std::vector<cv::Point2f> prevPts_;
   std::vector<cv::Point2f> curPts_;
   std::vector<cv::Point2f> goodPrev_;
   std::vector<cv::Point2f> goodCur_;
   std::vector<unsigned char> status_;
-  std::vector<float> err_;
   std::vector<unsigned char> inlierMask_;
   std::vector<cv::KeyPoint> keypoints_;
   int perCell_;                         // corners wanted per grid cell
