@@ -33,7 +33,7 @@ GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
       cellCount_(kGridCols * kGridRows, 0),
       cellBestCount_(kGridCols * kGridRows, 0),
       cellBest_(static_cast<std::size_t>(kGridCols * kGridRows * perCell_)),
-      fast_(cv::FastFeatureDetector::create(config.fastThreshold, true)) {
+      fast_(config.fastThreshold, true) {
   const auto n = static_cast<std::size_t>(config.maxTracks);
   prevPts_.reserve(n);
   curPts_.reserve(n);
@@ -45,10 +45,9 @@ GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
 }
 
 OverlapResult GeometricOverlap::observe(GrayView gray) {
-  const cv::Mat img = gray.mat();
-  if (img.size() != size_) {
+  if (cv::Size(gray.width, gray.height) != size_) {
     // A new stream or a resolution change: start over.
-    size_ = img.size();
+    size_ = cv::Size(gray.width, gray.height);
     havePrev_ = false;
     haveReference_ = false;
     haveCandidate_ = false;
@@ -98,7 +97,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
     haveReference_ = false;
     haveCandidate_ = false;
   }
-  if (static_cast<int>(curPts_.size()) < config_.minTracks) replenish(img);
+  if (static_cast<int>(curPts_.size()) < config_.minTracks) replenish(gray);
 
   std::swap(prevPyr_, curPyr_);
   std::swap(prevPts_, curPts_);
@@ -123,7 +122,7 @@ OverlapResult GeometricOverlap::overlapNow() const {
   return r;
 }
 
-void GeometricOverlap::replenish(const cv::Mat& gray) {
+void GeometricOverlap::replenish(GrayView gray) {
   std::fill(cellCount_.begin(), cellCount_.end(), 0);
   const double cw = static_cast<double>(size_.width) / kGridCols;
   const double ch = static_cast<double>(size_.height) / kGridRows;
@@ -135,7 +134,7 @@ void GeometricOverlap::replenish(const cv::Mat& gray) {
   for (const cv::Point2f& p : curPts_) ++cellCount_[static_cast<std::size_t>(cellOf(p))];
   const int perCell = perCell_;
   keypoints_.clear();
-  fast_->detect(gray, keypoints_);
+  fast_.detect(gray, keypoints_);
   // The strongest few corners of each cell that needs points: one linear pass
   // over the detections, no sort.
   const auto slots = static_cast<std::size_t>(perCell);

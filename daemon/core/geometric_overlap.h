@@ -3,8 +3,9 @@
 #include <vector>
 
 #include <opencv2/core/matx.hpp>
-#include <opencv2/features2d.hpp>
+#include <opencv2/core/types.hpp>
 
+#include "core/fast_corners.h"
 #include "core/homography.h"
 #include "core/lk_tracker.h"
 #include "core/overlap.h"
@@ -28,7 +29,7 @@ class GeometricOverlap final : public OverlapEstimator {
   void reset() override;
 
  private:
-  void replenish(const cv::Mat& gray);
+  void replenish(GrayView gray);
   OverlapResult overlapNow() const;
 
   OverlapConfig config_;
@@ -47,7 +48,7 @@ class GeometricOverlap final : public OverlapEstimator {
   std::vector<int> cellCount_;          // tracked corners per cell
   std::vector<int> cellBestCount_;      // new corners held per cell
   std::vector<cv::KeyPoint> cellBest_;  // perCell_ slots per cell
-  cv::Ptr<cv::FastFeatureDetector> fast_;
+  FastCorners fast_;
   RansacHomography ransac_;
   cv::Matx33d refToCur_ = cv::Matx33d::eye();
   cv::Matx33d refToCandidate_ = cv::Matx33d::eye();
