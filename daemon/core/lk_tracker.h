@@ -55,7 +55,7 @@ class LkTracker {
   explicit LkTracker(const LkConfig& config);
 
   // Floats in a window row as the tracker stores it: window rounded up to
-  // whole vectors.
+  // whole pairs of vectors.
   static int rowStride(int window);
 
   // nextPts[i] and status[i] (1: tracked) for every prevPts[i].
