@@ -4,8 +4,6 @@
 #include <cmath>
 #include <limits>
 
-#include <opencv2/video/tracking.hpp>
-
 #include "core/polygon.h"
 
 namespace keyframed {
@@ -29,35 +27,33 @@ double stepMotion(const cv::Matx33d& h, cv::Size size) {
 
 GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
     : config_(config),
+      lk_(LkConfig{config.lkWindow, config.lkLevels}),
       perCell_(
           std::max(1, (config.maxTracks + kGridCols * kGridRows - 1) / (kGridCols * kGridRows))),
       cellCount_(kGridCols * kGridRows, 0),
       cellBestCount_(kGridCols * kGridRows, 0),
       cellBest_(static_cast<std::size_t>(kGridCols * kGridRows * perCell_)),
-      fast_(cv::FastFeatureDetector::create(config.fastThreshold, true)) {
+      fast_(config.fastThreshold, true) {
   const auto n = static_cast<std::size_t>(config.maxTracks);
   prevPts_.reserve(n);
   curPts_.reserve(n);
   goodPrev_.reserve(n);
   goodCur_.reserve(n);
   status_.reserve(n);
-  err_.reserve(n);
   inlierMask_.reserve(n);
   keypoints_.reserve(8192);
 }
 
 OverlapResult GeometricOverlap::observe(GrayView gray) {
-  const cv::Mat img = gray.mat();
-  const cv::Size win(config_.lkWindow, config_.lkWindow);
-  if (img.size() != size_) {
+  if (cv::Size(gray.width, gray.height) != size_) {
     // A new stream or a resolution change: start over.
-    size_ = img.size();
+    size_ = cv::Size(gray.width, gray.height);
     havePrev_ = false;
     haveReference_ = false;
     haveCandidate_ = false;
     prevPts_.clear();
   }
-  cv::buildOpticalFlowPyramid(img, curPyr_, win, config_.lkLevels, true);
+  curPyr_.build(gray, config_.lkLevels, config_.lkWindow);
 
   bool tracked = false;
   lastMotion_ = std::numeric_limits<double>::quiet_NaN();
@@ -65,9 +61,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
   lastInliers_ = 0;
   curPts_.clear();
   if (havePrev_ && static_cast<int>(prevPts_.size()) >= config_.minInliers) {
-    cv::calcOpticalFlowPyrLK(
-        prevPyr_, curPyr_, prevPts_, curPts_, status_, err_, win, config_.lkLevels,
-        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 0.03));
+    lk_.track(prevPyr_, curPyr_, prevPts_, curPts_, status_);
     goodPrev_.clear();
     goodCur_.clear();
     const float w = static_cast<float>(size_.width);
@@ -103,7 +97,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
     haveReference_ = false;
     haveCandidate_ = false;
   }
-  if (static_cast<int>(curPts_.size()) < config_.minTracks) replenish(img);
+  if (static_cast<int>(curPts_.size()) < config_.minTracks) replenish(gray);
 
   std::swap(prevPyr_, curPyr_);
   std::swap(prevPts_, curPts_);
@@ -128,7 +122,7 @@ OverlapResult GeometricOverlap::overlapNow() const {
   return r;
 }
 
-void GeometricOverlap::replenish(const cv::Mat& gray) {
+void GeometricOverlap::replenish(GrayView gray) {
   std::fill(cellCount_.begin(), cellCount_.end(), 0);
   const double cw = static_cast<double>(size_.width) / kGridCols;
   const double ch = static_cast<double>(size_.height) / kGridRows;
@@ -140,7 +134,7 @@ void GeometricOverlap::replenish(const cv::Mat& gray) {
   for (const cv::Point2f& p : curPts_) ++cellCount_[static_cast<std::size_t>(cellOf(p))];
   const int perCell = perCell_;
   keypoints_.clear();
-  fast_->detect(gray, keypoints_);
+  fast_.detect(gray, keypoints_);
   // The strongest few corners of each cell that needs points: one linear pass
   // over the detections, no sort.
   const auto slots = static_cast<std::size_t>(perCell);

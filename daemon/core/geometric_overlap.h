@@ -3,9 +3,11 @@
 #include <vector>
 
 #include <opencv2/core/matx.hpp>
-#include <opencv2/features2d.hpp>
+#include <opencv2/core/types.hpp>
 
+#include "core/fast_corners.h"
 #include "core/homography.h"
+#include "core/lk_tracker.h"
 #include "core/overlap.h"
 
 namespace keyframed {
@@ -27,26 +29,26 @@ class GeometricOverlap final : public OverlapEstimator {
   void reset() override;
 
  private:
-  void replenish(const cv::Mat& gray);
+  void replenish(GrayView gray);
   OverlapResult overlapNow() const;
 
   OverlapConfig config_;
   cv::Size size_;
-  std::vector<cv::Mat> prevPyr_;
-  std::vector<cv::Mat> curPyr_;
+  LkPyramid prevPyr_;
+  LkPyramid curPyr_;
+  LkTracker lk_;
   std::vector<cv::Point2f> prevPts_;
   std::vector<cv::Point2f> curPts_;
   std::vector<cv::Point2f> goodPrev_;
   std::vector<cv::Point2f> goodCur_;
   std::vector<unsigned char> status_;
-  std::vector<float> err_;
   std::vector<unsigned char> inlierMask_;
   std::vector<cv::KeyPoint> keypoints_;
   int perCell_;                         // corners wanted per grid cell
   std::vector<int> cellCount_;          // tracked corners per cell
   std::vector<int> cellBestCount_;      // new corners held per cell
   std::vector<cv::KeyPoint> cellBest_;  // perCell_ slots per cell
-  cv::Ptr<cv::FastFeatureDetector> fast_;
+  FastCorners fast_;
   RansacHomography ransac_;
   cv::Matx33d refToCur_ = cv::Matx33d::eye();
   cv::Matx33d refToCandidate_ = cv::Matx33d::eye();

@@ -10,6 +10,7 @@
 
 #include "core/frame.h"
 #include "core/overlap.h"
+#include "core/resize.h"
 #include "core/running_quantile.h"
 #include "core/sharpness.h"
 
@@ -121,8 +122,7 @@ class KeyframeSelector {
   LumaExtractor luma_;
   SharpnessScorer sharpness_;
   std::unique_ptr<OverlapEstimator> overlap_;
-  std::vector<cv::Mat> halves_;  // successive halvings of the luma
-  cv::Mat analysis_;
+  DownScaler scaler_;  // luma -> analysis image
   bool haveKeyframe_ = false;
   std::int64_t keyframes_ = 0;
   std::int64_t candidateIndex_ = -1;

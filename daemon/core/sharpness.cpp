@@ -161,8 +161,7 @@ double SharpnessScorer::score(GrayView gray) {
   if (config_.analysisWidth > 0 && gray.width > config_.analysisWidth) {
     const int h = std::max(3, static_cast<int>(std::lround(static_cast<double>(gray.height) *
                                                            config_.analysisWidth / gray.width)));
-    cv::resize(gray.mat(), resized_, cv::Size(config_.analysisWidth, h), 0, 0, cv::INTER_AREA);
-    gray = GrayView::of(resized_);
+    gray = scaler_.scale(gray, config_.analysisWidth, h);
   }
   return sampledLaplacianVariance(gray, config_.rowStep, config_.colStep).variance;
 }

@@ -6,6 +6,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "core/frame.h"
+#include "core/resize.h"
 #include "core/running_quantile.h"
 
 namespace keyframed {
@@ -76,7 +77,7 @@ class SharpnessScorer {
 
   SharpnessConfig config_;
   RunningQuantile history_;  // recent scores
-  cv::Mat resized_;
+  DownScaler scaler_;
 };
 
 }  // namespace keyframed
