@@ -19,8 +19,8 @@ namespace {
 // The bytes of length-delimited field `field` of a protobuf message (the first
 // occurrence), or nothing. Enough for foxglove.CompressedImage.data (2) and
 // keyframed.MavlinkPacket.packet (5).
-std::optional<std::span<const std::uint8_t>> bytesField(std::span<const std::uint8_t> msg,
-                                                        std::uint32_t field) {
+[[maybe_unused]] std::optional<std::span<const std::uint8_t>> bytesField(
+    std::span<const std::uint8_t> msg, std::uint32_t field) {
   std::size_t i = 0;
   auto varint = [&](std::uint64_t& v) {
     v = 0;
