@@ -206,10 +206,17 @@ def wait_for_peer(session: Any, timeout: float = 10.0) -> None:
     pytest.fail("the session has no peer")
 
 
-def fly(proc: subprocess.Popen[str], ap: Any) -> str:
+def fly(proc: subprocess.Popen[str], ap: Any, session: Any) -> str:
     """Starts the autopilot (the daemon then reads the video in real time) and waits
     for the daemon to finish; its stderr."""
-    time.sleep(0.3)  # the subscriptions reach the daemon
+    # The subscriptions must have reached the daemon before its first keyframe: a
+    # query answered by its queryable (on the same link, after the declarations)
+    # says they have, however loaded the machine is.
+    # (Asked again until the daemon has joined: before that nothing answers at once.)
+    deadline = time.monotonic() + 20.0
+    while not list(session.get(f"keyframed/{VEHICLE}/keyframes/0", timeout=5.0)):
+        assert time.monotonic() < deadline, "the daemon's queryable did not answer"
+        time.sleep(0.05)
     ap.start()
     try:
         _, stderr = proc.communicate(timeout=90)
@@ -269,7 +276,7 @@ def test_tls_only_a_client_trusting_the_ca_gets_the_keyframes(
             refused(session_config(connect=endpoint, tls=tls, timeout_ms=1000))
         # plain TCP to the TLS port gets nowhere either
         refused(session_config(connect=f"tcp/127.0.0.1:{zport}", timeout_ms=1000))
-        fly(proc, ap)
+        fly(proc, ap, session)
         got.close()
     finally:
         if proc.poll() is None:
@@ -320,7 +327,7 @@ def test_usrpwd_over_tls_only_the_right_password_gets_the_keyframes(
             None,
         ):
             refused(session_config(connect=endpoint, tls=ca, usrpwd=creds, timeout_ms=1000))
-        fly(proc, ap)
+        fly(proc, ap, session)
         got.close()
     finally:
         if proc.poll() is None:
@@ -384,7 +391,7 @@ def test_client_of_a_tls_router_with_usrpwd(
         mport = free_port(socket.SOCK_DGRAM)
         proc = start_daemon(kf_bin, good, short_flight, client(PASSWORD), mport)
         ap = fake_autopilot(short_flight / "flight.tlog", target=("127.0.0.1", mport))
-        fly(proc, ap)
+        fly(proc, ap, router)
         got.close()
     finally:
         router.close()
