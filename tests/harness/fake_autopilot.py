@@ -269,6 +269,7 @@ class FakeAutopilot:
             r.msg.time_boot_ms - r.unix_us / 1000.0
             for r in self.records
             if hasattr(r.msg, "time_boot_ms")
+            and r.msg.get_header().srcComponent == self.component_id
         ]
         self._boot_minus_unix_ms = (
             float(np.median(offsets)) if offsets else -self.t0_unix_us / 1000.0
@@ -276,6 +277,9 @@ class FakeAutopilot:
         self._planned = self._plan()
 
         self._mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=self.component_id)
+        self._others: dict[int, mavlink.MAVLink] = {}
+        # Each record goes out from the component that sent it in the tlog.
+        self._components = [int(r.msg.get_header().srcComponent) for r in self.records]
         self._parser = mavlink.MAVLink(None)
         self._parser.robust_parsing = True
         self._garbage_rng = np.random.default_rng([seed, 1])
@@ -477,8 +481,20 @@ class FakeAutopilot:
         except OSError:
             pass  # nobody listening (ICMP port unreachable): UDP loses it, like a radio
 
-    def _pack(self, msg: Message) -> bytes:
-        buf = msg.pack(self._mav, force_mavlink1=self.mavlink1)
+    def _encoder(self, component: int | None) -> mavlink.MAVLink:
+        """The autopilot's encoder, or that of another component of its system (a
+        gimbal in the tlog), each with its own sequence numbers."""
+        if component is None or component == self.component_id:
+            return self._mav
+        if component not in self._others:
+            self._others[component] = mavlink.MAVLink(
+                None, srcSystem=self.system_id, srcComponent=component
+            )
+        return self._others[component]
+
+    def _pack(self, msg: Message, component: int | None = None) -> bytes:
+        mav = self._encoder(component)
+        buf = msg.pack(mav, force_mavlink1=self.mavlink1)
         if self.mavlink1:
             # like the C library: a MAVLink 1 payload stops before the extension fields
             base = _MAVLINK1_LENGTHS.get(msg.get_msgId())
@@ -486,17 +502,19 @@ class FakeAutopilot:
                 raise ValueError(f"{msg.get_type()} has no MAVLink 1 form")
             if buf[1] > base:
                 payload = buf[6 : 6 + base]
-                buf = msg._pack(self._mav, msg.crc_extra, payload, force_mavlink1=True)
-        self._mav.seq = (self._mav.seq + 1) % 256
+                buf = msg._pack(mav, msg.crc_extra, payload, force_mavlink1=True)
+        mav.seq = (mav.seq + 1) % 256
         return buf
 
-    def send(self, msg: Message, *, unix_us: int | None = None) -> bool:
+    def send(
+        self, msg: Message, *, unix_us: int | None = None, component: int | None = None
+    ) -> bool:
         """Encode and send ``msg`` with the next sequence number; False if the link is
         down (paused, stopped, or no peer yet), in which case it is lost."""
         with self._send_lock:
             if self._closed:
                 return False
-            buf = self._pack(msg)
+            buf = self._pack(msg, component)
             if not self._can_send():
                 return False
             with self._cond:  # logged first, so it is there once a receiver has it
@@ -627,7 +645,8 @@ class FakeAutopilot:
             now = time.monotonic_ns()
             while nxt < len(due) and due[nxt] <= now and not self._stop.is_set():
                 rec = self._planned[nxt]
-                if not self.send(rec.msg, unix_us=rec.unix_us):
+                component = self._components[nxt]
+                if not self.send(rec.msg, unix_us=rec.unix_us, component=component):
                     self.dropped += 1
                 nxt += 1
             if nxt >= len(due) and not self.finished.is_set():

@@ -677,3 +677,21 @@ def test_gimbal_attitude_tags_the_camera_not_the_body(
     tags = exif([fixed / k["file"] for k in kfs])
     errs = [tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps))[2] for k in kfs]
     assert max(errs) > 3.0, max(errs)
+
+
+@needs_exiftool
+def test_live_gimbal_component_over_udp(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """A separate gimbal component on the link, on its own boot clock: its reports are
+    stamped on arrival, and the live tags follow the camera, not the wobbling body."""
+    meta = json.loads((short_nadir / "meta.json").read_text())
+    tlog = tmp_path / "gimbal.tlog"
+    gimbal_tlog(short_nadir / "flight.tlog", tlog, meta["mount_pitch_deg"], "vehicle", (0.0, 0.0))
+    ap = fake_autopilot(tlog, boot_offset_ms=777_000)
+    out, _ = live_run(kf_bin, short_nadir, tmp_path, ap, "--mount", "gimbal")
+    errs = check_live_tags(short_nadir, out, ap)
+    assert max(e[0] for e in errs) < 0.1, errs
+    assert max(e[2] for e in errs) < 0.2, errs
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["telemetry"]["gimbal_messages"] > 100
