@@ -238,7 +238,9 @@ bool PoseStore::covers(std::int64_t timeNs) const {
   std::lock_guard lock(mutex_);
   const bool att = !attitude_.empty() && attitude_.back().timeNs >= timeNs;
   const bool pos = !position_.empty() && position_.back().timeNs >= timeNs;
-  return att && pos;
+  // A gimbal on the link (it reports at a few Hz, slower than attitude): wait for it too.
+  const bool gimbal = gimbal_.empty() || gimbal_.back().timeNs >= timeNs;
+  return att && pos && gimbal;
 }
 
 std::optional<std::int64_t> PoseStore::newestNs() const {

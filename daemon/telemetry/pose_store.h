@@ -43,8 +43,8 @@ class PoseStore {
   // utcUs is left for the caller, who knows the clocks.
   [[nodiscard]] Pose at(std::int64_t timeNs) const;
 
-  // True when samples newer than timeNs exist for attitude and position (or the
-  // store will never get them): the caller may query without waiting for more.
+  // True when samples newer than timeNs exist for attitude and position, and for the
+  // gimbal once one has reported: the caller may query without waiting for more.
   [[nodiscard]] bool covers(std::int64_t timeNs) const;
   [[nodiscard]] std::optional<std::int64_t> newestNs() const;
   [[nodiscard]] std::size_t size() const;
