@@ -266,7 +266,7 @@ class Daemon {
   void outputLoop();
   void reload();
   void publishPose();
-  bool writeSummary(double seconds, const std::string& state);
+  bool writeSummary(double seconds, const std::string& state, std::string& error);
 
   DaemonConfig config_;
   ConfigSources sources_;
@@ -396,7 +396,7 @@ void Daemon::reload() {
   notifier_.ready();
 }
 
-bool Daemon::writeSummary(double seconds, const std::string& state) {
+bool Daemon::writeSummary(double seconds, const std::string& state, std::string& error) {
   const CaptureThread::Stats cs = capture_->stats();
   const StageCounts& c = finalCounts_;
   const std::uint64_t dropped = queue_->dropped() + cs.noBuffer;
@@ -445,7 +445,6 @@ bool Daemon::writeSummary(double seconds, const std::string& state) {
       c.framesRead > 0 ? c.analysisNs / static_cast<double>(c.framesRead) / 1e6 : 0.0, cpu,
       seconds > 0 ? 100.0 * cpu / seconds : 0.0, decode,
       seconds > 0 ? 100.0 * (cpu - decode) / seconds : 0.0, maxRssMb(), tel.c_str());
-  std::string error;
   return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(buf), error);
 }
 
@@ -642,8 +641,8 @@ int Daemon::run() {
     telemetry_->setRawSink({});
   }
   if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
-  if (!writeSummary(seconds, state)) {
-    KF_LOG(Output, Error) << "cannot write " << flightDir_ << "/summary.json";
+  if (!writeSummary(seconds, state, error)) {
+    KF_LOG(Output, Error) << error;
     ok = false;
   }
   const CaptureThread::Stats cs = capture_->stats();
