@@ -471,6 +471,7 @@ def _daemon(vm_run: dict) -> dict:
     section = console[console.find("KF-BEGIN daemon") :]
     assert "KF-BEGIN daemon" in console, console[-3000:]
     assert "KF-9P-MOUNT-FAIL" not in section, f"mounting the host root over 9p failed:\n{section}"
+    assert "KF-MOUNT-FAIL" not in section and "KF-INSMOD-FAIL" not in section, section[:3000]
     marks: dict[str, float] = {}
     log: list[str] = []
     keyframes: dict[str, int] = {}
