@@ -8,7 +8,7 @@ and inside the VM: captures each format vivid offers, checks driver timestamps
 `keyframed run` is dynamically linked against some 260 host libraries (OpenCV,
 exiv2, libcamera, ...), too much for an initramfs, so the host's root filesystem is
 shared read-only into the VM over virtio-9p (`-virtfs local,path=/,readonly=on`),
-mounted at /host with fresh devtmpfs, proc, sysfs and a tmpfs /tmp on it, and the
+mounted at /host with fresh devtmpfs, proc, sysfs and a scratch tmpfs on it, and the
 daemon runs in `chroot /host` against vivid's /dev/video0 for a few seconds until
 SIGTERM. Results come back on the serial console: JSON lines, and KF- marked
 lines (the daemon's log, summary.json, its keyframes and the first one base64).
@@ -198,7 +198,8 @@ poweroff -f
 
 # The real daemon, dynamically linked against some 260 host libraries: the host's
 # root filesystem comes in read-only over virtio-9p, and `keyframed run` runs in a
-# chroot of it with fresh /dev, /proc, /sys and a tmpfs /tmp (config, state dir).
+# chroot of it with fresh /dev, /proc, /sys and a tmpfs scratch directory (config,
+# state dir) over a host directory that holds neither the binary nor the checkout.
 DAEMON = r"""
 echo "KF-BEGIN daemon"
 for m in $(cat /modules9p.order); do
@@ -208,13 +209,13 @@ mkdir -p /host
 if mount -t 9p -o trans=virtio,version=9p2000.L,ro,cache=loose,msize=512000 hostroot /host; then
   echo "KF-9P-MOUNTED $(cut -d' ' -f1 /proc/uptime)"
   mount -t devtmpfs dev /host/dev && mount -t proc proc /host/proc &&
-    mount -t sysfs sys /host/sys && mount -t tmpfs -o size=64m tmp /host/tmp ||
+    mount -t sysfs sys /host/sys && mount -t tmpfs -o size=64m scratch /host@SCRATCH@ ||
     echo "KF-MOUNT-FAIL"
-  mkdir -p /host/tmp/kf/etc/conf.d
-  : > /host/tmp/kf/etc/keyframed.toml
-  log=/host/tmp/kf/daemon.log
+  mkdir -p /host@SCRATCH@/kf/etc/conf.d
+  : > /host@SCRATCH@/kf/etc/keyframed.toml
+  log=/host@SCRATCH@/kf/daemon.log
   echo "KF-DAEMON-START $(cut -d' ' -f1 /proc/uptime)"
-  chroot /host @KEYFRAMED@ run --config-dir /tmp/kf/etc @SETS@ > $log 2>&1 &
+  chroot /host @KEYFRAMED@ run --config-dir @SCRATCH@/kf/etc @SETS@ > $log 2>&1 &
   pid=$!
   n=0
   while ! grep -q 'ready: first frame' $log && kill -0 $pid 2>/dev/null && [ $n -lt @READY_WAIT@ ]
@@ -226,7 +227,7 @@ if mount -t 9p -o trans=virtio,version=9p2000.L,ro,cache=loose,msize=512000 host
   rc=$?
   echo "KF-DAEMON-EXIT $(cut -d' ' -f1 /proc/uptime)"
   sed 's/^/KF-LOG /' $log
-  flight=$(ls -d /host/tmp/kf/state/flights/* | head -1)
+  flight=$(ls -d /host@SCRATCH@/kf/state/flights/* | head -1)
   echo "KF-SUMMARY $(tr -d '\n' < $flight/summary.json)"
   for f in $flight/keyframes/*.jpg; do
     [ -f "$f" ] && echo "KF-KEYFRAME $(basename $f) $(wc -c < $f)"
@@ -240,6 +241,16 @@ else
   echo "KF-9P-MOUNT-FAIL"
 fi
 """
+
+
+def _scratch_dir(binary: Path) -> str:
+    """A host directory to hide under a tmpfs in the VM: one that exists and holds
+    neither the daemon binary nor this checkout (a clone may live in /tmp)."""
+    keep = [binary, Path(__file__).resolve()]
+    for d in ("/mnt", "/media", "/srv", "/run", "/tmp", "/var/tmp"):
+        if Path(d).is_dir() and not any(p.is_relative_to(d) for p in keep):
+            return d
+    pytest.fail("no host directory to put the VM's scratch tmpfs on")
 
 
 @pytest.fixture(scope="module")
@@ -277,8 +288,9 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
         extra = [m for m in ninep if m not in order]
         names9p = [_copy_module(moddir / m, root / "modules") for m in extra]
         (root / "modules9p.order").write_text("\n".join(names9p) + "\n")
+        scratch = _scratch_dir(keyframed_bin().resolve())
         sets = [
-            "output.state_dir=/tmp/kf/state",
+            f"output.state_dir={scratch}/kf/state",
             "telemetry.url=",
             "zenoh.enabled=false",
             "camera.source=v4l2",
@@ -289,6 +301,7 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
         ]
         daemon = (
             DAEMON.replace("@KEYFRAMED@", str(keyframed_bin().resolve()))
+            .replace("@SCRATCH@", scratch)
             .replace("@SETS@", " ".join(f"--set {x}" for x in sets))
             .replace("@READY_WAIT@", str(DAEMON_READY_WAIT_S * 10))
             .replace("@RUN_S@", str(DAEMON_RUN_S))
