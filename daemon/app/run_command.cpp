@@ -520,6 +520,7 @@ int Daemon::run() {
   fo.mcapRotateSeconds = config_.output.mcapRotateS;
   fo.zenoh = config_.zenoh.enabled;
   fo.zenohConfig = config_.zenoh.config;
+  fo.zenohSetting = "zenoh.config";
   fo.vehicle = config_.zenoh.vehicle;
   if (fo.vehicle.empty()) {
     char host[256] = {};

@@ -117,7 +117,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     po.keyframeDir = o.keyframeDir;
     impl_->publisher = KeyframePublisher::open(po, error);
     if (!impl_->publisher) {
-      error = "--zenoh-config: " + error;
+      error = o.zenohSetting + ": " + error;
       impl_->recorder.reset();
       return false;
     }

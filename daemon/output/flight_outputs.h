@@ -20,6 +20,7 @@ struct FlightOutputOptions {
   bool zenoh = false;                  // publish even without a config file (Zenoh's defaults)
   std::uint64_t mcapRotateBytes = 0;   // a new MCAP part after this many bytes (0: never)
   std::int64_t mcapRotateSeconds = 0;  // ... or seconds (0: never)
+  std::string zenohSetting = "--zenoh-config";  // how the user named the Zenoh config
 };
 
 // Everything a run sends beyond its keyframe directory: the MCAP flight record and

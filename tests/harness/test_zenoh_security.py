@@ -385,6 +385,7 @@ def test_client_of_a_tls_router_with_usrpwd(
                 proc.communicate()
         assert proc.returncode != 0
         assert "cannot open zenoh session" in stderr, stderr
+        assert "zenoh.config:" in stderr, stderr  # the setting's name in a daemon's terms
         assert "panic" not in stderr, stderr
 
         good = tmp_path / "good"
@@ -396,3 +397,84 @@ def test_client_of_a_tls_router_with_usrpwd(
     finally:
         router.close()
     check_every_keyframe(good, got)
+
+
+# ---- (d) the ground station over TLS with user/password --------------------------------
+
+
+def test_ground_station_listens_on_tls_with_usrpwd(
+    kf_bin: Path, short_flight: Path, pki: Pki, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """`keyframed-ground --zenoh-config` as docs/deploy.md sets it up: the ground
+    station listens on TLS and checks users; the vehicle connects with the CA and its
+    password. The dataset holds every keyframe, byte for byte."""
+    import sys
+
+    dictionary = tmp_path / "users.txt"
+    dictionary.write_text(f"{USER}:{PASSWORD}\n")
+    port = free_port()
+    endpoint = f"tls/127.0.0.1:{port}"
+    gconf = tmp_path / "ground.json5"
+    gconf.write_text(
+        json.dumps(
+            session_config(
+                listen=endpoint,
+                tls=tls_listener(pki),
+                usrpwd={"dictionary_file": str(dictionary)},
+            )
+        )
+    )
+    dataset = tmp_path / "dataset"
+    ground = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(dataset), "--quiet"]
+        + ["--zenoh-config", str(gconf), "--until-done", "--duration", "60"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    vehicle = tmp_path / "vehicle"
+    proc = None
+    try:
+        deadline = time.monotonic() + 20
+        while True:  # the ground station's TLS port is open
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline and ground.poll() is None, ground.stderr
+                time.sleep(0.05)
+        mport = free_port(socket.SOCK_DGRAM)
+        # The daemon's session opens once the link is up and the ground station's
+        # subscriptions are known: no keyframe can go out before them.
+        proc = start_daemon(
+            kf_bin,
+            vehicle,
+            short_flight,
+            session_config(
+                connect=endpoint,
+                tls={"root_ca_certificate": str(pki.ca)},
+                usrpwd={"user": USER, "password": PASSWORD},
+            ),
+            mport,
+        )
+        ap = fake_autopilot(short_flight / "flight.tlog", target=("127.0.0.1", mport))
+        time.sleep(0.3)
+        ap.start()
+        _, stderr = proc.communicate(timeout=90)
+        assert proc.returncode == 0, stderr
+        g_out, g_err = ground.communicate(timeout=60)
+        assert ground.returncode == 0, g_err
+    finally:
+        for p in (proc, ground):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.communicate()
+    fd = (vehicle / "state" / "latest").resolve()
+    with open(fd / "keyframes" / "keyframes.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) >= 2
+    result = json.loads(g_out.strip().splitlines()[-1])
+    assert result["vehicle"] == VEHICLE and result["keyframes"] == len(rows)
+    for r in rows:
+        got = (dataset / VEHICLE / "images" / r["file"]).read_bytes()
+        assert got == (fd / "keyframes" / r["file"]).read_bytes()
