@@ -241,6 +241,8 @@ def test_no_watchdog_pings_when_frames_stop(kf_bin: Path, tmp_path: Path) -> Non
     ("sets", "message"),
     [
         (["camera.source=v4l2", "camera.device=/dev/video-missing"], "/dev/video-missing"),
+        # no such libcamera camera (here: none at all): said, exit 1, no crash
+        (["camera.source=libcamera", "camera.device=/no/such/camera"], "libcamera:"),
         (["camera.path=/nonexistent/flight.avi"], "/nonexistent/flight.avi"),
         (["camera.fps=500"], "camera.fps"),
         (["camera.nonsense=1"], "camera.nonsense"),
