@@ -32,7 +32,11 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
     if (!telemetry_->isReplay()) {
       // Telemetry for this instant may still be on its way: wait a little.
       const std::int64_t deadline = monotonicNowNs() + telemetryWaitMs_ * 1'000'000LL;
-      while (!telemetry_->decoder().covers(frame.timestampNs) && monotonicNowNs() < deadline) {
+      // A gimbal only when its attitude is used: a dead gimbal on the link must not
+      // hold up a fixed-mount camera's keyframes.
+      const bool gimbal = writer_.mount().gimbal;
+      while (!telemetry_->decoder().covers(frame.timestampNs, gimbal) &&
+             monotonicNowNs() < deadline) {
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

@@ -85,7 +85,8 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
   if (pose != nullptr) {
     rec.pose = *pose;
     if (config_.mount.gimbal) {
-      if (pose->gimbal) rec.cameraToNed = cameraToNedFromGimbal(*pose->gimbal);
+      // The gimbal is a body carrying the camera forward-looking: a 0,0,0 mount.
+      if (pose->gimbal) rec.cameraToNed = cameraToNed(*pose->gimbal, CameraMount{0, 0, 0});
     } else if (pose->attitude) {
       rec.cameraToNed = cameraToNed(*pose->attitude, config_.mount);
     }

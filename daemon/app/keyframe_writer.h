@@ -62,6 +62,7 @@ class KeyframeWriter {
   // The tagged JPEG bytes of the last keyframe written.
   [[nodiscard]] const std::vector<std::uint8_t>& lastJpeg() const { return jpeg_; }
   [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
+  [[nodiscard]] const CameraMount& mount() const { return config_.mount; }
   [[nodiscard]] static std::string fileName(std::int64_t frameIndex);
   [[nodiscard]] static std::string indexHeader();
 

@@ -11,14 +11,6 @@
 namespace keyframed {
 namespace {
 
-bool parseDouble(const std::string& s, double& out) {
-  if (s.empty()) return false;
-  char* end = nullptr;
-  errno = 0;
-  out = std::strtod(s.c_str(), &end);
-  return errno == 0 && end == s.c_str() + s.size() && std::isfinite(out);
-}
-
 bool parseInt(const std::string& s, std::int64_t& out) {
   if (s.empty()) return false;
   char* end = nullptr;

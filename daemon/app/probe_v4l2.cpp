@@ -125,18 +125,6 @@ bool parseDouble(const std::string& s, double lo, double hi, double& out) {
   return true;
 }
 
-// core/frame.cpp's toString() would pull OpenCV into the static probe.
-const char* formatName(PixelFormat f) {
-  switch (f) {
-    case PixelFormat::Gray8: return "GRAY8";
-    case PixelFormat::NV12: return "NV12";
-    case PixelFormat::YUV420: return "YUV420";
-    case PixelFormat::YUYV: return "YUYV";
-    case PixelFormat::BGR24: return "BGR24";
-  }
-  return "unknown";
-}
-
 int usage(const std::string& why) {
   std::fprintf(stderr, "keyframed probe-v4l2: %s\n%s", why.c_str(), kUsage);
   return 2;
@@ -231,7 +219,7 @@ int probeV4l2Main(const std::vector<std::string>& args) {
   const SourceInfo& info = src->info();
   emit("{\"event\":\"open\",\"device\":" + jsonString(opt.device) + ",\"driver\":" +
        jsonString(src->device().driver) + ",\"format\":" + jsonString(src->fourcc()) +
-       ",\"pixel_format\":" + jsonString(formatName(src->pixelFormat())) +
+       ",\"pixel_format\":" + jsonString(toString(src->pixelFormat())) +
        ",\"width\":" + std::to_string(info.width) + ",\"height\":" + std::to_string(info.height) +
        ",\"fps\":" + jsonNumber(info.fps) + "}");
 

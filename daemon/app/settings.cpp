@@ -25,6 +25,8 @@ bool parseId(std::string_view text, int& out) {
   return true;
 }
 
+}  // namespace
+
 bool parseDouble(const std::string& s, double& out) {
   if (s.empty()) return false;
   char* end = nullptr;
@@ -32,8 +34,6 @@ bool parseDouble(const std::string& s, double& out) {
   out = std::strtod(s.c_str(), &end);
   return errno == 0 && end == s.c_str() + s.size() && std::isfinite(out);
 }
-
-}  // namespace
 
 std::string rangeError(SettingRange<double> range, double value) {
   return "must be between " + number(range.lo) + " and " + number(range.hi) + " (got " +

@@ -19,6 +19,9 @@ struct SettingRange {
   [[nodiscard]] constexpr bool contains(T v) const { return v >= lo && v <= hi; }
 };
 
+// The whole of `text` as a finite number (strtod); false otherwise.
+bool parseDouble(const std::string& text, double& out);
+
 // "must be between LO and HI (got V)"
 std::string rangeError(SettingRange<double> range, double value);
 std::string rangeError(SettingRange<std::int64_t> range, std::int64_t value);

@@ -4,17 +4,6 @@
 
 namespace keyframed {
 
-const char* toString(PixelFormat format) {
-  switch (format) {
-    case PixelFormat::Gray8: return "GRAY8";
-    case PixelFormat::NV12: return "NV12";
-    case PixelFormat::YUV420: return "YUV420";
-    case PixelFormat::YUYV: return "YUYV";
-    case PixelFormat::BGR24: return "BGR24";
-  }
-  return "unknown";
-}
-
 cv::Mat GrayView::mat() const {
   // cv::Mat has no const header; callers only read through it.
   return cv::Mat(height, width, CV_8UC1, const_cast<std::uint8_t*>(data),

@@ -10,7 +10,17 @@ namespace keyframed {
 // their Y plane directly; packed formats are converted once.
 enum class PixelFormat { Gray8, NV12, YUV420, YUYV, BGR24 };
 
-const char* toString(PixelFormat format);
+// Inline (no OpenCV needed): the static V4L2 probe uses it too.
+inline const char* toString(PixelFormat format) {
+  switch (format) {
+    case PixelFormat::Gray8: return "GRAY8";
+    case PixelFormat::NV12: return "NV12";
+    case PixelFormat::YUV420: return "YUV420";
+    case PixelFormat::YUYV: return "YUYV";
+    case PixelFormat::BGR24: return "BGR24";
+  }
+  return "unknown";
+}
 
 // A non-owning 8-bit single-channel image.
 struct GrayView {

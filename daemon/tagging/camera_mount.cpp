@@ -78,10 +78,6 @@ Quaternion cameraToNed(const Quaternion& bodyToNed, const CameraMount& mount) {
   return toQuaternion(mul(toMatrix(bodyToNed), bodyCam));
 }
 
-Quaternion cameraToNedFromGimbal(const Quaternion& gimbalToNed) {
-  return toQuaternion(mul(toMatrix(gimbalToNed), kBodyCam0));
-}
-
 Pix4dAngles pix4dAngles(const Quaternion& cameraToNedQ) {
   const Mat3 m = mul(toMatrix(cameraToNedQ), transpose(kPix4dBodyCam));
   Pix4dAngles a;

@@ -12,7 +12,8 @@ namespace keyframed {
 //   (default): looking straight down, image top toward the nose.
 // With gimbal set, the angles are not used: the camera sits on a gimbal whose reported
 // attitude (GIMBAL_DEVICE_ATTITUDE_STATUS: gimbal FRD, x along the optical axis, image
-// top up at zero roll) gives the camera's.
+// top up at zero roll) gives the camera's, as a body with a 0,0,0 mount would:
+// cameraToNed(gimbalToNed, CameraMount{0, 0, 0}).
 struct CameraMount {
   double rollDeg = 0.0;
   double pitchDeg = -90.0;
@@ -22,8 +23,6 @@ struct CameraMount {
 
 // Camera (OpenCV axes) -> local NED attitude from the body FRD -> NED attitude.
 [[nodiscard]] Quaternion cameraToNed(const Quaternion& bodyToNed, const CameraMount& mount);
-// Camera (OpenCV axes) -> local NED from a gimbal's FRD -> NED attitude.
-[[nodiscard]] Quaternion cameraToNedFromGimbal(const Quaternion& gimbalToNed);
 
 // Pix4D's camera Yaw/Pitch/Roll (XMP Camera:Yaw/Pitch/Roll), degrees. Definition: Pix4D
 // support article "Yaw, Pitch, Roll and Omega, Phi, Kappa angles" (support.pix4d.com;

@@ -234,13 +234,12 @@ Pose PoseStore::at(std::int64_t timeNs) const {
   return pose;
 }
 
-bool PoseStore::covers(std::int64_t timeNs) const {
+bool PoseStore::covers(std::int64_t timeNs, bool gimbal) const {
   std::lock_guard lock(mutex_);
   const bool att = !attitude_.empty() && attitude_.back().timeNs >= timeNs;
   const bool pos = !position_.empty() && position_.back().timeNs >= timeNs;
-  // A gimbal on the link (it reports at a few Hz, slower than attitude): wait for it too.
-  const bool gimbal = gimbal_.empty() || gimbal_.back().timeNs >= timeNs;
-  return att && pos && gimbal;
+  const bool gim = !gimbal || gimbal_.empty() || gimbal_.back().timeNs >= timeNs;
+  return att && pos && gim;
 }
 
 std::optional<std::int64_t> PoseStore::newestNs() const {

@@ -43,9 +43,10 @@ class PoseStore {
   // utcUs is left for the caller, who knows the clocks.
   [[nodiscard]] Pose at(std::int64_t timeNs) const;
 
-  // True when samples newer than timeNs exist for attitude and position, and for the
-  // gimbal once one has reported: the caller may query without waiting for more.
-  [[nodiscard]] bool covers(std::int64_t timeNs) const;
+  // True when samples newer than timeNs exist for attitude and position (and, with
+  // gimbal, for a gimbal that has reported: it reports at a few Hz): the caller may
+  // query without waiting for more.
+  [[nodiscard]] bool covers(std::int64_t timeNs, bool gimbal = false) const;
   [[nodiscard]] std::optional<std::int64_t> newestNs() const;
   [[nodiscard]] std::size_t size() const;
 

@@ -183,13 +183,13 @@ Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
   return p;
 }
 
-bool TelemetryDecoder::covers(std::int64_t localNs) const {
+bool TelemetryDecoder::covers(std::int64_t localNs, bool gimbal) const {
   std::optional<std::int64_t> offset;
   {
     std::lock_guard lock(mutex_);
     offset = clock_.offsetNs();
   }
-  return offset && store_.covers(localNs - *offset);
+  return offset && store_.covers(localNs - *offset, gimbal);
 }
 
 bool TelemetryDecoder::hasPose() const {

@@ -41,8 +41,9 @@ class TelemetryDecoder {
   // The pose at a frame time on the companion clock, with UTC when known. Empty
   // attitude/position with staleReason when telemetry cannot tell.
   [[nodiscard]] Pose poseAt(std::int64_t localNs) const;
-  // True when telemetry newer than localNs has arrived (no need to wait more).
-  [[nodiscard]] bool covers(std::int64_t localNs) const;
+  // True when telemetry newer than localNs has arrived (no need to wait more);
+  // gimbal: the gimbal's too, once one has reported.
+  [[nodiscard]] bool covers(std::int64_t localNs, bool gimbal = false) const;
   // True once the clock is mapped and both attitude and position have arrived.
   [[nodiscard]] bool hasPose() const;
 

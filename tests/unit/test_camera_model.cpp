@@ -209,14 +209,14 @@ TEST(CameraMount, GimbalAttitudeIsTheCamerasWhateverTheBody) {
   // level body heading 200, and independent of how the body is tilted.
   const Quaternion gimbal =
       quaternionFromEuler(0, -55 * std::numbers::pi / 180, 200 * std::numbers::pi / 180);
-  const Pix4dAngles g = pix4dAngles(cameraToNedFromGimbal(gimbal));
+  const Pix4dAngles g = pix4dAngles(cameraToNed(gimbal, CameraMount{0, 0, 0}));
   const Pix4dAngles f = pix4dAngles(cameraToNed(headingQ(200), CameraMount{0, -55, 0}));
   EXPECT_NEAR(g.pitchDeg, f.pitchDeg, 1e-9);
   EXPECT_NEAR(angleDiff(g.yawDeg, f.yawDeg), 0, 1e-9);
   EXPECT_NEAR(angleDiff(g.rollDeg, f.rollDeg), 0, 1e-9);
   // Straight down with the gimbal's nose north: Pix4D's all-zero.
-  const Pix4dAngles n =
-      pix4dAngles(cameraToNedFromGimbal(quaternionFromEuler(0, -std::numbers::pi / 2, 0)));
+  const Pix4dAngles n = pix4dAngles(
+      cameraToNed(quaternionFromEuler(0, -std::numbers::pi / 2, 0), CameraMount{0, 0, 0}));
   EXPECT_NEAR(n.pitchDeg, 0, 1e-6);
   EXPECT_NEAR(angleDiff(n.yawDeg, 0), 0, 1e-6);
 }

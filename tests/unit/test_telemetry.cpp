@@ -290,11 +290,12 @@ TEST(PoseStore, CoversWaitsForAGimbalOnceOneReports) {
   store.addGps(0, fix);
   store.addAttitude(1000 * kMs, quaternionFromEuler(0, 0, 0));
   store.addPosition(1000 * kMs, {51.0, 1.0, 100.0, 10.0});
-  EXPECT_TRUE(store.covers(990 * kMs));  // no gimbal on the link: not waited for
+  EXPECT_TRUE(store.covers(990 * kMs, true));  // no gimbal on the link: not waited for
   store.addGimbal(900 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), true);
-  EXPECT_FALSE(store.covers(990 * kMs));  // 5 Hz gimbal: its next report is due
+  EXPECT_FALSE(store.covers(990 * kMs, true));  // 5 Hz gimbal: its next report is due
+  EXPECT_TRUE(store.covers(990 * kMs));         // a fixed mount does not wait for it
   store.addGimbal(1100 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), true);
-  EXPECT_TRUE(store.covers(990 * kMs));
+  EXPECT_TRUE(store.covers(990 * kMs, true));
   const Pose p = store.at(990 * kMs);
   EXPECT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
 }
