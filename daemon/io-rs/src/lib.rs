@@ -5,6 +5,9 @@
 //!   exactly one `*_close`/`*_undeclare` call (NULL is accepted and ignored).
 //! - Fallible calls return 0 on success and -1 on failure, writing a NUL-terminated,
 //!   possibly truncated message into the caller's `err` buffer (which may be NULL).
+//! - Pointer arguments are NULL (reported as an error) or valid for the call: strings
+//!   NUL-terminated, arrays holding the stated count, handles from this crate and not
+//!   yet released. Entry points that take pointers are therefore `unsafe`.
 //! - No panic crosses the boundary: every entry point runs under `catch_unwind`
 //!   and turns a panic into an error.
 
@@ -174,8 +177,11 @@ pub struct KfioMcapReader {
 /// Opens an MCAP file to stream the messages of `topics` (`count` NUL-terminated
 /// names). A file cut short (SIGKILL, power cut) gives what precedes the cut and
 /// reports itself truncated once read to the cut.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_reader_open(
+pub unsafe extern "C" fn kfio_mcap_reader_open(
     path: *const c_char,
     topics: *const *const c_char,
     count: usize,
@@ -225,8 +231,11 @@ pub extern "C" fn kfio_mcap_reader_open(
 
 /// The next message of the wanted topics: 1 with its topic index, log time and data
 /// (valid until the next call or close), 0 at the end (or at a cut: see truncated).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_reader_next(
+pub unsafe extern "C" fn kfio_mcap_reader_next(
     reader: *mut KfioMcapReader,
     topic: *mut u32,
     log_time: *mut u64,
@@ -272,8 +281,11 @@ pub extern "C" fn kfio_mcap_reader_next(
 }
 
 /// 1 when the file ended before its end record (cut short), else 0.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_reader_truncated(reader: *const KfioMcapReader) -> c_int {
+pub unsafe extern "C" fn kfio_mcap_reader_truncated(reader: *const KfioMcapReader) -> c_int {
     if reader.is_null() {
         return 0;
     }
@@ -281,8 +293,11 @@ pub extern "C" fn kfio_mcap_reader_truncated(reader: *const KfioMcapReader) -> c
     c_int::from(unsafe { &*reader }.truncated)
 }
 
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_reader_close(reader: *mut KfioMcapReader) {
+pub unsafe extern "C" fn kfio_mcap_reader_close(reader: *mut KfioMcapReader) {
     guard_void(|| {
         if !reader.is_null() {
             // SAFETY: the handle came from Box::into_raw and is released once.
@@ -293,8 +308,11 @@ pub extern "C" fn kfio_mcap_reader_close(reader: *mut KfioMcapReader) {
 
 /// Opens an MCAP file for writing (truncating it). compression: "zstd", "lz4" or
 /// "none"/""/NULL. chunk_size: target uncompressed chunk size in bytes (0: 64 KiB).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_open(
+pub unsafe extern "C" fn kfio_mcap_open(
     path: *const c_char,
     compression: *const c_char,
     chunk_size: u64,
@@ -339,8 +357,11 @@ pub extern "C" fn kfio_mcap_open(
 }
 
 /// Adds a schema (returns its id in *id). encoding: "protobuf", "jsonschema", ...
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_add_schema(
+pub unsafe extern "C" fn kfio_mcap_add_schema(
     mcap: *mut KfioMcap,
     name: *const c_char,
     encoding: *const c_char,
@@ -366,8 +387,11 @@ pub extern "C" fn kfio_mcap_add_schema(
 
 /// Adds a channel on a schema (0: no schema); returns its id in *id. Metadata is
 /// given as `count` key/value string pairs (arrays may be NULL when count is 0).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_add_channel(
+pub unsafe extern "C" fn kfio_mcap_add_channel(
     mcap: *mut KfioMcap,
     schema_id: u16,
     topic: *const c_char,
@@ -407,8 +431,11 @@ pub extern "C" fn kfio_mcap_add_channel(
 }
 
 /// Writes one message. Times are nanoseconds (the recorder uses unix time).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_write(
+pub unsafe extern "C" fn kfio_mcap_write(
     mcap: *mut KfioMcap,
     channel_id: u16,
     sequence: u32,
@@ -434,8 +461,11 @@ pub extern "C" fn kfio_mcap_write(
 
 /// Finishes the current chunk and writes it out, so that everything written so far
 /// can be read back after a crash; with `sync` non-zero also fsyncs the file.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_flush(
+pub unsafe extern "C" fn kfio_mcap_flush(
     mcap: *mut KfioMcap,
     sync: c_int,
     err: *mut c_char,
@@ -455,8 +485,15 @@ pub extern "C" fn kfio_mcap_flush(
 
 /// Writes the summary and footer, closes the file and releases the handle (also
 /// on failure). NULL is accepted.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_mcap_close(mcap: *mut KfioMcap, err: *mut c_char, err_len: usize) -> c_int {
+pub unsafe extern "C" fn kfio_mcap_close(
+    mcap: *mut KfioMcap,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
     if mcap.is_null() {
         return 0;
     }
@@ -519,8 +556,11 @@ pub type KfioQueryFn = Option<
 /// string (config_json5), or zenoh's defaults when both are NULL; then each
 /// override `keys[i]` = `values[i]` (JSON5 values, e.g. "mode" = "\"peer\"",
 /// "connect/endpoints" = "[\"tcp/127.0.0.1:7447\"]") is applied in order.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_session_open(
+pub unsafe extern "C" fn kfio_session_open(
     config_path: *const c_char,
     config_json5: *const c_char,
     keys: *const *const c_char,
@@ -558,8 +598,11 @@ pub extern "C" fn kfio_session_open(
 
 /// Closes the session (publishers and queryables declared on it stop working) and
 /// releases the handle. NULL is accepted.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_session_close(session: *mut KfioSession) {
+pub unsafe extern "C" fn kfio_session_close(session: *mut KfioSession) {
     if session.is_null() {
         return;
     }
@@ -571,8 +614,11 @@ pub extern "C" fn kfio_session_close(session: *mut KfioSession) {
 }
 
 /// The session's zenoh id as text (for logs).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_session_zid(
+pub unsafe extern "C" fn kfio_session_zid(
     session: *mut KfioSession,
     out: *mut c_char,
     out_len: usize,
@@ -590,8 +636,11 @@ pub const KFIO_PUB_BEST_EFFORT: c_int = 1;
 /// Declares a publisher. kind 0 (KFIO_PUB_RELIABLE): congestion control Block, data
 /// priority: a put waits rather than drops (keyframes). kind 1 (KFIO_PUB_BEST_EFFORT):
 /// congestion control Drop, lower priority (preview, status).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_publisher_declare(
+pub unsafe extern "C" fn kfio_publisher_declare(
     session: *mut KfioSession,
     key: *const c_char,
     kind: c_int,
@@ -618,8 +667,11 @@ pub extern "C" fn kfio_publisher_declare(
 }
 
 /// Publishes `data` with an optional attachment (att may be NULL when att_len is 0).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_publisher_put(
+pub unsafe extern "C" fn kfio_publisher_put(
     publisher: *mut KfioPublisher,
     data: *const u8,
     len: usize,
@@ -643,8 +695,11 @@ pub extern "C" fn kfio_publisher_put(
 }
 
 /// Undeclares the publisher and releases the handle. NULL is accepted.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_publisher_undeclare(publisher: *mut KfioPublisher) {
+pub unsafe extern "C" fn kfio_publisher_undeclare(publisher: *mut KfioPublisher) {
     if publisher.is_null() {
         return;
     }
@@ -681,8 +736,11 @@ fn serve_queries(rx: Receiver<zenoh::query::Query>, f: KfioQueryFn, user: UserDa
 /// Declares a queryable on `key` (wildcards allowed, e.g. "keyframed/uav1/keyframes/*").
 /// Queries are answered one at a time on a thread of the queryable's own, so the
 /// callback may block on disk I/O. At most 64 queries wait; more are dropped.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_queryable_declare(
+pub unsafe extern "C" fn kfio_queryable_declare(
     session: *mut KfioSession,
     key: *const c_char,
     callback: KfioQueryFn,
@@ -720,8 +778,11 @@ pub extern "C" fn kfio_queryable_declare(
 
 /// Undeclares the queryable, waits for a callback in progress to return, and
 /// releases the handle: the callback is not called after this returns.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_queryable_undeclare(queryable: *mut KfioQueryable) {
+pub unsafe extern "C" fn kfio_queryable_undeclare(queryable: *mut KfioQueryable) {
     if queryable.is_null() {
         return;
     }
@@ -740,8 +801,11 @@ pub extern "C" fn kfio_queryable_undeclare(queryable: *mut KfioQueryable) {
 
 /// Replies to the query with `data` (and an optional attachment) on `key`, or on the
 /// query's own key expression when `key` is NULL (only valid for a non-wildcard query).
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_reply_ok(
+pub unsafe extern "C" fn kfio_reply_ok(
     reply: *mut KfioReply<'_>,
     key: *const c_char,
     data: *const u8,
@@ -770,8 +834,11 @@ pub extern "C" fn kfio_reply_ok(
 }
 
 /// Replies with an error message (for example "no such keyframe").
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
 #[no_mangle]
-pub extern "C" fn kfio_reply_err(
+pub unsafe extern "C" fn kfio_reply_err(
     reply: *mut KfioReply<'_>,
     message: *const c_char,
     err: *mut c_char,
