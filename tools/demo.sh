@@ -15,9 +15,13 @@ tools/build.sh
 FLIGHT="${1:-nadir}"
 SAMPLE="data/sample/$FLIGHT"
 DEMO="data/demo/$FLIGHT"
-if [ ! -f "$SAMPLE/meta.json" ]; then
-  echo "==> generating the sample flight '$FLIGHT' into $SAMPLE (first run only)"
+# Made on first use, and again whenever the generator changes.
+SYNTH_VERSION="$(sha256sum bindings/python/keyframed/synth.py | cut -c1-12)"
+if [ ! -f "$SAMPLE/meta.json" ] || [ "$(cat "$SAMPLE/.synth-version" 2>/dev/null)" != "$SYNTH_VERSION" ]; then
+  echo "==> generating the sample flight '$FLIGHT' into $SAMPLE"
+  rm -rf "$SAMPLE"
   .venv/bin/python -m keyframed.synth --flight "$FLIGHT" --out "$SAMPLE"
+  echo "$SYNTH_VERSION" > "$SAMPLE/.synth-version"
 fi
 rm -rf "$DEMO"
 mkdir -p "$DEMO/etc/conf.d"
@@ -75,6 +79,7 @@ import json, sys
 s = json.load(open(f"{sys.argv[1]}/summary.json"))
 t = s["telemetry"] or {}
 print(f"{s['frames_read']} frames at {s['frames_per_second']:.1f} fps, {s['frames_dropped']} dropped; "
+      f"{s['rejected_blur']} rejected as blurred, {s['rejected_overlap']} as redundant; "
       f"{s['written']} keyframes, {t.get('geotagged', 0)} geotagged (clock: {t.get('clock')}); "
       f"CPU {s['cpu_percent']:.0f} % of one core, peak RSS {s['max_rss_mb']:.0f} MB")
 for line in open(sys.argv[2]):

@@ -21,8 +21,11 @@ APT_PACKAGES=(
 # tests/harness/test_zenoh_security.py: a throw-away CA and server certificate.
 APT_PACKAGES+=(openssl)
 
-# tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu.
-APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
+# tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu
+# (an x86-64 guest; on other architectures, e.g. a Pi, that test skips).
+if [ "$(dpkg --print-architecture)" = amd64 ]; then
+  APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
+fi
 
 # Rust 1.88+ for daemon/io-rs: rustup's toolchain when there is one, else Debian 12's
 # rustc-web/cargo-web (1.96 from bookworm-security; Debian's plain rustc is 1.63).
@@ -67,20 +70,23 @@ if [ ! -x "$VENV/bin/python" ]; then
   echo "setup: creating venv $VENV"
   "$PY" -m venv "$VENV"
 fi
+# The stamp lives in the venv, so a removed or recreated venv is filled again.
 REQ="$ROOT/tools/requirements.txt"
-if ! cmp -s "$REQ" "$STAMP_DIR/requirements.txt"; then
+if ! cmp -s "$REQ" "$VENV/.keyframed-requirements.txt"; then
   echo "setup: installing Python packages"
   "$VENV/bin/python" -m pip install -q --upgrade pip
   "$VENV/bin/python" -m pip install -q -r "$REQ"
-  cp "$REQ" "$STAMP_DIR/requirements.txt"
+  cp "$REQ" "$VENV/.keyframed-requirements.txt"
 fi
 
 # Rust crates of daemon/io-rs (zenoh, mcap), fetched once per Cargo.lock so that the
 # build itself needs no network.
 LOCK="$ROOT/daemon/io-rs/Cargo.lock"
 if ! rust_ok; then
-  echo "setup: no cargo with rustc 1.88 or newer (rustup, or apt rustc-web cargo-web), or configure" \
-       "with -DKEYFRAMED_WITH_IO=OFF to build without MCAP and Zenoh" >&2
+  echo "setup: no cargo with rustc 1.88 or newer: install rustup, or enable bookworm-security" \
+       "for apt's rustc-web/cargo-web (found: $(rustc --version 2>/dev/null || echo none))." \
+       "To build without MCAP and Zenoh, configure with -DKEYFRAMED_WITH_IO=OFF." >&2
+  exit 1
 elif ! cmp -s "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"; then
   echo "setup: fetching Rust crates (cargo fetch --locked)"
   (cd "$ROOT/daemon/io-rs" && cargo fetch --locked -q)

@@ -41,7 +41,7 @@ step "Python and end-to-end tests (pytest)"
 set +e
 KEYFRAMED_BIN="$ROOT/build/release/daemon/keyframed" \
 KEYFRAMED_ASAN_BIN="$ROOT/build/asan/daemon/keyframed" \
-  .venv/bin/python -m pytest -q "$@"
+  .venv/bin/python -m pytest -q -rs "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then

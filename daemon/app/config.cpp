@@ -759,6 +759,8 @@ class Loader {
   }
 
   void finish() {
+    relaxDependentDefaults(out_.config.selection, origins_.contains("selection.min_tracks"),
+                           origins_.contains("selection.blur_warmup"));
     crossChecks();
     std::stable_sort(errors_.begin(), errors_.end(), [](const Error& a, const Error& b) {
       return a.layer != b.layer ? a.layer < b.layer : a.line < b.line;

@@ -46,10 +46,20 @@ selection:
                              let overlap fall under F (default 0.50)
   --motion-ratio R           geometric mode: a frame moving more than R times the
                              recent lower quartile is motion-blurred, 0 = off (default 4)
+  --motion-min-fraction F    ... and more than F of the image width (default 0.01)
+  --motion-window N          recent frames for that quartile (default 150)
   --analysis-width PX        overlap analysis width, 0 = full (default 640)
   --orb-features N           paper mode: ORB features (default 2500)
   --paper-threshold T        paper mode: mean Hamming distance to keep (default 50)
+  --paper-min-matches N      paper mode: fewer mutual matches = lost (default 20)
   --max-tracks N             geometric mode: tracked points (default 200)
+  --min-tracks N             geometric mode: replenish below N (default 80, or
+                             2/5 of --max-tracks when that is smaller)
+  --min-inliers N            geometric mode: fewer RANSAC inliers = lost (default 15)
+  --ransac-px PX             geometric mode: RANSAC threshold, analysis pixels (default 1.5)
+  --fast-threshold N         geometric mode: FAST corner threshold (default 20)
+  --lk-window N              geometric mode: optical-flow window (default 13)
+  --lk-levels N              geometric mode: optical-flow pyramid levels (default 3)
 blur:
   --blur-mode adaptive|absolute   (default adaptive)
   --blur-threshold V         absolute mode threshold on Laplacian variance (default 100)
@@ -57,6 +67,8 @@ blur:
   --blur-ratio R             adaptive mode: fraction of the recent quantile (default 0.7)
   --blur-quantile Q          adaptive mode: quantile of recent scores (default 0.75)
   --blur-window N            adaptive mode: recent frames considered (default 150)
+  --blur-warmup N            adaptive mode: frames before the statistic is trusted
+                             (default 5, or the window when that is smaller)
   --blur-step R,C            sample every R-th row, C-th column (default 2,3)
   --blur-width PX            score at reduced width, 0 = full (default 0)
 telemetry and tags:
@@ -112,10 +124,22 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   auto integer = [](auto& dst, SettingRange<std::int64_t> range) -> Handler {
     return [&dst, range](const std::string& v) -> std::string {
       std::int64_t n = 0;
-      if (!parseInt(v, n)) return "not an integer: '" + v + "'";
+      if (!parseInt(v, n)) {
+        if (errno == ERANGE) return "out of range: '" + v + "'";
+        return "not an integer: '" + v + "'";
+      }
       if (!range.contains(n)) return rangeError(range, n);
       dst = static_cast<std::remove_reference_t<decltype(dst)>>(n);
       return {};
+    };
+  };
+  // Settings whose defaults give way to a smaller explicit setting they depend on.
+  bool minTracksSet = false;
+  bool warmupSet = false;
+  auto explicitly = [](bool& set, Handler h) -> Handler {
+    return [&set, h = std::move(h)](const std::string& v) {
+      set = true;
+      return h(v);
     };
   };
   std::map<std::string, Handler> withValue = {
@@ -147,9 +171,18 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       {"--analysis-width", integer(c.analysisWidth, limits::kAnalysisWidth)},
       {"--min-overlap", number(c.minOverlap, limits::kMinOverlap)},
       {"--motion-ratio", number(c.motionRatio, limits::kMotionRatio)},
+      {"--motion-min-fraction", number(c.motionMinFraction, limits::kMotionMinFraction)},
+      {"--motion-window", integer(c.motionWindow, limits::kMotionWindow)},
       {"--orb-features", integer(c.overlap.orbFeatures, limits::kOrbFeatures)},
       {"--paper-threshold", number(c.overlap.paperThreshold, limits::kPaperThreshold)},
+      {"--paper-min-matches", integer(c.overlap.paperMinMatches, limits::kPaperMinMatches)},
       {"--max-tracks", integer(c.overlap.maxTracks, limits::kMaxTracks)},
+      {"--min-tracks", explicitly(minTracksSet, integer(c.overlap.minTracks, limits::kMinTracks))},
+      {"--min-inliers", integer(c.overlap.minInliers, limits::kMinInliers)},
+      {"--ransac-px", number(c.overlap.ransacPixels, limits::kRansacPixels)},
+      {"--fast-threshold", integer(c.overlap.fastThreshold, limits::kFastThreshold)},
+      {"--lk-window", integer(c.overlap.lkWindow, limits::kLkWindow)},
+      {"--lk-levels", integer(c.overlap.lkLevels, limits::kLkLevels)},
       {"--blur-mode",
        [&](const std::string& v) -> std::string {
          if (!parseBlurMode(v, c.blur.mode))
@@ -161,6 +194,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       {"--blur-ratio", number(c.blur.ratio, limits::kBlurRatio)},
       {"--blur-quantile", number(c.blur.quantile, limits::kBlurQuantile)},
       {"--blur-window", integer(c.blur.window, limits::kBlurWindow)},
+      {"--blur-warmup", explicitly(warmupSet, integer(c.blur.warmup, limits::kBlurWarmup))},
       {"--blur-step",
        [&](const std::string& v) -> std::string {
          std::string a, b;
@@ -232,29 +266,32 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       {"--telemetry-wait", integer(o.telemetryWaitMs, limits::kTelemetryWaitMs)},
       {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, limits::kTelemetryStartWaitMs)},
       {"--autopilot",
-       [&](const std::string& v) -> std::string {
-         return parseAutopilot(v, o.autopilotSystem, o.autopilotComponent);
-       }},
+       [&](const std::string& v)
+           -> std::string { return parseAutopilot(v, o.autopilotSystem, o.autopilotComponent); }},
       {"--mavlink-sysid", integer(o.mavlinkSystemId, limits::kMavlinkId)},
       {"--mcap",
-       [&](const std::string& v) -> std::string {
-         if (v.empty()) return "empty MCAP path";
-         o.mcap = v;
-         return {};
-       }},
+       [&](const std::string& v) -> std::
+                                     string {
+                                       if (v.empty()) return "empty MCAP path";
+                                       o.mcap = v;
+                                       return {};
+                                     }},
       {"--zenoh-config",
-       [&](const std::string& v) -> std::string {
-         if (v.empty()) return "empty zenoh config path";
-         o.zenohConfig = v;
-         return {};
-       }},
+       [&](const std::string& v) -> std::
+                                     string {
+                                       if (v.empty()) return "empty zenoh config path";
+                                       o.zenohConfig = v;
+                                       return {};
+                                     }},
       {"--vehicle",
-       [&](const std::string& v) -> std::string {
-         if (v.empty() || v.find_first_of("/*$?# ") != std::string::npos)
-           return "vehicle name must be one key chunk (no / * $ ? # or spaces)";
-         o.vehicle = v;
-         return {};
-       }},
+       [&](const std::string& v)
+           -> std::
+               string {
+                 if (v.empty() || v.find_first_of("/*$?# ") != std::string::npos)
+                   return "vehicle name must be one key chunk (no / * $ ? # or spaces)";
+                 o.vehicle = v;
+                 return {};
+               }},
   };
 
   for (std::size_t i = 0; i < args.size(); ++i) {
@@ -306,6 +343,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   }
   if (o.video.empty()) return fail("no video given (usage: keyframed select VIDEO --out DIR)");
   if (o.outDir.empty()) return fail("--out DIR is required");
+  relaxDependentDefaults(c, minTracksSet, warmupSet);
   if (std::string e = c.validate(); !e.empty()) return fail(e);
   if (!o.telemetry.empty()) {
     std::string e;

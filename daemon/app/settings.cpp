@@ -1,5 +1,6 @@
 #include "app/settings.h"
 
+#include <algorithm>
 #include <cerrno>
 #include <charconv>
 #include <cmath>
@@ -33,6 +34,13 @@ bool parseDouble(const std::string& s, double& out) {
   errno = 0;
   out = std::strtod(s.c_str(), &end);
   return errno == 0 && end == s.c_str() + s.size() && std::isfinite(out);
+}
+
+void relaxDependentDefaults(SelectorConfig& config, bool minTracksSet, bool warmupSet) {
+  OverlapConfig& o = config.overlap;
+  if (!minTracksSet && o.minTracks > o.maxTracks) o.minTracks = std::max(8, o.maxTracks * 2 / 5);
+  SharpnessConfig& b = config.blur;
+  if (!warmupSet && b.warmup > b.window) b.warmup = b.window;
 }
 
 std::string rangeError(SettingRange<double> range, double value) {

@@ -5,6 +5,7 @@
 #include <string_view>
 
 #include "core/overlap.h"
+#include "core/selector.h"
 #include "core/sharpness.h"
 
 // The vocabulary shared by the `select` command line and the daemon's TOML
@@ -61,6 +62,12 @@ inline constexpr SettingRange<std::int64_t> kTelemetryStartWaitMs{0, 600000};
 inline constexpr SettingRange<double> kMountAngleDeg{-360.0, 360.0};
 inline constexpr SettingRange<std::int64_t> kJpegQuality{1, 100};
 }  // namespace limits
+
+// Defaults that depend on another setting give way when only that one is set: a
+// max_tracks under the default min_tracks lowers min_tracks to 2/5 of it (at least
+// 8), a blur_window under the default warm-up shortens the warm-up to the window.
+// A value the user set explicitly is never changed (validation reports conflicts).
+void relaxDependentDefaults(SelectorConfig& config, bool minTracksSet, bool warmupSet);
 
 // Names used on the command line and in the config file.
 // (The overlap mode's name is core's toString(OverlapMode).)

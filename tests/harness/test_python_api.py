@@ -80,3 +80,65 @@ def test_select_video_from_python(pan_video: Path, tmp_path):
     assert s["frames_read"] == 90 and s["kept"] >= 3 and s["error"] == ""
     with pytest.raises(RuntimeError, match="no such file"):
         keyframed.select_video(str(tmp_path / "missing.avi"), str(tmp_path / "o2"))
+
+
+def test_overlap_estimator_measures_a_pan():
+    """Geometric overlap of a pan against its first view: the visible fraction shrinks
+    as the view slides (1 - shift/width), a candidate can become the reference, and a
+    featureless frame loses tracking."""
+    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    est = keyframed.OverlapEstimator.create(keyframed.SelectorConfig())
+
+    def view(x: int) -> np.ndarray:
+        return np.ascontiguousarray(strip[100:370, x : x + 480])
+
+    first = est.observe(view(50))
+    assert not first["valid"] and first["features"] > 50
+    est.set_reference_to_current()
+    for i in range(1, 16):
+        r = est.observe(view(50 + 8 * i))
+        assert r["valid"] and r["inliers"] >= 15
+        assert r["overlap"] == pytest.approx(1 - 8 * i / 480, abs=0.02), i
+        if i == 10:
+            est.mark_candidate()
+    # the frame at shift 80 px becomes the reference: the current one (120 px) is 40 px on
+    r = est.set_reference_to_candidate()
+    assert r["valid"] and r["overlap"] == pytest.approx(1 - 40 / 480, abs=0.02)
+    lost = est.observe(np.full((270, 480), 128, np.uint8))
+    assert not lost["valid"]
+
+
+def test_paper_estimator_distance_grows_with_the_shift():
+    cfg = keyframed.SelectorConfig()
+    cfg.mode = "paper"
+    est = keyframed.OverlapEstimator.create(cfg)
+    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    est.observe(np.ascontiguousarray(strip[100:370, 50:530]))
+    est.set_reference_to_current()
+    near = est.observe(np.ascontiguousarray(strip[100:370, 60:540]))["paper_distance"]
+    far = est.observe(np.ascontiguousarray(strip[100:370, 250:730]))["paper_distance"]
+    assert near is not None and far is not None and near < far
+
+
+def test_config_has_every_selection_key_of_the_daemon():
+    """The Python config exposes the same names as [selection] in the daemon's config."""
+    text = (Path(__file__).parents[2] / "config/keyframed.toml").read_text()
+    section = text.split("[selection]", 1)[1].split("\n[", 1)[0]
+    keys = [
+        line.lstrip("# ").split("=")[0].strip()
+        for line in section.splitlines()
+        if "=" in line and line.lstrip("# ")[:1].isalpha()
+    ]
+    assert len(keys) >= 25, keys
+    cfg = keyframed.SelectorConfig()
+    for key in keys:
+        assert hasattr(cfg, key), key
+    cfg.blur_warmup = 3
+    cfg.lk_levels = 2
+    assert cfg.blur_warmup == 3 and cfg.lk_levels == 2 and cfg.validate() == ""
+
+
+def test_star_import():
+    ns: dict[str, object] = {}
+    exec("from keyframed import *", ns)
+    assert {"KeyframeSelector", "OverlapEstimator", "select_video"} <= ns.keys()

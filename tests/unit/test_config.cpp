@@ -318,6 +318,18 @@ TEST(Config, CrossChecksNameTheLastKeySet) {
                  "2: selection.analysis_width: analysis width must be 0 (full) or >= 64");
 }
 
+TEST(Config, SmallValuesLowerTheDefaultsThatDependOnThem) {
+  TempDir dir;
+  const ConfigLoadResult r = loadText(dir, "[selection]\nmax_tracks = 30\nblur_window = 2\n");
+  ASSERT_TRUE(r.errors.empty()) << joined(r.errors);
+  EXPECT_EQ(r.config.selection.overlap.minTracks, 12);
+  EXPECT_EQ(r.config.selection.blur.warmup, 2);
+  // Set explicitly, a conflict is still reported.
+  expectOneError(dir, "[selection]\nmax_tracks = 30\nmin_tracks = 40\n",
+                 "3: selection.min_tracks: selection.min_tracks must not exceed "
+                 "selection.max_tracks");
+}
+
 TEST(Config, MalformedTomlGivesTheLine) {
   TempDir dir;
   const ConfigLoadResult r = loadText(dir, "[camera]\nfps = 30\nwidth = = 3\n");

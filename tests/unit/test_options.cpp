@@ -77,5 +77,61 @@ TEST(Options, RejectsBadInputWithOneLine) {
   }
 }
 
+TEST(Options, EveryGeometricAndBlurSettingHasAnOption) {
+  SelectOptions o;
+  const auto r = parse({"v.avi", "--out",
+                        "d",     "--min-tracks",
+                        "50",    "--min-inliers",
+                        "12",    "--ransac-px",
+                        "2.5",   "--fast-threshold",
+                        "30",    "--lk-window",
+                        "15",    "--lk-levels",
+                        "2",     "--paper-min-matches",
+                        "30",    "--blur-warmup",
+                        "7",     "--motion-min-fraction",
+                        "0.02",  "--motion-window",
+                        "90"},
+                       o);
+  ASSERT_TRUE(r.ok) << r.error;
+  const SelectorConfig& c = o.selector;
+  EXPECT_EQ(c.overlap.minTracks, 50);
+  EXPECT_EQ(c.overlap.minInliers, 12);
+  EXPECT_DOUBLE_EQ(c.overlap.ransacPixels, 2.5);
+  EXPECT_EQ(c.overlap.fastThreshold, 30);
+  EXPECT_EQ(c.overlap.lkWindow, 15);
+  EXPECT_EQ(c.overlap.lkLevels, 2);
+  EXPECT_EQ(c.overlap.paperMinMatches, 30);
+  EXPECT_EQ(c.blur.warmup, 7);
+  EXPECT_DOUBLE_EQ(c.motionMinFraction, 0.02);
+  EXPECT_EQ(c.motionWindow, 90);
+}
+
+TEST(Options, SmallValuesLowerTheDefaultsThatDependOnThem) {
+  // Every value in the advertised range of --max-tracks and --blur-window works alone.
+  SelectOptions o;
+  auto r = parse({"v.avi", "--out", "d", "--max-tracks", "20", "--blur-window", "1"}, o);
+  ASSERT_TRUE(r.ok) << r.error;
+  EXPECT_EQ(o.selector.overlap.minTracks, 8);
+  EXPECT_EQ(o.selector.blur.warmup, 1);
+  SelectOptions o2;
+  r = parse({"v.avi", "--out", "d", "--max-tracks", "60"}, o2);
+  ASSERT_TRUE(r.ok) << r.error;
+  EXPECT_EQ(o2.selector.overlap.minTracks, 24);
+  // An explicit conflicting value is an error, not silently changed.
+  SelectOptions o3;
+  r = parse({"v.avi", "--out", "d", "--max-tracks", "60", "--min-tracks", "70"}, o3);
+  EXPECT_FALSE(r.ok);
+  SelectOptions o4;
+  r = parse({"v.avi", "--out", "d", "--blur-window", "3", "--blur-warmup", "4"}, o4);
+  EXPECT_FALSE(r.ok);
+}
+
+TEST(Options, OverflowIsOutOfRangeNotGarbage) {
+  SelectOptions o;
+  const auto r = parse({"v.avi", "--out", "d", "--max-frames", "99999999999999999999"}, o);
+  EXPECT_FALSE(r.ok);
+  EXPECT_NE(r.error.find("out of range"), std::string::npos) << r.error;
+}
+
 }  // namespace
 }  // namespace keyframed

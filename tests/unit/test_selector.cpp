@@ -167,6 +167,39 @@ TEST(Selector, FinishKeepsThePendingCandidateSoTheEndIsCovered) {
 namespace keyframed {
 namespace {
 
+TEST(Selector, LostTrackingKeepsTheCandidateAndRestartsAtTheNextSharpFrame) {
+  // A pan inside the band, then a featureless frame (lens covered, a cloud), then
+  // the camera sees a different place: the best frame before the loss is kept so
+  // that the stretch up to it is covered, and a new chain starts.
+  const cv::Mat strip = test::photoStrip();
+  SelectorConfig cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  std::vector<Decision> ds;
+  auto feed = [&](const cv::Mat& v) {
+    const auto i = static_cast<std::int64_t>(ds.size());
+    ds.push_back(sel.process(Frame::ofGray(v, i, i * 33333333)));
+  };
+  for (int i = 0; i < 12; ++i) feed(test::viewAt(strip, 100 + 8.0 * i));  // overlap to 0.82
+  ASSERT_TRUE(ds[0].kept);
+  for (int i = 1; i < 12; ++i) ASSERT_FALSE(ds[i].kept) << i;
+  feed(cv::Mat(270, 480, CV_8UC1, cv::Scalar(128)));  // frame 12: nothing to track
+  const Decision lost = ds[12];
+  EXPECT_FALSE(lost.tracking);
+  EXPECT_FALSE(lost.kept);
+  EXPECT_EQ(lost.reason, Reason::Lost);
+  // the promoted frame is one of the band's candidates (overlap <= 0.85: frames 9-11)
+  EXPECT_GE(lost.promotedIndex, 9);
+  EXPECT_LE(lost.promotedIndex, 11);
+  EXPECT_EQ(sel.keyframes(), 2);
+  for (int i = 0; i < 3; ++i) feed(test::viewAt(strip, 700 + 8.0 * i));  // elsewhere
+  EXPECT_TRUE(ds[13].kept);
+  EXPECT_EQ(ds[13].reason, Reason::First);
+  EXPECT_FALSE(ds[14].kept);
+  EXPECT_TRUE(ds[14].tracking);
+  EXPECT_EQ(sel.keyframes(), 3);
+}
+
 TEST(Selector, MotionGateFlagsASuddenFastMove) {
   const cv::Mat strip = test::photoStrip();
   SelectorConfig cfg;

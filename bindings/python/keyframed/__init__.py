@@ -10,12 +10,10 @@ from __future__ import annotations
 from typing import Any
 
 _NATIVE = (
-    "Frame",
     "SharpnessScorer",
     "OverlapEstimator",
     "KeyframeSelector",
     "SelectorConfig",
-    "Decision",
     "select_video",
     "sampled_laplacian_variance",
     "reference_laplacian_variance",

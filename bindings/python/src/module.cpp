@@ -8,8 +8,10 @@
 #include <nanobind/stl/optional.h>
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
+#include <nanobind/stl/unique_ptr.h>
 
 #include "app/select_command.h"
+#include "app/settings.h"
 #include "core/overlap.h"
 #include "core/selector.h"
 #include "core/sharpness.h"
@@ -49,8 +51,31 @@ void checkValid(const SelectorConfig& c) {
   if (std::string e = c.validate(); !e.empty()) throw nb::value_error(e.c_str());
 }
 
-double nanToNone(double v) {
-  return v;
+// NaN (not measured) becomes None.
+nb::object optional(double v) {
+  return std::isfinite(v) ? nb::object(nb::float_(v)) : nb::none();
+}
+
+nb::dict overlapDict(const OverlapResult& r) {
+  nb::dict d;
+  d["valid"] = r.valid;
+  d["overlap"] = optional(r.overlap);
+  d["paper_distance"] = optional(r.paperDistance);
+  d["motion_px"] = optional(r.motionPx);
+  d["features"] = r.features;
+  d["matches"] = r.matches;
+  d["inliers"] = r.inliers;
+  return d;
+}
+
+// A read-write property of SelectorConfig for a field of one of its parts, e.g.
+// blur.window exposed as "blur_window".
+template <typename Part, typename T>
+void partProperty(nb::class_<SelectorConfig>& cls, const char* name, Part SelectorConfig::*part,
+                  T Part::*field) {
+  cls.def_prop_rw(
+      name, [part, field](const SelectorConfig& c) { return c.*part.*field; },
+      [part, field](SelectorConfig& c, T v) { c.*part.*field = v; });
 }
 
 nb::dict decisionDict(const Decision& d) {
@@ -64,11 +89,10 @@ nb::dict decisionDict(const Decision& d) {
   r["sharpness"] = d.sharpness;
   r["threshold"] = d.threshold;
   r["sharp"] = d.sharp;
-  r["overlap"] = std::isfinite(d.overlap) ? nb::object(nb::float_(d.overlap)) : nb::none();
-  r["paper_distance"] =
-      std::isfinite(d.paperDistance) ? nb::object(nb::float_(d.paperDistance)) : nb::none();
+  r["overlap"] = optional(d.overlap);
+  r["paper_distance"] = optional(d.paperDistance);
   r["tracking"] = d.tracking;
-  r["motion_px"] = std::isfinite(d.motionPx) ? nb::object(nb::float_(d.motionPx)) : nb::none();
+  r["motion_px"] = optional(d.motionPx);
   r["fast_motion"] = d.fastMotion;
   r["features"] = d.features;
   r["matches"] = d.matches;
@@ -96,16 +120,12 @@ NB_MODULE(_core, m) {
       [](const Image& img) { return referenceLaplacianVariance(grayOf(img)).variance; },
       "gray"_a.noconvert(), "Exact two-pass variance of the Laplacian over every interior pixel.");
 
-  nb::class_<SelectorConfig>(m, "SelectorConfig")
-      .def(nb::init<>())
+  nb::class_<SelectorConfig> configClass(m, "SelectorConfig");
+  configClass.def(nb::init<>())
       .def_prop_rw(
           "mode", [](const SelectorConfig& c) { return std::string(toString(c.overlap.mode)); },
           [](SelectorConfig& c, const std::string& v) {
-            if (v == "paper")
-              c.overlap.mode = OverlapMode::Paper;
-            else if (v == "geometric")
-              c.overlap.mode = OverlapMode::Geometric;
-            else
+            if (!parseOverlapMode(v, c.overlap.mode))
               throw nb::value_error("mode must be 'geometric' or 'paper'");
           })
       .def_rw("target", &SelectorConfig::target)
@@ -118,36 +138,36 @@ NB_MODULE(_core, m) {
       .def_rw("analysis_width", &SelectorConfig::analysisWidth)
       .def_prop_rw(
           "blur_mode",
-          [](const SelectorConfig& c) {
-            return std::string(c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute");
-          },
+          [](const SelectorConfig& c) { return std::string(blurModeName(c.blur.mode)); },
           [](SelectorConfig& c, const std::string& v) {
-            if (v == "adaptive")
-              c.blur.mode = BlurMode::Adaptive;
-            else if (v == "absolute")
-              c.blur.mode = BlurMode::Absolute;
-            else
+            if (!parseBlurMode(v, c.blur.mode))
               throw nb::value_error("blur_mode must be 'adaptive' or 'absolute'");
           })
-#define KF_BLUR(name, field)                                      \
-  .def_prop_rw(                                                   \
-      name, [](const SelectorConfig& c) { return c.blur.field; }, \
-      [](SelectorConfig& c, decltype(SharpnessConfig::field) v) { c.blur.field = v; })
-#define KF_OVERLAP(name, field)                                      \
-  .def_prop_rw(                                                      \
-      name, [](const SelectorConfig& c) { return c.overlap.field; }, \
-      [](SelectorConfig& c, decltype(OverlapConfig::field) v) { c.overlap.field = v; })
-          KF_BLUR("blur_threshold", absoluteThreshold) KF_BLUR("blur_floor", floor) KF_BLUR(
-              "blur_ratio", ratio) KF_BLUR("blur_quantile", quantile) KF_BLUR("blur_window", window)
-              KF_BLUR("blur_row_step", rowStep) KF_BLUR("blur_col_step", colStep)
-                  KF_BLUR("blur_width", analysisWidth) KF_OVERLAP("orb_features", orbFeatures)
-                      KF_OVERLAP("paper_threshold", paperThreshold)
-                          KF_OVERLAP("max_tracks", maxTracks) KF_OVERLAP("min_tracks", minTracks)
-#undef KF_BLUR
-#undef KF_OVERLAP
       .def(
           "validate", [](const SelectorConfig& c) { return c.validate(); },
           "Empty string when valid, else what is wrong.");
+  // The same names as the [selection] keys of the daemon's configuration.
+  const auto blur = &SelectorConfig::blur;
+  partProperty(configClass, "blur_threshold", blur, &SharpnessConfig::absoluteThreshold);
+  partProperty(configClass, "blur_floor", blur, &SharpnessConfig::floor);
+  partProperty(configClass, "blur_ratio", blur, &SharpnessConfig::ratio);
+  partProperty(configClass, "blur_quantile", blur, &SharpnessConfig::quantile);
+  partProperty(configClass, "blur_window", blur, &SharpnessConfig::window);
+  partProperty(configClass, "blur_warmup", blur, &SharpnessConfig::warmup);
+  partProperty(configClass, "blur_row_step", blur, &SharpnessConfig::rowStep);
+  partProperty(configClass, "blur_col_step", blur, &SharpnessConfig::colStep);
+  partProperty(configClass, "blur_width", blur, &SharpnessConfig::analysisWidth);
+  const auto overlap = &SelectorConfig::overlap;
+  partProperty(configClass, "orb_features", overlap, &OverlapConfig::orbFeatures);
+  partProperty(configClass, "paper_threshold", overlap, &OverlapConfig::paperThreshold);
+  partProperty(configClass, "paper_min_matches", overlap, &OverlapConfig::paperMinMatches);
+  partProperty(configClass, "max_tracks", overlap, &OverlapConfig::maxTracks);
+  partProperty(configClass, "min_tracks", overlap, &OverlapConfig::minTracks);
+  partProperty(configClass, "min_inliers", overlap, &OverlapConfig::minInliers);
+  partProperty(configClass, "ransac_px", overlap, &OverlapConfig::ransacPixels);
+  partProperty(configClass, "fast_threshold", overlap, &OverlapConfig::fastThreshold);
+  partProperty(configClass, "lk_window", overlap, &OverlapConfig::lkWindow);
+  partProperty(configClass, "lk_levels", overlap, &OverlapConfig::lkLevels);
 
   nb::class_<SharpnessScorer>(m, "SharpnessScorer")
       .def(
@@ -180,23 +200,16 @@ NB_MODULE(_core, m) {
           "config"_a = SelectorConfig{})
       .def(
           "observe",
-          [](OverlapEstimator& e, const Image& img) {
-            const OverlapResult r = e.observe(grayOf(img));
-            nb::dict d;
-            d["valid"] = r.valid;
-            d["overlap"] =
-                std::isfinite(r.overlap) ? nb::object(nb::float_(r.overlap)) : nb::none();
-            d["paper_distance"] = std::isfinite(r.paperDistance)
-                                      ? nb::object(nb::float_(r.paperDistance))
-                                      : nb::none();
-            d["features"] = r.features;
-            d["matches"] = r.matches;
-            d["inliers"] = r.inliers;
-            return d;
-          },
-          "gray"_a.noconvert())
+          [](OverlapEstimator& e, const Image& img) { return overlapDict(e.observe(grayOf(img))); },
+          "gray"_a.noconvert(),
+          "Analyse the next grey frame (at analysis size) against the reference.")
       .def("set_reference_to_current", &OverlapEstimator::setReferenceToCurrent)
       .def("mark_candidate", &OverlapEstimator::markCandidate)
+      .def(
+          "set_reference_to_candidate",
+          [](OverlapEstimator& e) { return overlapDict(e.setReferenceToCandidate()); },
+          "The marked candidate becomes the reference; returns the current frame's overlap "
+          "with it.")
       .def("reset", &OverlapEstimator::reset);
 
   nb::class_<KeyframeSelector>(m, "KeyframeSelector")
