@@ -15,6 +15,7 @@ install(FILES systemd/keyframed.sysusers DESTINATION lib/sysusers.d RENAME keyfr
 install(FILES config/keyframed.toml DESTINATION "${KEYFRAMED_CONFIG_DIR}")
 install(DIRECTORY DESTINATION "${KEYFRAMED_CONFIG_DIR}/conf.d")
 install(FILES README.md docs/configuration.md docs/design.md docs/formats.md docs/performance.md
+              docs/deploy.md docs/capture.md
         DESTINATION "${CMAKE_INSTALL_DOCDIR}")
 install(FILES config/camera-example.yaml DESTINATION "${CMAKE_INSTALL_DOCDIR}/examples")
 

@@ -69,10 +69,12 @@ def test_install_layout(tmp_path: Path):
     ).read_text()
 
 
-@pytest.mark.skipif(shutil.which("dpkg-deb") is None, reason="dpkg-deb not installed")
-def test_debian_package(tmp_path: Path):
+@pytest.fixture(scope="module")
+def deb(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if shutil.which("dpkg-deb") is None:
+        pytest.skip("dpkg-deb not installed")
     require_usr_prefix()
-    out = tmp_path / "pkg"
+    out = tmp_path_factory.mktemp("pkg")
     p = subprocess.run(
         ["cpack", "-G", "DEB", "-B", str(out)],
         cwd=build_dir(),
@@ -83,7 +85,10 @@ def test_debian_package(tmp_path: Path):
     assert p.returncode == 0, p.stdout + p.stderr
     debs = list(out.glob("keyframed_*_*.deb"))
     assert len(debs) == 1, list(out.iterdir())
-    deb = debs[0]
+    return debs[0]
+
+
+def test_debian_package(deb: Path, tmp_path: Path):
     arch = subprocess.check_output(["dpkg", "--print-architecture"], text=True).strip()
     version = subprocess.check_output(["dpkg-deb", "-f", str(deb), "Version"], text=True).strip()
     assert deb.name == f"keyframed_{version}_{arch}.deb"
@@ -98,6 +103,8 @@ def test_debian_package(tmp_path: Path):
         "./etc/keyframed/keyframed.toml",
         "./etc/keyframed/conf.d/",
         "./usr/share/doc/keyframed/configuration.md",
+        "./usr/share/doc/keyframed/deploy.md",
+        "./usr/share/doc/keyframed/capture.md",
     ):
         assert f in paths, f
 
@@ -118,3 +125,50 @@ def test_debian_package(tmp_path: Path):
     for lib in ("libc6", "libsystemd0", "libtomlplusplus3", "libopencv-core"):
         assert lib in depends, depends
     assert "Package: keyframed" in info
+
+
+def _dpkg(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        ["dpkg", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
+    )
+
+
+def test_debian_package_installs_runs_and_purges(deb: Path, tmp_path: Path):
+    """The package for real: dpkg runs its maintainer scripts (system user), the
+    installed daemon reads the installed configuration, removal keeps the conffile
+    and purge removes it. Needs root and a machine where keyframed is not installed
+    otherwise (CI's throw-away machine)."""
+    if os.geteuid() != 0:
+        pytest.skip("installing a .deb needs root")
+    if _dpkg("-s", "keyframed").returncode == 0:
+        pytest.skip("keyframed is already installed as a package here: not touching it")
+    if Path("/usr/bin/keyframed").exists() or Path("/etc/keyframed").exists():
+        pytest.skip("/usr/bin/keyframed or /etc/keyframed exists outside dpkg: not touching it")
+    try:
+        p = _dpkg("-i", str(deb))
+        assert p.returncode == 0, p.stdout + p.stderr
+        user = subprocess.run(["getent", "passwd", "keyframed"], capture_output=True, text=True)
+        assert user.returncode == 0, "postinst made no keyframed user"
+        groups = subprocess.check_output(["id", "-nG", "keyframed"], text=True).split()
+        assert "keyframed" in groups
+        # the installed binary with the installed configuration, as the unit runs it
+        p = subprocess.run(
+            ["/usr/bin/keyframed", "check-config"], capture_output=True, text=True, timeout=30
+        )
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "/etc/keyframed/keyframed.toml" in p.stdout + p.stderr
+        conf = Path("/etc/keyframed/keyframed.toml")
+        conf.write_text(conf.read_text() + "\n# edited by the operator\n")
+        p = _dpkg("-r", "keyframed")
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert not Path("/usr/bin/keyframed").exists()
+        assert "edited by the operator" in conf.read_text()  # a conffile survives removal
+        p = _dpkg("-P", "keyframed")
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert not conf.exists()
+    finally:
+        _dpkg("-P", "keyframed")
