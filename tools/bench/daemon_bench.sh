@@ -1,29 +1,67 @@
 #!/usr/bin/env bash
 # The live daemon's cost on 1080p30 in real time: `keyframed run` with the file
-# source paced at the video's own rate (as a camera), MCAP recording on, no
-# telemetry or Zenoh peers. Prints the summary's frame rate, drops, CPU (total, and
-# without the video decoding a camera would do in hardware) and peak RSS.
-#   tools/bench/daemon_bench.sh [SECONDS]   (default 12)
+# source paced at the video's own rate (as a camera), MCAP recording on. Prints the
+# summary's frame rate, drops, CPU (total, and without the video decoding a camera
+# would do in hardware) and peak RSS.
+#   tools/bench/daemon_bench.sh [SECONDS] [--full]   (default 12 s)
+# Without --full: no telemetry or Zenoh peers (the selection, recording and preview
+# cost alone). With --full: the daemon as shipped, telemetry and Zenoh on, a fake
+# autopilot replaying the flight's tlog over UDP and a ground station (keyframed-ground)
+# receiving the keyframes over loopback; their own CPU is not counted.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 cd "$ROOT"
-SECS="${1:-12}"
+SECS=12
+FULL=0
+for a in "$@"; do
+  case "$a" in
+    --full) FULL=1 ;;
+    *) SECS="$a" ;;
+  esac
+done
 SAMPLE="data/sample/nadir1080-${SECS}s"
 if [ ! -f "$SAMPLE/meta.json" ]; then
   .venv/bin/python -m keyframed.synth --flight nadir --out "$SAMPLE" --width 1920 --height 1080 \
     --seconds "$SECS" >/dev/null
 fi
 STATE="$(mktemp -d)"
-trap 'rm -rf "$STATE"' EXIT
+cleanup() { kill "${GROUND_PID:-}" "${AP_PID:-}" 2>/dev/null || true; rm -rf "$STATE"; }
+trap cleanup EXIT
 mkdir -p "$STATE/etc"
-build/release/daemon/keyframed run --config-dir "$STATE/etc" --set camera.source=file \
-  --set "camera.path=$ROOT/$SAMPLE/video.avi" --set "output.state_dir=$STATE" \
-  --set telemetry.url= --set zenoh.enabled=false 2>/dev/null
-.venv/bin/python - "$STATE/latest/summary.json" <<'PY'
+ARGS=(--set camera.source=file --set "camera.path=$ROOT/$SAMPLE/video.avi"
+      --set "output.state_dir=$STATE")
+if [ "$FULL" = 1 ]; then
+  free_port() { .venv/bin/python -c "import socket,sys; s=socket.socket(socket.AF_INET, getattr(socket, sys.argv[1])); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])" "$1"; }
+  ZPORT="$(free_port SOCK_STREAM)"
+  MPORT="$(free_port SOCK_DGRAM)"
+  echo "{ mode: \"peer\", listen: { endpoints: [\"tcp/127.0.0.1:$ZPORT\"] }, scouting: { multicast: { enabled: false } } }" \
+    > "$STATE/etc/zenoh.json5"
+  ARGS+=(--set "telemetry.url=udpin:127.0.0.1:$MPORT" --set "zenoh.config=$STATE/etc/zenoh.json5"
+         --set zenoh.vehicle=bench --set "tagging.calibration=$ROOT/$SAMPLE/calibration.yaml")
+  .venv/bin/python -m keyframed.ground --out "$STATE/dataset" --connect "tcp/127.0.0.1:$ZPORT" \
+    --until-done --quiet > "$STATE/ground.json" &
+  GROUND_PID=$!
+  .venv/bin/python tests/harness/fake_autopilot.py "$SAMPLE/flight.tlog" \
+    --target "127.0.0.1:$MPORT" --start-delay 0.5 &
+  AP_PID=$!
+else
+  ARGS+=(--set telemetry.url= --set zenoh.enabled=false)
+fi
+build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" 2>/dev/null
+if [ "$FULL" = 1 ]; then wait "$GROUND_PID" || true; fi
+.venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))
-print(f"keyframed run, {s['width']}x{s['height']} file source in real time, {s['seconds']:.1f} s")
+full = sys.argv[2] == "1"
+what = "telemetry, tagging, MCAP, Zenoh to a ground station" if full else "MCAP, no peers"
+print(f"keyframed run, {s['width']}x{s['height']} file source in real time, {s['seconds']:.1f} s ({what})")
 for k in ("frames_per_second", "frames_read", "frames_dropped", "kept", "analysis_ms_mean",
           "cpu_percent", "cpu_percent_without_decode", "max_rss_mb"):
     print(f"  {k:28s} {s[k]}")
+if full:
+    t = s.get("telemetry") or {}
+    print(f"  {'geotagged':28s} {t.get('geotagged')}")
+    for line in open(sys.argv[3]):
+        g = json.loads(line)
+        print(f"  {'ground station received':28s} {g['keyframes']}")
 PY
