@@ -269,6 +269,64 @@ def test_corrupt_video_is_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
     assert "Sanitizer" not in stderr and "runtime error" not in stderr
 
 
+@pytest.mark.parametrize("realtime", [False, True], ids=["fast", "realtime"])
+def test_cut_video_ends_promptly_with_the_keyframes_before_the_cut(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, realtime: bool
+) -> None:
+    """A video that breaks off mid-stream (a copy cut short) is the end of the flight,
+    said as a failure: every frame before the cut analysed, its keyframes written."""
+    data = (short_nadir / "video.avi").read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    t0 = time.monotonic()
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={cut}",
+        f"camera.realtime={str(realtime).lower()}",
+        "output.mcap=false",
+    )
+    try:
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    took = time.monotonic() - t0
+    assert took < (10.0 if realtime else 5.0), f"took {took:.1f} s"
+    assert proc.returncode == 1, stderr
+    # one clear line naming the file and what is wrong with it
+    failed = [ln for ln in stderr.splitlines() if "capture stopped" in ln]
+    assert len(failed) == 1, stderr
+    assert " E capture: " in failed[0] and "ended early" in failed[0]
+    assert "truncated" in failed[0] and str(cut) in failed[0]
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "capture_failed"
+    captured = summary["frames_captured"]
+    assert 60 < captured < 240
+    assert summary["frames_read"] + summary["frames_dropped"] == captured
+    decisions = rows(fd / "decisions.csv")
+    assert len(decisions) == summary["frames_read"]
+    # the frames queued when the video broke off were analysed too, up to the last one
+    assert int(decisions[-1]["index"]) == captured - 1
+    kept = [r["index"] for r in decisions if r["kept"] == "1"]
+    jpgs = sorted(p.name for p in (fd / "keyframes").glob("*.jpg"))
+    assert len(kept) == len(jpgs) == summary["written"] >= 2
+    if realtime:
+        # At the camera's pace nothing is dropped: the same keyframes as `select`
+        # picks from the same cut file.
+        assert summary["frames_dropped"] == 0
+        off = tmp_path / "offline"
+        r = subprocess.run(
+            [str(kf_bin), "select", str(cut), "--out", str(off), "--quiet"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert r.returncode == 3, r.stderr
+        assert jpgs == sorted(p.name for p in off.glob("*.jpg"))
+
+
 def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
     _, stderr = proc.communicate(timeout=30)
