@@ -2,6 +2,7 @@
 
 #include <time.h>
 
+#include <algorithm>
 #include <chrono>
 #include <optional>
 #include <thread>
@@ -19,24 +20,34 @@ void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
 }
 
 KeyframeOutput::KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
-                               TelemetryService* telemetry, int telemetryWaitMs)
+                               TelemetryService* telemetry, int telemetryWaitMs,
+                               std::int64_t linkSilentNs)
     : writer_(writer),
       log_(log),
       outputs_(outputs),
       telemetry_(telemetry),
-      telemetryWaitMs_(telemetryWaitMs) {}
+      telemetryWaitMs_(telemetryWaitMs),
+      linkSilentNs_(linkSilentNs) {}
+
+std::int64_t KeyframeOutput::silenceOf(const PoseStore::Config& store) {
+  return std::max(store.maxAttitudeGapNs, store.maxPositionGapNs) + store.maxHoldNs;
+}
 
 bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::string& error) {
   std::optional<Pose> pose;
   if (telemetry_ != nullptr) {
     if (!telemetry_->isReplay()) {
-      // Telemetry for this instant may still be on its way: wait a little.
+      // Telemetry for this instant may still be on its way: wait a little, but only
+      // while the link delivers. Waiting on a silent one (no autopilot, link lost)
+      // would hold every keyframe, and so the analysis and the capture, for wait_ms.
       const std::int64_t deadline = monotonicNowNs() + telemetryWaitMs_ * 1'000'000LL;
       // A gimbal only when its attitude is used: a dead gimbal on the link must not
       // hold up a fixed-mount camera's keyframes.
       const bool gimbal = writer_.mount().gimbal;
-      while (!telemetry_->decoder().covers(frame.timestampNs, gimbal) &&
-             monotonicNowNs() < deadline) {
+      const TelemetryDecoder& decoder = telemetry_->decoder();
+      while (!decoder.covers(frame.timestampNs, gimbal)) {
+        const std::int64_t now = monotonicNowNs();
+        if (now >= deadline || !decoder.covers(now - linkSilentNs_, gimbal)) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

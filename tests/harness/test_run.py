@@ -327,6 +327,42 @@ def test_cut_video_ends_promptly_with_the_keyframes_before_the_cut(
         assert jpgs == sorted(p.name for p in off.glob("*.jpg"))
 
 
+def test_silent_telemetry_link_holds_up_nothing(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """telemetry.url set, but no autopilot sends: keyframes must not wait wait_ms each
+    for telemetry that is not coming (that stalled the analysis, dropped frames and
+    made SIGTERM slow). They are written at once, untagged, with the reason."""
+    port = free_port(socket.SOCK_DGRAM)
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{port}",
+        "telemetry.start_wait_ms=300",
+        "telemetry.wait_ms=1000",
+    )
+    try:
+        time.sleep(5.0)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    summary = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+    assert summary["state"] == "stopped"
+    assert summary["frames_dropped"] == 0, summary
+    assert summary["frames_read"] > 100
+    kfs = rows(flight_dir(tmp_path) / "keyframes" / "keyframes.csv")
+    assert len(kfs) >= 3 and len(kfs) == summary["written"]
+    assert all(k["geotag"] == "no telemetry" for k in kfs), kfs
+    assert summary["telemetry"]["geotagged"] == 0
+
+
 def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
     _, stderr = proc.communicate(timeout=30)
