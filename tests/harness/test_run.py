@@ -397,6 +397,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         text=True,
     )
     ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", mport))
+    ns = NotifySocket(tmp_path / "notify.sock")
     proc = start(
         kf_bin,
         tmp_path,
@@ -407,6 +408,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         f"zenoh.config={zconf}",
         "zenoh.vehicle=uav7",
         "output.preview_width=240",
+        env={"NOTIFY_SOCKET": str(ns.path)},
     )
     import zenoh
 
@@ -427,7 +429,16 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     try:
         time.sleep(0.3)
         ap.start()
-        _, stderr = proc.communicate(timeout=120)
+        # Stopped by SIGTERM near the end of the flight, as a pilot's shutdown would.
+        deadline = time.monotonic() + 30
+        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert ns.has("READY=1"), "no first frame"
+        time.sleep(6.5)  # about 195 of the video's 240 frames
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
         g_out, g_err = ground.communicate(timeout=60)
     finally:
         for p in (proc, ground):
@@ -436,14 +447,19 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         for s in subs:
             s.undeclare()
         watcher.close()
+        ns.close()
     # the live view (best effort, about 2 Hz) and the pose (about 1 Hz)
     assert len(previews) >= 5 and all(p[:2] == b"\xff\xd8" for p in previews)
     located = [p for p in poses if "lat" in p]
     assert len(located) >= 4 and all(abs(p["lat"] - 51.89) < 0.01 for p in located), poses
     assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
     assert ground.returncode == 0, g_err
     fd = flight_dir(tmp_path)
     summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "stopped"
+    assert summary["frames_dropped"] == 0, summary
+    assert 150 < summary["frames_read"] < 240
     kfs = rows(fd / "keyframes" / "keyframes.csv")
     assert len(kfs) >= 5 and summary["written"] == len(kfs)
     ok = [k for k in kfs if k["geotag"] == "ok"]
