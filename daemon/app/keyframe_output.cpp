@@ -21,16 +21,21 @@ void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
 
 KeyframeOutput::KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
                                TelemetryService* telemetry, int telemetryWaitMs,
-                               std::int64_t linkSilentNs)
+                               const PoseStore::Config& limits)
     : writer_(writer),
       log_(log),
       outputs_(outputs),
       telemetry_(telemetry),
       telemetryWaitMs_(telemetryWaitMs),
-      linkSilentNs_(linkSilentNs) {}
+      limits_(limits) {}
 
-std::int64_t KeyframeOutput::silenceOf(const PoseStore::Config& store) {
-  return std::max(store.maxAttitudeGapNs, store.maxPositionGapNs) + store.maxHoldNs;
+bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
+  const TelemetryDecoder& d = telemetry_->decoder();
+  const std::int64_t widest = std::max(limits_.maxAttitudeGapNs, limits_.maxPositionGapNs);
+  if (!d.covers(nowNs - widest - limits_.maxHoldNs, gimbal)) return false;
+  // Attitude, the fast stream, says sooner that the link went quiet: there is one
+  // at this instant only when a sample came within attitude_gap + stale.
+  return d.poseAt(nowNs - limits_.maxAttitudeGapNs).attitude.has_value();
 }
 
 bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::string& error) {
@@ -44,10 +49,9 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
       // A gimbal only when its attitude is used: a dead gimbal on the link must not
       // hold up a fixed-mount camera's keyframes.
       const bool gimbal = writer_.mount().gimbal;
-      const TelemetryDecoder& decoder = telemetry_->decoder();
-      while (!decoder.covers(frame.timestampNs, gimbal)) {
+      while (!telemetry_->decoder().covers(frame.timestampNs, gimbal)) {
         const std::int64_t now = monotonicNowNs();
-        if (now >= deadline || !decoder.covers(now - linkSilentNs_, gimbal)) break;
+        if (now >= deadline || !linkDelivers(now, gimbal)) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

@@ -23,15 +23,12 @@ void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs);
 
 class KeyframeOutput {
  public:
-  // A live link is silent when no attitude and position newer than `linkSilentNs`
-  // have arrived; keyframes then do not wait for it.
+  // `limits`: the pose history's (telemetry.attitude_gap_ms, position_gap_ms,
+  // stale_ms). A live link that has been quieter than they allow is silent, and
+  // keyframes do not wait for it.
   KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
                  TelemetryService* telemetry, int telemetryWaitMs,
-                 std::int64_t linkSilentNs = silenceOf(PoseStore::Config{}));
-
-  // How long a link that delivers stays quiet at most: the widest gap the pose
-  // history accepts between samples, plus the time a pose is held past the newest.
-  static std::int64_t silenceOf(const PoseStore::Config& store);
+                 const PoseStore::Config& limits = {});
 
   // False with a one-line error when a keyframe or the decision log cannot be
   // written (the keyframes written so far stay complete).
@@ -39,13 +36,16 @@ class KeyframeOutput {
 
  private:
   bool writeKeyframe(const Frame& frame, std::string& note, std::string& error);
+  // The link still delivers at `nowNs`: attitude within attitude_gap + stale, and
+  // attitude and position within the wider gap + stale.
+  [[nodiscard]] bool linkDelivers(std::int64_t nowNs, bool gimbal) const;
 
   KeyframeWriter& writer_;
   DecisionLog& log_;
   FlightOutputs& outputs_;
   TelemetryService* telemetry_;
   int telemetryWaitMs_;
-  std::int64_t linkSilentNs_;
+  PoseStore::Config limits_;
 };
 
 }  // namespace keyframed

@@ -538,9 +538,9 @@ int Daemon::run() {
   MonotonicClock clock;
   stage_ = std::make_unique<KeyframeStage>(
       config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
-  output_ = std::make_unique<KeyframeOutput>(
-      writer_, log_, outputs_, telemetry_.get(), config_.telemetry.waitMs,
-      KeyframeOutput::silenceOf(config_.telemetry.link.decoder.store));
+  output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
+                                             config_.telemetry.waitMs,
+                                             config_.telemetry.link.decoder.store);
   constexpr std::size_t kQueueFrames = 4;
   queue_ = std::make_unique<FrameQueue>(kQueueFrames);
   pool_ = std::make_unique<FramePool>(kQueueFrames + 3);  // + analysing, + capturing, + spare

@@ -363,6 +363,50 @@ def test_silent_telemetry_link_holds_up_nothing(
     assert summary["telemetry"]["geotagged"] == 0
 
 
+def test_telemetry_lost_mid_flight_holds_up_nothing(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The autopilot falls silent mid-flight: the keyframes right after must not wait
+    wait_ms each for it (frames would be dropped); those before are tagged, those
+    after are written untagged with the reason."""
+    port = free_port(socket.SOCK_DGRAM)
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
+    ns = NotifySocket(tmp_path / "notify.sock")
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{port}",
+        "output.mcap=false",
+        env={"NOTIFY_SOCKET": str(ns.path)},
+    )
+    try:
+        time.sleep(0.3)
+        ap.start()
+        deadline = time.monotonic() + 30
+        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert ns.has("READY=1"), "no first frame"
+        # Silent from about frame 96 on, just before the keyframes at 106 and 122.
+        time.sleep(3.2)
+        ap.stop()
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        ns.close()
+    assert proc.returncode == 0, stderr
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["frames_dropped"] == 0, summary
+    assert summary["frames_read"] == 240
+    kfs = {int(k["index"]): k["geotag"] for k in rows(fd / "keyframes" / "keyframes.csv")}
+    before = [g for i, g in kfs.items() if i <= 85]
+    after = [g for i, g in kfs.items() if i >= 122]
+    assert len(before) >= 2 and all(g == "ok" for g in before), kfs
+    assert len(after) >= 2 and all("stale" in g for g in after), kfs
+
+
 def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
     _, stderr = proc.communicate(timeout=30)
