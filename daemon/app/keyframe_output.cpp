@@ -2,6 +2,7 @@
 
 #include <time.h>
 
+#include <algorithm>
 #include <chrono>
 #include <optional>
 #include <thread>
@@ -19,24 +20,38 @@ void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
 }
 
 KeyframeOutput::KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
-                               TelemetryService* telemetry, int telemetryWaitMs)
+                               TelemetryService* telemetry, int telemetryWaitMs,
+                               const PoseStore::Config& limits)
     : writer_(writer),
       log_(log),
       outputs_(outputs),
       telemetry_(telemetry),
-      telemetryWaitMs_(telemetryWaitMs) {}
+      telemetryWaitMs_(telemetryWaitMs),
+      limits_(limits) {}
+
+bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
+  const TelemetryDecoder& d = telemetry_->decoder();
+  const std::int64_t widest = std::max(limits_.maxAttitudeGapNs, limits_.maxPositionGapNs);
+  if (!d.covers(nowNs - widest - limits_.maxHoldNs, gimbal)) return false;
+  // Attitude, the fast stream, says sooner that the link went quiet: there is one
+  // at this instant only when a sample came within attitude_gap + stale.
+  return d.poseAt(nowNs - limits_.maxAttitudeGapNs).attitude.has_value();
+}
 
 bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::string& error) {
   std::optional<Pose> pose;
   if (telemetry_ != nullptr) {
     if (!telemetry_->isReplay()) {
-      // Telemetry for this instant may still be on its way: wait a little.
+      // Telemetry for this instant may still be on its way: wait a little, but only
+      // while the link delivers. Waiting on a silent one (no autopilot, link lost)
+      // would hold every keyframe, and so the analysis and the capture, for wait_ms.
       const std::int64_t deadline = monotonicNowNs() + telemetryWaitMs_ * 1'000'000LL;
       // A gimbal only when its attitude is used: a dead gimbal on the link must not
       // hold up a fixed-mount camera's keyframes.
       const bool gimbal = writer_.mount().gimbal;
-      while (!telemetry_->decoder().covers(frame.timestampNs, gimbal) &&
-             monotonicNowNs() < deadline) {
+      while (!telemetry_->decoder().covers(frame.timestampNs, gimbal)) {
+        const std::int64_t now = monotonicNowNs();
+        if (now >= deadline || !linkDelivers(now, gimbal)) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

@@ -7,6 +7,7 @@
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "output/flight_outputs.h"
+#include "telemetry/pose_store.h"
 #include "telemetry/telemetry_service.h"
 
 namespace keyframed {
@@ -14,16 +15,20 @@ namespace keyframed {
 // The output end of the data path, shared by `select` (inline) and `run` (on the
 // output thread): for each KeyframeEvent, tags and writes the keyframes it carries
 // (pose at the frame's time, waiting briefly on a live link for telemetry newer
-// than the frame), logs the decision, feeds the MCAP/Zenoh outputs and reports
-// the capture to the autopilot. Events must arrive in frame order.
-// Records every MAVLink packet a live link receives into the flight outputs (MCAP
-// /mavlink/raw); nothing for a tlog, which is the raw record already.
+// than the frame while the link delivers), logs the decision, feeds the MCAP/Zenoh outputs and
+// reports the capture to the autopilot. Events must arrive in frame order. Records every MAVLink
+// packet a live link receives into the flight outputs (MCAP /mavlink/raw); nothing for a tlog,
+// which is the raw record already.
 void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs);
 
 class KeyframeOutput {
  public:
+  // `limits`: the pose history's (telemetry.attitude_gap_ms, position_gap_ms,
+  // stale_ms). A live link that has been quieter than they allow is silent, and
+  // keyframes do not wait for it.
   KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
-                 TelemetryService* telemetry, int telemetryWaitMs);
+                 TelemetryService* telemetry, int telemetryWaitMs,
+                 const PoseStore::Config& limits = {});
 
   // False with a one-line error when a keyframe or the decision log cannot be
   // written (the keyframes written so far stay complete).
@@ -31,12 +36,16 @@ class KeyframeOutput {
 
  private:
   bool writeKeyframe(const Frame& frame, std::string& note, std::string& error);
+  // The link still delivers at `nowNs`: attitude within attitude_gap + stale, and
+  // attitude and position within the wider gap + stale.
+  [[nodiscard]] bool linkDelivers(std::int64_t nowNs, bool gimbal) const;
 
   KeyframeWriter& writer_;
   DecisionLog& log_;
   FlightOutputs& outputs_;
   TelemetryService* telemetry_;
   int telemetryWaitMs_;
+  PoseStore::Config limits_;
 };
 
 }  // namespace keyframed

@@ -29,6 +29,7 @@ class PacedSource final : public FrameSource {
               std::optional<std::int64_t> startUnixNs);
   [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
   ReadStatus next(Frame& frame, std::string& error) override;
+  [[nodiscard]] bool failed() const override { return inner_->failed(); }
   [[nodiscard]] double decodeCpuSeconds() const {
     return static_cast<double>(decodeCpuNs_.load()) / 1e9;
   }

@@ -539,11 +539,17 @@ int Daemon::run() {
   stage_ = std::make_unique<KeyframeStage>(
       config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
   output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
-                                             config_.telemetry.waitMs);
+                                             config_.telemetry.waitMs,
+                                             config_.telemetry.link.decoder.store);
   constexpr std::size_t kQueueFrames = 4;
   queue_ = std::make_unique<FrameQueue>(kQueueFrames);
   pool_ = std::make_unique<FramePool>(kQueueFrames + 3);  // + analysing, + capturing, + spare
-  capture_ = std::make_unique<CaptureThread>(*source_, *pool_, *queue_);
+  // A camera may come back (V4L2 reopens it): never give up on it; the watchdog
+  // says when it is gone too long. A file that keeps failing to decode will not.
+  constexpr int kFileMaxErrors = 10;
+  capture_ = std::make_unique<CaptureThread>(
+      *source_, *pool_, *queue_,
+      config_.camera.source == DaemonConfig::Source::File ? kFileMaxErrors : 0);
 
   if (telemetry_ && !telemetry_->isReplay() && config_.telemetry.startWaitMs > 0) {
     // Keyframes taken before the autopilot is heard would go untagged: give the link
@@ -622,7 +628,9 @@ int Daemon::run() {
   notifier_.stopping("flushing");
   capture_->stop();
   queue_->close();
-  if (state != "done") stopAnalysis_.store(true);  // a signal: stop now, keep the candidate
+  // A signal: stop now, keep the candidate. A failed capture: the frames before the
+  // failure are good, analyse them all.
+  if (state == "stopped") stopAnalysis_.store(true);
   analysis.join();
   output.join();
   const double seconds =

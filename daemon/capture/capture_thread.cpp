@@ -1,6 +1,73 @@
 #include "capture/capture_thread.h"
 
+#include <algorithm>
+#include <cctype>
+#include <cstdio>
+
+#include "app/log.h"
+
 namespace keyframed {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// A message without its numbers ("reopen attempt 7 failed" and "... 8 failed" are one kind).
+std::string kindOf(const std::string& message) {
+  std::string k;
+  k.reserve(message.size());
+  for (const char c : message) {
+    if (std::isdigit(static_cast<unsigned char>(c)) == 0) k += c;
+  }
+  return k;
+}
+
+// Says what goes wrong with a source without flooding the log: an outage's first
+// error at once, a new kind of error at most once a second, the same kind at most
+// every 10 s with the number left unsaid; and when frames come back.
+class ErrorLog {
+ public:
+  void error(const std::string& message) {
+    const auto now = Clock::now();
+    if (errors_ == 0) outageStart_ = now;
+    ++errors_;
+    const std::string kind = kindOf(message);
+    const auto since = now - lastLogged_;
+    const bool first = errors_ == 1;
+    if (first || (kind != lastKind_ && since >= std::chrono::seconds(1)) ||
+        since >= std::chrono::seconds(10)) {
+      KF_LOG(Capture, Warning) << message
+                               << (unsaid_ > 0 ? " (" + std::to_string(unsaid_) +
+                                                     " more capture errors since the last line)"
+                                               : std::string());
+      lastLogged_ = now;
+      lastKind_ = kind;
+      unsaid_ = 0;
+    } else {
+      ++unsaid_;
+    }
+  }
+  void frame() {
+    if (errors_ == 0) return;
+    char took[32];
+    std::snprintf(took, sizeof took, "%.1f s",
+                  std::chrono::duration<double>(Clock::now() - outageStart_).count());
+    KF_LOG(Capture, Notice) << "capture recovered after " << errors_ << " error"
+                            << (errors_ == 1 ? "" : "s") << " in " << took;
+    errors_ = 0;
+    unsaid_ = 0;
+    lastKind_.clear();
+  }
+
+ private:
+  std::uint64_t errors_ = 0;  // in the current outage
+  std::uint64_t unsaid_ = 0;
+  Clock::time_point outageStart_{};
+  Clock::time_point lastLogged_{};
+  std::string lastKind_;
+};
+
+}  // namespace
 
 CaptureThread::CaptureThread(FrameSource& source, FramePool& pool, FrameQueue& queue,
                              int maxConsecutiveErrors)
@@ -18,9 +85,18 @@ void CaptureThread::start() {
 }
 
 void CaptureThread::stop() {
-  stop_ = true;
+  {
+    std::lock_guard lock(stopMutex_);
+    stop_ = true;
+  }
+  stopped_.notify_all();
   if (thread_.joinable()) thread_.join();
   running_ = false;
+}
+
+bool CaptureThread::pause(std::chrono::nanoseconds d) {
+  std::unique_lock lock(stopMutex_);
+  return !stopped_.wait_for(lock, d, [this] { return stop_.load(); });
 }
 
 CaptureThread::Stats CaptureThread::stats() const {
@@ -35,9 +111,12 @@ std::string CaptureThread::lastError() const {
 
 void CaptureThread::run() {
   int consecutiveErrors = 0;
+  std::chrono::nanoseconds backoff = kFirstBackoff;
+  ErrorLog log;
   std::string error;
   while (!stop_) {
     Frame frame;
+    const auto called = Clock::now();
     const ReadStatus status = source_.next(frame, error);
     if (status == ReadStatus::End) {
       ended_ = true;
@@ -50,10 +129,19 @@ void CaptureThread::run() {
         ++stats_.errors;
         lastError_ = error;
       }
+      // A permanent error is the owner's to report (lastError()): it ends the run.
+      if (source_.failed()) break;
       if (maxConsecutiveErrors_ > 0 && consecutiveErrors >= maxConsecutiveErrors_) break;
+      log.error(error);
+      // A read that failed slowly (a poll timeout) has waited already.
+      const auto waited = Clock::now() - called;
+      if (waited < backoff && !pause(backoff - waited)) break;
+      backoff = std::min<std::chrono::nanoseconds>(backoff * 2, kMaxBackoff);
       continue;
     }
     consecutiveErrors = 0;
+    backoff = kFirstBackoff;
+    log.frame();
     FramePtr buffer = pool_.acquire();
     {
       std::lock_guard lock(mutex_);

@@ -1,6 +1,8 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
+#include <condition_variable>
 #include <cstdint>
 #include <memory>
 #include <mutex>
@@ -16,6 +18,13 @@ namespace keyframed {
 // copies each frame into a pooled buffer and pushes it into a bounded queue
 // that drops the oldest frame when the analysis falls behind. It never waits
 // for the consumer. On End or a permanent Error it closes the queue.
+//
+// Errors: after an Error the next read waits (10 ms, doubling to 1 s; time the
+// failing read itself took counts), so a source that fails at once cannot spin.
+// A source whose failed() is true, or `maxConsecutiveErrors` Errors in a row, end
+// the thread; lastError() says why. Passing errors are logged (capture, warning):
+// the first of an outage at once, a different kind at most once a second, the
+// same kind at most every 10 s with a count; a line when frames come back.
 class CaptureThread {
  public:
   struct Stats {
@@ -24,9 +33,8 @@ class CaptureThread {
     std::uint64_t errors = 0;    // Error results from the source
   };
 
-  // `maxConsecutiveErrors` Error results in a row end the thread (a source
-  // that recovers by itself, like V4l2Source with autoReopen, returns Error
-  // while it waits; 0 means never give up).
+  // `maxConsecutiveErrors`: 0 means never give up on a source that may recover
+  // (like V4l2Source with autoReopen, which returns Error while it waits).
   CaptureThread(FrameSource& source, FramePool& pool, FrameQueue& queue,
                 int maxConsecutiveErrors = 0);
   ~CaptureThread();
@@ -34,15 +42,21 @@ class CaptureThread {
   CaptureThread& operator=(const CaptureThread&) = delete;
 
   void start();
-  // Asks the thread to stop after the current next() call and joins it.
+  // Asks the thread to stop after the current next() call (or at once while it
+  // backs off) and joins it.
   void stop();
   [[nodiscard]] bool running() const { return running_; }
   [[nodiscard]] Stats stats() const;
   [[nodiscard]] std::string lastError() const;
   [[nodiscard]] bool ended() const { return ended_; }  // the source said End
 
+  static constexpr std::chrono::milliseconds kFirstBackoff{10};
+  static constexpr std::chrono::milliseconds kMaxBackoff{1000};
+
  private:
   void run();
+  // Waits up to `d` unless stop() is called; false when it was.
+  bool pause(std::chrono::nanoseconds d);
 
   FrameSource& source_;
   FramePool& pool_;
@@ -52,6 +66,8 @@ class CaptureThread {
   std::atomic<bool> stop_{false};
   std::atomic<bool> running_{false};
   std::atomic<bool> ended_{false};
+  std::mutex stopMutex_;
+  std::condition_variable stopped_;
   mutable std::mutex mutex_;
   Stats stats_;
   std::string lastError_;

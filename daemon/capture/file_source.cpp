@@ -44,6 +44,10 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
 }
 
 ReadStatus FileSource::next(Frame& frame, std::string& error) {
+  if (!failure_.empty()) {
+    error = failure_;
+    return ReadStatus::Error;
+  }
   if (!primed_) {
     bool ok = false;
     try {
@@ -56,14 +60,16 @@ ReadStatus FileSource::next(Frame& frame, std::string& error) {
       // Allow a little slack: container frame counts are estimates for some formats.
       if (info_.frameCount > 0 && index_ + 1 < info_.frameCount) {
         truncated_ = true;
-        error = "video ended early: read " + std::to_string(index_) + " of " +
-                std::to_string(info_.frameCount) + " frames (truncated or corrupt): " + path_;
+        failure_ = "video ended early: read " + std::to_string(index_) + " of " +
+                   std::to_string(info_.frameCount) + " frames (truncated or corrupt): " + path_;
+        error = failure_;
         return ReadStatus::Error;
       }
       return ReadStatus::End;
     }
     if (bgr_.cols != info_.width || bgr_.rows != info_.height || bgr_.type() != CV_8UC3) {
-      error = "frame size changed mid-stream at frame " + std::to_string(index_);
+      failure_ = "frame size changed mid-stream at frame " + std::to_string(index_) + ": " + path_;
+      error = failure_;
       return ReadStatus::Error;
     }
   }

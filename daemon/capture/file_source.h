@@ -20,6 +20,9 @@ class FileSource final : public FrameSource {
 
   [[nodiscard]] const SourceInfo& info() const override { return info_; }
   ReadStatus next(Frame& frame, std::string& error) override;
+  // After a truncation or a change of frame size: every later next() repeats that
+  // Error without reading.
+  [[nodiscard]] bool failed() const override { return !failure_.empty(); }
   // True when the stream ended before the frame count its header announced.
   [[nodiscard]] bool truncated() const { return truncated_; }
   [[nodiscard]] std::int64_t framesRead() const { return index_; }
@@ -34,6 +37,7 @@ class FileSource final : public FrameSource {
   std::int64_t index_ = 0;
   bool primed_ = false;  // bgr_ holds the first frame, read while probing
   bool truncated_ = false;
+  std::string failure_;  // the permanent error, once there is one
 };
 
 }  // namespace keyframed

@@ -26,6 +26,9 @@ class FrameSource {
   // The next frame. Its pixels stay valid until the next call. On Error,
   // `error` holds a one-line reason.
   virtual ReadStatus next(Frame& frame, std::string& error) = 0;
+  // True once next() has returned an Error the source cannot recover from (a
+  // truncated file, a camera gone for good): calling again would only repeat it.
+  [[nodiscard]] virtual bool failed() const { return false; }
 };
 
 }  // namespace keyframed

@@ -228,6 +228,11 @@ std::unique_ptr<LibcameraSource> LibcameraSource::open(const LibcameraOptions& o
   return src;
 }
 
+bool LibcameraSource::failed() const {
+  std::lock_guard lock(impl_->mutex);
+  return impl_->disconnected;
+}
+
 ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
   Impl& d = *impl_;
   const auto requeue = [&](libcamera::Request* r) {

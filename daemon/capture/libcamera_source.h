@@ -41,6 +41,9 @@ class LibcameraSource final : public FrameSource {
 
   [[nodiscard]] const SourceInfo& info() const override { return info_; }
   ReadStatus next(Frame& frame, std::string& error) override;
+  // The camera was disconnected: it is not reopened (the daemon exits and systemd
+  // restarts it), so every later next() fails at once.
+  [[nodiscard]] bool failed() const override;
 
   [[nodiscard]] const std::string& cameraId() const { return cameraId_; }
   // True when the last frame's time came from controls::SensorTimestamp.

@@ -65,6 +65,11 @@ class V4l2Source final : public FrameSource {
 
   [[nodiscard]] const SourceInfo& info() const override { return info_; }
   ReadStatus next(Frame& frame, std::string& error) override;
+  // Lost, and next() will not try to reopen it (no autoReopen, or out of attempts).
+  [[nodiscard]] bool failed() const override {
+    return lost() && (!options_.autoReopen || (options_.maxReopenAttempts > 0 &&
+                                               reopenAttempts_ >= options_.maxReopenAttempts));
+  }
 
   // Closes and reopens the device with the same options (after it came back).
   // Frame indices continue. False and a one-line error while it is still gone.

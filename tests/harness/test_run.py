@@ -269,6 +269,144 @@ def test_corrupt_video_is_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
     assert "Sanitizer" not in stderr and "runtime error" not in stderr
 
 
+@pytest.mark.parametrize("realtime", [False, True], ids=["fast", "realtime"])
+def test_cut_video_ends_promptly_with_the_keyframes_before_the_cut(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, realtime: bool
+) -> None:
+    """A video that breaks off mid-stream (a copy cut short) is the end of the flight,
+    said as a failure: every frame before the cut analysed, its keyframes written."""
+    data = (short_nadir / "video.avi").read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    t0 = time.monotonic()
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={cut}",
+        f"camera.realtime={str(realtime).lower()}",
+        "output.mcap=false",
+    )
+    try:
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    took = time.monotonic() - t0
+    assert took < (10.0 if realtime else 5.0), f"took {took:.1f} s"
+    assert proc.returncode == 1, stderr
+    # one clear line naming the file and what is wrong with it
+    failed = [ln for ln in stderr.splitlines() if "capture stopped" in ln]
+    assert len(failed) == 1, stderr
+    assert " E capture: " in failed[0] and "ended early" in failed[0]
+    assert "truncated" in failed[0] and str(cut) in failed[0]
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "capture_failed"
+    captured = summary["frames_captured"]
+    assert 60 < captured < 240
+    assert summary["frames_read"] + summary["frames_dropped"] == captured
+    decisions = rows(fd / "decisions.csv")
+    assert len(decisions) == summary["frames_read"]
+    # the frames queued when the video broke off were analysed too, up to the last one
+    assert int(decisions[-1]["index"]) == captured - 1
+    kept = [r["index"] for r in decisions if r["kept"] == "1"]
+    jpgs = sorted(p.name for p in (fd / "keyframes").glob("*.jpg"))
+    assert len(kept) == len(jpgs) == summary["written"] >= 2
+    if realtime:
+        # At the camera's pace nothing is dropped: the same keyframes as `select`
+        # picks from the same cut file.
+        assert summary["frames_dropped"] == 0
+        off = tmp_path / "offline"
+        r = subprocess.run(
+            [str(kf_bin), "select", str(cut), "--out", str(off), "--quiet"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert r.returncode == 3, r.stderr
+        assert jpgs == sorted(p.name for p in off.glob("*.jpg"))
+
+
+def test_silent_telemetry_link_holds_up_nothing(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """telemetry.url set, but no autopilot sends: keyframes must not wait wait_ms each
+    for telemetry that is not coming (that stalled the analysis, dropped frames and
+    made SIGTERM slow). They are written at once, untagged, with the reason."""
+    port = free_port(socket.SOCK_DGRAM)
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{port}",
+        "telemetry.start_wait_ms=300",
+        "telemetry.wait_ms=1000",
+    )
+    try:
+        time.sleep(5.0)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    summary = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+    assert summary["state"] == "stopped"
+    assert summary["frames_dropped"] == 0, summary
+    assert summary["frames_read"] > 100
+    kfs = rows(flight_dir(tmp_path) / "keyframes" / "keyframes.csv")
+    assert len(kfs) >= 3 and len(kfs) == summary["written"]
+    assert all(k["geotag"] == "no telemetry" for k in kfs), kfs
+    assert summary["telemetry"]["geotagged"] == 0
+
+
+def test_telemetry_lost_mid_flight_holds_up_nothing(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The autopilot falls silent mid-flight: the keyframes right after must not wait
+    wait_ms each for it (frames would be dropped); those before are tagged, those
+    after are written untagged with the reason."""
+    port = free_port(socket.SOCK_DGRAM)
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
+    ns = NotifySocket(tmp_path / "notify.sock")
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{port}",
+        "output.mcap=false",
+        env={"NOTIFY_SOCKET": str(ns.path)},
+    )
+    try:
+        time.sleep(0.3)
+        ap.start()
+        deadline = time.monotonic() + 30
+        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert ns.has("READY=1"), "no first frame"
+        # Silent from about frame 96 on, just before the keyframes at 106 and 122.
+        time.sleep(3.2)
+        ap.stop()
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        ns.close()
+    assert proc.returncode == 0, stderr
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["frames_dropped"] == 0, summary
+    assert summary["frames_read"] == 240
+    kfs = {int(k["index"]): k["geotag"] for k in rows(fd / "keyframes" / "keyframes.csv")}
+    before = [g for i, g in kfs.items() if i <= 85]
+    after = [g for i, g in kfs.items() if i >= 122]
+    assert len(before) >= 2 and all(g == "ok" for g in before), kfs
+    assert len(after) >= 2 and all("stale" in g for g in after), kfs
+
+
 def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
     _, stderr = proc.communicate(timeout=30)
@@ -303,6 +441,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         text=True,
     )
     ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", mport))
+    ns = NotifySocket(tmp_path / "notify.sock")
     proc = start(
         kf_bin,
         tmp_path,
@@ -313,6 +452,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         f"zenoh.config={zconf}",
         "zenoh.vehicle=uav7",
         "output.preview_width=240",
+        env={"NOTIFY_SOCKET": str(ns.path)},
     )
     import zenoh
 
@@ -333,7 +473,16 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     try:
         time.sleep(0.3)
         ap.start()
-        _, stderr = proc.communicate(timeout=120)
+        # Stopped by SIGTERM near the end of the flight, as a pilot's shutdown would.
+        deadline = time.monotonic() + 30
+        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert ns.has("READY=1"), "no first frame"
+        time.sleep(6.5)  # about 195 of the video's 240 frames
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
         g_out, g_err = ground.communicate(timeout=60)
     finally:
         for p in (proc, ground):
@@ -342,14 +491,19 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         for s in subs:
             s.undeclare()
         watcher.close()
+        ns.close()
     # the live view (best effort, about 2 Hz) and the pose (about 1 Hz)
     assert len(previews) >= 5 and all(p[:2] == b"\xff\xd8" for p in previews)
     located = [p for p in poses if "lat" in p]
     assert len(located) >= 4 and all(abs(p["lat"] - 51.89) < 0.01 for p in located), poses
     assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
     assert ground.returncode == 0, g_err
     fd = flight_dir(tmp_path)
     summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "stopped"
+    assert summary["frames_dropped"] == 0, summary
+    assert 150 < summary["frames_read"] < 240
     kfs = rows(fd / "keyframes" / "keyframes.csv")
     assert len(kfs) >= 5 and summary["written"] == len(kfs)
     ok = [k for k in kfs if k["geotag"] == "ok"]

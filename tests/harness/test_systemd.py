@@ -56,6 +56,7 @@ def test_unit_has_the_agreed_settings():
     assert one["ExecReload"] == "/bin/kill -HUP $MAINPID"
     assert one["WatchdogSec"] == "10"
     assert one["Restart"] == "on-failure"
+    assert one["StartLimitIntervalSec"] == "0", "a long camera outage must not fail the unit"
     assert one["User"] == "keyframed" and one["DynamicUser"] == "no"
     assert one["SupplementaryGroups"] == "video dialout"
     assert one["DevicePolicy"] == "closed"

@@ -71,6 +71,24 @@ TEST(FileSource, TruncatedVideoEndsWithAnErrorAfterTheGoodFrames) {
   EXPECT_EQ(st, ReadStatus::Error);
   EXPECT_TRUE(src->truncated());
   EXPECT_NE(err.find("ended early"), std::string::npos);
+  EXPECT_NE(err.find(cut), std::string::npos);
+  // Permanent: a capture thread stops instead of asking again; asking again repeats it.
+  EXPECT_TRUE(src->failed());
+  std::string again;
+  EXPECT_EQ(src->next(f, again), ReadStatus::Error);
+  EXPECT_EQ(again, err);
+}
+
+TEST(FileSource, AWholeVideoHasNotFailed) {
+  const std::string path = writeVideo("whole.avi", 10);
+  std::string err;
+  auto src = FileSource::open(path, err);
+  ASSERT_TRUE(src) << err;
+  Frame f;
+  while (src->next(f, err) == ReadStatus::Frame) {
+  }
+  EXPECT_FALSE(src->failed());
+  EXPECT_EQ(src->next(f, err), ReadStatus::End);
 }
 
 }  // namespace

@@ -2,11 +2,14 @@
 #include <chrono>
 #include <cstdint>
 #include <string>
+#include <string_view>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
 
+#include "app/log.h"
 #include "capture/buffer_pool.h"
 #include "capture/capture_thread.h"
 #include "capture/frame_queue.h"
@@ -288,6 +291,101 @@ TEST(CaptureThread, GivesUpAfterConsecutiveErrors) {
   capture.stop();
   EXPECT_EQ(capture.stats().errors, 3u);
   EXPECT_FALSE(capture.ended());
+}
+
+// Fails `errors` times (at once, as a vanished device does), then delivers `frames`.
+class FlakySource final : public FrameSource {
+ public:
+  FlakySource(int errors, int frames, bool permanent = false)
+      : errors_(errors), frames_(frames), permanent_(permanent) {
+    info_.width = 16;
+    info_.height = 8;
+    pixels_.assign(16 * 8, 0);
+  }
+  const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame& f, std::string& error) override {
+    ++calls;
+    if (errors_ > 0 || permanent_) {
+      --errors_;
+      error = permanent_
+                  ? "video ended early: test"
+                  : "device lost: /dev/video9 (attempt " + std::to_string(calls.load()) + ")";
+      return ReadStatus::Error;
+    }
+    if (frames_-- <= 0) return ReadStatus::End;
+    f = Frame{PixelFormat::Gray8, pixels_.data(), 16, 8, 16, calls.load() * 1000LL, calls.load()};
+    return ReadStatus::Frame;
+  }
+  bool failed() const override { return permanent_; }
+  std::atomic<int> calls{0};
+
+ private:
+  SourceInfo info_;
+  std::vector<std::uint8_t> pixels_;
+  int errors_, frames_;
+  bool permanent_;
+};
+
+// Captures the log lines of one category while alive.
+class LogCapture {
+ public:
+  LogCapture() {
+    logging::setSink([this](LogCategory c, LogLevel l, std::string_view m) {
+      if (c == LogCategory::Capture) lines.emplace_back(l, std::string(m));
+    });
+  }
+  ~LogCapture() { logging::setSink({}); }
+  std::vector<std::pair<LogLevel, std::string>> lines;
+};
+
+TEST(CaptureThread, BacksOffInsteadOfSpinningOnASourceThatFailsAtOnce) {
+  FlakySource src(1'000'000, 0);
+  FramePool pool(2);
+  FrameQueue q(2);
+  CaptureThread capture(src, pool, q);  // never gives up
+  capture.start();
+  std::this_thread::sleep_for(std::chrono::milliseconds(700));
+  const auto t0 = std::chrono::steady_clock::now();
+  capture.stop();  // also while it backs off
+  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(100));
+  // 10, 20, 40, ... ms apart: 7 calls in 700 ms, not millions.
+  EXPECT_GE(src.calls.load(), 5);
+  EXPECT_LE(src.calls.load(), 9);
+  EXPECT_TRUE(capture.running() == false);
+}
+
+TEST(CaptureThread, StopsAtOnceOnAPermanentErrorAndLeavesItToTheOwner) {
+  LogCapture log;
+  FlakySource src(0, 0, true);
+  FramePool pool(2);
+  FrameQueue q(2);
+  CaptureThread capture(src, pool, q);  // never gives up, but the source has failed
+  capture.start();
+  EXPECT_FALSE(q.pop().has_value());  // closed by the thread
+  capture.stop();
+  EXPECT_EQ(src.calls.load(), 1);
+  EXPECT_FALSE(capture.ended());
+  EXPECT_EQ(capture.lastError(), "video ended early: test");
+  EXPECT_TRUE(log.lines.empty());  // the owner reports why capture stopped, once
+}
+
+TEST(CaptureThread, LogsAnOutageOnceAndItsEnd) {
+  LogCapture log;
+  FlakySource src(5, 3);
+  FramePool pool(4);
+  FrameQueue q(8);
+  CaptureThread capture(src, pool, q);
+  capture.start();
+  int frames = 0;
+  while (q.pop()) ++frames;
+  capture.stop();
+  EXPECT_EQ(frames, 3);
+  EXPECT_EQ(capture.stats().errors, 5u);
+  ASSERT_EQ(log.lines.size(), 2u);
+  EXPECT_EQ(log.lines[0].first, LogLevel::Warning);
+  EXPECT_EQ(log.lines[0].second, "device lost: /dev/video9 (attempt 1)");
+  EXPECT_EQ(log.lines[1].first, LogLevel::Notice);
+  EXPECT_NE(log.lines[1].second.find("capture recovered after 5 errors"), std::string::npos);
 }
 
 }  // namespace
