@@ -120,6 +120,13 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       mavlink_global_position_int_t p;
       mavlink_msg_global_position_int_decode(&msg, &p);
       observeBootTime(p.time_boot_ms, localNs);
+      // 0,0 is what an estimator without an origin yet sends (and what an unset
+      // field reads); out of range is corruption. Neither is a place to tag with.
+      if ((p.lat == 0 && p.lon == 0) || p.lat < -900'000'000 || p.lat > 900'000'000 ||
+          p.lon < -1'800'000'000 || p.lon > 1'800'000'000) {
+        ++stats_.badPositions;
+        break;
+      }
       GeoPosition g;
       g.latDeg = p.lat * 1e-7;
       g.lonDeg = p.lon * 1e-7;
@@ -214,6 +221,11 @@ ClockMapper::Source TelemetryDecoder::clockSource() const {
 std::optional<std::int64_t> TelemetryDecoder::clockOffsetNs() const {
   std::lock_guard lock(mutex_);
   return clock_.offsetNs();
+}
+
+double TelemetryDecoder::clockRoundTripMs() const {
+  std::lock_guard lock(mutex_);
+  return clock_.bestRoundTripMs();
 }
 
 int TelemetryDecoder::autopilotSystem() const {

@@ -23,8 +23,9 @@ struct TelemetryStats {
   std::uint64_t attitude = 0;
   std::uint64_t position = 0;
   std::uint64_t gps = 0;
-  std::uint64_t gimbal = 0;   // GIMBAL_DEVICE_ATTITUDE_STATUS used
-  std::uint64_t reboots = 0;  // time_boot_ms went backwards: history cleared
+  std::uint64_t gimbal = 0;        // GIMBAL_DEVICE_ATTITUDE_STATUS used
+  std::uint64_t reboots = 0;       // time_boot_ms went backwards: history cleared
+  std::uint64_t badPositions = 0;  // GLOBAL_POSITION_INT at 0,0 or out of range: not used
 };
 
 // Turns the autopilot's messages into pose history and clock mapping. Thread-safe:
@@ -50,6 +51,7 @@ class TelemetryDecoder {
   [[nodiscard]] TelemetryStats stats() const;
   [[nodiscard]] ClockMapper::Source clockSource() const;
   [[nodiscard]] std::optional<std::int64_t> clockOffsetNs() const;
+  [[nodiscard]] double clockRoundTripMs() const;  // best TIMESYNC round trip; NaN without
   [[nodiscard]] int autopilotSystem() const;
   [[nodiscard]] int autopilotComponent() const;
 
