@@ -31,7 +31,10 @@ Quaternion mavlinkCameraAttitude(const Quaternion& cameraToNed) {
 }
 
 TelemetryService::TelemetryService(TelemetryServiceConfig config, CameraDescription camera)
-    : config_(std::move(config)), camera_(std::move(camera)), decoder_(config_.decoder) {}
+    : config_(std::move(config)),
+      camera_(std::move(camera)),
+      decoder_(config_.decoder),
+      encoder_(std::make_unique<MavlinkEncoder>(0, 0, config_.mavlink1)) {}
 
 TelemetryService::~TelemetryService() {
   stop();
@@ -66,7 +69,6 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
     stats_.parser = parser_.stats();
     return true;
   }
-  encoder_ = std::make_unique<MavlinkEncoder>(0, 0, config_.mavlink1);
   stop_ = false;
   thread_ = std::thread([this] { run(); });
   return true;
@@ -134,7 +136,7 @@ std::uint8_t TelemetryService::systemId() const {
 }
 
 bool TelemetryService::send(const std::vector<std::uint8_t>& bytes) {
-  if (!link_ || !encoder_) return false;
+  if (!link_) return false;
   std::string error;
   if (link_->write(bytes.data(), bytes.size(), error)) return true;
   if (!error.empty()) {

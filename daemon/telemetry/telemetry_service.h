@@ -109,7 +109,8 @@ class TelemetryService {
   // reconnects, autopilot reboots. Rate-limited. Called on the telemetry thread.
   using LogSink = std::function<void(TelemetryLogLevel level, const std::string& message)>;
   void setLogSink(LogSink sink);
-  // One received message, as the telemetry thread handles it (fuzzing, tests).
+  // One received message, as the telemetry thread handles it (tests); not while the
+  // thread runs. Without a link, nothing is sent.
   void handleMessage(const mavlink_message_t& msg, std::int64_t timeNs) { onMessage(msg, timeNs); }
   [[nodiscard]] TelemetryServiceStats stats() const;
 
