@@ -12,9 +12,10 @@ namespace {
 constexpr std::int64_t kSecond = 1'000'000'000;
 constexpr std::size_t kTimesyncRequestsKept = 16;
 constexpr std::int64_t kTimesyncRequestAgeNs = 10 * kSecond;
-constexpr std::int64_t kClockLogIntervalNs = 10 * kSecond;  // at most one clock record per 10 s
-constexpr std::int64_t kClockLogChangeNs = 5'000'000;       // a change worth a record
-constexpr std::int64_t kSilenceNs = 3 * kSecond;            // no bytes this long: link down
+constexpr std::int64_t kClockLogIntervalNs =
+    10 * kSecond;                                      // a drifting offset: one record per 10 s
+constexpr std::int64_t kClockLogChangeNs = 5'000'000;  // a change worth a record
+constexpr std::int64_t kSilenceNs = 3 * kSecond;       // no bytes this long: link down
 
 std::string formatMs(double ms, int decimals = 3) {
   char buf[64];
@@ -377,9 +378,12 @@ void TelemetryService::logClock(std::int64_t nowNs) {
   const ClockMapper::Source source = decoder_.clockSource();
   const auto offset = decoder_.clockOffsetNs();
   const bool first = loggedSource_ == ClockMapper::Source::None;
-  const bool changed = source != loggedSource_ ||
-                       (offset && std::llabs(*offset - loggedOffsetNs_) > kClockLogChangeNs);
-  if (!changed || (!first && nowNs - lastClockLogNs_ < kClockLogIntervalNs)) return;
+  const bool sourceChanged = source != loggedSource_;
+  const bool moved = offset && std::llabs(*offset - loggedOffsetNs_) > kClockLogChangeNs;
+  if (!sourceChanged && !moved) return;
+  // A new source (TIMESYNC answered, or no longer) is said at once, at most once a
+  // second; a drifting offset at most every 10 s.
+  if (!first && nowNs - lastClockLogNs_ < (sourceChanged ? kSecond : kClockLogIntervalNs)) return;
   const ClockMapper::Source previous = loggedSource_;
   lastClockLogNs_ = nowNs;
   loggedSource_ = source;

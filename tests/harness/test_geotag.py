@@ -327,9 +327,9 @@ def live_run(
     )
     if during is not None:
         during(ap, proc)
-    stdout, stderr = proc.communicate(timeout=120)
+    _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
-    return out, stdout
+    return out, stderr
 
 
 def check_live_tags(fl: Path, out: Path, ap: FakeAutopilot) -> list[tuple[float, float, float]]:
@@ -428,7 +428,7 @@ def test_live_udp_autopilot_with_clock_offset(
         ap.wait_for("HEARTBEAT", timeout=10)
         ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_INFORMATION)
 
-    out, _ = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
     errs = check_live_tags(short_nadir, out, ap)
     assert max(e[0] for e in errs) < 0.1, errs
     assert max(e[1] for e in errs) < 0.1, errs
@@ -438,7 +438,12 @@ def test_live_udp_autopilot_with_clock_offset(
     tel = summary["telemetry"]
     assert ap.rogue_answers > 0
     assert tel["clock"] == "timesync"
-    assert abs(tel["clock_offset_ms"] - true_clock_offset_ms(ap)) < 5.0
+    error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
+    print(f"TIMESYNC clock offset error {error_ms:.3f} ms")
+    assert abs(error_ms) < 5.0
+    # the daemon's log says where its clock came from
+    assert "following the autopilot at system 1 component 1" in log, log
+    assert "autopilot clock: timesync, offset" in log, log
 
     # The MAVLink camera protocol: who we are, and one capture per keyframe.
     info = ap.wait_for("CAMERA_INFORMATION", timeout=5)[0]
@@ -463,7 +468,7 @@ def test_live_udp_autopilot_without_timesync(
     ap = fake_autopilot(
         short_nadir / "flight.tlog", boot_offset_ms=1_234_567, answer_timesync=False
     )
-    out, _ = live_run(kf_bin, short_nadir, tmp_path, ap)
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
     errs = check_live_tags(short_nadir, out, ap)
     assert max(e[0] for e in errs) < 0.1, errs
     assert max(e[1] for e in errs) < 0.1, errs
@@ -472,7 +477,11 @@ def test_live_udp_autopilot_without_timesync(
     assert ap.received("TIMESYNC"), "the daemon asked"
     assert tel["clock"] == "arrival"
     # the smallest latency seen on loopback, plus time_boot_ms's millisecond steps
-    assert abs(tel["clock_offset_ms"] - true_clock_offset_ms(ap)) < 5.0
+    error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
+    print(f"arrival clock offset error {error_ms:.3f} ms")
+    assert abs(error_ms) < 5.0
+    assert "autopilot clock: arrival, offset" in log, log
+    assert "autopilot clock: timesync" not in log, log
     check_captures(short_nadir, out, ap)
 
 
