@@ -165,6 +165,11 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
   }
 }
 
+void TelemetryDecoder::setLocalClockIsUtc(bool utc) {
+  std::lock_guard lock(mutex_);
+  localClockIsUtc_ = utc;
+}
+
 void TelemetryDecoder::handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
   std::lock_guard lock(mutex_);
   clock_.observeTimesync(tc1Ns, ts1Ns, nowNs);
@@ -177,10 +182,16 @@ Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
     std::lock_guard lock(mutex_);
     offset = clock_.offsetNs();
     utc = clock_.utcUs(localNs);
+    if (!utc && localClockIsUtc_) {
+      // The tlog's record times: the recording station's clock, not the autopilot's
+      // GPS time, hence only without SYSTEM_TIME.
+      utc = localNs >= 0 ? (localNs + 500) / 1000 : -((-localNs + 500) / 1000);
+    }
   }
   if (!offset) {
     Pose p;
     p.timeNs = localNs;
+    p.utcUs = utc;
     p.staleReason = "no telemetry";
     return p;
   }

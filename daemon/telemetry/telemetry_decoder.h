@@ -36,6 +36,9 @@ class TelemetryDecoder {
 
   // msg arrived at localNs (the companion clock, or the tlog's record time).
   void handle(const mavlink_message_t& msg, std::int64_t localNs);
+  // A replayed tlog: the local clock (its record times) is UTC, used for a frame's UTC
+  // when no SYSTEM_TIME gives the autopilot's.
+  void setLocalClockIsUtc(bool utc);
   // Our TIMESYNC request's answer (handled by the camera component).
   void handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs);
 
@@ -71,6 +74,7 @@ class TelemetryDecoder {
   int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;
   std::int64_t lastQuaternionNs_ = -1;  // ATTITUDE_QUATERNION seen: ignore ATTITUDE
+  bool localClockIsUtc_ = false;
 };
 
 }  // namespace keyframed

@@ -56,7 +56,8 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
   replay_ = link_->isReplay();
   startNs_ = monotonicNowNs();
   if (replay_) {
-    // A recording: read it all now, with its own timestamps.
+    // A recording: read it all now, with its own timestamps (unix time).
+    decoder_.setLocalClockIsUtc(true);
     std::vector<std::uint8_t> buf(512);
     std::size_t n = 0;
     std::int64_t t = 0;

@@ -169,9 +169,50 @@ def rewrite_tlog(src: Path, dst: Path, edit: Any) -> None:
     out = bytearray()
     for rec in read_tlog(src):
         msg = edit(rec.unix_us, rec.msg)
+        if msg is None:  # dropped
+            continue
         mav.seq = msg.get_seq()
         out += struct.pack(">Q", rec.unix_us) + msg.pack(mav)
     dst.write_bytes(bytes(out))
+
+
+@needs_exiftool
+def test_tlog_without_system_time_takes_utc_from_its_records(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """No SYSTEM_TIME in the log: the capture time comes from the tlog's own record
+    times (the recording station's clock), as docs/formats.md says."""
+    tlog = tmp_path / "nosys.tlog"
+    rewrite_tlog(
+        short_nadir / "flight.tlog",
+        tlog,
+        lambda _t, m: None if m.get_type() == "SYSTEM_TIME" else m,
+    )
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        "2026-06-01T10:00:00Z",
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    for k in kfs:
+        # the generator stamps the records with the flight's own UTC
+        assert int(k["utc_us"]) == pytest.approx(
+            truth.epoch_us + int(k["index"]) / fps * 1e6, abs=1000
+        )
+        assert abs(utc_us_of(tags[k["file"]]) - int(k["utc_us"])) <= 1000
+        assert tags[k["file"]].get("GPS:GPSTimeStamp") is not None
 
 
 @needs_exiftool

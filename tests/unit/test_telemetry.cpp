@@ -190,6 +190,44 @@ TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   EXPECT_EQ(dec.stats().badPositions, 6U);
 }
 
+TEST(TelemetryDecoder, ATlogsRecordTimesGiveUtcWithoutSystemTime) {
+  MavlinkEncoder ap(1, 1);
+  const std::int64_t t0 = 1'790'000'000'000'000'000;  // unix ns, as a tlog's records
+  auto feed = [&](TelemetryDecoder& dec, bool systemTime) {
+    MavlinkParser parser;
+    auto push = [&](const std::vector<std::uint8_t>& pkt, std::int64_t now) {
+      parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+    };
+    push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4), t0);
+    for (int i = 0; i <= 10; ++i) {
+      push(attitudeQ(ap, static_cast<std::uint32_t>(1000 + i * 100), Quaternion{}),
+           t0 + i * 100 * kMs);
+    }
+    if (systemTime) {
+      // GPS time 2.5 s ahead of the recording station's clock: it wins.
+      push(ap.encode(
+               [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+                 mavlink_msg_system_time_pack_status(s, c, st, m, t0 / 1000 + 2'500'000, 1000);
+               }),
+           t0);
+    }
+  };
+  TelemetryDecoder live;  // arrival times on CLOCK_MONOTONIC: no UTC from them
+  feed(live, false);
+  EXPECT_FALSE(live.poseAt(t0 + 500 * kMs).utcUs.has_value());
+  TelemetryDecoder tlog;
+  tlog.setLocalClockIsUtc(true);
+  feed(tlog, false);
+  const Pose p = tlog.poseAt(t0 + 500 * kMs + 1234);
+  ASSERT_TRUE(p.utcUs.has_value());
+  EXPECT_EQ(*p.utcUs, t0 / 1000 + 500'000 + 1);
+  TelemetryDecoder both;
+  both.setLocalClockIsUtc(true);
+  feed(both, true);
+  ASSERT_TRUE(both.poseAt(t0 + 500 * kMs).utcUs.has_value());
+  EXPECT_EQ(*both.poseAt(t0 + 500 * kMs).utcUs, t0 / 1000 + 500'000 + 2'500'000);
+}
+
 TEST(PoseStore, SlerpTakesTheShortWay) {
   const Quaternion a = quaternionFromEuler(0, 0, 179 * kDeg);
   const Quaternion b = quaternionFromEuler(0, 0, -179 * kDeg);
