@@ -356,6 +356,37 @@ TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
   EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 45 * kDeg)), 0.0, 1e-6);
 }
 
+TEST(TelemetryDecoder, AChosenAutopilotThatIsNotTheFirstHeard) {
+  TelemetryConfig cfg;
+  cfg.autopilotSystem = 2;  // --autopilot 2:1
+  cfg.autopilotComponent = 1;
+  TelemetryDecoder dec(cfg);
+  MavlinkEncoder first(1, 1), chosen(2, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(first, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
+  push(heartbeat(chosen, MAV_TYPE_FIXED_WING, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  for (int i = 0; i <= 10; ++i) {
+    now = (10'000 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(i * 100);
+    push(gpsRaw(first, 3));
+    push(attitudeQ(first, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
+    push(position(first, boot, -10.0, -20.0, 0.0));
+    push(gpsRaw(chosen, 3));
+    push(attitudeQ(chosen, boot, quaternionFromEuler(0, 0, 45 * kDeg)));
+    push(position(chosen, boot, 10.0, 20.0, 50.0));
+  }
+  EXPECT_EQ(dec.autopilotSystem(), 2);
+  EXPECT_EQ(dec.autopilotComponent(), 1);
+  const Pose p = dec.poseAt(10'000 * kMs + 500 * kMs);
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  EXPECT_NEAR(p.position->latDeg, 10.0, 1e-9);
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 45 * kDeg)), 0.0, 1e-6);
+}
+
 TEST(PoseStore, GimbalInTheVehicleFrameTurnsWithTheHeading) {
   PoseStore store;
   // The vehicle heads 60 deg and banks 10 deg; the gimbal looks 30 deg right of the

@@ -245,6 +245,31 @@ TEST(TelemetryService, TimesyncOnlyFromTheAutopilotAndOnlyForOurOwnRequests) {
   svc.stop();
 }
 
+TEST(TelemetryService, CameraInformationSaysNaNForWhatItDoesNotKnow) {
+  Peer peer;
+  CameraDescription cam;  // no calibration: focal length and sensor size unknown
+  cam.width = 1920;
+  cam.height = 1080;
+  TelemetryService svc(serviceConfig(), cam);
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+  peer.push(requestMessage(ap, 0, 0, MAVLINK_MSG_ID_CAMERA_INFORMATION, 0));
+  const auto infos = peer.waitFor(MAVLINK_MSG_ID_CAMERA_INFORMATION);
+  svc.stop();
+  ASSERT_EQ(infos.size(), 1U);
+  mavlink_camera_information_t info;
+  mavlink_msg_camera_information_decode(&infos[0], &info);
+  EXPECT_TRUE(std::isnan(info.focal_length));
+  EXPECT_TRUE(std::isnan(info.sensor_size_h));
+  EXPECT_TRUE(std::isnan(info.sensor_size_v));
+  EXPECT_EQ(info.resolution_h, 1920);
+  EXPECT_EQ(info.resolution_v, 1080);
+  EXPECT_EQ(info.flags & CAMERA_CAP_FLAGS_CAPTURE_IMAGE, CAMERA_CAP_FLAGS_CAPTURE_IMAGE);
+  EXPECT_EQ(svc.stats().infoSent, 1U);
+}
+
 TEST(MavlinkEncoder, IdsAbove255GoAsMavlink2InMavlink1Mode) {
   MavlinkEncoder enc(1, 100, /*mavlink1=*/true);
   const auto hb = heartbeat(enc, MAV_TYPE_CAMERA, MAV_AUTOPILOT_INVALID);
@@ -590,8 +615,8 @@ TEST(MavlinkLink, UdpinAnswersTheAutopilotNotTheLastSender) {
   });
   std::thread gcsEar;
   std::vector<std::uint32_t> heardByGcs;
-  gcsEar = std::thread([&] { heardByGcs = hear(gcsFd, 2500); });
-  const auto heardByAp = hear(apFd, 2500);
+  gcsEar = std::thread([&] { heardByGcs = hear(gcsFd, 3200); });
+  const auto heardByAp = hear(apFd, 3200);
   gcsEar.join();
   done = true;
   chatter.join();
