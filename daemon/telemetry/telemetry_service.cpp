@@ -12,10 +12,11 @@ namespace {
 constexpr std::int64_t kSecond = 1'000'000'000;
 constexpr std::size_t kTimesyncRequestsKept = 16;
 constexpr std::int64_t kTimesyncRequestAgeNs = 10 * kSecond;
-constexpr std::int64_t kClockLogIntervalNs =
-    10 * kSecond;                                      // a drifting offset: one record per 10 s
-constexpr std::int64_t kClockLogChangeNs = 5'000'000;  // a change worth a record
-constexpr std::int64_t kSilenceNs = 3 * kSecond;       // no bytes this long: link down
+// A drifting clock offset is logged at most every 10 s, when it moved by 5 ms.
+constexpr std::int64_t kClockLogIntervalNs = 10 * kSecond;
+constexpr std::int64_t kClockLogChangeNs = 5'000'000;
+constexpr std::int64_t kSilenceNs = 3 * kSecond;  // no bytes this long: the link is down
+constexpr std::int64_t kCaptureWarningIntervalNs = 10 * kSecond;
 
 std::string formatMs(double ms, int decimals = 3) {
   char buf[64];
@@ -243,7 +244,7 @@ void TelemetryService::sendPendingCaptures(std::int64_t nowNs) {
     }
     if (!sendCapture(c)) {
       // No peer yet, or the link refused it: keep it (and the rest) for later.
-      if (nowNs - lastCaptureWarningNs_ >= kClockLogIntervalNs) {
+      if (nowNs - lastCaptureWarningNs_ >= kCaptureWarningIntervalNs) {
         lastCaptureWarningNs_ = nowNs;
         std::size_t pending = 0;
         {
