@@ -461,6 +461,16 @@ std::vector<Field> makeSchema() {
       "telemetry", "min_fix_type",
       [](auto& c) -> auto& { return c.telemetry.link.decoder.store.minFixType; }, R{0, 6}));
   f.push_back(duration(
+      "telemetry", "gps_stale_ms",
+      [](auto& c) -> auto& { return c.telemetry.link.decoder.store.maxGpsAgeNs; }, R{100, 600000},
+      kNsPerMs));
+  f.push_back(integer(
+      "telemetry", "pending_captures",
+      [](auto& c) -> auto& { return c.telemetry.link.maxPendingCaptures; }, R{1, 100000}));
+  f.push_back(integer(
+      "telemetry", "capture_history",
+      [](auto& c) -> auto& { return c.telemetry.link.captureHistory; }, R{0, 100000}));
+  f.push_back(duration(
       "telemetry", "clock_window_s",
       [](auto& c) -> auto& { return c.telemetry.link.decoder.clock.arrivalWindowNs; }, R{1, 600},
       kNsPerS));

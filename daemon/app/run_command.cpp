@@ -37,6 +37,7 @@
 #include "app/paced_source.h"
 #include "app/sd_notify.h"
 #include "app/settings.h"
+#include "app/telemetry_log.h"
 #include "app/text_io.h"
 #include "capture/capture_thread.h"
 #include "capture/file_source.h"
@@ -495,6 +496,7 @@ int Daemon::run() {
       cd.sensorHeightMm = static_cast<float>(camera_->sensorHeightMm);
     }
     telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
+    logTelemetryEvents(*telemetry_);
     if (!telemetry_->start(error)) {
       KF_LOG(Telemetry, Error) << "telemetry.url: " << error;
       return 1;

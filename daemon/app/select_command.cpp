@@ -16,6 +16,7 @@
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "app/paced_source.h"
+#include "app/telemetry_log.h"
 #include "app/text_io.h"
 #include "capture/file_source.h"
 #include "output/flight_outputs.h"
@@ -167,6 +168,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       cd.sensorHeightMm = static_cast<float>(camera->sensorHeightMm);
     }
     telemetry = std::make_unique<TelemetryService>(tc, cd);
+    logTelemetryEvents(*telemetry);
     if (!telemetry->start(error)) {
       s.error = error;
       return s;

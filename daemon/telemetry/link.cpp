@@ -130,6 +130,7 @@ class UdpLink final : public MavlinkLink {
         return false;
       }
       havePeer_ = false;
+      pinned_ = false;
     } else {
       peer_ = addr_;
       havePeer_ = true;
@@ -160,8 +161,11 @@ class UdpLink final : public MavlinkLink {
       return Status::Error;
     }
     if (url_.scheme == "udpin") {
-      peer_ = from;
-      havePeer_ = true;
+      lastSender_ = from;
+      if (!pinned_) {
+        peer_ = from;
+        havePeer_ = true;
+      }
     }
     size = static_cast<std::size_t>(n);
     return Status::Data;
@@ -184,6 +188,13 @@ class UdpLink final : public MavlinkLink {
     return open(error);
   }
 
+  void pinPeerToLastSender() override {
+    if (url_.scheme != "udpin") return;
+    peer_ = lastSender_;  // follows the autopilot if it comes back from another port
+    havePeer_ = true;
+    pinned_ = true;
+  }
+
   [[nodiscard]] std::string describe() const override {
     return url_.scheme + ":" + url_.host + ":" + std::to_string(url_.port);
   }
@@ -198,7 +209,9 @@ class UdpLink final : public MavlinkLink {
   int fd_ = -1;
   sockaddr_in addr_{};
   sockaddr_in peer_{};
+  sockaddr_in lastSender_{};
   bool havePeer_ = false;
+  bool pinned_ = false;  // udpin: peer_ is the autopilot's address
 };
 
 speed_t baudConstant(int baud) {

@@ -23,6 +23,10 @@ class MavlinkLink {
   virtual bool write(const std::uint8_t* data, std::size_t size, std::string& error) = 0;
   // Reopens after an error (a serial device unplugged and plugged back in).
   virtual bool reopen(std::string& error) = 0;
+  // The bytes last read came from the autopilot: on a link that can hear several
+  // senders (udpin), write() goes to that sender from now on, not to whoever spoke
+  // last (a ground station or a second vehicle on the same port).
+  virtual void pinPeerToLastSender() {}
   // Replay links deliver recorded times and have an end.
   [[nodiscard]] virtual bool isReplay() const { return false; }
   // A replay that ended inside a record.
@@ -31,7 +35,7 @@ class MavlinkLink {
 };
 
 // Opens a link from a URL:
-//   udpin:HOST:PORT       listen (answers the last sender)
+//   udpin:HOST:PORT       listen (answers the autopilot once known, else the last sender)
 //   udpout:HOST:PORT      send to HOST:PORT (we speak first)
 //   serial:DEVICE[:BAUD]  e.g. serial:/dev/ttyAMA0:921600 (default 57600)
 //   tlog:PATH             a MAVLink tlog, replayed with its recorded timestamps

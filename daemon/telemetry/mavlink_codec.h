@@ -53,11 +53,22 @@ class MavlinkEncoder {
   MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1 = false);
 
   // Fills `msg` via fn(systemId, componentId, status*, msg*) (a mavgen
-  // *_encode_status/_pack_status function) and serialises it into `out`.
+  // *_encode_status/_pack_status function) and serialises it into `out`. In
+  // MAVLink 1 mode, a message whose id does not fit in MAVLink 1's 8-bit id field
+  // (CAMERA_INFORMATION 259, CAMERA_IMAGE_CAPTURED 263, ...) still goes out as
+  // MAVLink 2: as MAVLink 1 its id would be cut to the low byte.
   template <typename Fn>
   const std::vector<std::uint8_t>& encode(Fn&& fn) {
     mavlink_message_t msg{};
+    const mavlink_status_t before = status_;
     fn(systemId_, componentId_, &status_, &msg);
+    if (msg.msgid > 255 && (status_.flags & MAVLINK_STATUS_FLAG_OUT_MAVLINK1) != 0) {
+      status_ = before;  // same sequence number, framed again as MAVLink 2
+      status_.flags &= static_cast<std::uint8_t>(~MAVLINK_STATUS_FLAG_OUT_MAVLINK1);
+      msg = mavlink_message_t{};
+      fn(systemId_, componentId_, &status_, &msg);
+      status_.flags |= MAVLINK_STATUS_FLAG_OUT_MAVLINK1;
+    }
     out_.resize(MAVLINK_MAX_PACKET_LEN);
     out_.resize(mavlink_msg_to_send_buffer(out_.data(), &msg));
     return out_;

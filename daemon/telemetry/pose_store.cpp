@@ -154,10 +154,13 @@ Pose PoseStore::at(std::int64_t timeNs) const {
   std::size_t i0 = 0, i1 = 0;
   std::string why;
 
+  std::int64_t gpsAgeNs = 0;
   if (!gps_.empty()) {
     auto it = std::upper_bound(gps_.begin(), gps_.end(), timeNs,
                                [](std::int64_t v, const auto& s) { return v < s.timeNs; });
-    pose.gps = (it == gps_.begin() ? gps_.front() : *std::prev(it)).value;
+    const auto& g = it == gps_.begin() ? gps_.front() : *std::prev(it);
+    pose.gps = g.value;
+    gpsAgeNs = timeNs - g.timeNs;
   }
 
   if (bracket(attitude_, timeNs, config_.maxAttitudeGapNs, config_.maxHoldNs, i0, i1, why,
@@ -176,6 +179,9 @@ Pose PoseStore::at(std::int64_t timeNs) const {
     reasons.emplace_back("no GPS status");
   } else if (pose.gps.fixType < config_.minFixType) {
     reasons.push_back("no GPS fix (fix type " + std::to_string(pose.gps.fixType) + ")");
+  } else if (config_.minFixType > 0 && gpsAgeNs > config_.maxGpsAgeNs) {
+    // The receiver stopped reporting: its last fix says nothing about now.
+    reasons.push_back("GPS status stale (" + std::to_string(gpsAgeNs / 1'000'000) + " ms old)");
   } else if (bracket(position_, timeNs, config_.maxPositionGapNs, config_.maxHoldNs, i0, i1, why,
                      "position")) {
     const auto& a = position_[i0];

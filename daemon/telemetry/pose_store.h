@@ -25,6 +25,8 @@ class PoseStore {
     std::int64_t maxPositionGapNs = 1'500'000'000;
     std::int64_t maxHoldNs = 150'000'000;  // past the newest sample: hold this long
     int minFixType = 3;                    // GPS_FIX_TYPE_3D_FIX
+    // The GPS fix state (GPS_RAW_INT, 1-10 Hz) is trusted this long after its last report.
+    std::int64_t maxGpsAgeNs = 3'000'000'000;
   };
 
   PoseStore() = default;

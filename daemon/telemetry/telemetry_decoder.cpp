@@ -120,6 +120,13 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       mavlink_global_position_int_t p;
       mavlink_msg_global_position_int_decode(&msg, &p);
       observeBootTime(p.time_boot_ms, localNs);
+      // 0,0 is what an estimator without an origin yet sends (and what an unset
+      // field reads); out of range is corruption. Neither is a place to tag with.
+      if ((p.lat == 0 && p.lon == 0) || p.lat < -900'000'000 || p.lat > 900'000'000 ||
+          p.lon < -1'800'000'000 || p.lon > 1'800'000'000) {
+        ++stats_.badPositions;
+        break;
+      }
       GeoPosition g;
       g.latDeg = p.lat * 1e-7;
       g.lonDeg = p.lon * 1e-7;
@@ -158,6 +165,11 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
   }
 }
 
+void TelemetryDecoder::setLocalClockIsUtc(bool utc) {
+  std::lock_guard lock(mutex_);
+  localClockIsUtc_ = utc;
+}
+
 void TelemetryDecoder::handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
   std::lock_guard lock(mutex_);
   clock_.observeTimesync(tc1Ns, ts1Ns, nowNs);
@@ -170,10 +182,16 @@ Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
     std::lock_guard lock(mutex_);
     offset = clock_.offsetNs();
     utc = clock_.utcUs(localNs);
+    if (!utc && localClockIsUtc_) {
+      // The tlog's record times: the recording station's clock, not the autopilot's
+      // GPS time, hence only without SYSTEM_TIME.
+      utc = localNs >= 0 ? (localNs + 500) / 1000 : -((-localNs + 500) / 1000);
+    }
   }
   if (!offset) {
     Pose p;
     p.timeNs = localNs;
+    p.utcUs = utc;
     p.staleReason = "no telemetry";
     return p;
   }
@@ -214,6 +232,11 @@ ClockMapper::Source TelemetryDecoder::clockSource() const {
 std::optional<std::int64_t> TelemetryDecoder::clockOffsetNs() const {
   std::lock_guard lock(mutex_);
   return clock_.offsetNs();
+}
+
+double TelemetryDecoder::clockRoundTripMs() const {
+  std::lock_guard lock(mutex_);
+  return clock_.bestRoundTripMs();
 }
 
 int TelemetryDecoder::autopilotSystem() const {

@@ -23,8 +23,9 @@ struct TelemetryStats {
   std::uint64_t attitude = 0;
   std::uint64_t position = 0;
   std::uint64_t gps = 0;
-  std::uint64_t gimbal = 0;   // GIMBAL_DEVICE_ATTITUDE_STATUS used
-  std::uint64_t reboots = 0;  // time_boot_ms went backwards: history cleared
+  std::uint64_t gimbal = 0;        // GIMBAL_DEVICE_ATTITUDE_STATUS used
+  std::uint64_t reboots = 0;       // time_boot_ms went backwards: history cleared
+  std::uint64_t badPositions = 0;  // GLOBAL_POSITION_INT at 0,0 or out of range: not used
 };
 
 // Turns the autopilot's messages into pose history and clock mapping. Thread-safe:
@@ -35,6 +36,9 @@ class TelemetryDecoder {
 
   // msg arrived at localNs (the companion clock, or the tlog's record time).
   void handle(const mavlink_message_t& msg, std::int64_t localNs);
+  // A replayed tlog: the local clock (its record times) is UTC, used for a frame's UTC
+  // when no SYSTEM_TIME gives the autopilot's.
+  void setLocalClockIsUtc(bool utc);
   // Our TIMESYNC request's answer (handled by the camera component).
   void handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs);
 
@@ -50,6 +54,7 @@ class TelemetryDecoder {
   [[nodiscard]] TelemetryStats stats() const;
   [[nodiscard]] ClockMapper::Source clockSource() const;
   [[nodiscard]] std::optional<std::int64_t> clockOffsetNs() const;
+  [[nodiscard]] double clockRoundTripMs() const;  // best TIMESYNC round trip; NaN without
   [[nodiscard]] int autopilotSystem() const;
   [[nodiscard]] int autopilotComponent() const;
 
@@ -69,6 +74,7 @@ class TelemetryDecoder {
   int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;
   std::int64_t lastQuaternionNs_ = -1;  // ATTITUDE_QUATERNION seen: ignore ATTITUDE
+  bool localClockIsUtc_ = false;
 };
 
 }  // namespace keyframed

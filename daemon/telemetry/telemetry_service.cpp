@@ -1,24 +1,64 @@
 #include "telemetry/telemetry_service.h"
 
+#include <algorithm>
+#include <climits>
+#include <cstdio>
 #include <cstring>
 #include <vector>
 
 namespace keyframed {
 
+namespace {
+constexpr std::int64_t kSecond = 1'000'000'000;
+constexpr std::size_t kTimesyncRequestsKept = 16;
+constexpr std::int64_t kTimesyncRequestAgeNs = 10 * kSecond;
+// A drifting clock offset is logged at most every 10 s, when it moved by 5 ms.
+constexpr std::int64_t kClockLogIntervalNs = 10 * kSecond;
+constexpr std::int64_t kClockLogChangeNs = 5'000'000;
+constexpr std::int64_t kSilenceNs = 3 * kSecond;  // no bytes this long: the link is down
+constexpr std::int64_t kCaptureWarningIntervalNs = 10 * kSecond;
+
+std::string formatMs(double ms, int decimals = 3) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%.*f ms", decimals, ms);
+  return buf;
+}
+}  // namespace
+
+Quaternion mavlinkCameraAttitude(const Quaternion& cameraToNed) {
+  // MAVLink camera axes (x optical, y right, z down) in OpenCV camera axes: x -> z,
+  // y -> x, z -> y, the rotation by -120 degrees about (1, 1, 1).
+  constexpr Quaternion kMavlinkToOpenCv{0.5, -0.5, -0.5, -0.5};
+  return normalized(multiply(cameraToNed, kMavlinkToOpenCv));
+}
+
 TelemetryService::TelemetryService(TelemetryServiceConfig config, CameraDescription camera)
-    : config_(std::move(config)), camera_(std::move(camera)), decoder_(config_.decoder) {}
+    : config_(std::move(config)),
+      camera_(std::move(camera)),
+      decoder_(config_.decoder),
+      encoder_(std::make_unique<MavlinkEncoder>(0, 0, config_.mavlink1)) {}
 
 TelemetryService::~TelemetryService() {
   stop();
 }
 
 bool TelemetryService::start(std::string& error) {
-  link_ = openMavlinkLink(config_.url, error);
-  if (!link_) return false;
+  auto link = openMavlinkLink(config_.url, error);
+  if (!link) return false;
+  return start(std::move(link), error);
+}
+
+bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& error) {
+  link_ = std::move(link);
+  if (!link_) {
+    error = "no MAVLink link";
+    return false;
+  }
   replay_ = link_->isReplay();
   startNs_ = monotonicNowNs();
   if (replay_) {
-    // A recording: read it all now, with its own timestamps.
+    // A recording: read it all now, with its own timestamps (unix time).
+    decoder_.setLocalClockIsUtc(true);
     std::vector<std::uint8_t> buf(512);
     std::size_t n = 0;
     std::int64_t t = 0;
@@ -32,7 +72,6 @@ bool TelemetryService::start(std::string& error) {
     stats_.parser = parser_.stats();
     return true;
   }
-  encoder_ = std::make_unique<MavlinkEncoder>(0, 0, config_.mavlink1);
   stop_ = false;
   thread_ = std::thread([this] { run(); });
   return true;
@@ -62,9 +101,24 @@ void TelemetryService::setRawSink(RawSink sink) {
   sink_ = std::move(sink);
 }
 
+void TelemetryService::setLogSink(LogSink sink) {
+  std::lock_guard lock(logMutex_);
+  logSink_ = std::move(sink);
+}
+
+void TelemetryService::log(TelemetryLogLevel level, const std::string& message) {
+  std::lock_guard lock(logMutex_);
+  if (logSink_) logSink_(level, message);
+}
+
 void TelemetryService::reportCapture(const CaptureReport& report) {
   std::lock_guard lock(mutex_);
   queue_.push_back(report);
+  while (queue_.size() > std::max<std::size_t>(config_.maxPendingCaptures, 1)) {
+    queue_.pop_front();  // the link has been down for long: keep the newest
+    ++stats_.capturesDropped;
+  }
+  stats_.capturesPending = queue_.size();
 }
 
 TelemetryServiceStats TelemetryService::stats() const {
@@ -84,12 +138,15 @@ std::uint8_t TelemetryService::systemId() const {
   return static_cast<std::uint8_t>(sys > 0 ? sys : 1);
 }
 
-void TelemetryService::send(const std::vector<std::uint8_t>& bytes) {
+bool TelemetryService::send(const std::vector<std::uint8_t>& bytes) {
+  if (!link_) return false;
   std::string error;
-  if (!link_->write(bytes.data(), bytes.size(), error) && !error.empty()) {
+  if (link_->write(bytes.data(), bytes.size(), error)) return true;
+  if (!error.empty()) {
     std::lock_guard lock(mutex_);
     ++stats_.linkErrors;
   }
+  return false;
 }
 
 void TelemetryService::sendHeartbeat() {
@@ -102,6 +159,13 @@ void TelemetryService::sendHeartbeat() {
 }
 
 void TelemetryService::sendTimesync(std::int64_t nowNs) {
+  // Remembered so that only answers to our own requests are used.
+  while (!timesyncRequests_.empty() &&
+         (timesyncRequests_.size() >= kTimesyncRequestsKept ||
+          timesyncRequests_.front() < nowNs - kTimesyncRequestAgeNs)) {
+    timesyncRequests_.pop_front();
+  }
+  timesyncRequests_.push_back(nowNs);
   send(
       encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
         mavlink_msg_timesync_pack_status(systemId(), static_cast<std::uint8_t>(config_.componentId),
@@ -136,8 +200,10 @@ void TelemetryService::sendCommandAck(std::uint16_t command, std::uint8_t result
   }));
 }
 
-void TelemetryService::sendCapture(const CaptureReport& r) {
-  std::int32_t lat = 0, lon = 0, alt = 0, rel = 0;
+bool TelemetryService::sendCapture(const CaptureReport& r) {
+  // Without a position, INT32_MAX ("unknown", as CAMERA_FOV_STATUS of the same camera
+  // protocol defines it for the camera's position): never 0,0, a real place.
+  std::int32_t lat = INT32_MAX, lon = INT32_MAX, alt = INT32_MAX, rel = INT32_MAX;
   if (r.pose.position) {
     lat = static_cast<std::int32_t>(std::llround(r.pose.position->latDeg * 1e7));
     lon = static_cast<std::int32_t>(std::llround(r.pose.position->lonDeg * 1e7));
@@ -146,10 +212,11 @@ void TelemetryService::sendCapture(const CaptureReport& r) {
   }
   float q[4] = {NAN, NAN, NAN, NAN};
   if (r.cameraAttitude) {
-    q[0] = static_cast<float>(r.cameraAttitude->w);
-    q[1] = static_cast<float>(r.cameraAttitude->x);
-    q[2] = static_cast<float>(r.cameraAttitude->y);
-    q[3] = static_cast<float>(r.cameraAttitude->z);
+    const Quaternion m = mavlinkCameraAttitude(*r.cameraAttitude);
+    q[0] = static_cast<float>(m.w);
+    q[1] = static_cast<float>(m.x);
+    q[2] = static_cast<float>(m.y);
+    q[3] = static_cast<float>(m.z);
   }
   char url[205] = {};  // the generated pack copies the full 205 bytes
   std::memcpy(url, r.fileUrl.data(), std::min<std::size_t>(204, r.fileUrl.size()));
@@ -159,53 +226,187 @@ void TelemetryService::sendCapture(const CaptureReport& r) {
   if (const auto off = decoder_.clockOffsetNs()) {
     boot = static_cast<std::uint32_t>((r.timeNs - *off) / 1'000'000);
   }
-  send(
+  return send(
       encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
         mavlink_msg_camera_image_captured_pack_status(
             systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, boot, utc, 0, lat,
             lon, alt, rel, q, r.imageIndex, 1, url);
       }));
+}
+
+void TelemetryService::sendPendingCaptures(std::int64_t nowNs) {
+  for (;;) {
+    CaptureReport c;
+    {
+      std::lock_guard lock(mutex_);
+      if (queue_.empty()) return;
+      c = queue_.front();
+    }
+    if (!sendCapture(c)) {
+      // No peer yet, or the link refused it: keep it (and the rest) for later.
+      if (nowNs - lastCaptureWarningNs_ >= kCaptureWarningIntervalNs) {
+        lastCaptureWarningNs_ = nowNs;
+        std::size_t pending = 0;
+        {
+          std::lock_guard lock(mutex_);
+          pending = queue_.size();
+        }
+        log(TelemetryLogLevel::Warning, "cannot send CAMERA_IMAGE_CAPTURED on " +
+                                            link_->describe() + ": " + std::to_string(pending) +
+                                            " capture report(s) kept until the link takes them");
+      }
+      return;
+    }
+    std::lock_guard lock(mutex_);
+    // reportCapture may have pushed it out of a full queue meanwhile.
+    if (!queue_.empty() && queue_.front().imageIndex == c.imageIndex) queue_.pop_front();
+    ++stats_.capturesSent;
+    stats_.capturesPending = queue_.size();
+    history_.push_back(std::move(c));
+    while (history_.size() > config_.captureHistory) history_.pop_front();
+  }
+}
+
+void TelemetryService::resendCaptures(const mavlink_command_long_t& c,
+                                      const mavlink_message_t& msg) {
+  // param2: the first image index, -1 for all; param3: 0 just that one, -1 all
+  // following, else the last index of the range (CAMERA_IMAGE_CAPTURED's description).
+  const double p2 = c.param2, p3 = c.param3;
+  if (!std::isfinite(p2) || !std::isfinite(p3)) {
+    sendCommandAck(c.command, MAV_RESULT_DENIED, msg.sysid, msg.compid);
+    return;
+  }
+  const auto first = static_cast<std::int64_t>(std::llround(p2));
+  const auto rangeEnd = static_cast<std::int64_t>(std::llround(p3));
+  std::int64_t lo = first, hi = first;
+  if (first < 0) {
+    lo = INT64_MIN;
+    hi = INT64_MAX;
+  } else if (rangeEnd < 0) {
+    hi = INT64_MAX;
+  } else if (rangeEnd > 0) {
+    hi = rangeEnd;
+  }
+  std::vector<CaptureReport> found;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& r : history_) {
+      if (r.imageIndex >= lo && r.imageIndex <= hi) found.push_back(r);
+    }
+  }
+  // An index we never sent, or one too old to be kept: nothing to send.
+  sendCommandAck(c.command, found.empty() ? MAV_RESULT_FAILED : MAV_RESULT_ACCEPTED, msg.sysid,
+                 msg.compid);
+  std::uint64_t sent = 0;
+  for (const auto& r : found) sent += sendCapture(r) ? 1 : 0;
   std::lock_guard lock(mutex_);
-  ++stats_.capturesSent;
+  stats_.capturesResent += sent;
+}
+
+void TelemetryService::onTimesync(const mavlink_message_t& msg, std::int64_t timeNs) {
+  mavlink_timesync_t ts;
+  mavlink_msg_timesync_decode(&msg, &ts);
+  if (ts.tc1 == 0) {
+    if (!config_.camera) return;
+    // Someone syncs with us: answer with our clock.
+    const std::int64_t now = monotonicNowNs();
+    send(encoder_->encode(
+        [&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+          mavlink_msg_timesync_pack_status(
+              systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, now, ts.ts1);
+        }));
+    return;
+  }
+  // An answer: used only when it comes from the autopilot we follow and echoes one of
+  // our recent requests. Others (a ground station answering the autopilot's own
+  // request, a second vehicle, a stale duplicate) would set the clock to theirs.
+  const int sys = decoder_.autopilotSystem();
+  const int comp = decoder_.autopilotComponent();
+  const auto it = std::find(timesyncRequests_.begin(), timesyncRequests_.end(), ts.ts1);
+  if (sys == 0 || msg.sysid != sys || msg.compid != comp || it == timesyncRequests_.end()) {
+    std::lock_guard lock(mutex_);
+    ++stats_.timesyncRejected;
+    return;
+  }
+  timesyncRequests_.erase(it);  // one answer per request
+  decoder_.handleTimesync(ts.tc1, ts.ts1, timeNs);
+}
+
+void TelemetryService::onCommand(const mavlink_message_t& msg) {
+  mavlink_command_long_t c;
+  mavlink_msg_command_long_decode(&msg, &c);
+  const bool forUs = (c.target_system == 0 || c.target_system == systemId()) &&
+                     (c.target_component == 0 || c.target_component == config_.componentId);
+  if (!forUs) return;
+  const bool requestMessage = c.command == MAV_CMD_REQUEST_MESSAGE && std::isfinite(c.param1);
+  const long requested = requestMessage ? std::lround(c.param1) : -1;
+  if (requested == MAVLINK_MSG_ID_CAMERA_INFORMATION ||
+      c.command == MAV_CMD_REQUEST_CAMERA_INFORMATION) {
+    sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
+    sendCameraInformation();
+  } else if (requested == MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED) {
+    resendCaptures(c, msg);
+  } else if (c.target_component == config_.componentId) {
+    sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
+  }
 }
 
 void TelemetryService::onMessage(const mavlink_message_t& msg, std::int64_t timeNs) {
   if (msg.msgid == MAVLINK_MSG_ID_TIMESYNC) {
-    mavlink_timesync_t ts;
-    mavlink_msg_timesync_decode(&msg, &ts);
-    if (ts.tc1 != 0) {
-      // An answer to one of ours (ts1 echoes our time).
-      decoder_.handleTimesync(ts.tc1, ts.ts1, timeNs);
-    } else if (config_.camera) {
-      // Someone syncs with us: answer with our clock.
-      const std::int64_t now = monotonicNowNs();
-      send(encoder_->encode(
-          [&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-            mavlink_msg_timesync_pack_status(
-                systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, now, ts.ts1);
-          }));
-    }
+    onTimesync(msg, timeNs);
     return;
   }
   if (msg.msgid == MAVLINK_MSG_ID_COMMAND_LONG && config_.camera) {
-    mavlink_command_long_t c;
-    mavlink_msg_command_long_decode(&msg, &c);
-    const bool forUs = (c.target_system == 0 || c.target_system == systemId()) &&
-                       (c.target_component == 0 || c.target_component == config_.componentId);
-    if (!forUs) return;
-    if (c.command == MAV_CMD_REQUEST_MESSAGE &&
-        static_cast<int>(c.param1) == MAVLINK_MSG_ID_CAMERA_INFORMATION) {
-      sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
-      sendCameraInformation();
-    } else if (c.command == MAV_CMD_REQUEST_CAMERA_INFORMATION) {
-      sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
-      sendCameraInformation();
-    } else if (c.target_component == config_.componentId) {
-      sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
-    }
+    onCommand(msg);
     return;
   }
   decoder_.handle(msg, timeNs);
+}
+
+void TelemetryService::logClock(std::int64_t nowNs) {
+  const int sys = decoder_.autopilotSystem();
+  if (sys != 0 && sys != loggedAutopilot_) {
+    loggedAutopilot_ = sys;
+    log(TelemetryLogLevel::Notice, "following the autopilot at system " + std::to_string(sys) +
+                                       " component " +
+                                       std::to_string(decoder_.autopilotComponent()));
+  }
+  const std::uint64_t reboots = decoder_.stats().reboots;
+  if (reboots != loggedReboots_) {
+    loggedReboots_ = reboots;
+    log(TelemetryLogLevel::Warning,
+        "the autopilot's clock went back (a reboot): pose history and clock estimate cleared");
+  }
+  const ClockMapper::Source source = decoder_.clockSource();
+  const auto offset = decoder_.clockOffsetNs();
+  const bool first = loggedSource_ == ClockMapper::Source::None;
+  const bool sourceChanged = source != loggedSource_;
+  const bool moved = offset && std::llabs(*offset - loggedOffsetNs_) > kClockLogChangeNs;
+  if (!sourceChanged && !moved) return;
+  // A new source (TIMESYNC answered, or no longer) is said at once, at most once a
+  // second; a drifting offset at most every 10 s.
+  if (!first && nowNs - lastClockLogNs_ < (sourceChanged ? kSecond : kClockLogIntervalNs)) return;
+  const ClockMapper::Source previous = loggedSource_;
+  lastClockLogNs_ = nowNs;
+  loggedSource_ = source;
+  if (!offset) {
+    log(TelemetryLogLevel::Warning, "autopilot clock: no estimate any more");
+    return;
+  }
+  const double change = first ? 0.0 : static_cast<double>(*offset - loggedOffsetNs_) / 1e6;
+  loggedOffsetNs_ = *offset;
+  std::string text = std::string("autopilot clock: ") + toString(source) + ", offset " +
+                     formatMs(static_cast<double>(*offset) / 1e6) + " (local - autopilot)";
+  const double rtt = decoder_.clockRoundTripMs();
+  text += std::isnan(rtt) ? ", no TIMESYNC round trip" : ", best round trip " + formatMs(rtt);
+  if (!first) text += ", changed by " + formatMs(change);
+  TelemetryLogLevel level = first ? TelemetryLogLevel::Notice : TelemetryLogLevel::Info;
+  if (!first && source != previous) {
+    level = source == ClockMapper::Source::Timesync ? TelemetryLogLevel::Notice
+                                                    : TelemetryLogLevel::Warning;
+    if (source != ClockMapper::Source::Timesync) text += " (no TIMESYNC answers for a while)";
+  }
+  log(level, text);
 }
 
 void TelemetryService::run() {
@@ -215,6 +416,8 @@ void TelemetryService::run() {
   std::int64_t lastData = monotonicNowNs();
   std::int64_t nextReopen = 0;
   bool broken = false;
+  bool silent = false;
+  const std::string name = link_->describe();
   while (!stop_) {
     const std::int64_t now = monotonicNowNs();
     if (broken) {
@@ -225,48 +428,61 @@ void TelemetryService::run() {
       std::string error;
       if (link_->reopen(error)) {
         broken = false;
+        lastData = now;
+        log(TelemetryLogLevel::Notice, "MAVLink link " + name + " reopened");
         std::lock_guard lock(mutex_);
         ++stats_.reconnects;
       } else {
-        nextReopen = now + 1'000'000'000;
+        nextReopen = now + kSecond;
         continue;
       }
     }
-    if (config_.camera && now - lastHeartbeat >= 1'000'000'000) {
+    if (config_.camera && now - lastHeartbeat >= kSecond) {
       lastHeartbeat = now;
       sendHeartbeat();
     }
-    if (config_.timesync && decoder_.autopilotSystem() != 0 &&
-        now - lastTimesync >= 1'000'000'000) {
+    if (config_.timesync && decoder_.autopilotSystem() != 0 && now - lastTimesync >= kSecond) {
       lastTimesync = now;
       sendTimesync(now);
     }
-    std::deque<CaptureReport> captures;
-    {
-      std::lock_guard lock(mutex_);
-      captures.swap(queue_);
+    sendPendingCaptures(now);
+    logClock(now);
+    if (!silent && now - lastData > kSilenceNs) {
+      silent = true;
+      log(TelemetryLogLevel::Warning, "no MAVLink data on " + name + " for " +
+                                          std::to_string((now - lastData) / kSecond) + " s");
     }
-    for (const auto& c : captures) sendCapture(c);
 
     std::size_t n = 0;
     std::int64_t t = 0;
     std::string error;
     switch (link_->read(buf.data(), buf.size(), n, t, 50, error)) {
-      case MavlinkLink::Status::Data:
+      case MavlinkLink::Status::Data: {
+        if (silent) {
+          silent = false;
+          log(TelemetryLogLevel::Notice, "MAVLink data on " + name + " again after " +
+                                             formatMs(static_cast<double>(t - lastData) / 1e6, 0));
+        }
         lastData = t;
+        bool fromAutopilot = false;
         parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) {
           onMessage(m, t);
+          fromAutopilot = fromAutopilot || (m.sysid == decoder_.autopilotSystem() &&
+                                            m.compid == decoder_.autopilotComponent());
           std::lock_guard lock(sinkMutex_);
           if (sink_) sink_(m, t);
         });
-        {
-          std::lock_guard lock(mutex_);
-          stats_.parser = parser_.stats();
-        }
+        // udpin: answer the autopilot, not whoever else sends to the port.
+        if (fromAutopilot) link_->pinPeerToLastSender();
+        std::lock_guard lock(mutex_);
+        stats_.parser = parser_.stats();
         break;
+      }
       case MavlinkLink::Status::Timeout: break;
       case MavlinkLink::Status::End: stop_ = true; break;
       case MavlinkLink::Status::Error: {
+        log(TelemetryLogLevel::Warning,
+            "MAVLink link " + name + ": " + (error.empty() ? "error" : error) + "; reopening");
         std::lock_guard lock(mutex_);
         ++stats_.linkErrors;
         broken = true;
@@ -274,8 +490,9 @@ void TelemetryService::run() {
         break;
       }
     }
-    (void)lastData;
   }
+  // The last keyframes may have been reported just before stop().
+  if (!broken) sendPendingCaptures(monotonicNowNs());
 }
 
 }  // namespace keyframed

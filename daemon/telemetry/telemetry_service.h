@@ -34,9 +34,19 @@ struct CaptureReport {
   std::int64_t timeNs = 0;  // frame time, companion clock
   std::int32_t imageIndex = 0;
   Pose pose;                                 // position used when present
-  std::optional<Quaternion> cameraAttitude;  // camera -> NED
+  std::optional<Quaternion> cameraAttitude;  // camera (OpenCV axes) -> NED
   std::string fileUrl;
 };
+
+// CAMERA_IMAGE_CAPTURED.q: the camera's attitude in MAVLink's camera frame (x along
+// the optical axis, y right, z down in the image; identity = looking along north,
+// level, image top up) -> NED, from the camera -> NED attitude in OpenCV axes (x
+// right, y down, z optical axis) that tagging uses.
+[[nodiscard]] Quaternion mavlinkCameraAttitude(const Quaternion& cameraToNed);
+
+// What the telemetry thread has to say (clock estimate, link state). The daemon
+// routes it to its log (app/telemetry_log.h).
+enum class TelemetryLogLevel { Warning, Notice, Info };
 
 struct TelemetryServiceConfig {
   std::string url;        // see openMavlinkLink()
@@ -44,7 +54,9 @@ struct TelemetryServiceConfig {
   int componentId = 100;  // MAV_COMP_ID_CAMERA
   bool timesync = true;   // send TIMESYNC requests (1 Hz)
   bool camera = true;     // act as a MAVLink camera component
-  bool mavlink1 = false;  // send MAVLink 1 frames
+  bool mavlink1 = false;  // send MAVLink 1 frames (ids above 255 still go as MAVLink 2)
+  std::size_t maxPendingCaptures = 256;  // unsent CAMERA_IMAGE_CAPTURED kept for the link
+  std::size_t captureHistory = 1024;     // sent ones kept for MAV_CMD_REQUEST_MESSAGE
   TelemetryConfig decoder;
 };
 
@@ -53,7 +65,11 @@ struct TelemetryServiceStats {
   TelemetryStats decoder;
   std::uint64_t linkErrors = 0;
   std::uint64_t reconnects = 0;
-  std::uint64_t capturesSent = 0;
+  std::uint64_t capturesSent = 0;      // CAMERA_IMAGE_CAPTURED really written to the link
+  std::uint64_t capturesPending = 0;   // waiting for the link (no peer yet, write failed)
+  std::uint64_t capturesDropped = 0;   // pushed out of a full pending queue, never sent
+  std::uint64_t capturesResent = 0;    // sent again on MAV_CMD_REQUEST_MESSAGE
+  std::uint64_t timesyncRejected = 0;  // replies not from the autopilot, or to no request of ours
   std::uint64_t infoSent = 0;
   bool replayDone = false;
   bool truncated = false;
@@ -70,6 +86,8 @@ class TelemetryService {
   TelemetryService& operator=(const TelemetryService&) = delete;
 
   bool start(std::string& error);
+  // Starts on a link opened by the caller (tests, fuzzing); config.url is not used.
+  bool start(std::unique_ptr<MavlinkLink> link, std::string& error);
   // A replay of recorded packets (arrival time in ns, bytes), e.g. a flight
   // record's /mavlink/raw: parsed now, like a tlog; no link, nothing sent.
   void startFromPackets(
@@ -78,24 +96,40 @@ class TelemetryService {
 
   [[nodiscard]] const TelemetryDecoder& decoder() const { return decoder_; }
   [[nodiscard]] bool isReplay() const { return replay_; }
-  // Queues a capture report; the telemetry thread sends it. Thread-safe.
+  // Queues a capture report; the telemetry thread sends it, and keeps it queued
+  // (up to maxPendingCaptures, oldest dropped first) while the link cannot take it.
+  // Thread-safe.
   void reportCapture(const CaptureReport& report);
   // Every MAVLink message received on a live link, with its arrival time (e.g. for
   // the flight record). Called on the telemetry thread; set or clear at any time.
   using RawSink = std::function<void(const mavlink_message_t& msg, std::int64_t timeNs)>;
   void setRawSink(RawSink sink);
+  // Where the telemetry thread reports the clock estimate (when first known and when
+  // it changes notably), the autopilot it follows, link errors, silences and
+  // reconnects, autopilot reboots. Rate-limited. Called on the telemetry thread.
+  using LogSink = std::function<void(TelemetryLogLevel level, const std::string& message)>;
+  void setLogSink(LogSink sink);
+  // One received message, as the telemetry thread handles it (tests); not while the
+  // thread runs. Without a link, nothing is sent.
+  void handleMessage(const mavlink_message_t& msg, std::int64_t timeNs) { onMessage(msg, timeNs); }
   [[nodiscard]] TelemetryServiceStats stats() const;
 
  private:
   void run();
   void onMessage(const mavlink_message_t& msg, std::int64_t timeNs);
-  void send(const std::vector<std::uint8_t>& bytes);
+  bool send(const std::vector<std::uint8_t>& bytes);
   void sendHeartbeat();
   void sendTimesync(std::int64_t nowNs);
+  void onTimesync(const mavlink_message_t& msg, std::int64_t timeNs);
+  void onCommand(const mavlink_message_t& msg);
+  void resendCaptures(const mavlink_command_long_t& c, const mavlink_message_t& msg);
+  void sendPendingCaptures(std::int64_t nowNs);
+  void log(TelemetryLogLevel level, const std::string& message);
+  void logClock(std::int64_t nowNs);
   void sendCameraInformation();
   void sendCommandAck(std::uint16_t command, std::uint8_t result, std::uint8_t targetSys,
                       std::uint8_t targetComp);
-  void sendCapture(const CaptureReport& report);
+  bool sendCapture(const CaptureReport& report);
   std::uint32_t bootMs() const;
   std::uint8_t systemId() const;
 
@@ -109,11 +143,23 @@ class TelemetryService {
   std::atomic<bool> stop_{false};
   std::mutex sinkMutex_;
   RawSink sink_;
+  std::mutex logMutex_;
+  LogSink logSink_;
   bool replay_ = false;
   std::int64_t startNs_ = 0;
 
-  mutable std::mutex mutex_;  // guards queue_ and stats_
-  std::deque<CaptureReport> queue_;
+  // Telemetry thread only.
+  std::deque<std::int64_t> timesyncRequests_;  // ts1 of our recent TIMESYNC requests
+  ClockMapper::Source loggedSource_ = ClockMapper::Source::None;
+  std::int64_t loggedOffsetNs_ = 0;
+  std::int64_t lastClockLogNs_ = 0;
+  int loggedAutopilot_ = 0;
+  std::uint64_t loggedReboots_ = 0;
+  std::int64_t lastCaptureWarningNs_ = 0;
+
+  mutable std::mutex mutex_;           // guards queue_, history_ and stats_
+  std::deque<CaptureReport> queue_;    // to send
+  std::deque<CaptureReport> history_;  // sent, newest last
   TelemetryServiceStats stats_;
 };
 

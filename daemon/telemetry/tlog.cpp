@@ -15,7 +15,19 @@ TlogReader::~TlogReader() {
 }
 
 bool TlogReader::open(const std::string& path, std::string& error) {
-  file_ = std::fopen(path.c_str(), "rb");
+  std::FILE* file = std::fopen(path.c_str(), "rb");
+  if (file == nullptr) {
+    error = "cannot open telemetry log " + path;
+    return false;
+  }
+  return open(file, path, error);
+}
+
+bool TlogReader::open(std::FILE* file, const std::string& path, std::string& error) {
+  if (file_ != nullptr) std::fclose(file_);
+  file_ = file;
+  truncated_ = false;
+  resyncedBytes_ = 0;
   if (file_ == nullptr) {
     error = "cannot open telemetry log " + path;
     return false;

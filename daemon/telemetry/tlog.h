@@ -19,6 +19,8 @@ class TlogReader {
   TlogReader& operator=(const TlogReader&) = delete;
 
   bool open(const std::string& path, std::string& error);
+  // Reads from an open stream (e.g. fmemopen), which it then owns; name is for errors.
+  bool open(std::FILE* file, const std::string& name, std::string& error);
   // Next record: its time (unix ns) and packet bytes. False at the end.
   bool next(std::int64_t& unixNs, std::vector<std::uint8_t>& packet);
   [[nodiscard]] bool truncated() const { return truncated_; }

@@ -15,7 +15,11 @@ would stream it to a companion computer:
   Gaussian noise (deterministic for a ``seed``) to the attitude and position messages.
 * The autopilot's boot clock (what its ``time_boot_ms`` would read now) answers
   TIMESYNC requests (``tc1 == 0``) with ``tc1`` in nanoseconds and ``ts1`` echoed, as
-  ArduPilot and PX4 do.
+  ArduPilot and PX4 do; ``answer_timesync=False`` makes it an autopilot that does not
+  (the daemon then has only the arrival times to go by). ``rogue_timesync=True`` adds a
+  ground station (system 255, component 190) on the link that answers each request
+  first, with its own clock an hour off, as a router forwarding every endpoint's
+  TIMESYNC traffic would deliver it.
 * Messages from the daemon are recorded (``received``, ``wait_for``); the autopilot can
   send ``request_message`` (COMMAND_LONG MAV_CMD_REQUEST_MESSAGE) or any message.
 * Link faults: ``inject_garbage`` and ``pause``/``resume`` (a dropped radio link:
@@ -244,6 +248,8 @@ class FakeAutopilot:
         mavlink1: bool = False,
         speed: float = 1.0,
         start_delay_s: float = 0.0,
+        answer_timesync: bool = True,
+        rogue_timesync: bool = False,
     ) -> None:
         if speed <= 0.0:
             raise ValueError("speed must be positive")
@@ -257,6 +263,9 @@ class FakeAutopilot:
         self.mavlink1 = mavlink1
         self.speed = float(speed)
         self.start_delay_s = float(start_delay_s)
+        self.answer_timesync = answer_timesync
+        self.rogue_timesync = rogue_timesync
+        self.rogue_answers = 0  # TIMESYNC answers the rogue ground station sent
         self.target = target
         self.t0_unix_us = self.records[0].unix_us
         self.t_end_unix_us = self.records[-1].unix_us
@@ -278,6 +287,7 @@ class FakeAutopilot:
 
         self._mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=self.component_id)
         self._others: dict[int, mavlink.MAVLink] = {}
+        self._rogue = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
         # Each record goes out from the component that sent it in the tlog.
         self._components = [int(r.msg.get_header().srcComponent) for r in self.records]
         self._parser = mavlink.MAVLink(None)
@@ -599,7 +609,19 @@ class FakeAutopilot:
             if target is not None and target[0] not in (0, self.system_id):
                 return
             tc1 = int(round(self.boot_ms_at_monotonic_ns(now_ns) * 1e6))
-            self.send(_TimesyncReply(tc1, msg.ts1, *self._peer_ids))
+            if self.rogue_timesync:
+                self._send_rogue(_TimesyncReply(tc1 + 3_600_000_000_000, msg.ts1, 0, 0))
+            if self.answer_timesync:
+                self.send(_TimesyncReply(tc1, msg.ts1, *self._peer_ids))
+
+    def _send_rogue(self, msg: Message) -> None:
+        with self._send_lock:
+            if self._closed or not self._can_send():
+                return
+            buf = msg.pack(self._rogue, force_mavlink1=self.mavlink1)
+            self._rogue.seq = (self._rogue.seq + 1) % 256
+            self.rogue_answers += 1
+            self._sendto(buf)
 
     def _drain(self) -> None:
         while not self._stop.is_set():

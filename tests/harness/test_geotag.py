@@ -169,9 +169,50 @@ def rewrite_tlog(src: Path, dst: Path, edit: Any) -> None:
     out = bytearray()
     for rec in read_tlog(src):
         msg = edit(rec.unix_us, rec.msg)
+        if msg is None:  # dropped
+            continue
         mav.seq = msg.get_seq()
         out += struct.pack(">Q", rec.unix_us) + msg.pack(mav)
     dst.write_bytes(bytes(out))
+
+
+@needs_exiftool
+def test_tlog_without_system_time_takes_utc_from_its_records(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """No SYSTEM_TIME in the log: the capture time comes from the tlog's own record
+    times (the recording station's clock), as docs/formats.md says."""
+    tlog = tmp_path / "nosys.tlog"
+    rewrite_tlog(
+        short_nadir / "flight.tlog",
+        tlog,
+        lambda _t, m: None if m.get_type() == "SYSTEM_TIME" else m,
+    )
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        "2026-06-01T10:00:00Z",
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    for k in kfs:
+        # the generator stamps the records with the flight's own UTC
+        assert int(k["utc_us"]) == pytest.approx(
+            truth.epoch_us + int(k["index"]) / fps * 1e6, abs=1000
+        )
+        assert abs(utc_us_of(tags[k["file"]]) - int(k["utc_us"])) <= 1000
+        assert tags[k["file"]].get("GPS:GPSTimeStamp") is not None
 
 
 @needs_exiftool
@@ -327,9 +368,9 @@ def live_run(
     )
     if during is not None:
         during(ap, proc)
-    stdout, stderr = proc.communicate(timeout=120)
+    _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
-    return out, stdout
+    return out, stderr
 
 
 def check_live_tags(fl: Path, out: Path, ap: FakeAutopilot) -> list[tuple[float, float, float]]:
@@ -354,18 +395,81 @@ def check_live_tags(fl: Path, out: Path, ap: FakeAutopilot) -> list[tuple[float,
     return errs
 
 
+def quat_to_matrix(q: Any) -> np.ndarray:
+    w, x, y, z = (float(v) for v in q)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+# MAVLink's camera axes (x optical axis, y right, z image down) in OpenCV's (x right,
+# y down, z optical axis): R_ned_mavcam = R_ned_cvcam @ MAV_IN_CV.
+MAV_IN_CV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+
+
+def check_captures(fl: Path, out: Path, ap: FakeAutopilot) -> None:
+    """One CAMERA_IMAGE_CAPTURED per keyframe, with the keyframe's position, altitudes,
+    UTC, and the camera attitude in MAVLink's camera frame (identity: looking north,
+    level), checked against the flight's truth."""
+    truth = Truth(fl)
+    kfs = keyframes(out)
+    caps = ap.received("CAMERA_IMAGE_CAPTURED")
+    assert [c.image_index for c in caps] == list(range(len(kfs)))
+    pitch_down = quat_to_matrix((math.cos(math.pi / 4), 0.0, -math.sin(math.pi / 4), 0.0))
+    for c, k in zip(caps, kfs, strict=True):
+        assert c.lat == round(float(k["lat"]) * 1e7)
+        assert c.lon == round(float(k["lon"]) * 1e7)
+        assert abs(c.alt - float(k["alt_amsl"]) * 1e3) <= 1.0
+        assert abs(c.relative_alt - float(k["alt_rel"]) * 1e3) <= 1.0
+        assert c.time_utc == int(k["utc_us"])
+        assert c.file_url.endswith(k["file"])
+        assert c.capture_result == 1
+        assert c.camera_id == 0
+        r_mav = quat_to_matrix(c.q)
+        flight_t = (ap.unix_us_at_monotonic_ns(int(k["time_ns"])) - truth.epoch_us) / 1e6
+        r_truth = truth.at(flight_t)[3] @ MAV_IN_CV
+        assert rotation_angle_deg(r_mav, r_truth) < 0.2, (k["file"], c.q)
+        # A nadir camera: its optical axis (MAVLink x) points down, and the attitude is
+        # the 90 degree pitch-down rotation turned by the heading (north: exactly it),
+        # up to the vehicle's tilt (under 20 degrees while it speeds up and brakes).
+        assert r_mav[2, 0] > math.cos(math.radians(20.0)), c.q
+        heading = math.atan2(r_mav[1, 2], r_mav[0, 2]) + math.pi  # image top (-z) forward
+        rz = np.array(
+            [
+                [math.cos(heading), -math.sin(heading), 0.0],
+                [math.sin(heading), math.cos(heading), 0.0],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        assert rotation_angle_deg(r_mav, rz @ pitch_down) < 20.0, c.q
+
+
+def true_clock_offset_ms(ap: FakeAutopilot) -> float:
+    """local - autopilot, from the replay's own clock."""
+    boot_ms = 500_000.0
+    return (ap.monotonic_ns_for_boot_ms(boot_ms) - boot_ms * 1e6) / 1e6
+
+
 @needs_exiftool
 def test_live_udp_autopilot_with_clock_offset(
     kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
 ) -> None:
-    ap = fake_autopilot(short_nadir / "flight.tlog", boot_offset_ms=1_234_567)
+    """TIMESYNC pins the clock, though a ground station on the link answers every
+    request first with its own clock, an hour off."""
+    ap = fake_autopilot(short_nadir / "flight.tlog", boot_offset_ms=1_234_567, rogue_timesync=True)
 
     def during(ap: FakeAutopilot, proc: Any) -> None:
         # The ground station asks the camera who it is.
         ap.wait_for("HEARTBEAT", timeout=10)
         ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_INFORMATION)
 
-    out, _ = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
     errs = check_live_tags(short_nadir, out, ap)
     assert max(e[0] for e in errs) < 0.1, errs
     assert max(e[1] for e in errs) < 0.1, errs
@@ -373,11 +477,14 @@ def test_live_udp_autopilot_with_clock_offset(
 
     summary = json.loads((out / "summary.json").read_text())
     tel = summary["telemetry"]
-    assert tel["clock"] in ("timesync", "arrival")
-    # local - autopilot: compare with the replay's own clock
-    boot_ms = 500_000.0
-    true_offset_ms = (ap.monotonic_ns_for_boot_ms(boot_ms) - boot_ms * 1e6) / 1e6
-    assert abs(tel["clock_offset_ms"] - true_offset_ms) < 5.0
+    assert ap.rogue_answers > 0
+    assert tel["clock"] == "timesync"
+    error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
+    print(f"TIMESYNC clock offset error {error_ms:.3f} ms")
+    assert abs(error_ms) < 5.0
+    # the daemon's log says where its clock came from
+    assert "following the autopilot at system 1 component 1" in log, log
+    assert "autopilot clock: timesync, offset" in log, log
 
     # The MAVLink camera protocol: who we are, and one capture per keyframe.
     info = ap.wait_for("CAMERA_INFORMATION", timeout=5)[0]
@@ -387,17 +494,36 @@ def test_live_udp_autopilot_with_clock_offset(
     assert info.resolution_h == 480
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == 512]
     assert acks and acks[0].result == 0
-    kfs = keyframes(out)
-    caps = ap.received("CAMERA_IMAGE_CAPTURED")
-    assert [c.image_index for c in caps] == list(range(len(kfs)))
-    for c, k in zip(caps, kfs, strict=True):
-        assert c.lat == round(float(k["lat"]) * 1e7)
-        assert c.lon == round(float(k["lon"]) * 1e7)
-        assert c.file_url.endswith(k["file"])
-        assert c.capture_result == 1
+    check_captures(short_nadir, out, ap)
     hb = ap.received("HEARTBEAT")
     assert hb and hb[0].type == mav2.MAV_TYPE_CAMERA
     assert hb[0].get_srcComponent() == mav2.MAV_COMP_ID_CAMERA
+
+
+@needs_exiftool
+def test_live_udp_autopilot_without_timesync(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """An autopilot that does not answer TIMESYNC: the clock comes from the arrival
+    times alone, and the tags are as good."""
+    ap = fake_autopilot(
+        short_nadir / "flight.tlog", boot_offset_ms=1_234_567, answer_timesync=False
+    )
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
+    errs = check_live_tags(short_nadir, out, ap)
+    assert max(e[0] for e in errs) < 0.1, errs
+    assert max(e[1] for e in errs) < 0.1, errs
+    assert max(e[2] for e in errs) < 0.2, errs
+    tel = json.loads((out / "summary.json").read_text())["telemetry"]
+    assert ap.received("TIMESYNC"), "the daemon asked"
+    assert tel["clock"] == "arrival"
+    # the smallest latency seen on loopback, plus time_boot_ms's millisecond steps
+    error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
+    print(f"arrival clock offset error {error_ms:.3f} ms")
+    assert abs(error_ms) < 5.0
+    assert "autopilot clock: arrival, offset" in log, log
+    assert "autopilot clock: timesync" not in log, log
+    check_captures(short_nadir, out, ap)
 
 
 @needs_exiftool

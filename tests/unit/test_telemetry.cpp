@@ -134,6 +134,100 @@ TEST(PoseStore, NoFixMeansNoPosition) {
   EXPECT_NE(p.staleReason.find("no GPS fix"), std::string::npos) << p.staleReason;
 }
 
+TEST(PoseStore, AFixNotReportedForLongGoesStale) {
+  PoseStore::Config cfg;
+  PoseStore store(cfg);
+  GpsQuality fix;
+  fix.fixType = 3;
+  store.addGps(0, fix);  // then the receiver falls silent
+  const std::int64_t late = cfg.maxGpsAgeNs + 1000 * kMs;
+  for (std::int64_t t = 0; t <= late + 200 * kMs; t += 100 * kMs) {
+    store.addAttitude(t, Quaternion{});
+    store.addPosition(t, {1, 2, 3, 4});
+  }
+  Pose p = store.at(cfg.maxGpsAgeNs / 2);
+  EXPECT_TRUE(p.position.has_value()) << p.staleReason;
+  p = store.at(late);
+  EXPECT_TRUE(p.attitude.has_value());
+  EXPECT_FALSE(p.position.has_value());
+  EXPECT_NE(p.staleReason.find("GPS status stale"), std::string::npos) << p.staleReason;
+  // A new report of the fix brings the position back.
+  store.addGps(late - 10 * kMs, fix);
+  p = store.at(late);
+  EXPECT_TRUE(p.position.has_value()) << p.staleReason;
+}
+
+TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  for (int i = 0; i <= 10; ++i) {
+    now = (10'000 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(i * 100);
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, boot, Quaternion{}));
+    // An EKF without an origin yet reports 0,0; then garbage; then the real place.
+    if (i < 4) push(position(ap, boot, 0.0, 0.0, 0.0));
+    if (i == 4) push(position(ap, boot, 91.0, 20.0, 50.0));
+    if (i == 5) push(position(ap, boot, 10.0, -180.5, 50.0));
+    if (i >= 6) push(position(ap, boot, 10.0, 20.0, 50.0));
+  }
+  EXPECT_EQ(dec.stats().badPositions, 6U);
+  EXPECT_EQ(dec.stats().position, 5U);
+  Pose p = dec.poseAt(10'000 * kMs + 200 * kMs);
+  EXPECT_TRUE(p.attitude.has_value());
+  EXPECT_FALSE(p.position.has_value()) << "0,0 is not a position";
+  p = dec.poseAt(10'000 * kMs + 750 * kMs);
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  EXPECT_NEAR(p.position->latDeg, 10.0, 1e-9);
+  // A lone 0 on one axis is a real place (the equator, the prime meridian).
+  push(position(ap, 1100, 0.0, 20.0, 50.0));
+  EXPECT_EQ(dec.stats().badPositions, 6U);
+}
+
+TEST(TelemetryDecoder, ATlogsRecordTimesGiveUtcWithoutSystemTime) {
+  MavlinkEncoder ap(1, 1);
+  const std::int64_t t0 = 1'790'000'000'000'000'000;  // unix ns, as a tlog's records
+  auto feed = [&](TelemetryDecoder& dec, bool systemTime) {
+    MavlinkParser parser;
+    auto push = [&](const std::vector<std::uint8_t>& pkt, std::int64_t now) {
+      parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+    };
+    push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4), t0);
+    for (int i = 0; i <= 10; ++i) {
+      push(attitudeQ(ap, static_cast<std::uint32_t>(1000 + i * 100), Quaternion{}),
+           t0 + i * 100 * kMs);
+    }
+    if (systemTime) {
+      // GPS time 2.5 s ahead of the recording station's clock: it wins.
+      push(ap.encode(
+               [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+                 mavlink_msg_system_time_pack_status(s, c, st, m, t0 / 1000 + 2'500'000, 1000);
+               }),
+           t0);
+    }
+  };
+  TelemetryDecoder live;  // arrival times on CLOCK_MONOTONIC: no UTC from them
+  feed(live, false);
+  EXPECT_FALSE(live.poseAt(t0 + 500 * kMs).utcUs.has_value());
+  TelemetryDecoder tlog;
+  tlog.setLocalClockIsUtc(true);
+  feed(tlog, false);
+  const Pose p = tlog.poseAt(t0 + 500 * kMs + 1234);
+  ASSERT_TRUE(p.utcUs.has_value());
+  EXPECT_EQ(*p.utcUs, t0 / 1000 + 500'000 + 1);
+  TelemetryDecoder both;
+  both.setLocalClockIsUtc(true);
+  feed(both, true);
+  ASSERT_TRUE(both.poseAt(t0 + 500 * kMs).utcUs.has_value());
+  EXPECT_EQ(*both.poseAt(t0 + 500 * kMs).utcUs, t0 / 1000 + 500'000 + 2'500'000);
+}
+
 TEST(PoseStore, SlerpTakesTheShortWay) {
   const Quaternion a = quaternionFromEuler(0, 0, 179 * kDeg);
   const Quaternion b = quaternionFromEuler(0, 0, -179 * kDeg);
@@ -259,6 +353,37 @@ TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
   ASSERT_TRUE(p.position.has_value()) << p.staleReason;
   ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
   EXPECT_NEAR(p.position->latDeg, 10.0 + 5.5e-5, 1e-9);
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 45 * kDeg)), 0.0, 1e-6);
+}
+
+TEST(TelemetryDecoder, AChosenAutopilotThatIsNotTheFirstHeard) {
+  TelemetryConfig cfg;
+  cfg.autopilotSystem = 2;  // --autopilot 2:1
+  cfg.autopilotComponent = 1;
+  TelemetryDecoder dec(cfg);
+  MavlinkEncoder first(1, 1), chosen(2, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(first, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
+  push(heartbeat(chosen, MAV_TYPE_FIXED_WING, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  for (int i = 0; i <= 10; ++i) {
+    now = (10'000 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(i * 100);
+    push(gpsRaw(first, 3));
+    push(attitudeQ(first, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
+    push(position(first, boot, -10.0, -20.0, 0.0));
+    push(gpsRaw(chosen, 3));
+    push(attitudeQ(chosen, boot, quaternionFromEuler(0, 0, 45 * kDeg)));
+    push(position(chosen, boot, 10.0, 20.0, 50.0));
+  }
+  EXPECT_EQ(dec.autopilotSystem(), 2);
+  EXPECT_EQ(dec.autopilotComponent(), 1);
+  const Pose p = dec.poseAt(10'000 * kMs + 500 * kMs);
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  EXPECT_NEAR(p.position->latDeg, 10.0, 1e-9);
   EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 45 * kDeg)), 0.0, 1e-6);
 }
 

@@ -1,0 +1,638 @@
+// The telemetry thread as a MAVLink camera component: TIMESYNC, the camera protocol
+// (CAMERA_IMAGE_CAPTURED, re-requests), MAVLink 1 framing, its log, and where udpin
+// replies go. Driven through an in-memory link (or real UDP sockets for udpin).
+#include <arpa/inet.h>
+#include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <climits>
+#include <cmath>
+#include <condition_variable>
+#include <deque>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "tagging/camera_mount.h"
+#include "telemetry/link.h"
+#include "telemetry/mavlink_codec.h"
+#include "telemetry/pose_store.h"
+#include "telemetry/telemetry_service.h"
+
+namespace keyframed {
+namespace {
+
+constexpr std::int64_t kMs = 1'000'000;
+constexpr double kDeg = M_PI / 180.0;
+
+// Both ends of an in-memory link: what the "autopilot" pushes in, what the service
+// wrote, whether writes succeed, and a one-shot read error.
+struct LinkState {
+  std::mutex m;
+  std::condition_variable cv;
+  std::deque<std::vector<std::uint8_t>> in;
+  std::vector<std::vector<std::uint8_t>> out;
+  bool writable = true;
+  bool failNextRead = false;
+  int pins = 0;
+};
+
+class MemoryLink final : public MavlinkLink {
+ public:
+  explicit MemoryLink(std::shared_ptr<LinkState> s) : s_(std::move(s)) {}
+  Status read(std::uint8_t* buffer, std::size_t capacity, std::size_t& size, std::int64_t& timeNs,
+              int timeoutMs, std::string& error) override {
+    std::unique_lock lock(s_->m);
+    if (s_->failNextRead) {
+      s_->failNextRead = false;
+      error = "unplugged";
+      return Status::Error;
+    }
+    if (!s_->cv.wait_for(lock, std::chrono::milliseconds(timeoutMs),
+                         [&] { return !s_->in.empty(); })) {
+      return Status::Timeout;
+    }
+    const auto pkt = std::move(s_->in.front());
+    s_->in.pop_front();
+    size = std::min(capacity, pkt.size());
+    std::copy(pkt.begin(), pkt.begin() + static_cast<std::ptrdiff_t>(size), buffer);
+    timeNs = monotonicNowNs();
+    return Status::Data;
+  }
+  bool write(const std::uint8_t* data, std::size_t size, std::string&) override {
+    std::lock_guard lock(s_->m);
+    if (!s_->writable) return false;
+    s_->out.emplace_back(data, data + size);
+    s_->cv.notify_all();
+    return true;
+  }
+  bool reopen(std::string&) override { return true; }
+  void pinPeerToLastSender() override {
+    std::lock_guard lock(s_->m);
+    ++s_->pins;
+  }
+  [[nodiscard]] std::string describe() const override { return "memory"; }
+
+ private:
+  std::shared_ptr<LinkState> s_;
+};
+
+// Waits until pred() holds (polling), up to timeoutMs.
+bool eventually(const std::function<bool()>& pred, int timeoutMs = 3000) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeoutMs);
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (pred()) return true;
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  return pred();
+}
+
+// The autopilot (and others) on the far side of a MemoryLink.
+class Peer {
+ public:
+  Peer() : state(std::make_shared<LinkState>()) {}
+
+  std::unique_ptr<MavlinkLink> link() { return std::make_unique<MemoryLink>(state); }
+
+  void push(const std::vector<std::uint8_t>& bytes) {
+    std::lock_guard lock(state->m);
+    state->in.push_back(bytes);
+    state->cv.notify_all();
+  }
+
+  // Everything the service wrote so far, parsed (frames are kept for their magic).
+  std::vector<mavlink_message_t> written() {
+    std::vector<std::vector<std::uint8_t>> out;
+    {
+      std::lock_guard lock(state->m);
+      out = state->out;
+    }
+    std::vector<mavlink_message_t> msgs;
+    MavlinkParser parser;
+    for (const auto& pkt : out) {
+      parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { msgs.push_back(m); });
+    }
+    return msgs;
+  }
+
+  std::vector<mavlink_message_t> written(std::uint32_t msgid) {
+    std::vector<mavlink_message_t> r;
+    for (const auto& m : written()) {
+      if (m.msgid == msgid) r.push_back(m);
+    }
+    return r;
+  }
+
+  // Waits for `count` messages of msgid from the service.
+  std::vector<mavlink_message_t> waitFor(std::uint32_t msgid, std::size_t count = 1,
+                                         int timeoutMs = 3000) {
+    std::vector<mavlink_message_t> r;
+    eventually(
+        [&] {
+          r = written(msgid);
+          return r.size() >= count;
+        },
+        timeoutMs);
+    return r;
+  }
+
+  void setWritable(bool w) {
+    std::lock_guard lock(state->m);
+    state->writable = w;
+  }
+
+  std::shared_ptr<LinkState> state;
+};
+
+std::vector<std::uint8_t> heartbeat(MavlinkEncoder& enc, std::uint8_t type,
+                                    std::uint8_t autopilot) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_heartbeat_pack_status(s, c, st, m, type, autopilot, 0, 0, MAV_STATE_ACTIVE);
+      });
+}
+
+std::vector<std::uint8_t> timesync(MavlinkEncoder& enc, std::int64_t tc1, std::int64_t ts1) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_timesync_pack_status(s, c, st, m, tc1, ts1);
+      });
+}
+
+std::vector<std::uint8_t> requestMessage(MavlinkEncoder& enc, std::uint8_t targetSys,
+                                         std::uint8_t targetComp, float msgId, float p2,
+                                         float p3 = 0) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_command_long_pack_status(s, c, st, m, targetSys, targetComp,
+                                             MAV_CMD_REQUEST_MESSAGE, 0, msgId, p2, p3, 0, 0, 0, 0);
+      });
+}
+
+std::vector<std::uint8_t> quadHeartbeat(MavlinkEncoder& enc) {
+  return heartbeat(enc, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4);
+}
+
+mavlink_camera_image_captured_t decodeCapture(const mavlink_message_t& m) {
+  mavlink_camera_image_captured_t c;
+  mavlink_msg_camera_image_captured_decode(&m, &c);
+  return c;
+}
+
+std::vector<std::int32_t> indices(const std::vector<mavlink_message_t>& msgs) {
+  std::vector<std::int32_t> r;
+  for (const auto& m : msgs) r.push_back(decodeCapture(m).image_index);
+  return r;
+}
+
+CaptureReport capture(std::int32_t index) {
+  CaptureReport r;
+  r.timeNs = monotonicNowNs();
+  r.imageIndex = index;
+  r.fileUrl = "file:///k/" + std::to_string(index) + ".jpg";
+  return r;
+}
+
+TelemetryServiceConfig serviceConfig() {
+  TelemetryServiceConfig c;
+  c.url = "memory";
+  return c;
+}
+
+TEST(TelemetryService, TimesyncOnlyFromTheAutopilotAndOnlyForOurOwnRequests) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1), gcs(255, 190), apGimbal(1, 154);
+  peer.push(quadHeartbeat(ap));
+  const auto requests = peer.waitFor(MAVLINK_MSG_ID_TIMESYNC);
+  ASSERT_FALSE(requests.empty());
+  mavlink_timesync_t req;
+  mavlink_msg_timesync_decode(&requests[0], &req);
+  ASSERT_EQ(req.tc1, 0);
+
+  // The autopilot's clock is 777 s behind ours.
+  const std::int64_t behind = 777'000 * kMs;
+  // A ground station answering (with its own clock), another component of the
+  // vehicle, and the autopilot answering a request we never sent: all ignored.
+  peer.push(timesync(gcs, req.ts1 + 3'600'000 * kMs, req.ts1));
+  peer.push(timesync(apGimbal, req.ts1 - 5 * behind, req.ts1));
+  peer.push(timesync(ap, req.ts1 + 12'345 - behind, req.ts1 + 12'345));
+  ASSERT_TRUE(eventually([&] { return svc.stats().timesyncRejected == 3; }));
+  EXPECT_EQ(svc.decoder().clockSource(), ClockMapper::Source::None);
+  EXPECT_FALSE(svc.decoder().clockOffsetNs().has_value());
+
+  // The autopilot's answer to our request sets the clock.
+  peer.push(timesync(ap, req.ts1 - behind, req.ts1));
+  ASSERT_TRUE(
+      eventually([&] { return svc.decoder().clockSource() == ClockMapper::Source::Timesync; }));
+  const auto offset = svc.decoder().clockOffsetNs();
+  ASSERT_TRUE(offset.has_value());
+  // offset = ts1 + rtt/2 - tc1 = behind + rtt/2 (the answer was pushed at once)
+  EXPECT_NEAR(static_cast<double>(*offset - behind) / kMs, 0.0, 50.0);
+  // The same answer again (a duplicate datagram) is not a second sample.
+  peer.push(timesync(ap, req.ts1 - behind + 100 * kMs, req.ts1));
+  ASSERT_TRUE(eventually([&] { return svc.stats().timesyncRejected == 4; }));
+  EXPECT_EQ(*svc.decoder().clockOffsetNs(), *offset);
+  svc.stop();
+}
+
+TEST(TelemetryService, CameraInformationSaysNaNForWhatItDoesNotKnow) {
+  Peer peer;
+  CameraDescription cam;  // no calibration: focal length and sensor size unknown
+  cam.width = 1920;
+  cam.height = 1080;
+  TelemetryService svc(serviceConfig(), cam);
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+  peer.push(requestMessage(ap, 0, 0, MAVLINK_MSG_ID_CAMERA_INFORMATION, 0));
+  const auto infos = peer.waitFor(MAVLINK_MSG_ID_CAMERA_INFORMATION);
+  svc.stop();
+  ASSERT_EQ(infos.size(), 1U);
+  mavlink_camera_information_t info;
+  mavlink_msg_camera_information_decode(&infos[0], &info);
+  EXPECT_TRUE(std::isnan(info.focal_length));
+  EXPECT_TRUE(std::isnan(info.sensor_size_h));
+  EXPECT_TRUE(std::isnan(info.sensor_size_v));
+  EXPECT_EQ(info.resolution_h, 1920);
+  EXPECT_EQ(info.resolution_v, 1080);
+  EXPECT_EQ(info.flags & CAMERA_CAP_FLAGS_CAPTURE_IMAGE, CAMERA_CAP_FLAGS_CAPTURE_IMAGE);
+  EXPECT_EQ(svc.stats().infoSent, 1U);
+}
+
+TEST(MavlinkEncoder, IdsAbove255GoAsMavlink2InMavlink1Mode) {
+  MavlinkEncoder enc(1, 100, /*mavlink1=*/true);
+  const auto hb = heartbeat(enc, MAV_TYPE_CAMERA, MAV_AUTOPILOT_INVALID);
+  ASSERT_FALSE(hb.empty());
+  EXPECT_EQ(hb[0], MAVLINK_STX_MAVLINK1);
+  const float q[4] = {1, 0, 0, 0};
+  const char url[205] = "file:///x.jpg";  // the pack copies all 205 bytes
+  const auto cap = enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st,
+                                  mavlink_message_t* m) {
+    mavlink_msg_camera_image_captured_pack_status(s, c, st, m, 1, 2, 0, 3, 4, 5, 6, q, 7, 1, url);
+  });
+  ASSERT_FALSE(cap.empty());
+  EXPECT_EQ(cap[0], MAVLINK_STX);  // MAVLink 2: the 24-bit id survives
+  const auto hb2 = heartbeat(enc, MAV_TYPE_CAMERA, MAV_AUTOPILOT_INVALID);
+  EXPECT_EQ(hb2[0], MAVLINK_STX_MAVLINK1);  // and the mode is kept
+
+  MavlinkParser parser;
+  std::vector<mavlink_message_t> got;
+  for (const auto* pkt : {&hb, &cap, &hb2}) {
+    parser.feed(pkt->data(), pkt->size(), [&](const mavlink_message_t& m) { got.push_back(m); });
+  }
+  ASSERT_EQ(got.size(), 3U);
+  EXPECT_EQ(got[1].msgid, MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED);
+  EXPECT_EQ(decodeCapture(got[1]).image_index, 7);
+  // One sequence: 0, 1, 2.
+  EXPECT_EQ(got[0].seq, 0);
+  EXPECT_EQ(got[1].seq, 1);
+  EXPECT_EQ(got[2].seq, 2);
+}
+
+TEST(TelemetryService, Mavlink1ModeSendsTheCameraProtocolAsMavlink2) {
+  Peer peer;
+  auto cfg = serviceConfig();
+  cfg.mavlink1 = true;
+  TelemetryService svc(cfg, CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1, true);
+  peer.push(quadHeartbeat(ap));
+  peer.push(requestMessage(ap, 1, 100, MAVLINK_MSG_ID_CAMERA_INFORMATION, 0));
+  svc.reportCapture(capture(0));
+  ASSERT_EQ(peer.waitFor(MAVLINK_MSG_ID_CAMERA_INFORMATION).size(), 1U);
+  ASSERT_EQ(peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED).size(), 1U);
+  svc.stop();
+  for (const auto& m : peer.written()) {
+    EXPECT_EQ(m.magic, m.msgid > 255 ? MAVLINK_STX : MAVLINK_STX_MAVLINK1) << m.msgid;
+  }
+}
+
+TEST(MavlinkCameraAttitude, IsInMavlinksCameraFrame) {
+  const Quaternion level{1, 0, 0, 0};
+  auto near = [](const Quaternion& a, const Quaternion& b) { return angleBetween(a, b) < 1e-9; };
+  // A forward camera on a level vehicle heading north: zero rotation.
+  EXPECT_TRUE(near(mavlinkCameraAttitude(cameraToNed(level, CameraMount{0, 0, 0})), level));
+  // A nadir camera heading north: pitched down by 90 degrees.
+  const Quaternion down = quaternionFromEuler(0, -90 * kDeg, 0);
+  EXPECT_TRUE(near(mavlinkCameraAttitude(cameraToNed(level, CameraMount{0, -90, 0})), down));
+  // ... heading east.
+  const Quaternion east = quaternionFromEuler(0, 0, 90 * kDeg);
+  EXPECT_TRUE(near(mavlinkCameraAttitude(cameraToNed(east, CameraMount{0, -90, 0})),
+                   quaternionFromEuler(0, -90 * kDeg, 90 * kDeg)));
+  // A forward camera rolled with the vehicle.
+  const Quaternion rolled = quaternionFromEuler(20 * kDeg, 5 * kDeg, -30 * kDeg);
+  EXPECT_TRUE(near(mavlinkCameraAttitude(cameraToNed(rolled, CameraMount{0, 0, 0})), rolled));
+}
+
+TEST(TelemetryService, CaptureReportCarriesPoseTimeAndTheMavlinkAttitude) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+
+  CaptureReport r = capture(4);
+  GeoPosition p;
+  p.latDeg = 47.3977419;
+  p.lonDeg = 8.5455938;
+  p.altAmslM = 535.25;
+  p.altRelM = 60.5;
+  r.pose.position = p;
+  r.pose.utcUs = 1'790'000'000'123'456;
+  r.cameraAttitude = cameraToNed(Quaternion{}, CameraMount{0, -90, 0});  // nadir, north
+  svc.reportCapture(r);
+  svc.reportCapture(capture(5));  // no pose at all
+  const auto caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 2);
+  svc.stop();
+  ASSERT_EQ(caps.size(), 2U);
+  const auto c = decodeCapture(caps[0]);
+  EXPECT_EQ(c.image_index, 4);
+  EXPECT_EQ(c.lat, 473977419);
+  EXPECT_EQ(c.lon, 85455938);
+  EXPECT_EQ(c.alt, 535250);
+  EXPECT_EQ(c.relative_alt, 60500);
+  EXPECT_EQ(c.time_utc, 1'790'000'000'123'456ULL);
+  EXPECT_EQ(c.capture_result, 1);
+  EXPECT_EQ(c.camera_id, 0);
+  EXPECT_STREQ(std::string(c.file_url, strnlen(c.file_url, sizeof c.file_url)).c_str(),
+               "file:///k/4.jpg");
+  const double s = std::sqrt(0.5);
+  EXPECT_NEAR(c.q[0], s, 1e-6);  // pitch -90: (cos 45, 0, -sin 45, 0)
+  EXPECT_NEAR(c.q[1], 0.0, 1e-6);
+  EXPECT_NEAR(c.q[2], -s, 1e-6);
+  EXPECT_NEAR(c.q[3], 0.0, 1e-6);
+
+  // No position: "unknown" (INT32_MAX), never 0,0; no attitude: NaN; no UTC: 0.
+  const auto u = decodeCapture(caps[1]);
+  EXPECT_EQ(u.lat, INT32_MAX);
+  EXPECT_EQ(u.lon, INT32_MAX);
+  EXPECT_EQ(u.alt, INT32_MAX);
+  EXPECT_EQ(u.relative_alt, INT32_MAX);
+  EXPECT_TRUE(std::isnan(u.q[0]));
+  EXPECT_EQ(u.time_utc, 0U);
+  EXPECT_EQ(u.capture_result, 1);  // the image itself was taken
+}
+
+TEST(TelemetryService, CapturesWaitForTheLinkAndAreCountedWhenReallySent) {
+  Peer peer;
+  auto cfg = serviceConfig();
+  cfg.maxPendingCaptures = 4;
+  TelemetryService svc(cfg, CameraDescription{});
+  std::vector<std::string> logs;
+  std::mutex logMutex;
+  svc.setLogSink([&](TelemetryLogLevel, const std::string& m) {
+    std::lock_guard lock(logMutex);
+    logs.push_back(m);
+  });
+  std::string error;
+  peer.setWritable(false);  // no peer yet / the radio refuses
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  for (int i = 0; i < 6; ++i) svc.reportCapture(capture(i));
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  auto st = svc.stats();
+  EXPECT_EQ(st.capturesSent, 0U);
+  EXPECT_EQ(st.capturesPending, 4U);
+  EXPECT_EQ(st.capturesDropped, 2U);  // bounded: the oldest two
+  {
+    std::lock_guard lock(logMutex);
+    bool warned = false;
+    for (const auto& m : logs) warned = warned || m.find("capture report") != std::string::npos;
+    EXPECT_TRUE(warned);
+  }
+  peer.setWritable(true);  // the link is back
+  const auto caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 4);
+  EXPECT_EQ(indices(caps), (std::vector<std::int32_t>{2, 3, 4, 5}));
+  ASSERT_TRUE(eventually([&] { return svc.stats().capturesSent == 4; }));
+  EXPECT_EQ(svc.stats().capturesPending, 0U);
+  svc.stop();
+}
+
+TEST(TelemetryService, RequestMessageResendsCapturesByImageIndex) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1), gcs(255, 190);
+  peer.push(quadHeartbeat(ap));
+  ASSERT_TRUE(eventually([&] { return svc.decoder().autopilotSystem() == 1; }));
+  for (int i = 0; i < 5; ++i) svc.reportCapture(capture(i));
+  ASSERT_EQ(peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 5).size(), 5U);
+
+  auto ackResults = [&] {
+    std::vector<int> r;
+    for (const auto& m : peer.written(MAVLINK_MSG_ID_COMMAND_ACK)) {
+      mavlink_command_ack_t a;
+      mavlink_msg_command_ack_decode(&m, &a);
+      EXPECT_EQ(a.command, MAV_CMD_REQUEST_MESSAGE);
+      EXPECT_EQ(a.target_system, 255);
+      r.push_back(a.result);
+    }
+    return r;
+  };
+  const auto id = static_cast<float>(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED);
+  peer.push(requestMessage(gcs, 1, 100, id, 3));  // just image 3
+  auto caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 6);
+  ASSERT_EQ(caps.size(), 6U);
+  EXPECT_EQ(decodeCapture(caps[5]).image_index, 3);
+  EXPECT_EQ(ackResults(), (std::vector<int>{MAV_RESULT_ACCEPTED}));
+
+  peer.push(requestMessage(gcs, 1, 100, id, 1, 2));  // images 1..2
+  caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 8);
+  ASSERT_EQ(caps.size(), 8U);
+  EXPECT_EQ(decodeCapture(caps[6]).image_index, 1);
+  EXPECT_EQ(decodeCapture(caps[7]).image_index, 2);
+
+  peer.push(requestMessage(gcs, 1, 100, id, 42));  // never taken
+  ASSERT_TRUE(eventually([&] { return ackResults().size() == 3; }));
+  EXPECT_EQ(ackResults().back(), MAV_RESULT_FAILED);
+
+  peer.push(requestMessage(gcs, 1, 100, id, 3, -1));  // 3 and all after it
+  caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 10);
+  ASSERT_EQ(caps.size(), 10U);
+  EXPECT_EQ(decodeCapture(caps[8]).image_index, 3);
+  EXPECT_EQ(decodeCapture(caps[9]).image_index, 4);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  svc.stop();
+  EXPECT_EQ(peer.written(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED).size(), 10U);
+  EXPECT_EQ(svc.stats().capturesResent, 5U);
+  EXPECT_EQ(svc.stats().capturesSent, 5U);
+}
+
+TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::vector<std::pair<TelemetryLogLevel, std::string>> logs;
+  std::mutex logMutex;
+  svc.setLogSink([&](TelemetryLogLevel l, const std::string& m) {
+    std::lock_guard lock(logMutex);
+    logs.emplace_back(l, m);
+  });
+  auto count = [&](const std::string& text) {
+    std::lock_guard lock(logMutex);
+    int n = 0;
+    for (const auto& [l, m] : logs) n += m.find(text) != std::string::npos ? 1 : 0;
+    return n;
+  };
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+  // Answer two requests with the same clock: one record, not one per answer.
+  const std::int64_t behind = 5'000 * kMs;
+  for (std::size_t n = 1; n <= 2; ++n) {
+    const auto reqs = peer.waitFor(MAVLINK_MSG_ID_TIMESYNC, n, 3000);
+    ASSERT_GE(reqs.size(), n);
+    mavlink_timesync_t req;
+    mavlink_msg_timesync_decode(&reqs[n - 1], &req);
+    peer.push(timesync(ap, req.ts1 - behind, req.ts1));
+  }
+  ASSERT_TRUE(eventually([&] { return count("autopilot clock: timesync, offset 50") == 1; }))
+      << [&] {
+           std::lock_guard lock(logMutex);
+           std::string all;
+           for (const auto& [l, m] : logs) all += m + "\n";
+           return all;
+         }();
+  EXPECT_EQ(count("following the autopilot at system 1 component 1"), 1);
+  EXPECT_EQ(count("best round trip"), 1);
+  {
+    std::lock_guard lock(peer.state->m);
+    peer.state->failNextRead = true;
+  }
+  ASSERT_TRUE(eventually([&] { return count("reopened") == 1; }));
+  EXPECT_EQ(count("memory: unplugged; reopening"), 1);
+  EXPECT_EQ(svc.stats().reconnects, 1U);
+  svc.stop();
+  EXPECT_EQ(count("autopilot clock"), 1);
+}
+
+TEST(TelemetryService, LinkSilenceIsLoggedOnceAndItsEnd) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::vector<std::string> logs;
+  std::mutex logMutex;
+  svc.setLogSink([&](TelemetryLogLevel, const std::string& m) {
+    std::lock_guard lock(logMutex);
+    logs.push_back(m);
+  });
+  auto count = [&](const std::string& text) {
+    std::lock_guard lock(logMutex);
+    int n = 0;
+    for (const auto& m : logs) n += m.find(text) != std::string::npos ? 1 : 0;
+    return n;
+  };
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  ASSERT_TRUE(eventually([&] { return count("no MAVLink data on memory for 3 s") == 1; }, 5000));
+  peer.push(quadHeartbeat(ap));
+  ASSERT_TRUE(eventually([&] { return count("MAVLink data on memory again") == 1; }));
+  EXPECT_EQ(count("no MAVLink data"), 1);
+  svc.stop();
+}
+
+// ------------------------------------------------------------------ udpin, two senders
+
+int udpSocket(sockaddr_in& addr) {
+  const int fd = ::socket(AF_INET, SOCK_DGRAM, 0);
+  addr = {};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t len = sizeof addr;
+  if (fd < 0 || ::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0 ||
+      ::getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len) != 0) {
+    return -1;
+  }
+  return fd;
+}
+
+// Message ids heard on fd within timeoutMs.
+std::vector<std::uint32_t> hear(int fd, int timeoutMs) {
+  std::vector<std::uint32_t> ids;
+  MavlinkParser parser;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeoutMs);
+  for (;;) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+                          deadline - std::chrono::steady_clock::now())
+                          .count();
+    if (left <= 0) return ids;
+    pollfd p{fd, POLLIN, 0};
+    if (::poll(&p, 1, static_cast<int>(left)) <= 0) continue;
+    std::uint8_t buf[2048];
+    const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+    if (n <= 0) continue;
+    parser.feed(buf, static_cast<std::size_t>(n),
+                [&](const mavlink_message_t& m) { ids.push_back(m.msgid); });
+  }
+}
+
+TEST(MavlinkLink, UdpinAnswersTheAutopilotNotTheLastSender) {
+  sockaddr_in apAddr{}, gcsAddr{}, probe{};
+  const int apFd = udpSocket(apAddr);
+  const int gcsFd = udpSocket(gcsAddr);
+  const int probeFd = udpSocket(probe);  // a free port for the service to listen on
+  ASSERT_GE(apFd, 0);
+  ASSERT_GE(gcsFd, 0);
+  ASSERT_GE(probeFd, 0);
+  const int port = ntohs(probe.sin_port);
+  ::close(probeFd);
+
+  auto cfg = serviceConfig();
+  cfg.url = "udpin:127.0.0.1:" + std::to_string(port);
+  TelemetryService svc(cfg, CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(error)) << error;
+  sockaddr_in to{};
+  to.sin_family = AF_INET;
+  to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  to.sin_port = htons(static_cast<std::uint16_t>(port));
+  auto sendFrom = [&](int fd, const std::vector<std::uint8_t>& pkt) {
+    ::sendto(fd, pkt.data(), pkt.size(), 0, reinterpret_cast<const sockaddr*>(&to), sizeof to);
+  };
+  MavlinkEncoder ap(1, 1), gcs(255, 190);
+  sendFrom(apFd, quadHeartbeat(ap));
+  ASSERT_TRUE(eventually([&] { return svc.decoder().autopilotSystem() == 1; }));
+  // A ground station on the same port keeps talking, after the autopilot.
+  std::atomic<bool> done{false};
+  std::thread chatter([&] {
+    while (!done) {
+      sendFrom(gcsFd, heartbeat(gcs, MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID));
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  });
+  std::thread gcsEar;
+  std::vector<std::uint32_t> heardByGcs;
+  gcsEar = std::thread([&] { heardByGcs = hear(gcsFd, 3200); });
+  const auto heardByAp = hear(apFd, 3200);
+  gcsEar.join();
+  done = true;
+  chatter.join();
+  svc.stop();
+  ::close(apFd);
+  ::close(gcsFd);
+  // HEARTBEAT (1 Hz) and TIMESYNC (1 Hz) go to the autopilot, nothing to the GCS.
+  int heartbeats = 0, timesyncs = 0;
+  for (auto id : heardByAp) {
+    heartbeats += id == MAVLINK_MSG_ID_HEARTBEAT ? 1 : 0;
+    timesyncs += id == MAVLINK_MSG_ID_TIMESYNC ? 1 : 0;
+  }
+  EXPECT_GE(heartbeats, 2);
+  EXPECT_GE(timesyncs, 2);
+  EXPECT_TRUE(heardByGcs.empty()) << heardByGcs.size() << " messages went to the GCS";
+}
+
+}  // namespace
+}  // namespace keyframed
