@@ -30,6 +30,7 @@ class PacedSource final : public FrameSource {
   [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
   ReadStatus next(Frame& frame, std::string& error) override;
   [[nodiscard]] bool failed() const override { return inner_->failed(); }
+  void interrupt() override { inner_->interrupt(); }
   [[nodiscard]] double decodeCpuSeconds() const {
     return static_cast<double>(decodeCpuNs_.load()) / 1e9;
   }

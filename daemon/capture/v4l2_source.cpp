@@ -18,7 +18,6 @@
 #include <cstring>
 #include <ctime>
 #include <numeric>
-#include <thread>
 
 namespace keyframed {
 namespace {
@@ -466,9 +465,14 @@ ReadStatus V4l2Source::tryRecover(std::string& error) {
     error = lostReason_ + "; gave up after " + std::to_string(reopenAttempts_) + " reopen attempts";
     return ReadStatus::Error;
   }
-  ++reopenAttempts_;
   // The first attempt waits too: a device that just vanished is rarely back at once.
-  std::this_thread::sleep_for(std::chrono::milliseconds(std::max(0, options_.reopenIntervalMs)));
+  const auto rested =
+      interrupter_.wait(-1, 0, std::chrono::milliseconds(std::max(0, options_.reopenIntervalMs)));
+  if (rested.wake == Interrupter::Wake::Interrupted) {
+    error = "interrupted: " + lostReason_;
+    return ReadStatus::Error;
+  }
+  ++reopenAttempts_;
   const int attempt = reopenAttempts_;
   std::string why;
   if (!reopen(why)) {
@@ -503,20 +507,19 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
       std::chrono::steady_clock::now() + std::chrono::milliseconds(options_.timeoutMs);
   for (;;) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
-                          deadline - std::chrono::steady_clock::now())
-                          .count();
-    if (left <= 0) {
+        deadline - std::chrono::steady_clock::now());
+    const Interrupter::Result w =
+        interrupter_.wait(fd_, POLLIN, std::max(left, std::chrono::milliseconds(0)));
+    if (w.wake == Interrupter::Wake::Interrupted) {
+      error = "interrupted: waiting for a frame from " + options_.device;
+      return ReadStatus::Error;
+    }
+    if (w.wake == Interrupter::Wake::Timeout) {
       error = "timeout: no frame from " + options_.device + " within " +
               std::to_string(options_.timeoutMs) + " ms";
       return ReadStatus::Error;
     }
-    pollfd pfd{fd_, POLLIN, 0};
-    const int r = ::poll(&pfd, 1, static_cast<int>(left));
-    if (r < 0) {
-      if (errno == EINTR) continue;
-      return lose(errno, "poll", error);
-    }
-    if (r == 0) continue;  // the deadline check above reports the timeout
+    if (w.wake == Interrupter::Wake::Failed) return lose(w.err, "poll", error);
 
     v4l2_buffer buf{};
     buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
@@ -526,7 +529,7 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
       if (err == EAGAIN) {
         // POLLERR with nothing to dequeue: the queue is dead (vb2 sets it when
         // the driver gives up, the node is unregistered or streaming stopped).
-        if ((pfd.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0) return lose(EIO, "poll", error);
+        if ((w.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0) return lose(EIO, "poll", error);
         continue;
       }
       // ENODEV/EIO after an unplug or unbind; anything else also leaves the

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "capture/frame_source.h"
+#include "capture/interrupter.h"
 #include "capture/mjpeg_decoder.h"
 
 namespace keyframed {
@@ -33,7 +34,7 @@ struct V4l2Options {
   int height = 0;
   double fps = 0.0;      // VIDIOC_S_PARM when > 0 and the driver supports it
   int bufferCount = 4;   // mmap ring size
-  int timeoutMs = 2000;  // poll() timeout for one frame
+  int timeoutMs = 2000;  // longest wait for one frame (interrupt() ends it sooner)
   // Recovery when the device disappears (unplugged, driver unbound): when on,
   // next() keeps trying to reopen the same path every `reopenIntervalMs` (each
   // failed attempt returns Error), up to `maxReopenAttempts` (0: no limit).
@@ -65,6 +66,8 @@ class V4l2Source final : public FrameSource {
 
   [[nodiscard]] const SourceInfo& info() const override { return info_; }
   ReadStatus next(Frame& frame, std::string& error) override;
+  // Wakes a next() that waits for a frame or for the device to come back.
+  void interrupt() override { interrupter_.raise(); }
   // Lost, and next() will not try to reopen it (no autoReopen, or out of attempts).
   [[nodiscard]] bool failed() const override {
     return lost() && (!options_.autoReopen || (options_.maxReopenAttempts > 0 &&
@@ -126,6 +129,7 @@ class V4l2Source final : public FrameSource {
   std::size_t sizeImage_ = 0;
   bool driverTimestamps_ = false;
   MjpegDecoder mjpeg_;
+  Interrupter interrupter_;
   std::int64_t index_ = 0;
   std::uint32_t lastSequence_ = 0;
   bool haveSequence_ = false;
