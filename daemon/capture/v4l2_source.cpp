@@ -19,6 +19,8 @@
 #include <ctime>
 #include <numeric>
 
+#include "capture/plane_layout.h"
+
 namespace keyframed {
 namespace {
 
@@ -496,6 +498,35 @@ bool V4l2Source::requeueHeld(std::string& error) {
   return true;
 }
 
+V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const std::uint8_t* data,
+                                             std::size_t used, std::size_t length,
+                                             std::uint32_t flags, MjpegDecoder& mjpeg,
+                                             Frame& frame) {
+  if ((flags & V4L2_BUF_FLAG_ERROR) != 0 || data == nullptr) return BufferUse::Corrupt;
+  frame = Frame{};
+  frame.width = layout.width;
+  frame.height = layout.height;
+  if (layout.fourcc == V4L2_PIX_FMT_MJPEG) {
+    std::string why;
+    if (!mjpeg.decode(data, std::min(used, length), why) || mjpeg.width() != layout.width ||
+        mjpeg.height() != layout.height) {
+      return BufferUse::Corrupt;
+    }
+    frame.format = PixelFormat::BGR24;
+    frame.data = mjpeg.bgr();
+    frame.stride = mjpeg.stride();
+    return BufferUse::Frame;
+  }
+  std::size_t need = 0;
+  for (std::size_t n : planeSizes(layout.format, layout.stride, layout.height)) need += n;
+  // A short frame is skipped rather than read past the picture.
+  if (used < need || length < need) return BufferUse::Corrupt;
+  frame.format = layout.format;
+  frame.data = data;
+  frame.stride = layout.stride;
+  return BufferUse::Frame;
+}
+
 ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
   if (fd_ < 0) {
     const ReadStatus s = tryRecover(error);
@@ -554,42 +585,19 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
 
     const auto* data = static_cast<const std::uint8_t*>(buffers_[buf.index].start);
     const std::size_t used = buf.bytesused > 0 ? buf.bytesused : buffers_[buf.index].length;
-    if ((buf.flags & V4L2_BUF_FLAG_ERROR) != 0) {
-      ++corruptFrames_;
+    const StreamLayout layout{fourccCode_, pixelFormat_, info_.width, info_.height, stride_};
+    const BufferUse use =
+        readBuffer(layout, data, used, buffers_[buf.index].length, buf.flags, mjpeg_, frame);
+    // A decoded picture lives in the decoder and a corrupt one is skipped: either
+    // way the driver can have its buffer back now.
+    if (use == BufferUse::Corrupt || fourccCode_ == V4L2_PIX_FMT_MJPEG) {
       if (!requeueHeld(error)) return ReadStatus::Error;
+    }
+    if (use == BufferUse::Corrupt) {
+      ++corruptFrames_;
       continue;
     }
-
-    frame = Frame{};
     frame.timestampNs = ts;
-    frame.width = info_.width;
-    frame.height = info_.height;
-    if (fourccCode_ == V4L2_PIX_FMT_MJPEG) {
-      std::string why;
-      const bool ok = mjpeg_.decode(data, used, why);
-      // The decoded picture lives in the decoder: the driver can have its buffer back now.
-      if (!requeueHeld(error)) return ReadStatus::Error;
-      if (!ok || mjpeg_.width() != info_.width || mjpeg_.height() != info_.height) {
-        ++corruptFrames_;
-        continue;
-      }
-      frame.format = PixelFormat::BGR24;
-      frame.data = mjpeg_.bgr();
-      frame.stride = mjpeg_.stride();
-    } else {
-      frame.format = pixelFormat_;
-      frame.data = data;
-      frame.stride = stride_;
-      const std::size_t need =
-          pixelFormat_ == PixelFormat::NV12 || pixelFormat_ == PixelFormat::YUV420
-              ? static_cast<std::size_t>(stride_) * static_cast<std::size_t>(info_.height) * 3 / 2
-              : static_cast<std::size_t>(stride_) * static_cast<std::size_t>(info_.height);
-      if (used < need || buffers_[buf.index].length < need) {
-        ++corruptFrames_;  // a short frame: skip it rather than read past the picture
-        if (!requeueHeld(error)) return ReadStatus::Error;
-        continue;
-      }
-    }
     frame.index = index_++;
     return ReadStatus::Frame;
   }

@@ -102,6 +102,25 @@ class V4l2Source final : public FrameSource {
   // Driver timeval on CLOCK_MONOTONIC to nanoseconds.
   static std::int64_t timevalToNs(long sec, long usec);
 
+  // The negotiated stream, as readBuffer() needs it.
+  struct StreamLayout {
+    std::uint32_t fourcc = 0;                // V4L2 fourcc
+    PixelFormat format = PixelFormat::YUYV;  // of the buffer (MJPEG: ignored)
+    int width = 0;
+    int height = 0;
+    int stride = 0;  // bytes per row of the first plane
+  };
+  enum class BufferUse { Frame, Corrupt };
+  // What one filled buffer (`used` of `length` bytes, v4l2_buffer `flags`) gives:
+  // `frame`'s format, data, size and stride (not its time or index). Raw formats
+  // point into the buffer; MJPEG is decoded into `mjpeg` (BGR24, which then holds
+  // the picture). Corrupt: flagged V4L2_BUF_FLAG_ERROR, shorter than the picture,
+  // or a JPEG that fails to decode or has another size than negotiated. Pure but
+  // for the decoder: the seam that tests drive with buffers made up in memory.
+  static BufferUse readBuffer(const StreamLayout& layout, const std::uint8_t* data,
+                              std::size_t used, std::size_t length, std::uint32_t flags,
+                              MjpegDecoder& mjpeg, Frame& frame);
+
  private:
   struct Buffer {
     void* start = nullptr;
