@@ -47,7 +47,7 @@ DAEMON_RUN_S = 2
 # Then vivid is unbound and removed for this long, loaded again, and once frames are
 # back made to stall (every buffer dropped); SIGTERM comes 0.3 s after the capture's
 # first 2 s frame timeout, while it waits for the next frame.
-DAEMON_GONE_S = 4
+DAEMON_GONE_S = 4.5
 
 
 def _probe_bin() -> Path:
@@ -643,8 +643,9 @@ def test_daemon_rides_out_the_camera_vanishing(vm_run: dict) -> None:
     # few still queued), fed again once it is back; STATUS says so.
     assert notify, "the notify listener in the VM received nothing"
     assert len([m for _, m in notify if "READY=1" in m]) == 1, notify
-    assert len(_between(notify, "WATCHDOG=1", marks["DAEMON-READY"], unbind)) >= 3, notify
-    quiet_from = unbind + 2.6
+    assert len(_between(notify, "WATCHDOG=1", marks["DAEMON-READY"], unbind)) >= 2, notify
+    # Frames still queued are analysed after the loss, at 4-15 fps under TCG: up to 1 s.
+    quiet_from = unbind + 3.0
     assert reload_ - quiet_from > 1.0, marks  # long enough for 2 pings at 0.5 s
     assert not _between(notify, "WATCHDOG=1", quiet_from, reload_), notify
     assert _between(notify, "no frames", unbind + 2.0, reload_ + 0.5), notify
