@@ -50,13 +50,13 @@ std::uint32_t deviceCaps(const v4l2_capability& cap) {
   return (cap.capabilities & V4L2_CAP_DEVICE_CAPS) != 0 ? cap.device_caps : cap.capabilities;
 }
 
-std::vector<std::uint32_t> enumFormats(int fd, std::uint32_t type) {
+std::vector<std::uint32_t> enumFormats(V4l2Io& io, int fd, std::uint32_t type) {
   std::vector<std::uint32_t> out;
   for (std::uint32_t i = 0; i < 64; ++i) {
     v4l2_fmtdesc d{};
     d.index = i;
     d.type = type;
-    if (xioctl(fd, VIDIOC_ENUM_FMT, &d) < 0) break;
+    if (io.ioctl(fd, VIDIOC_ENUM_FMT, &d) < 0) break;
     out.push_back(d.pixelformat);
   }
   return out;
@@ -131,6 +131,37 @@ std::int64_t V4l2Source::timevalToNs(long sec, long usec) {
   return static_cast<std::int64_t>(sec) * 1'000'000'000 + static_cast<std::int64_t>(usec) * 1'000;
 }
 
+bool V4l2Io::exists(const std::string& path) {
+  struct stat st {};
+  return ::stat(path.c_str(), &st) == 0;
+}
+
+int V4l2Io::open(const std::string& path) {
+  return ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+}
+
+int V4l2Io::close(int fd) {
+  return ::close(fd);
+}
+
+int V4l2Io::ioctl(int fd, unsigned long request, void* arg) {
+  return xioctl(fd, request, arg);
+}
+
+void* V4l2Io::mmap(std::size_t length, int fd, std::int64_t offset) {
+  void* p = ::mmap(nullptr, length, PROT_READ | PROT_WRITE, MAP_SHARED, fd, offset);
+  return p == MAP_FAILED ? nullptr : p;
+}
+
+int V4l2Io::munmap(void* start, std::size_t length) {
+  return ::munmap(start, length);
+}
+
+const std::shared_ptr<V4l2Io>& V4l2Io::kernel() {
+  static const std::shared_ptr<V4l2Io> io = std::make_shared<V4l2Io>();
+  return io;
+}
+
 bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::string& error) {
   out = V4l2DeviceInfo{};
   out.path = path;
@@ -166,7 +197,9 @@ bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::str
     const std::uint32_t type = (caps & V4L2_CAP_VIDEO_CAPTURE) != 0
                                    ? V4L2_BUF_TYPE_VIDEO_CAPTURE
                                    : V4L2_BUF_TYPE_VIDEO_CAPTURE_MPLANE;
-    for (std::uint32_t c : enumFormats(fd, type)) out.formats.push_back(fourccString(c));
+    for (std::uint32_t c : enumFormats(*V4l2Io::kernel(), fd, type)) {
+      out.formats.push_back(fourccString(c));
+    }
   }
   ::close(fd);
   return true;
@@ -214,12 +247,11 @@ V4l2Source::~V4l2Source() {
 
 bool V4l2Source::start(std::string& error) {
   const std::string& path = options_.device;
-  struct stat st {};
-  if (::stat(path.c_str(), &st) != 0) {
+  if (!io_->exists(path)) {
     error = "no such device: " + path;
     return false;
   }
-  fd_ = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+  fd_ = io_->open(path);
   if (fd_ < 0) {
     const int err = errno;
     error = "cannot open " + path + ": " + errnoText(err);
@@ -227,7 +259,7 @@ bool V4l2Source::start(std::string& error) {
     return false;
   }
   v4l2_capability cap{};
-  if (xioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) {
     error = path + " is not a V4L2 device (VIDIOC_QUERYCAP: " + errnoText(errno) + ")";
     shutdown();
     return false;
@@ -254,7 +286,7 @@ bool V4l2Source::start(std::string& error) {
     return false;
   }
 
-  const std::vector<std::uint32_t> offered = enumFormats(fd_, V4L2_BUF_TYPE_VIDEO_CAPTURE);
+  const std::vector<std::uint32_t> offered = enumFormats(*io_, fd_, V4L2_BUF_TYPE_VIDEO_CAPTURE);
   for (std::uint32_t c : offered) device_.formats.push_back(fourccString(c));
   std::uint32_t want = 0;
   if (!options_.format.empty()) {
@@ -282,7 +314,7 @@ bool V4l2Source::start(std::string& error) {
 
   v4l2_format fmt{};
   fmt.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  if (xioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) {
     error = who + ": VIDIOC_G_FMT: " + errnoText(errno);
     shutdown();
     return false;
@@ -294,7 +326,7 @@ bool V4l2Source::start(std::string& error) {
   }
   fmt.fmt.pix.field = V4L2_FIELD_NONE;
   fmt.fmt.pix.bytesperline = 0;  // let the driver choose its stride
-  if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) {
     error = who + ": VIDIOC_S_FMT " + fourccString(want) + ": " + errnoText(errno);
     shutdown();
     return false;
@@ -334,7 +366,7 @@ bool V4l2Source::start(std::string& error) {
   // Frame rate: ask, then read back what the driver settled on.
   v4l2_streamparm parm{};
   parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  const bool haveParm = xioctl(fd_, VIDIOC_G_PARM, &parm) == 0;
+  const bool haveParm = io_->ioctl(fd_, VIDIOC_G_PARM, &parm) == 0;
   if (haveParm && options_.fps > 0.0 &&
       (parm.parm.capture.capability & V4L2_CAP_TIMEPERFRAME) != 0) {
     // timeperframe = 1000 / (fps * 1000), reduced: 30 -> 1/30, 29.97 -> 100/2997.
@@ -343,14 +375,14 @@ bool V4l2Source::start(std::string& error) {
     const std::uint32_t g = std::gcd(num, den);
     parm.parm.capture.timeperframe.numerator = num / g;
     parm.parm.capture.timeperframe.denominator = den / g;
-    if (xioctl(fd_, VIDIOC_S_PARM, &parm) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_S_PARM, &parm) < 0) {
       error = who + ": VIDIOC_S_PARM: " + errnoText(errno);
       shutdown();
       return false;
     }
   }
   info_.fps = 0.0;
-  if (haveParm && xioctl(fd_, VIDIOC_G_PARM, &parm) == 0 &&
+  if (haveParm && io_->ioctl(fd_, VIDIOC_G_PARM, &parm) == 0 &&
       parm.parm.capture.timeperframe.numerator > 0) {
     info_.fps = static_cast<double>(parm.parm.capture.timeperframe.denominator) /
                 static_cast<double>(parm.parm.capture.timeperframe.numerator);
@@ -362,7 +394,7 @@ bool V4l2Source::start(std::string& error) {
   req.count = static_cast<std::uint32_t>(options_.bufferCount);
   req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
   req.memory = V4L2_MEMORY_MMAP;
-  if (xioctl(fd_, VIDIOC_REQBUFS, &req) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_REQBUFS, &req) < 0) {
     error = who + " does not support mmap streaming (VIDIOC_REQBUFS: " + errnoText(errno) + ")";
     shutdown();
     return false;
@@ -378,26 +410,26 @@ bool V4l2Source::start(std::string& error) {
     buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     buf.memory = V4L2_MEMORY_MMAP;
     buf.index = i;
-    if (xioctl(fd_, VIDIOC_QUERYBUF, &buf) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_QUERYBUF, &buf) < 0) {
       error = who + ": VIDIOC_QUERYBUF: " + errnoText(errno);
       shutdown();
       return false;
     }
-    void* p = ::mmap(nullptr, buf.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_, buf.m.offset);
-    if (p == MAP_FAILED) {
+    void* p = io_->mmap(buf.length, fd_, buf.m.offset);
+    if (p == nullptr) {
       error = who + ": mmap: " + errnoText(errno);
       shutdown();
       return false;
     }
     buffers_[i] = Buffer{p, buf.length};
-    if (xioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
       error = who + ": VIDIOC_QBUF: " + errnoText(errno);
       shutdown();
       return false;
     }
   }
   int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  if (xioctl(fd_, VIDIOC_STREAMON, &type) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_STREAMON, &type) < 0) {
     error = who + ": VIDIOC_STREAMON: " + errnoText(errno);
     shutdown();
     return false;
@@ -417,11 +449,11 @@ bool V4l2Source::start(std::string& error) {
 void V4l2Source::shutdown() {
   if (fd_ >= 0 && streaming_) {
     int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-    xioctl(fd_, VIDIOC_STREAMOFF, &type);  // fails harmlessly on a vanished device
+    io_->ioctl(fd_, VIDIOC_STREAMOFF, &type);  // fails harmlessly on a vanished device
   }
   streaming_ = false;
   for (Buffer& b : buffers_) {
-    if (b.start != nullptr) ::munmap(b.start, b.length);
+    if (b.start != nullptr) io_->munmap(b.start, b.length);
   }
   const bool hadBuffers = !buffers_.empty();
   buffers_.clear();
@@ -430,9 +462,9 @@ void V4l2Source::shutdown() {
       v4l2_requestbuffers req{};
       req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
       req.memory = V4L2_MEMORY_MMAP;
-      xioctl(fd_, VIDIOC_REQBUFS, &req);
+      io_->ioctl(fd_, VIDIOC_REQBUFS, &req);
     }
-    ::close(fd_);
+    io_->close(fd_);
   }
   fd_ = -1;
   held_ = -1;
@@ -491,7 +523,7 @@ bool V4l2Source::requeueHeld(std::string& error) {
   buf.memory = V4L2_MEMORY_MMAP;
   buf.index = static_cast<std::uint32_t>(held_);
   held_ = -1;
-  if (xioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
     lose(errno, "VIDIOC_QBUF", error);
     return false;
   }
@@ -555,7 +587,7 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
     v4l2_buffer buf{};
     buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     buf.memory = V4L2_MEMORY_MMAP;
-    if (xioctl(fd_, VIDIOC_DQBUF, &buf) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_DQBUF, &buf) < 0) {
       const int err = errno;
       if (err == EAGAIN) {
         // POLLERR with nothing to dequeue: the queue is dead (vb2 sets it when

@@ -24,6 +24,22 @@ struct V4l2DeviceInfo {
   std::vector<std::string> formats;  // fourccs the capture queue offers ("YUYV", "NV12", ...)
 };
 
+// The system calls V4l2Source makes on its device node, behind one interface so
+// that tests can stand in for a driver. The default implementation is the kernel's.
+// `open` returns a descriptor poll() can watch (a fake driver hands out an eventfd
+// it makes readable when a buffer is done).
+class V4l2Io {
+ public:
+  virtual ~V4l2Io() = default;
+  [[nodiscard]] virtual bool exists(const std::string& path);
+  virtual int open(const std::string& path);  // read-write, non-blocking; -1 and errno
+  virtual int close(int fd);
+  virtual int ioctl(int fd, unsigned long request, void* arg);          // EINTR retried
+  virtual void* mmap(std::size_t length, int fd, std::int64_t offset);  // nullptr on failure
+  virtual int munmap(void* start, std::size_t length);
+  static const std::shared_ptr<V4l2Io>& kernel();
+};
+
 // What to ask the driver for. Zero/empty fields keep the driver's current setting.
 struct V4l2Options {
   std::string device = "/dev/video0";
@@ -41,6 +57,7 @@ struct V4l2Options {
   bool autoReopen = false;
   int reopenIntervalMs = 500;
   int maxReopenAttempts = 0;
+  std::shared_ptr<V4l2Io> io;  // null: the kernel (tests pass a fake driver)
 };
 
 // V4L2 capture (single-planar, mmap streaming) behind FrameSource. Frames are
@@ -127,7 +144,8 @@ class V4l2Source final : public FrameSource {
     std::size_t length = 0;
   };
 
-  explicit V4l2Source(V4l2Options options) : options_(std::move(options)) {}
+  explicit V4l2Source(V4l2Options options)
+      : options_(std::move(options)), io_(options_.io ? options_.io : V4l2Io::kernel()) {}
   bool start(std::string& error);
   void shutdown();
   bool requeueHeld(std::string& error);
@@ -135,6 +153,7 @@ class V4l2Source final : public FrameSource {
   ReadStatus tryRecover(std::string& error);
 
   V4l2Options options_;
+  std::shared_ptr<V4l2Io> io_;
   V4l2DeviceInfo device_;
   SourceInfo info_;
   int fd_ = -1;
