@@ -3,7 +3,6 @@
 #include <time.h>
 
 #include <chrono>
-#include <thread>
 
 #include "telemetry/link.h"
 
@@ -35,7 +34,13 @@ ReadStatus PacedSource::next(Frame& frame, std::string& error) {
     if (startNs_ < 0) startNs_ = monotonicNowNs() - frame.timestampNs;
     const std::int64_t due = startNs_ + frame.timestampNs;
     const std::int64_t now = monotonicNowNs();
-    if (due > now) std::this_thread::sleep_for(std::chrono::nanoseconds(due - now));
+    // A file's timestamps may jump (a gap, variable frame rate): stopping must not wait.
+    const auto wait =
+        std::chrono::ceil<std::chrono::milliseconds>(std::chrono::nanoseconds(due - now));
+    if (due > now && interrupter_.wait(-1, 0, wait).wake == Interrupter::Wake::Interrupted) {
+      error = "interrupted: waiting for a frame's time";
+      return ReadStatus::Error;
+    }
     frame.timestampNs = monotonicNowNs();
   } else if (startUnixNs_) {
     frame.timestampNs += *startUnixNs_;

@@ -7,6 +7,7 @@
 #include <string>
 
 #include "capture/frame_source.h"
+#include "capture/interrupter.h"
 #include "core/selector.h"
 
 namespace keyframed {
@@ -30,6 +31,11 @@ class PacedSource final : public FrameSource {
   [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
   ReadStatus next(Frame& frame, std::string& error) override;
   [[nodiscard]] bool failed() const override { return inner_->failed(); }
+  // Also ends a wait for a frame's presentation time.
+  void interrupt() override {
+    interrupter_.raise();
+    inner_->interrupt();
+  }
   [[nodiscard]] double decodeCpuSeconds() const {
     return static_cast<double>(decodeCpuNs_.load()) / 1e9;
   }
@@ -40,6 +46,7 @@ class PacedSource final : public FrameSource {
   std::optional<std::int64_t> startUnixNs_;
   std::int64_t startNs_ = -1;
   std::atomic<std::int64_t> decodeCpuNs_{0};
+  Interrupter interrupter_;
 };
 
 }  // namespace keyframed

@@ -1,13 +1,20 @@
 #include "app/probe_v4l2.h"
 
+#include <fcntl.h>
+#include <linux/videodev2.h>
+#include <sys/ioctl.h>
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cctype>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <ctime>
 #include <string>
 #include <vector>
@@ -33,6 +40,8 @@ options:
   --reopen-wait S      when the device disappears, keep reopening it for up to
                        S seconds (default 0: a lost device is an error)
   --verbose            one line per frame
+  --set-ctrl NAME=V    set one control of --device by its name (case ignored; e.g.
+                       vivid's "percentage of dropped buffers=100" stalls it) and exit
 exit status: 0 ok, 1 device error, 2 usage
 )";
 
@@ -130,6 +139,46 @@ int usage(const std::string& why) {
   return 2;
 }
 
+// Sets the integer/boolean/menu control called `name` (case ignored) on `path`.
+// Works while another process streams: controls are not owned by the streamer.
+bool setControl(const std::string& path, const std::string& name, int value, std::string& error) {
+  const int fd = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) {
+    error = "cannot open " + path + ": " + std::strerror(errno);
+    return false;
+  }
+  const auto lower = [](std::string s) {
+    for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    return s;
+  };
+  v4l2_query_ext_ctrl q{};
+  q.id = V4L2_CTRL_FLAG_NEXT_CTRL | V4L2_CTRL_FLAG_NEXT_COMPOUND;
+  bool found = false;
+  while (::ioctl(fd, VIDIOC_QUERY_EXT_CTRL, &q) == 0) {
+    if (lower(std::string(q.name, strnlen(q.name, sizeof q.name))) == lower(name)) {
+      found = true;
+      break;
+    }
+    q.id |= V4L2_CTRL_FLAG_NEXT_CTRL | V4L2_CTRL_FLAG_NEXT_COMPOUND;
+  }
+  if (!found) {
+    error = path + " has no control named '" + name + "'";
+    ::close(fd);
+    return false;
+  }
+  v4l2_ext_control c{};
+  c.id = q.id;
+  c.value = value;
+  v4l2_ext_controls cs{};
+  cs.which = V4L2_CTRL_WHICH_CUR_VAL;
+  cs.count = 1;
+  cs.controls = &c;
+  const bool ok = ::ioctl(fd, VIDIOC_S_EXT_CTRLS, &cs) == 0;
+  if (!ok) error = path + ": setting '" + name + "': " + std::strerror(errno);
+  ::close(fd);
+  return ok;
+}
+
 struct DeltaStats {
   std::vector<double> ms;  // inter-frame timestamp deltas within one stream segment
   bool monotonic = true;
@@ -143,6 +192,7 @@ int probeV4l2Main(const std::vector<std::string>& args) {
   int frames = 30;
   double reopenWait = 0.0;
   bool listOnly = false, verbose = false;
+  std::string setCtrl;
   for (std::size_t i = 0; i < args.size(); ++i) {
     const std::string& a = args[i];
     const auto value = [&](std::string& out) {
@@ -181,6 +231,10 @@ int probeV4l2Main(const std::vector<std::string>& args) {
       if (!value(v) || !parseInt(v, 1, 600'000, opt.timeoutMs)) {
         return usage("--timeout-ms needs 1..600000");
       }
+    } else if (a == "--set-ctrl") {
+      if (!value(setCtrl) || setCtrl.find('=') == std::string::npos) {
+        return usage("--set-ctrl needs NAME=VALUE");
+      }
     } else if (a == "--reopen-wait") {
       if (!value(v) || !parseDouble(v, 0.0, 86400.0, reopenWait)) {
         return usage("--reopen-wait needs seconds >= 0");
@@ -188,6 +242,24 @@ int probeV4l2Main(const std::vector<std::string>& args) {
     } else {
       return usage("unknown option '" + a + "'");
     }
+  }
+
+  if (!setCtrl.empty()) {
+    const std::size_t eq = setCtrl.rfind('=');
+    const std::string name = setCtrl.substr(0, eq);
+    int value = 0;
+    if (opt.device.empty()) return usage("--set-ctrl needs --device");
+    if (!parseInt(setCtrl.substr(eq + 1), -2'000'000'000, 2'000'000'000, value)) {
+      return usage("--set-ctrl needs an integer value");
+    }
+    std::string error;
+    if (!setControl(opt.device, name, value, error)) {
+      emit("{\"event\":\"error\",\"reason\":" + jsonString(error) + "}");
+      return 1;
+    }
+    emit("{\"event\":\"control\",\"device\":" + jsonString(opt.device) +
+         ",\"name\":" + jsonString(name) + ",\"value\":" + std::to_string(value) + "}");
+    return 0;
   }
 
   const std::vector<V4l2DeviceInfo> devices = V4l2Source::listDevices();

@@ -90,7 +90,10 @@ void CaptureThread::stop() {
     stop_ = true;
   }
   stopped_.notify_all();
-  if (thread_.joinable()) thread_.join();
+  if (thread_.joinable()) {
+    source_.interrupt();  // a camera waiting for a frame gives up now, not at its timeout
+    thread_.join();
+  }
   running_ = false;
 }
 
@@ -118,6 +121,7 @@ void CaptureThread::run() {
     Frame frame;
     const auto called = Clock::now();
     const ReadStatus status = source_.next(frame, error);
+    if (stop_) break;  // stopped while reading: an interrupted read is no capture error
     if (status == ReadStatus::End) {
       ended_ = true;
       break;

@@ -42,8 +42,9 @@ class CaptureThread {
   CaptureThread& operator=(const CaptureThread&) = delete;
 
   void start();
-  // Asks the thread to stop after the current next() call (or at once while it
-  // backs off) and joins it.
+  // Stops the thread and joins it: interrupts the source's next() (a camera
+  // waiting for a frame returns at once; see FrameSource::interrupt, which is for
+  // good) and any back-off wait.
   void stop();
   [[nodiscard]] bool running() const { return running_; }
   [[nodiscard]] Stats stats() const;

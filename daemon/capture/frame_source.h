@@ -29,6 +29,10 @@ class FrameSource {
   // True once next() has returned an Error the source cannot recover from (a
   // truncated file, a camera gone for good): calling again would only repeat it.
   [[nodiscard]] virtual bool failed() const { return false; }
+  // Called from another thread when the owner stops: a next() waiting for the
+  // device returns at once (Error, "interrupted"), and so does every later one.
+  // Sources whose next() never waits long (files) need not do anything.
+  virtual void interrupt() {}
 };
 
 }  // namespace keyframed

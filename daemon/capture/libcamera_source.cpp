@@ -25,6 +25,7 @@
 
 #include "capture/libcamera_compat.h"
 #include "capture/libcamera_select.h"
+#include "capture/plane_layout.h"
 
 namespace keyframed {
 
@@ -43,7 +44,9 @@ struct LibcameraSource::Impl {
   std::unique_ptr<libcamera::FrameBufferAllocator> allocator;
   std::vector<std::unique_ptr<libcamera::Request>> requests;
   std::vector<Mapping> mappings;
-  std::map<const libcamera::FrameBuffer*, const std::uint8_t*> firstPlane;
+  // Each buffer's planes as mapped; contiguousFrame() lays them out as a Frame.
+  std::map<const libcamera::FrameBuffer*, std::vector<PlaneSpan>> planes;
+  std::vector<std::uint8_t> packed;  // the frame, when its planes are not back to back
   PixelFormat format = PixelFormat::NV12;
   int stride = 0;
   libcamera::Request* held = nullptr;  // lent to the caller until the next call
@@ -54,6 +57,7 @@ struct LibcameraSource::Impl {
   std::condition_variable ready;
   std::vector<libcamera::Request*> completed;
   bool disconnected = false;
+  bool interrupted = false;  // the owner stops: no more waiting
 
   // Runs on libcamera's internal thread: hand over and return, no work here.
   void onRequestCompleted(libcamera::Request* request) {
@@ -185,8 +189,8 @@ std::unique_ptr<LibcameraSource> LibcameraSource::open(const LibcameraOptions& o
       d.mappings.push_back({m, length});
       base[fd] = static_cast<const std::uint8_t*>(m);
     }
-    const auto& p0 = buffer->planes().front();
-    d.firstPlane[buffer.get()] = base[p0.fd.get()] + p0.offset;
+    std::vector<PlaneSpan>& spans = d.planes[buffer.get()];
+    for (const auto& p : buffer->planes()) spans.push_back({base[p.fd.get()] + p.offset, p.length});
 
     std::unique_ptr<libcamera::Request> request = d.camera->createRequest();
     if (!request || request->addBuffer(d.stream, buffer.get()) < 0) {
@@ -194,6 +198,14 @@ std::unique_ptr<LibcameraSource> LibcameraSource::open(const LibcameraOptions& o
       return nullptr;
     }
     d.requests.push_back(std::move(request));
+  }
+  // Every buffer's planes must hold the configured picture: said now, not per frame.
+  for (const auto& [buffer, spans] : d.planes) {
+    if (contiguousFrame(d.format, d.stride, static_cast<int>(sc.size.height), spans, d.packed,
+                        error) == nullptr) {
+      error = who + ": " + sc.toString() + ": " + error;
+      return nullptr;
+    }
   }
   d.completed.reserve(d.requests.size());
   d.camera->requestCompleted.connect(&d, &Impl::onRequestCompleted);
@@ -228,6 +240,14 @@ std::unique_ptr<LibcameraSource> LibcameraSource::open(const LibcameraOptions& o
   return src;
 }
 
+void LibcameraSource::interrupt() {
+  {
+    std::lock_guard lock(impl_->mutex);
+    impl_->interrupted = true;
+  }
+  impl_->ready.notify_all();
+}
+
 bool LibcameraSource::failed() const {
   std::lock_guard lock(impl_->mutex);
   return impl_->disconnected;
@@ -250,8 +270,13 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
     libcamera::Request* request = nullptr;
     {
       std::unique_lock lock(d.mutex);
-      const bool got = d.ready.wait_for(lock, std::chrono::milliseconds(timeoutMs_),
-                                        [&] { return !d.completed.empty() || d.disconnected; });
+      const bool got = d.ready.wait_for(lock, std::chrono::milliseconds(timeoutMs_), [&] {
+        return !d.completed.empty() || d.disconnected || d.interrupted;
+      });
+      if (d.interrupted) {
+        error = "interrupted: waiting for a frame from camera " + cameraId_;
+        return ReadStatus::Error;
+      }
       if (d.disconnected) {
         error = "camera " + cameraId_ + " disconnected";
         return ReadStatus::Error;
@@ -283,9 +308,17 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
     const auto sensorTs =
         libcamera_compat::metadata(*request).get(libcamera::controls::SensorTimestamp);
     sensorTimestamps_ = sensorTs.has_value();
+    std::string why;
+    const std::uint8_t* data =
+        contiguousFrame(d.format, d.stride, info_.height, d.planes.at(buffer), d.packed, why);
+    if (data == nullptr) {  // checked at open: a buffer the camera changed under us
+      requeue(request);
+      error = "camera " + cameraId_ + ": " + why;
+      return ReadStatus::Error;
+    }
     frame = Frame{};
     frame.format = d.format;
-    frame.data = d.firstPlane.at(buffer);
+    frame.data = data;
     frame.width = info_.width;
     frame.height = info_.height;
     frame.stride = d.stride;

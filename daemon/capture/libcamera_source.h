@@ -16,7 +16,7 @@ struct LibcameraOptions {
   int height = 0;
   double fps = 0.0;  // fixed frame duration when > 0
   int bufferCount = 4;
-  int timeoutMs = 2000;   // longest wait for one frame
+  int timeoutMs = 2000;   // longest wait for one frame (interrupt() ends it sooner)
   bool videoRole = true;  // StreamRole::VideoRecording, else Viewfinder
 };
 
@@ -44,6 +44,8 @@ class LibcameraSource final : public FrameSource {
   // The camera was disconnected: it is not reopened (the daemon exits and systemd
   // restarts it), so every later next() fails at once.
   [[nodiscard]] bool failed() const override;
+  // Wakes a next() that waits for a completed request.
+  void interrupt() override;
 
   [[nodiscard]] const std::string& cameraId() const { return cameraId_; }
   // True when the last frame's time came from controls::SensorTimestamp.

@@ -18,7 +18,8 @@
 #include <cstring>
 #include <ctime>
 #include <numeric>
-#include <thread>
+
+#include "capture/plane_layout.h"
 
 namespace keyframed {
 namespace {
@@ -49,13 +50,13 @@ std::uint32_t deviceCaps(const v4l2_capability& cap) {
   return (cap.capabilities & V4L2_CAP_DEVICE_CAPS) != 0 ? cap.device_caps : cap.capabilities;
 }
 
-std::vector<std::uint32_t> enumFormats(int fd, std::uint32_t type) {
+std::vector<std::uint32_t> enumFormats(V4l2Io& io, int fd, std::uint32_t type) {
   std::vector<std::uint32_t> out;
   for (std::uint32_t i = 0; i < 64; ++i) {
     v4l2_fmtdesc d{};
     d.index = i;
     d.type = type;
-    if (xioctl(fd, VIDIOC_ENUM_FMT, &d) < 0) break;
+    if (io.ioctl(fd, VIDIOC_ENUM_FMT, &d) < 0) break;
     out.push_back(d.pixelformat);
   }
   return out;
@@ -130,6 +131,37 @@ std::int64_t V4l2Source::timevalToNs(long sec, long usec) {
   return static_cast<std::int64_t>(sec) * 1'000'000'000 + static_cast<std::int64_t>(usec) * 1'000;
 }
 
+bool V4l2Io::exists(const std::string& path) {
+  struct stat st {};
+  return ::stat(path.c_str(), &st) == 0;
+}
+
+int V4l2Io::open(const std::string& path) {
+  return ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+}
+
+int V4l2Io::close(int fd) {
+  return ::close(fd);
+}
+
+int V4l2Io::ioctl(int fd, unsigned long request, void* arg) {
+  return xioctl(fd, request, arg);
+}
+
+void* V4l2Io::mmap(std::size_t length, int fd, std::int64_t offset) {
+  void* p = ::mmap(nullptr, length, PROT_READ | PROT_WRITE, MAP_SHARED, fd, offset);
+  return p == MAP_FAILED ? nullptr : p;
+}
+
+int V4l2Io::munmap(void* start, std::size_t length) {
+  return ::munmap(start, length);
+}
+
+const std::shared_ptr<V4l2Io>& V4l2Io::kernel() {
+  static const std::shared_ptr<V4l2Io> io = std::make_shared<V4l2Io>();
+  return io;
+}
+
 bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::string& error) {
   out = V4l2DeviceInfo{};
   out.path = path;
@@ -165,7 +197,9 @@ bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::str
     const std::uint32_t type = (caps & V4L2_CAP_VIDEO_CAPTURE) != 0
                                    ? V4L2_BUF_TYPE_VIDEO_CAPTURE
                                    : V4L2_BUF_TYPE_VIDEO_CAPTURE_MPLANE;
-    for (std::uint32_t c : enumFormats(fd, type)) out.formats.push_back(fourccString(c));
+    for (std::uint32_t c : enumFormats(*V4l2Io::kernel(), fd, type)) {
+      out.formats.push_back(fourccString(c));
+    }
   }
   ::close(fd);
   return true;
@@ -213,12 +247,11 @@ V4l2Source::~V4l2Source() {
 
 bool V4l2Source::start(std::string& error) {
   const std::string& path = options_.device;
-  struct stat st {};
-  if (::stat(path.c_str(), &st) != 0) {
+  if (!io_->exists(path)) {
     error = "no such device: " + path;
     return false;
   }
-  fd_ = ::open(path.c_str(), O_RDWR | O_NONBLOCK | O_CLOEXEC);
+  fd_ = io_->open(path);
   if (fd_ < 0) {
     const int err = errno;
     error = "cannot open " + path + ": " + errnoText(err);
@@ -226,7 +259,7 @@ bool V4l2Source::start(std::string& error) {
     return false;
   }
   v4l2_capability cap{};
-  if (xioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_QUERYCAP, &cap) < 0) {
     error = path + " is not a V4L2 device (VIDIOC_QUERYCAP: " + errnoText(errno) + ")";
     shutdown();
     return false;
@@ -253,7 +286,7 @@ bool V4l2Source::start(std::string& error) {
     return false;
   }
 
-  const std::vector<std::uint32_t> offered = enumFormats(fd_, V4L2_BUF_TYPE_VIDEO_CAPTURE);
+  const std::vector<std::uint32_t> offered = enumFormats(*io_, fd_, V4L2_BUF_TYPE_VIDEO_CAPTURE);
   for (std::uint32_t c : offered) device_.formats.push_back(fourccString(c));
   std::uint32_t want = 0;
   if (!options_.format.empty()) {
@@ -281,7 +314,7 @@ bool V4l2Source::start(std::string& error) {
 
   v4l2_format fmt{};
   fmt.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  if (xioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_G_FMT, &fmt) < 0) {
     error = who + ": VIDIOC_G_FMT: " + errnoText(errno);
     shutdown();
     return false;
@@ -293,7 +326,7 @@ bool V4l2Source::start(std::string& error) {
   }
   fmt.fmt.pix.field = V4L2_FIELD_NONE;
   fmt.fmt.pix.bytesperline = 0;  // let the driver choose its stride
-  if (xioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_S_FMT, &fmt) < 0) {
     error = who + ": VIDIOC_S_FMT " + fourccString(want) + ": " + errnoText(errno);
     shutdown();
     return false;
@@ -333,7 +366,7 @@ bool V4l2Source::start(std::string& error) {
   // Frame rate: ask, then read back what the driver settled on.
   v4l2_streamparm parm{};
   parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  const bool haveParm = xioctl(fd_, VIDIOC_G_PARM, &parm) == 0;
+  const bool haveParm = io_->ioctl(fd_, VIDIOC_G_PARM, &parm) == 0;
   if (haveParm && options_.fps > 0.0 &&
       (parm.parm.capture.capability & V4L2_CAP_TIMEPERFRAME) != 0) {
     // timeperframe = 1000 / (fps * 1000), reduced: 30 -> 1/30, 29.97 -> 100/2997.
@@ -342,14 +375,14 @@ bool V4l2Source::start(std::string& error) {
     const std::uint32_t g = std::gcd(num, den);
     parm.parm.capture.timeperframe.numerator = num / g;
     parm.parm.capture.timeperframe.denominator = den / g;
-    if (xioctl(fd_, VIDIOC_S_PARM, &parm) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_S_PARM, &parm) < 0) {
       error = who + ": VIDIOC_S_PARM: " + errnoText(errno);
       shutdown();
       return false;
     }
   }
   info_.fps = 0.0;
-  if (haveParm && xioctl(fd_, VIDIOC_G_PARM, &parm) == 0 &&
+  if (haveParm && io_->ioctl(fd_, VIDIOC_G_PARM, &parm) == 0 &&
       parm.parm.capture.timeperframe.numerator > 0) {
     info_.fps = static_cast<double>(parm.parm.capture.timeperframe.denominator) /
                 static_cast<double>(parm.parm.capture.timeperframe.numerator);
@@ -361,7 +394,7 @@ bool V4l2Source::start(std::string& error) {
   req.count = static_cast<std::uint32_t>(options_.bufferCount);
   req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
   req.memory = V4L2_MEMORY_MMAP;
-  if (xioctl(fd_, VIDIOC_REQBUFS, &req) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_REQBUFS, &req) < 0) {
     error = who + " does not support mmap streaming (VIDIOC_REQBUFS: " + errnoText(errno) + ")";
     shutdown();
     return false;
@@ -377,26 +410,26 @@ bool V4l2Source::start(std::string& error) {
     buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     buf.memory = V4L2_MEMORY_MMAP;
     buf.index = i;
-    if (xioctl(fd_, VIDIOC_QUERYBUF, &buf) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_QUERYBUF, &buf) < 0) {
       error = who + ": VIDIOC_QUERYBUF: " + errnoText(errno);
       shutdown();
       return false;
     }
-    void* p = ::mmap(nullptr, buf.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_, buf.m.offset);
-    if (p == MAP_FAILED) {
+    void* p = io_->mmap(buf.length, fd_, buf.m.offset);
+    if (p == nullptr) {
       error = who + ": mmap: " + errnoText(errno);
       shutdown();
       return false;
     }
     buffers_[i] = Buffer{p, buf.length};
-    if (xioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
       error = who + ": VIDIOC_QBUF: " + errnoText(errno);
       shutdown();
       return false;
     }
   }
   int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-  if (xioctl(fd_, VIDIOC_STREAMON, &type) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_STREAMON, &type) < 0) {
     error = who + ": VIDIOC_STREAMON: " + errnoText(errno);
     shutdown();
     return false;
@@ -416,11 +449,11 @@ bool V4l2Source::start(std::string& error) {
 void V4l2Source::shutdown() {
   if (fd_ >= 0 && streaming_) {
     int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-    xioctl(fd_, VIDIOC_STREAMOFF, &type);  // fails harmlessly on a vanished device
+    io_->ioctl(fd_, VIDIOC_STREAMOFF, &type);  // fails harmlessly on a vanished device
   }
   streaming_ = false;
   for (Buffer& b : buffers_) {
-    if (b.start != nullptr) ::munmap(b.start, b.length);
+    if (b.start != nullptr) io_->munmap(b.start, b.length);
   }
   const bool hadBuffers = !buffers_.empty();
   buffers_.clear();
@@ -429,9 +462,9 @@ void V4l2Source::shutdown() {
       v4l2_requestbuffers req{};
       req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
       req.memory = V4L2_MEMORY_MMAP;
-      xioctl(fd_, VIDIOC_REQBUFS, &req);
+      io_->ioctl(fd_, VIDIOC_REQBUFS, &req);
     }
-    ::close(fd_);
+    io_->close(fd_);
   }
   fd_ = -1;
   held_ = -1;
@@ -466,9 +499,14 @@ ReadStatus V4l2Source::tryRecover(std::string& error) {
     error = lostReason_ + "; gave up after " + std::to_string(reopenAttempts_) + " reopen attempts";
     return ReadStatus::Error;
   }
-  ++reopenAttempts_;
   // The first attempt waits too: a device that just vanished is rarely back at once.
-  std::this_thread::sleep_for(std::chrono::milliseconds(std::max(0, options_.reopenIntervalMs)));
+  const auto rested =
+      interrupter_.wait(-1, 0, std::chrono::milliseconds(std::max(0, options_.reopenIntervalMs)));
+  if (rested.wake == Interrupter::Wake::Interrupted) {
+    error = "interrupted: " + lostReason_;
+    return ReadStatus::Error;
+  }
+  ++reopenAttempts_;
   const int attempt = reopenAttempts_;
   std::string why;
   if (!reopen(why)) {
@@ -485,11 +523,40 @@ bool V4l2Source::requeueHeld(std::string& error) {
   buf.memory = V4L2_MEMORY_MMAP;
   buf.index = static_cast<std::uint32_t>(held_);
   held_ = -1;
-  if (xioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
+  if (io_->ioctl(fd_, VIDIOC_QBUF, &buf) < 0) {
     lose(errno, "VIDIOC_QBUF", error);
     return false;
   }
   return true;
+}
+
+V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const std::uint8_t* data,
+                                             std::size_t used, std::size_t length,
+                                             std::uint32_t flags, MjpegDecoder& mjpeg,
+                                             Frame& frame) {
+  if ((flags & V4L2_BUF_FLAG_ERROR) != 0 || data == nullptr) return BufferUse::Corrupt;
+  frame = Frame{};
+  frame.width = layout.width;
+  frame.height = layout.height;
+  if (layout.fourcc == V4L2_PIX_FMT_MJPEG) {
+    std::string why;
+    if (!mjpeg.decode(data, std::min(used, length), why) || mjpeg.width() != layout.width ||
+        mjpeg.height() != layout.height) {
+      return BufferUse::Corrupt;
+    }
+    frame.format = PixelFormat::BGR24;
+    frame.data = mjpeg.bgr();
+    frame.stride = mjpeg.stride();
+    return BufferUse::Frame;
+  }
+  std::size_t need = 0;
+  for (std::size_t n : planeSizes(layout.format, layout.stride, layout.height)) need += n;
+  // A short frame is skipped rather than read past the picture.
+  if (used < need || length < need) return BufferUse::Corrupt;
+  frame.format = layout.format;
+  frame.data = data;
+  frame.stride = layout.stride;
+  return BufferUse::Frame;
 }
 
 ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
@@ -503,30 +570,29 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
       std::chrono::steady_clock::now() + std::chrono::milliseconds(options_.timeoutMs);
   for (;;) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
-                          deadline - std::chrono::steady_clock::now())
-                          .count();
-    if (left <= 0) {
+        deadline - std::chrono::steady_clock::now());
+    const Interrupter::Result w =
+        interrupter_.wait(fd_, POLLIN, std::max(left, std::chrono::milliseconds(0)));
+    if (w.wake == Interrupter::Wake::Interrupted) {
+      error = "interrupted: waiting for a frame from " + options_.device;
+      return ReadStatus::Error;
+    }
+    if (w.wake == Interrupter::Wake::Timeout) {
       error = "timeout: no frame from " + options_.device + " within " +
               std::to_string(options_.timeoutMs) + " ms";
       return ReadStatus::Error;
     }
-    pollfd pfd{fd_, POLLIN, 0};
-    const int r = ::poll(&pfd, 1, static_cast<int>(left));
-    if (r < 0) {
-      if (errno == EINTR) continue;
-      return lose(errno, "poll", error);
-    }
-    if (r == 0) continue;  // the deadline check above reports the timeout
+    if (w.wake == Interrupter::Wake::Failed) return lose(w.err, "poll", error);
 
     v4l2_buffer buf{};
     buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     buf.memory = V4L2_MEMORY_MMAP;
-    if (xioctl(fd_, VIDIOC_DQBUF, &buf) < 0) {
+    if (io_->ioctl(fd_, VIDIOC_DQBUF, &buf) < 0) {
       const int err = errno;
       if (err == EAGAIN) {
         // POLLERR with nothing to dequeue: the queue is dead (vb2 sets it when
         // the driver gives up, the node is unregistered or streaming stopped).
-        if ((pfd.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0) return lose(EIO, "poll", error);
+        if ((w.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0) return lose(EIO, "poll", error);
         continue;
       }
       // ENODEV/EIO after an unplug or unbind; anything else also leaves the
@@ -551,42 +617,19 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
 
     const auto* data = static_cast<const std::uint8_t*>(buffers_[buf.index].start);
     const std::size_t used = buf.bytesused > 0 ? buf.bytesused : buffers_[buf.index].length;
-    if ((buf.flags & V4L2_BUF_FLAG_ERROR) != 0) {
-      ++corruptFrames_;
+    const StreamLayout layout{fourccCode_, pixelFormat_, info_.width, info_.height, stride_};
+    const BufferUse use =
+        readBuffer(layout, data, used, buffers_[buf.index].length, buf.flags, mjpeg_, frame);
+    // A decoded picture lives in the decoder and a corrupt one is skipped: either
+    // way the driver can have its buffer back now.
+    if (use == BufferUse::Corrupt || fourccCode_ == V4L2_PIX_FMT_MJPEG) {
       if (!requeueHeld(error)) return ReadStatus::Error;
+    }
+    if (use == BufferUse::Corrupt) {
+      ++corruptFrames_;
       continue;
     }
-
-    frame = Frame{};
     frame.timestampNs = ts;
-    frame.width = info_.width;
-    frame.height = info_.height;
-    if (fourccCode_ == V4L2_PIX_FMT_MJPEG) {
-      std::string why;
-      const bool ok = mjpeg_.decode(data, used, why);
-      // The decoded picture lives in the decoder: the driver can have its buffer back now.
-      if (!requeueHeld(error)) return ReadStatus::Error;
-      if (!ok || mjpeg_.width() != info_.width || mjpeg_.height() != info_.height) {
-        ++corruptFrames_;
-        continue;
-      }
-      frame.format = PixelFormat::BGR24;
-      frame.data = mjpeg_.bgr();
-      frame.stride = mjpeg_.stride();
-    } else {
-      frame.format = pixelFormat_;
-      frame.data = data;
-      frame.stride = stride_;
-      const std::size_t need =
-          pixelFormat_ == PixelFormat::NV12 || pixelFormat_ == PixelFormat::YUV420
-              ? static_cast<std::size_t>(stride_) * static_cast<std::size_t>(info_.height) * 3 / 2
-              : static_cast<std::size_t>(stride_) * static_cast<std::size_t>(info_.height);
-      if (used < need || buffers_[buf.index].length < need) {
-        ++corruptFrames_;  // a short frame: skip it rather than read past the picture
-        if (!requeueHeld(error)) return ReadStatus::Error;
-        continue;
-      }
-    }
     frame.index = index_++;
     return ReadStatus::Frame;
   }

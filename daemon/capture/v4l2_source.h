@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "capture/frame_source.h"
+#include "capture/interrupter.h"
 #include "capture/mjpeg_decoder.h"
 
 namespace keyframed {
@@ -23,6 +24,22 @@ struct V4l2DeviceInfo {
   std::vector<std::string> formats;  // fourccs the capture queue offers ("YUYV", "NV12", ...)
 };
 
+// The system calls V4l2Source makes on its device node, behind one interface so
+// that tests can stand in for a driver. The default implementation is the kernel's.
+// `open` returns a descriptor poll() can watch (a fake driver hands out an eventfd
+// it makes readable when a buffer is done).
+class V4l2Io {
+ public:
+  virtual ~V4l2Io() = default;
+  [[nodiscard]] virtual bool exists(const std::string& path);
+  virtual int open(const std::string& path);  // read-write, non-blocking; -1 and errno
+  virtual int close(int fd);
+  virtual int ioctl(int fd, unsigned long request, void* arg);          // EINTR retried
+  virtual void* mmap(std::size_t length, int fd, std::int64_t offset);  // nullptr on failure
+  virtual int munmap(void* start, std::size_t length);
+  static const std::shared_ptr<V4l2Io>& kernel();
+};
+
 // What to ask the driver for. Zero/empty fields keep the driver's current setting.
 struct V4l2Options {
   std::string device = "/dev/video0";
@@ -33,13 +50,14 @@ struct V4l2Options {
   int height = 0;
   double fps = 0.0;      // VIDIOC_S_PARM when > 0 and the driver supports it
   int bufferCount = 4;   // mmap ring size
-  int timeoutMs = 2000;  // poll() timeout for one frame
+  int timeoutMs = 2000;  // longest wait for one frame (interrupt() ends it sooner)
   // Recovery when the device disappears (unplugged, driver unbound): when on,
   // next() keeps trying to reopen the same path every `reopenIntervalMs` (each
   // failed attempt returns Error), up to `maxReopenAttempts` (0: no limit).
   bool autoReopen = false;
   int reopenIntervalMs = 500;
   int maxReopenAttempts = 0;
+  std::shared_ptr<V4l2Io> io;  // null: the kernel (tests pass a fake driver)
 };
 
 // V4L2 capture (single-planar, mmap streaming) behind FrameSource. Frames are
@@ -65,6 +83,8 @@ class V4l2Source final : public FrameSource {
 
   [[nodiscard]] const SourceInfo& info() const override { return info_; }
   ReadStatus next(Frame& frame, std::string& error) override;
+  // Wakes a next() that waits for a frame or for the device to come back.
+  void interrupt() override { interrupter_.raise(); }
   // Lost, and next() will not try to reopen it (no autoReopen, or out of attempts).
   [[nodiscard]] bool failed() const override {
     return lost() && (!options_.autoReopen || (options_.maxReopenAttempts > 0 &&
@@ -99,13 +119,33 @@ class V4l2Source final : public FrameSource {
   // Driver timeval on CLOCK_MONOTONIC to nanoseconds.
   static std::int64_t timevalToNs(long sec, long usec);
 
+  // The negotiated stream, as readBuffer() needs it.
+  struct StreamLayout {
+    std::uint32_t fourcc = 0;                // V4L2 fourcc
+    PixelFormat format = PixelFormat::YUYV;  // of the buffer (MJPEG: ignored)
+    int width = 0;
+    int height = 0;
+    int stride = 0;  // bytes per row of the first plane
+  };
+  enum class BufferUse { Frame, Corrupt };
+  // What one filled buffer (`used` of `length` bytes, v4l2_buffer `flags`) gives:
+  // `frame`'s format, data, size and stride (not its time or index). Raw formats
+  // point into the buffer; MJPEG is decoded into `mjpeg` (BGR24, which then holds
+  // the picture). Corrupt: flagged V4L2_BUF_FLAG_ERROR, shorter than the picture,
+  // or a JPEG that fails to decode or has another size than negotiated. Pure but
+  // for the decoder: the seam that tests drive with buffers made up in memory.
+  static BufferUse readBuffer(const StreamLayout& layout, const std::uint8_t* data,
+                              std::size_t used, std::size_t length, std::uint32_t flags,
+                              MjpegDecoder& mjpeg, Frame& frame);
+
  private:
   struct Buffer {
     void* start = nullptr;
     std::size_t length = 0;
   };
 
-  explicit V4l2Source(V4l2Options options) : options_(std::move(options)) {}
+  explicit V4l2Source(V4l2Options options)
+      : options_(std::move(options)), io_(options_.io ? options_.io : V4l2Io::kernel()) {}
   bool start(std::string& error);
   void shutdown();
   bool requeueHeld(std::string& error);
@@ -113,6 +153,7 @@ class V4l2Source final : public FrameSource {
   ReadStatus tryRecover(std::string& error);
 
   V4l2Options options_;
+  std::shared_ptr<V4l2Io> io_;
   V4l2DeviceInfo device_;
   SourceInfo info_;
   int fd_ = -1;
@@ -126,6 +167,7 @@ class V4l2Source final : public FrameSource {
   std::size_t sizeImage_ = 0;
   bool driverTimestamps_ = false;
   MjpegDecoder mjpeg_;
+  Interrupter interrupter_;
   std::int64_t index_ = 0;
   std::uint32_t lastSequence_ = 0;
   bool haveSequence_ = false;

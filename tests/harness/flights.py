@@ -13,15 +13,23 @@ ROOT = Path(__file__).resolve().parents[2]
 CACHE = Path(os.environ.get("KEYFRAMED_FLIGHT_CACHE", ROOT / "build" / "flights"))
 
 
-def flight(name: str, *, width: int = 960, height: int = 540, seconds: float | None = None) -> Path:
+def flight(
+    name: str,
+    *,
+    width: int = 960,
+    height: int = 540,
+    seconds: float | None = None,
+    fps: float = 30.0,
+) -> Path:
     """The directory of a generated flight; regenerated when synth.py changes."""
     version = hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:12]
-    key = f"{name}-{width}x{height}-{seconds or 'default'}-{version}"
+    rate = "" if fps == 30.0 else f"-{fps:g}fps"
+    key = f"{name}-{width}x{height}{rate}-{seconds or 'default'}-{version}"
     out = CACHE / key
     if (out / "meta.json").exists():
         return out
     tmp = CACHE / (key + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
-    synth.generate(name, tmp, width=width, height=height, seconds=seconds, seed=0)
+    synth.generate(name, tmp, width=width, height=height, fps=fps, seconds=seconds, seed=0)
     tmp.rename(out)
     return out

@@ -43,7 +43,11 @@ FORMATS = ["YUYV", "NV12", "YUV420", "MJPEG"]
 BOOT_TIMEOUT_S = 240
 # keyframed run inside the VM: wait this long for its first frame, then let it run.
 DAEMON_READY_WAIT_S = 90
-DAEMON_RUN_S = 5
+DAEMON_RUN_S = 2
+# Then vivid is unbound and removed for this long, loaded again, and once frames are
+# back made to stall (every buffer dropped); SIGTERM comes 0.3 s after the capture's
+# first 2 s frame timeout, while it waits for the next frame.
+DAEMON_GONE_S = 4.5
 
 
 def _probe_bin() -> Path:
@@ -200,8 +204,18 @@ poweroff -f
 # root filesystem comes in read-only over virtio-9p, and `keyframed run` runs in a
 # chroot of it with fresh /dev, /proc, /sys and a tmpfs scratch directory (config,
 # state dir) over a host directory that holds neither the binary nor the checkout.
+NOTIFY_LISTENER = (
+    "import socket, sys, time\n"
+    "s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)\n"
+    "s.bind(sys.argv[1])\n"
+    "while True:\n"
+    '    m = s.recv(4096).decode().replace(chr(10), "|")\n'
+    '    print("%.3f %s" % (time.clock_gettime(time.CLOCK_BOOTTIME), m), flush=True)\n'
+)
+
 DAEMON = r"""
 echo "KF-BEGIN daemon"
+NOTIFY_LISTENER='@LISTENER@'
 for m in $(cat /modules9p.order); do
   insmod /modules/$m || echo "KF-INSMOD-FAIL $m"
 done
@@ -214,19 +228,48 @@ if mount -t 9p -o trans=virtio,version=9p2000.L,ro,cache=loose,msize=512000 host
   mkdir -p /host@SCRATCH@/kf/etc/conf.d
   : > /host@SCRATCH@/kf/etc/keyframed.toml
   log=/host@SCRATCH@/kf/daemon.log
+  notes=/host@SCRATCH@/kf/notify.log
+  # systemd's side of sd_notify: a datagram socket, each message with its CLOCK_BOOTTIME
+  # (what /proc/uptime counts, so it lines up with the marks below).
+  chroot /host /usr/bin/python3 -S -u -c "$NOTIFY_LISTENER" @SCRATCH@/kf/notify.sock > $notes 2>&1 &
+  lpid=$!
+  n=0; while [ ! -S /host@SCRATCH@/kf/notify.sock ] && [ $n -lt 100 ]; do
+    sleep 0.1; n=$((n+1)); done
   echo "KF-DAEMON-START $(cut -d' ' -f1 /proc/uptime)"
-  chroot /host @KEYFRAMED@ run --config-dir @SCRATCH@/kf/etc @SETS@ > $log 2>&1 &
+  NOTIFY_SOCKET=@SCRATCH@/kf/notify.sock WATCHDOG_USEC=1000000 \
+    chroot /host @KEYFRAMED@ run --config-dir @SCRATCH@/kf/etc @SETS@ > $log 2>&1 &
   pid=$!
   n=0
   while ! grep -q 'ready: first frame' $log && kill -0 $pid 2>/dev/null && [ $n -lt @READY_WAIT@ ]
   do sleep 0.1; n=$((n+1)); done
   echo "KF-DAEMON-READY $(cut -d' ' -f1 /proc/uptime)"
   sleep @RUN_S@
+  # The camera goes away mid-run (driver unbound, module removed) and comes back.
+  echo "KF-DAEMON-UNBIND $(cut -d' ' -f1 /proc/uptime)"
+  echo vivid.0 > /sys/bus/platform/drivers/vivid/unbind || echo "KF-UNBIND-FAIL"
+  n=0; while ! rmmod vivid 2>/dev/null && [ $n -lt 30 ]; do sleep 0.1; n=$((n+1)); done
+  grep -q '^vivid ' /proc/modules && echo "KF-RMMOD-FAIL" ||
+    echo "KF-DAEMON-RMMOD $(cut -d' ' -f1 /proc/uptime)"
+  sleep @GONE_S@
+  insmod $VIVID && echo "KF-DAEMON-RELOAD $(cut -d' ' -f1 /proc/uptime)" ||
+    echo "KF-INSMOD-FAIL vivid.ko"
+  n=0; while ! grep -q 'capture recovered' $log && [ $n -lt 100 ]; do sleep 0.1; n=$((n+1)); done
+  echo "KF-DAEMON-RECOVERED $(cut -d' ' -f1 /proc/uptime)"
+  sleep 0.5
+  # Then it stalls: open, streaming, but no frame comes (vivid drops every buffer).
+  # Once the capture has given up waiting for one frame (2 s), SIGTERM arrives early
+  # in its wait for the next: without an interruptible wait, 1.7 s to exit.
+  /probe --device /dev/video0 --set-ctrl "percentage of dropped buffers=100" || echo "KF-CTRL-FAIL"
+  echo "KF-DAEMON-STALL $(cut -d' ' -f1 /proc/uptime)"
+  n=0; while ! grep -q 'timeout: no frame' $log && [ $n -lt 50 ]; do sleep 0.1; n=$((n+1)); done
+  sleep 0.3
   kill -TERM $pid && echo "KF-DAEMON-TERM $(cut -d' ' -f1 /proc/uptime)"
   wait $pid
   rc=$?
   echo "KF-DAEMON-EXIT $(cut -d' ' -f1 /proc/uptime)"
+  kill $lpid; wait $lpid
   sed 's/^/KF-LOG /' $log
+  sed 's/^/KF-NOTIFY /' $notes
   flight=$(ls -d /host@SCRATCH@/kf/state/flights/* | head -1)
   echo "KF-SUMMARY $(tr -d '\n' < $flight/summary.json)"
   for f in $flight/keyframes/*.jpg; do
@@ -305,6 +348,8 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
             .replace("@SETS@", " ".join(f"--set {x}" for x in sets))
             .replace("@READY_WAIT@", str(DAEMON_READY_WAIT_S * 10))
             .replace("@RUN_S@", str(DAEMON_RUN_S))
+            .replace("@GONE_S@", str(DAEMON_GONE_S))
+            .replace("@LISTENER@", NOTIFY_LISTENER)
         )
     init = (
         INIT.replace("@DAEMON@", daemon)
@@ -487,6 +532,7 @@ def _daemon(vm_run: dict) -> dict:
     assert "KF-MOUNT-FAIL" not in section and "KF-INSMOD-FAIL" not in section, section[:3000]
     marks: dict[str, float] = {}
     log: list[str] = []
+    notify: list[tuple[float, str]] = []
     keyframes: dict[str, int] = {}
     summary = None
     rc = None
@@ -505,6 +551,8 @@ def _daemon(vm_run: dict) -> dict:
             marks[m.group(1)] = float(m.group(2))
         elif line.startswith("KF-LOG "):
             log.append(line[len("KF-LOG ") :])
+        elif m := re.match(r"KF-NOTIFY ([\d.]+) (.*)$", line):
+            notify.append((float(m.group(1)), m.group(2)))
         elif line.startswith("KF-SUMMARY "):
             summary = json.loads(line[len("KF-SUMMARY ") :])
         elif line.startswith("KF-KEYFRAME "):
@@ -515,6 +563,7 @@ def _daemon(vm_run: dict) -> dict:
     return {
         "marks": marks,
         "log": log,
+        "notify": notify,
         "summary": summary,
         "keyframes": keyframes,
         "jpeg": jpeg,
@@ -533,9 +582,10 @@ def test_daemon_runs_on_vivid_and_stops_cleanly(vm_run: dict) -> None:
     opened = "capturing from v4l2:/dev/video0 (vivid: vivid) NV12 640x360@30"
     assert any(opened in x for x in log), text
     assert any("SIGTERM: stopping" in x for x in log), text
-    assert not any(re.search(r"\d [EW] (capture|output|app):", x) for x in log), text
-    # SIGTERM: outputs flushed and exit within a second (0.3-0.4 s under TCG here).
-    assert marks["DAEMON-EXIT"] - marks["DAEMON-TERM"] < 3.0, marks
+    # Warnings only from the capture, about the camera that went away and stalled
+    # (test_daemon_rides_out_the_camera_vanishing); nothing else complains.
+    complaints = [x for x in log if re.search(r"\d [EW] (capture|output|app):", x)]
+    assert all(re.search(r"\d W capture: .*/dev/video0", x) for x in complaints), text
     assert s is not None, d["text"]
     assert s["state"] == "stopped", s
     assert s["source"] == "v4l2:/dev/video0 (vivid: vivid) NV12 640x360@30", s
@@ -543,9 +593,8 @@ def test_daemon_runs_on_vivid_and_stops_cleanly(vm_run: dict) -> None:
     # vivid delivers 30 fps; the emulated CPU cannot analyse them all, so the
     # analysis falls behind and the oldest frames are dropped at the capture queue:
     # counted, never a failure. Frames still queued at SIGTERM are neither.
-    run_s = marks["DAEMON-TERM"] - marks["DAEMON-READY"]
+    run_s = marks["DAEMON-UNBIND"] - marks["DAEMON-READY"]
     assert s["frames_captured"] >= 0.4 * FPS * run_s, s
-    assert s["capture_errors"] == 0, s
     assert s["frames_read"] >= 2 * run_s, s
     unaccounted = s["frames_captured"] - s["frames_read"] - s["frames_dropped"]
     assert 0 <= unaccounted <= 7, s  # the queue (4) and the frame pool (7)
@@ -557,13 +606,70 @@ def test_daemon_runs_on_vivid_and_stops_cleanly(vm_run: dict) -> None:
     assert s["telemetry"] is None
     print(
         f"keyframed run in the VM: start to first frame "
-        f"{marks['DAEMON-READY'] - marks['DAEMON-START']:.1f} s, ran {run_s:.1f} s: "
+        f"{marks['DAEMON-READY'] - marks['DAEMON-START']:.1f} s, "
         f"{s['frames_captured']} frames captured, {s['frames_dropped']} dropped, "
         f"{s['frames_read']} analysed ({s['frames_per_second']:.1f} fps, "
         f"{s['analysis_ms_mean']:.1f} ms mean), {s['kept']} keyframes, "
-        f"exit {marks['DAEMON-EXIT'] - marks['DAEMON-TERM']:.2f} s after SIGTERM, "
         f"max RSS {s['max_rss_mb']:.0f} MB; VM total {vm_run['elapsed']:.1f} s"
     )
+
+
+def _between(notify: list[tuple[float, str]], what: str, t0: float, t1: float) -> list[str]:
+    return [m for t, m in notify if t0 < t < t1 and what in m]
+
+
+def test_daemon_rides_out_the_camera_vanishing(vm_run: dict) -> None:
+    d = _daemon(vm_run)
+    marks, log, notify, s = d["marks"], d["log"], d["notify"], d["summary"]
+    text = "\n".join(log)
+    for mark in ("UNBIND", "RMMOD", "RELOAD", "RECOVERED"):
+        assert f"DAEMON-{mark}" in marks, (mark, d["text"])
+    unbind, reload_, recovered = (
+        marks["DAEMON-UNBIND"],
+        marks["DAEMON-RELOAD"],
+        marks["DAEMON-RECOVERED"],
+    )
+    # rmmod succeeded: the daemon let go of the vanished device.
+    assert marks["DAEMON-RMMOD"] - unbind < 3.0, marks
+    # Said once in the log when it went, and when frames came back.
+    lost = [x for x in log if re.search(r"W capture: device lost: /dev/video0", x)]
+    assert lost, text
+    back = [x for x in log if "capture recovered after" in x]
+    assert len(back) >= 1, text
+    assert recovered - reload_ < 5.0, marks
+    assert s["capture_errors"] >= 1, s
+    # systemd's view, through the notify socket: ready once, the watchdog fed while
+    # frames arrive, not while the camera is gone (a frame older than 2 s, plus the
+    # few still queued), fed again once it is back; STATUS says so.
+    assert notify, "the notify listener in the VM received nothing"
+    assert len([m for _, m in notify if "READY=1" in m]) == 1, notify
+    assert len(_between(notify, "WATCHDOG=1", marks["DAEMON-READY"], unbind)) >= 2, notify
+    # Frames still queued are analysed after the loss, at 4-15 fps under TCG: up to 1 s.
+    quiet_from = unbind + 3.0
+    assert reload_ - quiet_from > 1.0, marks  # long enough for 2 pings at 0.5 s
+    assert not _between(notify, "WATCHDOG=1", quiet_from, reload_), notify
+    assert _between(notify, "no frames", unbind + 2.0, reload_ + 0.5), notify
+    assert _between(notify, "WATCHDOG=1", reload_, marks["DAEMON-STALL"] + 1.5), notify
+    print(
+        f"camera gone {reload_ - unbind:.1f} s; capture recovered {recovered - reload_:.2f} s "
+        f"after vivid came back; {len(_between(notify, 'WATCHDOG=1', 0, 1e9))} watchdog pings"
+    )
+
+
+def test_daemon_stops_at_once_on_sigterm_while_the_camera_stalls(vm_run: dict) -> None:
+    d = _daemon(vm_run)
+    marks, log, s = d["marks"], d["log"], d["summary"]
+    text = "\n".join(log)
+    assert d["rc"] == 0 and s["state"] == "stopped", d["text"]
+    assert "KF-CTRL-FAIL" not in d["text"], d["text"]
+    # The stall was real: the capture waited out one 2 s frame timeout, and SIGTERM
+    # came while it waited for the next frame.
+    assert any("W capture: timeout: no frame from /dev/video0" in x for x in log), text
+    assert marks["DAEMON-TERM"] - marks["DAEMON-STALL"] > 2.1, marks
+    took = marks["DAEMON-EXIT"] - marks["DAEMON-TERM"]
+    # The wait is interrupted: not the up to 2 s the frame timeout would hold it.
+    assert took < 1.0, f"SIGTERM took {took:.2f} s with a stalled camera"
+    print(f"SIGTERM with a stalled camera: exit {took:.2f} s after it (TCG)")
 
 
 def test_daemon_keyframe_is_the_vivid_pattern(vm_run: dict) -> None:

@@ -1,10 +1,14 @@
+#include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <memory>
+#include <thread>
 
 #include <gtest/gtest.h>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/videoio.hpp>
 
+#include "app/paced_source.h"
 #include "capture/file_source.h"
 #include "photos.h"
 
@@ -89,6 +93,40 @@ TEST(FileSource, AWholeVideoHasNotFailed) {
   }
   EXPECT_FALSE(src->failed());
   EXPECT_EQ(src->next(f, err), ReadStatus::End);
+}
+
+// Two frames 5 s apart in the file's time, as after a gap in a recording.
+class GapSource final : public FrameSource {
+ public:
+  const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame& f, std::string&) override {
+    if (n_ >= 2) return ReadStatus::End;
+    f = Frame{PixelFormat::Gray8, pixel_, 1, 1, 1, n_ * 5'000'000'000LL, n_};
+    ++n_;
+    return ReadStatus::Frame;
+  }
+
+ private:
+  SourceInfo info_;
+  std::uint8_t pixel_[1] = {0};
+  int n_ = 0;
+};
+
+TEST(PacedSource, InterruptEndsTheWaitForAFramesTime) {
+  PacedSource src(std::make_unique<GapSource>(), /*realtime=*/true, std::nullopt);
+  Frame f;
+  std::string err;
+  ASSERT_EQ(src.next(f, err), ReadStatus::Frame);
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    src.interrupt();
+  });
+  const auto t0 = std::chrono::steady_clock::now();
+  EXPECT_EQ(src.next(f, err), ReadStatus::Error);  // due in 5 s
+  const auto took = std::chrono::steady_clock::now() - t0;
+  stopper.join();
+  EXPECT_LT(took, std::chrono::milliseconds(1000));
+  EXPECT_EQ(err, "interrupted: waiting for a frame's time");
 }
 
 }  // namespace

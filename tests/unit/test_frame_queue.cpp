@@ -1,3 +1,6 @@
+#include <poll.h>
+#include <unistd.h>
+
 #include <atomic>
 #include <chrono>
 #include <cstdint>
@@ -13,6 +16,7 @@
 #include "capture/buffer_pool.h"
 #include "capture/capture_thread.h"
 #include "capture/frame_queue.h"
+#include "capture/interrupter.h"
 
 namespace keyframed {
 namespace {
@@ -386,6 +390,50 @@ TEST(CaptureThread, LogsAnOutageOnceAndItsEnd) {
   EXPECT_EQ(log.lines[0].second, "device lost: /dev/video9 (attempt 1)");
   EXPECT_EQ(log.lines[1].first, LogLevel::Notice);
   EXPECT_NE(log.lines[1].second.find("capture recovered after 5 errors"), std::string::npos);
+}
+
+// A camera that has stalled: next() waits for a frame that never comes, up to its
+// 2 s timeout, unless interrupted, as V4l2Source does.
+class StalledCamera final : public FrameSource {
+ public:
+  StalledCamera() { EXPECT_EQ(::pipe(pipe_), 0); }
+  ~StalledCamera() override {
+    ::close(pipe_[0]);
+    ::close(pipe_[1]);
+  }
+  const SourceInfo& info() const override { return info_; }
+  ReadStatus next(Frame&, std::string& error) override {
+    ++calls;
+    const auto r = interrupter_.wait(pipe_[0], POLLIN, 2000ms);
+    error = r.wake == Interrupter::Wake::Interrupted ? "interrupted" : "timeout: no frame";
+    return ReadStatus::Error;
+  }
+  void interrupt() override { interrupter_.raise(); }
+  std::atomic<int> calls{0};
+
+ private:
+  SourceInfo info_;
+  int pipe_[2] = {-1, -1};
+  Interrupter interrupter_;
+};
+
+TEST(CaptureThread, StopInterruptsASourceWaitingForAFrame) {
+  LogCapture log;
+  StalledCamera src;
+  FramePool pool(2);
+  FrameQueue q(2);
+  CaptureThread capture(src, pool, q);
+  capture.start();
+  while (src.calls.load() == 0) std::this_thread::sleep_for(1ms);
+  std::this_thread::sleep_for(50ms);  // well inside the wait
+  const auto t0 = std::chrono::steady_clock::now();
+  capture.stop();
+  const auto took = std::chrono::steady_clock::now() - t0;
+  EXPECT_LT(took, 300ms) << "stop() sat out the source's frame timeout";
+  EXPECT_EQ(src.calls.load(), 1);
+  EXPECT_EQ(capture.stats().errors, 0u);  // an interrupted read is no capture error
+  EXPECT_TRUE(log.lines.empty());
+  EXPECT_FALSE(q.pop(0ms).has_value());
 }
 
 }  // namespace

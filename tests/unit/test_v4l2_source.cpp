@@ -124,5 +124,67 @@ TEST(MjpegDecoder, RejectsGarbageWithOneLineError) {
   EXPECT_EQ(err.find('\n'), std::string::npos);
 }
 
+// The per-buffer step of V4l2Source::next(), with buffers made up in memory.
+using Use = V4l2Source::BufferUse;
+const V4l2Source::StreamLayout kMjpeg64x48{V4L2_PIX_FMT_MJPEG, PixelFormat::BGR24, 64, 48, 0};
+
+TEST(V4l2Buffer, MjpegIsDecodedToBgrOfTheNegotiatedSize) {
+  const auto jpeg = encodeJpeg(64, 48);
+  std::vector<std::uint8_t> buffer(jpeg.begin(), jpeg.end());
+  buffer.resize(buffer.size() + 4096, 0);  // a driver buffer is larger than its JPEG
+  MjpegDecoder dec;
+  Frame f;
+  ASSERT_EQ(
+      V4l2Source::readBuffer(kMjpeg64x48, buffer.data(), jpeg.size(), buffer.size(), 0, dec, f),
+      Use::Frame);
+  EXPECT_EQ(f.format, PixelFormat::BGR24);
+  EXPECT_EQ(f.data, dec.bgr());  // the picture lives in the decoder, not the buffer
+  EXPECT_EQ(f.width, 64);
+  EXPECT_EQ(f.height, 48);
+  EXPECT_EQ(f.stride, 64 * 3);
+  const std::uint8_t* mid = f.data + (24 * 64 + 60) * 3;
+  EXPECT_NEAR(mid[2], 24 * 255 / 48, 12);
+}
+
+TEST(V4l2Buffer, MjpegOfAnotherSizeOrUndecodableOrFlaggedIsCorrupt) {
+  MjpegDecoder dec;
+  Frame f;
+  const auto small = encodeJpeg(32, 32);  // the camera changed size under us
+  EXPECT_EQ(
+      V4l2Source::readBuffer(kMjpeg64x48, small.data(), small.size(), small.size(), 0, dec, f),
+      Use::Corrupt);
+  const auto good = encodeJpeg(64, 48);
+  EXPECT_EQ(V4l2Source::readBuffer(kMjpeg64x48, good.data(), 40, good.size(), 0, dec, f),
+            Use::Corrupt);  // cut short: bytesused says 40
+  const std::vector<std::uint8_t> zeros(4096, 0);
+  EXPECT_EQ(
+      V4l2Source::readBuffer(kMjpeg64x48, zeros.data(), zeros.size(), zeros.size(), 0, dec, f),
+      Use::Corrupt);
+  EXPECT_EQ(V4l2Source::readBuffer(kMjpeg64x48, good.data(), good.size(), good.size(),
+                                   V4L2_BUF_FLAG_ERROR, dec, f),
+            Use::Corrupt);
+  // bytesused larger than the buffer: only the buffer is read.
+  EXPECT_EQ(
+      V4l2Source::readBuffer(kMjpeg64x48, good.data(), good.size() * 4, good.size(), 0, dec, f),
+      Use::Frame);
+}
+
+TEST(V4l2Buffer, RawFramesPointIntoTheBufferAndShortOnesAreCorrupt) {
+  const V4l2Source::StreamLayout nv12{V4L2_PIX_FMT_NV12, PixelFormat::NV12, 6, 4, 8};
+  std::vector<std::uint8_t> buffer(8 * 4 * 3 / 2);
+  MjpegDecoder dec;
+  Frame f;
+  ASSERT_EQ(V4l2Source::readBuffer(nv12, buffer.data(), buffer.size(), buffer.size(), 0, dec, f),
+            Use::Frame);
+  EXPECT_EQ(f.data, buffer.data());
+  EXPECT_EQ(f.format, PixelFormat::NV12);
+  EXPECT_EQ(f.stride, 8);
+  EXPECT_EQ(V4l2Source::readBuffer(nv12, buffer.data(), 40, buffer.size(), 0, dec, f),
+            Use::Corrupt);  // the chroma plane is missing
+  const V4l2Source::StreamLayout yuyv{V4L2_PIX_FMT_YUYV, PixelFormat::YUYV, 6, 4, 12};
+  EXPECT_EQ(V4l2Source::readBuffer(yuyv, buffer.data(), 48, 48, 0, dec, f), Use::Frame);
+  EXPECT_EQ(V4l2Source::readBuffer(yuyv, buffer.data(), 48, 47, 0, dec, f), Use::Corrupt);
+}
+
 }  // namespace
 }  // namespace keyframed

@@ -1,0 +1,55 @@
+#include "capture/interrupter.h"
+
+#include <poll.h>
+#include <sys/eventfd.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstdint>
+
+namespace keyframed {
+
+namespace {
+// Without an eventfd a raise() is noticed within this long.
+constexpr std::chrono::milliseconds kFallbackSlice{50};
+}  // namespace
+
+Interrupter::Interrupter() : eventFd_(::eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC)) {}
+
+Interrupter::~Interrupter() {
+  if (eventFd_ >= 0) ::close(eventFd_);
+}
+
+void Interrupter::raise() {
+  raised_.store(true);
+  if (eventFd_ >= 0) {
+    const std::uint64_t one = 1;
+    // Never read back: the counter stays non-zero and every later poll() wakes.
+    [[maybe_unused]] const ssize_t n = ::write(eventFd_, &one, sizeof one);
+  }
+}
+
+Interrupter::Result Interrupter::wait(int fd, short events,
+                                      std::chrono::milliseconds timeout) const {
+  using Clock = std::chrono::steady_clock;
+  const auto deadline = Clock::now() + timeout;
+  for (;;) {
+    if (raised_.load()) return {Wake::Interrupted, 0, 0};
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
+    if (left.count() <= 0) return {Wake::Timeout, 0, 0};
+    pollfd fds[2] = {{fd, events, 0}, {eventFd_, POLLIN, 0}};
+    const auto slice = eventFd_ >= 0 ? left : std::min(left, kFallbackSlice);
+    // A negative fd is ignored by poll(); so is the eventfd when it is missing.
+    const int r = ::poll(fds, 2, static_cast<int>(slice.count()));
+    if (r < 0) {
+      if (errno == EINTR) continue;
+      return {Wake::Failed, 0, errno};
+    }
+    if (fds[1].revents != 0 || raised_.load()) return {Wake::Interrupted, 0, 0};
+    if (r > 0 && fd >= 0 && fds[0].revents != 0) return {Wake::Ready, fds[0].revents, 0};
+  }
+}
+
+}  // namespace keyframed

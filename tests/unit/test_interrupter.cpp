@@ -1,0 +1,80 @@
+#include "capture/interrupter.h"
+
+#include <poll.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <thread>
+
+#include <gtest/gtest.h>
+
+namespace keyframed {
+namespace {
+
+using namespace std::chrono_literals;
+using Clock = std::chrono::steady_clock;
+
+// A pipe whose read end stands for a device that delivers nothing.
+struct Pipe {
+  Pipe() { EXPECT_EQ(::pipe(fd), 0); }
+  ~Pipe() {
+    ::close(fd[0]);
+    ::close(fd[1]);
+  }
+  int fd[2] = {-1, -1};
+};
+
+TEST(Interrupter, TimesOutWhenNothingHappens) {
+  Interrupter in;
+  Pipe p;
+  const auto t0 = Clock::now();
+  EXPECT_EQ(in.wait(p.fd[0], POLLIN, 80ms).wake, Interrupter::Wake::Timeout);
+  EXPECT_GE(Clock::now() - t0, 75ms);
+}
+
+TEST(Interrupter, ReportsAReadyDevice) {
+  Interrupter in;
+  Pipe p;
+  ASSERT_EQ(::write(p.fd[1], "x", 1), 1);
+  const Interrupter::Result r = in.wait(p.fd[0], POLLIN, 2000ms);
+  EXPECT_EQ(r.wake, Interrupter::Wake::Ready);
+  EXPECT_NE(r.revents & POLLIN, 0);
+}
+
+TEST(Interrupter, RaiseFromAnotherThreadEndsAStalledWaitAndEveryLaterOne) {
+  Interrupter in;
+  Pipe p;
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(50ms);
+    in.raise();
+  });
+  const auto t0 = Clock::now();
+  const Interrupter::Result r = in.wait(p.fd[0], POLLIN, 2000ms);  // a camera's frame timeout
+  const auto took = Clock::now() - t0;
+  stopper.join();
+  EXPECT_EQ(r.wake, Interrupter::Wake::Interrupted);
+  EXPECT_LT(took, 500ms);
+  EXPECT_TRUE(in.raised());
+  const auto t1 = Clock::now();
+  EXPECT_EQ(in.wait(p.fd[0], POLLIN, 2000ms).wake, Interrupter::Wake::Interrupted);
+  EXPECT_EQ(in.wait(-1, 0, 2000ms).wake, Interrupter::Wake::Interrupted);
+  EXPECT_LT(Clock::now() - t1, 100ms);
+}
+
+TEST(Interrupter, InterruptibleSleepWithoutADevice) {
+  Interrupter in;
+  const auto t0 = Clock::now();
+  EXPECT_EQ(in.wait(-1, 0, 60ms).wake, Interrupter::Wake::Timeout);
+  EXPECT_GE(Clock::now() - t0, 55ms);
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(30ms);
+    in.raise();
+  });
+  const auto t1 = Clock::now();
+  EXPECT_EQ(in.wait(-1, 0, 5000ms).wake, Interrupter::Wake::Interrupted);  // a reopen interval
+  EXPECT_LT(Clock::now() - t1, 500ms);
+  stopper.join();
+}
+
+}  // namespace
+}  // namespace keyframed
