@@ -15,6 +15,8 @@
 #include "app/keyframe_output.h"
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
+#include "app/log.h"
+#include "app/log_to_record.h"
 #include "app/paced_source.h"
 #include "app/text_io.h"
 #include "capture/file_source.h"
@@ -209,12 +211,34 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   }
   FlightOutputs outputs;  // --mcap, --zenoh-config
-  if (!outputs.open({opts.mcap, opts.zenohConfig, opts.vehicle, opts.outDir, !opts.realtime},
-                    source->info().width, source->info().height, camera ? &*camera : nullptr,
+  FlightOutputOptions fo;
+  fo.mcapPath = opts.mcap;
+  fo.zenohConfig = opts.zenohConfig;
+  fo.vehicle = opts.vehicle;
+  fo.keyframeDir = opts.outDir;
+  fo.offline = !opts.realtime;
+  // The record's log times in unix time: frames paced in real time are on
+  // CLOCK_MONOTONIC; a replay keeps the original flight's times; --video-start
+  // times are unix already; plain container times count from the start of this run.
+  if (opts.realtime) {
+    fo.liveClock = true;
+  } else if (replay != nullptr) {
+    fo.unixOffsetNs = replay->unixOffsetNs();
+    fo.startNs = replay->firstTimeNs();
+  } else if (opts.videoStartUnixNs) {
+    fo.startNs = *opts.videoStartUnixNs;
+  } else {
+    fo.unixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                          std::chrono::system_clock::now().time_since_epoch())
+                          .count();
+  }
+  fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  if (!outputs.open(fo, source->info().width, source->info().height, camera ? &*camera : nullptr,
                     error)) {
     s.error = error;
     return s;
   }
+  const LogToRecord logToRecord(outputs);
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs);
   if (telemetry) recordRawMavlink(*telemetry, outputs);

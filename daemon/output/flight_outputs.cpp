@@ -8,7 +8,9 @@
 #include "tagging/camera_mount.h"
 
 #ifdef KEYFRAMED_HAVE_IO
+#include <atomic>
 #include <map>
+#include <mutex>
 
 #include "output/foxglove_proto.h"
 #include "output/keyframe_publisher.h"
@@ -22,10 +24,26 @@ namespace {
 
 constexpr const char* kCameraFrame = "camera";
 
+constexpr std::int64_t kPublishWarningIntervalNs = 10'000'000'000;
+
+// CLOCK_MONOTONIC (libstdc++'s steady_clock), the clock of a live run's frames.
 std::int64_t wallNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(
              std::chrono::steady_clock::now().time_since_epoch())
       .count();
+}
+
+std::int64_t unixNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+proto::LogLevel foxgloveLevel(int syslogLevel) {
+  if (syslogLevel <= 3) return proto::LogLevel::Error;
+  if (syslogLevel == 4) return proto::LogLevel::Warning;
+  if (syslogLevel <= 6) return proto::LogLevel::Info;
+  return proto::LogLevel::Debug;
 }
 
 std::string num(double v, int decimals) {
@@ -56,7 +74,25 @@ struct FlightOutputs::Impl {
   std::int64_t lastPreviewNs = 0;
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
-  bool publishFailed = false;
+  // Failed keyframe puts: every keyframe is still tried; the log gets one line at
+  // most every kPublishWarningIntervalNs, with the count since the last line.
+  std::int64_t publishFailures = 0;
+  std::int64_t unreportedFailures = 0;
+  std::int64_t lastFailureLogNs = 0;
+  KeyframePut putForTesting;
+  // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
+  // an offline run the time of the latest frame.
+  std::atomic<std::int64_t> frameNs{0};
+  std::mutex logMutex;  // log() (any thread) against close() taking the recorder away
+
+  std::int64_t nowNs() const { return options.liveClock ? wallNs() : frameNs.load(); }
+  void warn(const std::string& message) const {
+    if (options.warn) {
+      options.warn(message);
+    } else {
+      std::fprintf(stderr, "keyframed: %s\n", message.c_str());
+    }
+  }
 };
 
 FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
@@ -77,9 +113,15 @@ bool FlightOutputs::recording() const {
 bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
                          const CameraModel* camera, std::string& error) {
   impl_->options = o;
+  // MCAP log times are unix time (what Foxglove and `mcap info` show).
+  if (o.liveClock) impl_->options.unixOffsetNs = unixNs() - wallNs();
+  impl_->frameNs.store(o.startNs);
   if (!o.mcapPath.empty()) {
     McapRecorderOptions ro;
     ro.path = o.mcapPath;
+    ro.fsync = o.mcapFsync;
+    ro.compression = o.mcapCompression;
+    ro.timeOffsetNs = impl_->options.unixOffsetNs;
     ro.blockWhenFull = o.offline;
     ro.rotateBytes = o.mcapRotateBytes;
     ro.rotateSeconds = o.mcapRotateSeconds;
@@ -102,13 +144,11 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       if (m.d.size() > 5) m.distortionModel = "rational_polynomial";
       m.k = {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1};
       m.p = {c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0};
-      impl_->recorder->record(McapTopic::Calibration, 0, proto::cameraCalibration(m));
+      m.timeNs = impl_->nowNs() + impl_->options.unixOffsetNs;
+      impl_->recorder->record(McapTopic::Calibration, impl_->nowNs(), proto::cameraCalibration(m));
     }
-    impl_->recorder->record(McapTopic::Log, 0,
-                            proto::log(0, proto::LogLevel::Info,
-                                       "recording started (" + std::to_string(width) + "x" +
-                                           std::to_string(height) + ")",
-                                       "keyframed"));
+    log(6, "output",
+        "recording started (" + std::to_string(width) + "x" + std::to_string(height) + ")");
   }
   if (o.zenoh || !o.zenohConfig.empty()) {
     KeyframePublisherOptions po;
@@ -128,6 +168,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
 }
 
 void FlightOutputs::decision(const Decision& d, const std::string& decisionJson) {
+  if (!impl_->options.liveClock) impl_->frameNs.store(d.timestampNs);
   if (active())
     impl_->scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
   if (impl_->recorder)
@@ -234,14 +275,41 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
           proto::poseInFrame(rec.timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
     }
   }
-  if (impl_->publisher && !impl_->publishFailed) {
+  if (impl_->publisher) {
+    // Every keyframe is put, whatever happened to the one before: Zenoh reconnects by
+    // itself, and a ground station fetches what it missed from the queryable.
     std::string error;
-    if (!impl_->publisher->publishKeyframe(jpeg, meta, error)) {
-      // Zenoh reconnects by itself; one line, then keep going.
-      std::fprintf(stderr, "keyframed: zenoh: %s (further failures not reported)\n", error.c_str());
-      impl_->publishFailed = true;
+    const bool ok = impl_->putForTesting ? impl_->putForTesting(jpeg, meta, error)
+                                         : impl_->publisher->publishKeyframe(jpeg, meta, error);
+    if (!ok) {
+      ++impl_->publishFailures;
+      ++impl_->unreportedFailures;
+      const std::int64_t now = wallNs();
+      if (impl_->lastFailureLogNs == 0 ||
+          now - impl_->lastFailureLogNs >= kPublishWarningIntervalNs) {
+        impl_->warn("zenoh: keyframe " + std::to_string(rec.sequence) + " not published: " + error +
+                    " (" + std::to_string(impl_->unreportedFailures) +
+                    " failed since the last report, " + std::to_string(impl_->publishFailures) +
+                    " in all)");
+        impl_->lastFailureLogNs = now;
+        impl_->unreportedFailures = 0;
+      }
     }
   }
+}
+
+void FlightOutputs::log(int level, std::string_view category, std::string_view message) {
+  std::lock_guard lock(impl_->logMutex);
+  McapRecorder* recorder = impl_->recorder.get();
+  if (recorder == nullptr) return;
+  const std::int64_t t = impl_->nowNs();
+  recorder->tryRecord(McapTopic::Log, t,
+                      proto::log(t + impl_->options.unixOffsetNs, foxgloveLevel(level),
+                                 std::string(message), "keyframed." + std::string(category)));
+}
+
+void FlightOutputs::setKeyframePutForTesting(KeyframePut put) {
+  impl_->putForTesting = std::move(put);
 }
 
 void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
@@ -259,6 +327,11 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
+  if (impl_->unreportedFailures > 0) {
+    impl_->warn("zenoh: " + std::to_string(impl_->publishFailures) +
+                " keyframe puts failed in this flight (the queryable serves them)");
+    impl_->unreportedFailures = 0;
+  }
   if (impl_->publisher) {
     std::string ignored;
     impl_->publisher->publishStatus("{\"state\":\"" + state +
@@ -267,10 +340,12 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
                                     ignored);
     impl_->publisher.reset();
   }
-  if (impl_->recorder) {
-    ok = impl_->recorder->close(error);
-    impl_->recorder.reset();
+  std::unique_ptr<McapRecorder> recorder;
+  {
+    std::lock_guard lock(impl_->logMutex);
+    recorder = std::move(impl_->recorder);
   }
+  if (recorder) ok = recorder->close(error);
   return ok;
 }
 
@@ -306,9 +381,11 @@ bool FlightOutputs::publishing() const {
 void FlightOutputs::mavlink(std::int64_t, std::uint32_t, std::uint32_t, std::uint32_t,
                             std::span<const std::uint8_t>) {}
 void FlightOutputs::progress(std::int64_t, std::int64_t) {}
+void FlightOutputs::log(int, std::string_view, std::string_view) {}
 bool FlightOutputs::close(const std::string&, std::string&) {
   return true;
 }
+void FlightOutputs::setKeyframePutForTesting(KeyframePut) {}
 
 #endif
 

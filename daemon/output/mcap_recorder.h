@@ -31,10 +31,13 @@ enum class McapTopic : std::uint8_t {
 
 struct McapRecorderOptions {
   std::string path;
-  std::string compression = "zstd";       // zstd | lz4 | none
-  std::uint64_t chunkSize = 256 * 1024;   // small chunks: a crash loses one at most
-  int flushIntervalMs = 1000;             // chunks end at least this often
-  bool fsync = false;                     // fsync at each timed flush (power loss)
+  std::string compression = "zstd";      // zstd | lz4 | none
+  std::uint64_t chunkSize = 256 * 1024;  // small chunks: a crash loses one at most
+  int flushIntervalMs = 1000;            // chunks end at least this often
+  bool fsync = false;                    // fsync at each timed flush (power loss)
+  // Added to every message's time for its log and publish time: maps the clock the
+  // caller stamps with (CLOCK_MONOTONIC for a live run) onto unix time.
+  std::int64_t timeOffsetNs = 0;
   std::size_t maxQueueBytes = 64u << 20;  // queued but unwritten message bytes
   bool blockWhenFull = false;             // true: producers wait (offline); false: drop
   // Rotation: a new file once this many message bytes (uncompressed) or seconds went
@@ -70,6 +73,9 @@ class McapRecorder {
   // sequence 0: the channel's own counter.
   void record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
               std::uint32_t sequence = 0);
+  // As record(), but never waits for room (drops instead): for callers that hold a
+  // lock the writer thread may need, such as the logger's.
+  void tryRecord(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message);
   void recordText(McapTopic topic, std::int64_t timeNs, const std::string& json);
   // Drains the queue, writes the summary and closes. False when the recorder failed
   // at any point (error says why).
@@ -87,6 +93,8 @@ class McapRecorder {
     std::int64_t timeNs;
     std::vector<std::uint8_t> data;
   };
+  void enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
+               std::uint32_t sequence, bool mayWait);
   void run();
   void fail(const std::string& error);
   bool openFile(const std::string& path, std::string& error);

@@ -1,6 +1,8 @@
 #include "output/mcap_replay.h"
 
+#include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <optional>
 #include <span>
@@ -54,7 +56,48 @@ namespace {
   return std::nullopt;
 }
 
+// A google.protobuf.Timestamp in field `field` (seconds 1, nanos 2) as ns.
+[[maybe_unused]] std::optional<std::int64_t> timestampField(std::span<const std::uint8_t> msg,
+                                                            std::uint32_t field) {
+  const auto ts = bytesField(msg, field);
+  if (!ts) return std::nullopt;
+  std::int64_t seconds = 0, nanos = 0;
+  std::size_t i = 0;
+  while (i < ts->size()) {
+    std::uint64_t key = 0, v = 0;
+    for (int shift = 0; i < ts->size() && shift < 64; shift += 7) {
+      const std::uint8_t b = (*ts)[i++];
+      key |= static_cast<std::uint64_t>(b & 0x7F) << shift;
+      if ((b & 0x80) == 0) break;
+    }
+    if ((key & 7) != 0) return std::nullopt;
+    for (int shift = 0; i < ts->size() && shift < 64; shift += 7) {
+      const std::uint8_t b = (*ts)[i++];
+      v |= static_cast<std::uint64_t>(b & 0x7F) << shift;
+      if ((b & 0x80) == 0) break;
+    }
+    if ((key >> 3) == 1) seconds = static_cast<std::int64_t>(v);
+    if ((key >> 3) == 2) nanos = static_cast<std::int64_t>(v);
+  }
+  return seconds * 1'000'000'000 + nanos;
+}
+
 }  // namespace
+
+std::vector<std::string> mcapParts(const std::string& path) {
+  std::vector<std::string> parts{path};
+  const std::filesystem::path p(path);
+  for (int i = 1; i < 100000; ++i) {
+    char suffix[16];
+    std::snprintf(suffix, sizeof suffix, "-%03d", i);
+    const std::filesystem::path next =
+        p.parent_path() / (p.stem().string() + suffix + p.extension().string());
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(next, ec)) break;
+    parts.push_back(next.string());
+  }
+  return parts;
+}
 
 bool isMcapFile(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
@@ -82,40 +125,61 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
 #ifdef KEYFRAMED_HAVE_IO
   // Two passes, each one chunk at a time: the first keeps the MAVLink packets (small;
   // telemetry must be known ahead of the frames) and counts the preview frames; the
-  // second streams the frames. Memory does not grow with the file.
+  // second streams the frames. Memory does not grow with the file. Times are the
+  // messages' own (the run's clock, which the MAVLink link's TIMESYNC used too); the
+  // log time of the first frame gives the record's offset to unix time.
   const char* topics[] = {"/camera/preview", "/mavlink/raw"};
   char err[512] = {};
-  kfio_mcap_reader* r = kfio_mcap_reader_open(path.c_str(), topics, 2, err, sizeof err);
-  if (r == nullptr) {
-    error = err;
-    return nullptr;
-  }
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
+  s->parts_ = mcapParts(path);
   Impl& impl = *s->impl_;
-  std::uint32_t topic = 0;
-  std::uint64_t time = 0;
-  const std::uint8_t* data = nullptr;
-  std::size_t len = 0;
   std::int64_t firstNs = 0;
   std::int64_t lastNs = 0;
-  while (kfio_mcap_reader_next(r, &topic, &time, &data, &len) == 1) {
-    const std::span<const std::uint8_t> msg(data, len);
-    const auto field = bytesField(msg, topic == 0 ? 2 : 5);
-    if (!field) continue;
-    if (topic == 0) {
-      if (impl.frames == 0) {
-        impl.jpeg.assign(field->begin(), field->end());
-        firstNs = static_cast<std::int64_t>(time);
+  for (std::size_t part = 0; part < s->parts_.size(); ++part) {
+    kfio_mcap_reader* r =
+        kfio_mcap_reader_open(s->parts_[part].c_str(), topics, 2, err, sizeof err);
+    if (r == nullptr) {
+      error = err;
+      return nullptr;
+    }
+    std::uint32_t topic = 0;
+    std::uint64_t time = 0;
+    const std::uint8_t* data = nullptr;
+    std::size_t len = 0;
+    while (kfio_mcap_reader_next(r, &topic, &time, &data, &len) == 1) {
+      const std::span<const std::uint8_t> msg(data, len);
+      const auto field = bytesField(msg, topic == 0 ? 2 : 5);
+      if (!field) continue;
+      const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
+      if (topic == 0) {
+        if (impl.frames == 0) {
+          impl.jpeg.assign(field->begin(), field->end());
+          firstNs = t;
+          s->unixOffsetNs_ = static_cast<std::int64_t>(time) - t;
+        }
+        lastNs = t;
+        ++impl.frames;
+      } else {
+        s->mavlink_.push_back({t, {field->begin(), field->end()}});
       }
-      lastNs = static_cast<std::int64_t>(time);
-      ++impl.frames;
-    } else {
-      s->mavlink_.push_back({static_cast<std::int64_t>(time), {field->begin(), field->end()}});
+    }
+    const bool cut = kfio_mcap_reader_truncated(r) != 0;
+    kfio_mcap_reader_close(r);
+    if (cut) {
+      s->truncated_ = true;
+      // A cut part ends the record: what follows would leave a hole in the flight.
+      if (part + 1 < s->parts_.size()) {
+        std::fprintf(stderr,
+                     "keyframed: %s is cut short: replaying the record up to it, not the %zu "
+                     "part(s) after it\n",
+                     s->parts_[part].c_str(), s->parts_.size() - part - 1);
+      }
+      s->parts_.resize(part + 1);
+      break;
     }
   }
-  s->truncated_ = kfio_mcap_reader_truncated(r) != 0;
-  kfio_mcap_reader_close(r);
+  s->firstTimeNs_ = firstNs;
   if (impl.frames == 0 && s->truncated_) {
     error = path + ": corrupt or cut short before its first preview frame";
     return nullptr;
@@ -130,7 +194,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
     error = path + ": the first preview frame is not a JPEG";
     return nullptr;
   }
-  impl.images = kfio_mcap_reader_open(path.c_str(), topics, 1, err, sizeof err);
+  impl.images = kfio_mcap_reader_open(s->parts_[0].c_str(), topics, 1, err, sizeof err);
   if (impl.images == nullptr) {
     error = err;
     return nullptr;
@@ -156,8 +220,23 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
   std::uint64_t time = 0;
   const std::uint8_t* data = nullptr;
   std::size_t len = 0;
-  while (kfio_mcap_reader_next(impl.images, &topic, &time, &data, &len) == 1) {
-    const auto field = bytesField(std::span<const std::uint8_t>(data, len), 2);
+  while (true) {
+    if (kfio_mcap_reader_next(impl.images, &topic, &time, &data, &len) != 1) {
+      // The next part of a rotated record, if any.
+      if (part_ + 1 >= parts_.size()) break;
+      kfio_mcap_reader_close(impl.images);
+      impl.images = nullptr;
+      const char* topics[] = {"/camera/preview"};
+      char err[512] = {};
+      impl.images = kfio_mcap_reader_open(parts_[++part_].c_str(), topics, 1, err, sizeof err);
+      if (impl.images == nullptr) {
+        error = err;
+        return ReadStatus::Error;
+      }
+      continue;
+    }
+    const std::span<const std::uint8_t> msg(data, len);
+    const auto field = bytesField(msg, 2);
     if (!field) continue;  // skipped by the first pass too
     impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
                                     const_cast<std::uint8_t*>(field->data())),
@@ -166,7 +245,8 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       error = "preview frame " + std::to_string(index_) + " cannot be decoded";
       return ReadStatus::Error;
     }
-    frame = Frame::ofBgr(impl.bgr, index_++, static_cast<std::int64_t>(time));
+    const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
+    frame = Frame::ofBgr(impl.bgr, index_++, t);
     return ReadStatus::Frame;
   }
   return ReadStatus::End;

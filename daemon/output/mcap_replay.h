@@ -17,9 +17,11 @@ struct TimedPacket {
 
 // A flight record (MCAP written by `keyframed run`) as a frame source: the preview
 // stream (/camera/preview, JPEG) decoded frame by frame with the live capture
-// timestamps, and the raw MAVLink packets (/mavlink/raw) for the telemetry. open()
-// reads the file once for the MAVLink packets; frames are then streamed, one chunk
-// in memory at a time. A file cut short replays up to the cut.
+// timestamps (the messages' own timestamp fields, on the run's clock), and the raw
+// MAVLink packets (/mavlink/raw) for the telemetry. open() reads the record once for
+// the MAVLink packets; frames are then streamed, one chunk in memory at a time. A
+// file cut short replays up to the cut. A record rotated into parts (flight.mcap,
+// flight-001.mcap, ...) replays whole when given its first part.
 class McapReplaySource final : public FrameSource {
  public:
   static std::unique_ptr<McapReplaySource> open(const std::string& path, std::string& error);
@@ -30,6 +32,11 @@ class McapReplaySource final : public FrameSource {
 
   [[nodiscard]] const std::vector<TimedPacket>& mavlink() const { return mavlink_; }
   [[nodiscard]] bool truncated() const { return truncated_; }
+  // The files replayed, in order (one, or every part of a rotated record).
+  [[nodiscard]] const std::vector<std::string>& parts() const { return parts_; }
+  // Run clock -> unix time, as the record's log times map it (0 for older records).
+  [[nodiscard]] std::int64_t unixOffsetNs() const { return unixOffsetNs_; }
+  [[nodiscard]] std::int64_t firstTimeNs() const { return firstTimeNs_; }
 
  private:
   McapReplaySource() = default;
@@ -39,7 +46,15 @@ class McapReplaySource final : public FrameSource {
   std::vector<TimedPacket> mavlink_;
   bool truncated_ = false;
   std::int64_t index_ = 0;
+  std::vector<std::string> parts_;
+  std::size_t part_ = 0;  // the part next() reads
+  std::int64_t unixOffsetNs_ = 0;
+  std::int64_t firstTimeNs_ = 0;
 };
+
+// The parts of a rotated flight record, given its first: path itself, then
+// <stem>-001<ext>, <stem>-002<ext>, ... for as long as they exist.
+std::vector<std::string> mcapParts(const std::string& path);
 
 // True when `path` names an MCAP file (by its magic bytes).
 bool isMcapFile(const std::string& path);
