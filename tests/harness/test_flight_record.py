@@ -1,0 +1,148 @@
+"""The MCAP flight record of `keyframed run`: unix log times, the daemon's log in
+it, doctor-clean files, rotated parts that replay as one flight."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from flights import flight
+
+mcap_reader = pytest.importorskip("mcap.reader")
+from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
+
+PYMCAP_CLI = shutil.which("pymcap-cli") or str(Path(sys.executable).parent / "pymcap-cli")
+
+
+@pytest.fixture(scope="module")
+def short_nadir() -> Path:
+    return flight("nadir", width=480, height=270, seconds=8.0)
+
+
+def run(kf_bin: Path, tmp_path: Path, *sets: str) -> tuple[float, float, str]:
+    """`keyframed run` to the end of the video; its unix start and end, its stderr."""
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True, exist_ok=True)
+    (cfg / "keyframed.toml").write_text("")
+    args = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    base = [f"output.state_dir={tmp_path / 'state'}", "zenoh.enabled=false", "camera.source=file"]
+    for s in base + list(sets):
+        args += ["--set", s]
+    t0 = time.time()
+    r = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    t1 = time.time()
+    assert r.returncode == 0, r.stderr
+    return t0, t1, r.stderr
+
+
+def messages(path: Path) -> list[tuple[str, Any, Any]]:
+    out = []
+    with open(path, "rb") as f:
+        reader = mcap_reader.make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message in reader.iter_messages():
+            out.append((channel.topic, message, channel))
+    return out
+
+
+def decoded(path: Path, topic: str) -> list[Any]:
+    with open(path, "rb") as f:
+        reader = mcap_reader.make_reader(f, decoder_factories=[DecoderFactory()])
+        return [m.decoded_message for m in reader.iter_decoded_messages(topics=[topic])]
+
+
+def doctor(path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [PYMCAP_CLI, "doctor", str(path)], capture_output=True, text=True, timeout=120
+    )
+
+
+def assert_doctor_clean(path: Path) -> None:
+    r = doctor(path)
+    text = " ".join(r.stdout.split())
+    assert r.returncode == 0 and "passed MCAP doctor checks" in text, r.stdout + r.stderr
+    assert "warning" not in text.lower(), text
+
+
+def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    # An autopilot that never speaks: the daemon warns, and the warning is recorded.
+    t0, t1, stderr = run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        "telemetry.url=udpin:127.0.0.1:9",
+        "telemetry.start_wait_ms=200",
+        f"tagging.calibration={short_nadir / 'intrinsics.json'}",
+    )
+    assert "no attitude and position yet" in stderr
+    mcap = (tmp_path / "state" / "latest" / "flight.mcap").resolve()
+    msgs = messages(mcap)
+    topics = {t for t, _, _ in msgs}
+    assert {"/keyframed/decision", "/camera/preview", "/camera/calibration"} <= topics
+    lo, hi = int(t0 * 1e9), int(t1 * 1e9)
+    for topic, m, _ in msgs:
+        assert lo <= m.log_time <= hi, (topic, m.log_time, lo, hi)
+        assert m.publish_time == m.log_time, topic
+    # calibration and log: stamped when written, in unix time inside the message too
+    (cal,) = decoded(mcap, "/camera/calibration")
+    assert lo <= cal.timestamp.ToNanoseconds() <= hi and cal.width == 480
+    logs = decoded(mcap, "/keyframed/log")
+    assert all(lo <= g.timestamp.ToNanoseconds() <= hi for g in logs)
+    warnings = [g for g in logs if g.level == 3]  # foxglove.Log.WARNING
+    assert any("no attitude and position yet" in g.message for g in warnings), [
+        (g.level, g.message) for g in logs
+    ]
+    assert any(g.name == "keyframed.telemetry" for g in warnings)
+    assert any("recording started" in g.message for g in logs)
+    # the preview stream (full size: lossless PNG, which zstd would only grow, so
+    # the record is stored uncompressed and doctor has nothing to warn about) keeps
+    # the run's clock inside its messages, for replay
+    decisions = [json.loads(m.data) for t, m, _ in msgs if t == "/keyframed/decision"]
+    previews = decoded(mcap, "/camera/preview")
+    assert previews[0].timestamp.ToNanoseconds() == decisions[0]["timestamp_ns"]
+    assert_doctor_clean(mcap)
+
+
+def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    t0, t1, _ = run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        "telemetry.url=",
+        "output.preview_width=240",
+        "output.mcap_rotate_mb=1",
+    )
+    fd = (tmp_path / "state" / "latest").resolve()
+    parts = sorted(fd.glob("flight*.mcap"))
+    assert len(parts) >= 3 and parts[-1].name == "flight.mcap", parts  # flight-001, ...
+    for part in parts:
+        assert_doctor_clean(part)
+    live = json.loads((fd / "summary.json").read_text())
+
+    out = tmp_path / "replay"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(fd / "flight.mcap"), "--out", str(out), "--quiet"]
+        + ["--mcap", str(tmp_path / "replay.mcap")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    replay = json.loads((out / "summary.json").read_text())
+    assert replay["frames_read"] == live["frames_read"] == 240, (replay, live)
+    # the replay's record keeps the original flight's times
+    lo, hi = int(t0 * 1e9), int(t1 * 1e9)
+    msgs = messages(tmp_path / "replay.mcap")
+    decisions = [m for t, m, _ in msgs if t == "/keyframed/decision"]
+    assert len(decisions) == 240
+    assert all(lo <= m.log_time <= hi for _, m, _ in msgs)
+    assert_doctor_clean(tmp_path / "replay.mcap")
