@@ -252,6 +252,17 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   });
 
+  // A replay's record carries the preview stream and the MAVLink packets on, in
+  // time order, so that it can be replayed in its turn.
+  std::size_t nextPacket = 0;
+  const auto rerecordMavlink = [&](std::int64_t upToNs) {
+    const auto& packets = replay->mavlink();
+    for (; nextPacket < packets.size() && packets[nextPacket].timeNs <= upToNs; ++nextPacket) {
+      const TimedPacket& p = packets[nextPacket];
+      std::uint32_t sys = 0, comp = 0, id = 0;
+      if (mavlinkHeader(p.bytes, sys, comp, id)) outputs.mavlink(p.timeNs, sys, comp, id, p.bytes);
+    }
+  };
   const auto start = std::chrono::steady_clock::now();
   auto lastProgress = start;
   Frame frame;
@@ -271,6 +282,10 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       s.truncated = file != nullptr && file->truncated();
       break;
     }
+    if (replay != nullptr && outputs.recording()) {
+      rerecordMavlink(frame.timestampNs);
+      outputs.preview(frame.timestampNs, replay->encoded(), replay->format().c_str());
+    }
     stage.process(frame);
     s.framesRead = stage.counts().framesRead;
     s.kept = stage.counts().kept;
@@ -288,6 +303,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   // (also after a read error: the video up to the break is covered; not after
   // an output error, which is already the run's failure)
   if (!outputFailed) stage.finish();
+  if (replay != nullptr && outputs.recording()) rerecordMavlink(INT64_MAX);
   {
     const StageCounts& c = stage.counts();
     s.framesRead = c.framesRead;

@@ -99,6 +99,23 @@ std::vector<std::string> mcapParts(const std::string& path) {
   return parts;
 }
 
+bool mavlinkHeader(std::span<const std::uint8_t> p, std::uint32_t& systemId,
+                   std::uint32_t& componentId, std::uint32_t& messageId) {
+  if (p.size() >= 10 && p[0] == 0xFD) {
+    systemId = p[5];
+    componentId = p[6];
+    messageId = p[7] | (p[8] << 8) | (p[9] << 16);
+    return true;
+  }
+  if (p.size() >= 6 && p[0] == 0xFE) {
+    systemId = p[3];
+    componentId = p[4];
+    messageId = p[5];
+    return true;
+  }
+  return false;
+}
+
 bool isMcapFile(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
   char magic[8] = {};
@@ -119,6 +136,10 @@ struct McapReplaySource::Impl {
 };
 
 McapReplaySource::~McapReplaySource() = default;
+
+std::span<const std::uint8_t> McapReplaySource::encoded() const {
+  return impl_->jpeg;
+}
 
 std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path,
                                                          std::string& error) {
@@ -247,6 +268,9 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
     }
     const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
     frame = Frame::ofBgr(impl.bgr, index_++, t);
+    impl.jpeg.assign(field->begin(), field->end());
+    const auto format = bytesField(msg, 4);
+    format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");
     return ReadStatus::Frame;
   }
   return ReadStatus::End;

@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -37,6 +38,10 @@ class McapReplaySource final : public FrameSource {
   // Run clock -> unix time, as the record's log times map it (0 for older records).
   [[nodiscard]] std::int64_t unixOffsetNs() const { return unixOffsetNs_; }
   [[nodiscard]] std::int64_t firstTimeNs() const { return firstTimeNs_; }
+  // The last frame next() returned as recorded (JPEG or PNG) and its format, so a
+  // replay's own record can carry the preview stream on.
+  [[nodiscard]] std::span<const std::uint8_t> encoded() const;
+  [[nodiscard]] const std::string& format() const { return format_; }
 
  private:
   McapReplaySource() = default;
@@ -50,7 +55,13 @@ class McapReplaySource final : public FrameSource {
   std::size_t part_ = 0;  // the part next() reads
   std::int64_t unixOffsetNs_ = 0;
   std::int64_t firstTimeNs_ = 0;
+  std::string format_;
 };
+
+// System, component and message id from a MAVLink v1 or v2 packet's header; false
+// when the bytes are not a packet.
+bool mavlinkHeader(std::span<const std::uint8_t> packet, std::uint32_t& systemId,
+                   std::uint32_t& componentId, std::uint32_t& messageId);
 
 // The parts of a rotated flight record, given its first: path itself, then
 // <stem>-001<ext>, <stem>-002<ext>, ... for as long as they exist.

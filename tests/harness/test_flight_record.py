@@ -3,8 +3,10 @@ it, doctor-clean files, rotated parts that replay as one flight."""
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -12,10 +14,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from fake_autopilot import autopilot_fixture
 from flights import flight
+from ports import free_port
 
 mcap_reader = pytest.importorskip("mcap.reader")
 from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
+
+fake_autopilot = autopilot_fixture()
 
 PYMCAP_CLI = shutil.which("pymcap-cli") or str(Path(sys.executable).parent / "pymcap-cli")
 
@@ -25,7 +31,9 @@ def short_nadir() -> Path:
     return flight("nadir", width=480, height=270, seconds=8.0)
 
 
-def run(kf_bin: Path, tmp_path: Path, *sets: str) -> tuple[float, float, str]:
+def run(
+    kf_bin: Path, tmp_path: Path, *sets: str, autopilot: Any = None
+) -> tuple[float, float, str]:
     """`keyframed run` to the end of the video; its unix start and end, its stderr."""
     cfg = tmp_path / "etc"
     (cfg / "conf.d").mkdir(parents=True, exist_ok=True)
@@ -35,10 +43,14 @@ def run(kf_bin: Path, tmp_path: Path, *sets: str) -> tuple[float, float, str]:
     for s in base + list(sets):
         args += ["--set", s]
     t0 = time.time()
-    r = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    if autopilot is not None:
+        time.sleep(0.3)
+        autopilot.start()
+    _, stderr = proc.communicate(timeout=120)
     t1 = time.time()
-    assert r.returncode == 0, r.stderr
-    return t0, t1, r.stderr
+    assert proc.returncode == 0, stderr
+    return t0, t1, stderr
 
 
 def messages(path: Path) -> list[tuple[str, Any, Any]]:
@@ -110,16 +122,31 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
     assert_doctor_clean(mcap)
 
 
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def counts(path: Path) -> dict[str, int]:
+    with open(path, "rb") as f:
+        summ = mcap_reader.make_reader(f).get_summary()
+    topics = {c.id: c.topic for c in summ.channels.values()}
+    return {topics[c]: n for c, n in summ.statistics.channel_message_counts.items()}
+
+
 def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
-    kf_bin: Path, short_nadir: Path, tmp_path: Path
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
 ) -> None:
+    mport = free_port(socket.SOCK_DGRAM)
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", mport))
     t0, t1, _ = run(
         kf_bin,
         tmp_path,
         f"camera.path={short_nadir / 'video.avi'}",
-        "telemetry.url=",
+        f"telemetry.url=udpin:127.0.0.1:{mport}",
         "output.preview_width=240",
         "output.mcap_rotate_mb=1",
+        autopilot=ap,
     )
     fd = (tmp_path / "state" / "latest").resolve()
     parts = sorted(fd.glob("flight*.mcap"))
@@ -146,3 +173,23 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert len(decisions) == 240
     assert all(lo <= m.log_time <= hi for _, m, _ in msgs)
     assert_doctor_clean(tmp_path / "replay.mcap")
+
+    # The replay's record carries the preview and the MAVLink stream on: it replays
+    # in its turn, to the same decisions.
+    raw = sum(counts(p).get("/mavlink/raw", 0) for p in parts)
+    again = counts(tmp_path / "replay.mcap")
+    assert raw > 100 and again.get("/mavlink/raw") == raw, (raw, again)
+    assert again.get("/camera/preview") == 240
+    out2 = tmp_path / "replay2"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(tmp_path / "replay.mcap"), "--out", str(out2), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    keys = ("index", "timestamp_ns", "kept", "reason", "sharpness", "overlap")
+    a, b = rows(out / "decisions.csv"), rows(out2 / "decisions.csv")
+    assert len(a) == len(b) == 240
+    assert [[x[k] for k in keys] for x in a] == [[y[k] for k in keys] for y in b]
+    assert (out2 / "keyframes.csv").read_text() == (out / "keyframes.csv").read_text()
