@@ -1,9 +1,12 @@
 #include "output/flight_outputs.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <string_view>
+#include <vector>
 
 #include "tagging/camera_mount.h"
 
@@ -58,6 +61,26 @@ std::string jnum(double v, int decimals) {
   return s.empty() ? "null" : s;
 }
 
+// The payload of a MAVLink v1/v2 packet, zero-extended to `size` (MAVLink 2 trims
+// trailing zero bytes); empty when the bytes are not a packet.
+std::vector<std::uint8_t> mavlinkPayload(std::span<const std::uint8_t> p, std::size_t size) {
+  std::size_t start = 0;
+  if (p.size() >= 10 && p[0] == 0xFD) start = 10;
+  if (p.size() >= 6 && p[0] == 0xFE) start = 6;
+  if (start == 0 || p.size() < start + p[1]) return {};
+  std::vector<std::uint8_t> out(p.begin() + static_cast<long>(start),
+                                p.begin() + static_cast<long>(start + p[1]));
+  out.resize(std::max(out.size(), size), 0);
+  return out;
+}
+
+template <typename T>
+T field(const std::vector<std::uint8_t>& payload, std::size_t offset) {
+  T v;
+  std::memcpy(&v, payload.data() + offset, sizeof v);  // MAVLink is little-endian, as is the host
+  return v;
+}
+
 }  // namespace
 
 struct FlightOutputs::Impl {
@@ -83,7 +106,8 @@ struct FlightOutputs::Impl {
   // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
   // an offline run the time of the latest frame.
   std::atomic<std::int64_t> frameNs{0};
-  std::mutex logMutex;  // log() (any thread) against close() taking the recorder away
+  bool quaternionAttitude = false;  // ATTITUDE_QUATERNION seen: ATTITUDE is not recorded
+  std::mutex logMutex;              // log() (any thread) against close() taking the recorder away
 
   std::int64_t nowNs() const { return options.liveClock ? wallNs() : frameNs.load(); }
   void warn(const std::string& message) const {
@@ -177,9 +201,49 @@ void FlightOutputs::decision(const Decision& d, const std::string& decisionJson)
 
 void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                             std::uint32_t messageId, std::span<const std::uint8_t> packet) {
-  if (impl_->recorder)
-    impl_->recorder->record(McapTopic::Mavlink, timeNs,
-                            proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+  McapRecorder* rec = impl_->recorder.get();
+  if (rec == nullptr) return;
+  rec->record(McapTopic::Mavlink, timeNs,
+              proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+  // The autopilot's position and attitude as Foxglove reads them, at the stream's
+  // own rate (the keyframe channels have them only at keyframes).
+  constexpr std::uint32_t kAutopilotComponent = 1;
+  if (componentId != kAutopilotComponent) return;
+  if (messageId == 33) {  // GLOBAL_POSITION_INT: lat, lon (1e-7 deg), alt (mm AMSL) at 4, 8, 12
+    const auto pl = mavlinkPayload(packet, 28);
+    if (pl.empty()) return;
+    proto::LocationFixMsg f;
+    f.timeNs = timeNs;
+    f.frameId = "vehicle";
+    f.latitude = field<std::int32_t>(pl, 4) * 1e-7;
+    f.longitude = field<std::int32_t>(pl, 8) * 1e-7;
+    f.altitude = field<std::int32_t>(pl, 12) * 1e-3;
+    rec->record(McapTopic::VehicleLocation, timeNs, proto::locationFix(f));
+  } else if (messageId == 31) {  // ATTITUDE_QUATERNION: q1..q4 (w, x, y, z) at 4
+    const auto pl = mavlinkPayload(packet, 20);
+    if (pl.empty()) return;
+    impl_->quaternionAttitude = true;
+    const double w = field<float>(pl, 4), x = field<float>(pl, 8), y = field<float>(pl, 12),
+                 z = field<float>(pl, 16);
+    rec->record(McapTopic::VehiclePose, timeNs,
+                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {x, y, z, w}));
+  } else if (messageId == 30 && !impl_->quaternionAttitude) {  // ATTITUDE: roll, pitch, yaw (rad,
+                                                               // body to NED) at 4, 8, 12
+    const auto pl = mavlinkPayload(packet, 16);
+    if (pl.empty()) return;
+    const double r = field<float>(pl, 4) / 2, p = field<float>(pl, 8) / 2,
+                 y = field<float>(pl, 12) / 2;
+    const double w =
+        std::cos(r) * std::cos(p) * std::cos(y) + std::sin(r) * std::sin(p) * std::sin(y);
+    const double qx =
+        std::sin(r) * std::cos(p) * std::cos(y) - std::cos(r) * std::sin(p) * std::sin(y);
+    const double qy =
+        std::cos(r) * std::sin(p) * std::cos(y) + std::sin(r) * std::cos(p) * std::sin(y);
+    const double qz =
+        std::cos(r) * std::cos(p) * std::sin(y) - std::sin(r) * std::sin(p) * std::cos(y);
+    rec->record(McapTopic::VehiclePose, timeNs,
+                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {qx, qy, qz, w}));
+  }
 }
 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,

@@ -86,6 +86,8 @@ constexpr TopicSpec kTopics[] = {
     {"/camera/calibration", "foxglove.CameraCalibration", "protobuf", "protobuf"},
     {"/keyframed/log", "foxglove.Log", "protobuf", "protobuf"},
     {"/camera/preview", "foxglove.CompressedImage", "protobuf", "protobuf"},
+    {"/vehicle/location", "foxglove.LocationFix", "protobuf", "protobuf"},
+    {"/vehicle/pose", "foxglove.PoseInFrame", "protobuf", "protobuf"},
 };
 static_assert(std::size(kTopics) == static_cast<std::size_t>(McapTopic::Count));
 

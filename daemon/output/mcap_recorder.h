@@ -17,15 +17,17 @@ namespace keyframed {
 
 // What the flight recorder writes; each is one MCAP channel (see docs/formats.md).
 enum class McapTopic : std::uint8_t {
-  Keyframe,      // /keyframed/keyframe       foxglove.CompressedImage (the tagged JPEG)
-  KeyframeMeta,  // /keyframed/keyframe_meta  JSON: sequence, frame index, pose, scores
-  Decision,      // /keyframed/decision       JSON: one per analysed frame
-  Mavlink,       // /mavlink/raw              keyframed.MavlinkPacket
-  Location,      // /keyframed/location       foxglove.LocationFix at each keyframe
-  CameraPose,    // /keyframed/camera_pose    foxglove.PoseInFrame (camera -> NED)
-  Calibration,   // /camera/calibration       foxglove.CameraCalibration
-  Log,           // /keyframed/log            foxglove.Log
-  Preview,       // /camera/preview           foxglove.CompressedImage (every frame, JPEG)
+  Keyframe,         // /keyframed/keyframe       foxglove.CompressedImage (the tagged JPEG)
+  KeyframeMeta,     // /keyframed/keyframe_meta  JSON: sequence, frame index, pose, scores
+  Decision,         // /keyframed/decision       JSON: one per analysed frame
+  Mavlink,          // /mavlink/raw              keyframed.MavlinkPacket
+  Location,         // /keyframed/location       foxglove.LocationFix at each keyframe
+  CameraPose,       // /keyframed/camera_pose    foxglove.PoseInFrame (camera -> NED)
+  Calibration,      // /camera/calibration       foxglove.CameraCalibration
+  Log,              // /keyframed/log            foxglove.Log
+  Preview,          // /camera/preview           foxglove.CompressedImage (every frame, JPEG)
+  VehicleLocation,  // /vehicle/location     foxglove.LocationFix (GLOBAL_POSITION_INT)
+  VehiclePose,      // /vehicle/pose         foxglove.PoseInFrame (ATTITUDE[_QUATERNION])
   Count
 };
 

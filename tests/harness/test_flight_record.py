@@ -180,6 +180,14 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     again = counts(tmp_path / "replay.mcap")
     assert raw > 100 and again.get("/mavlink/raw") == raw, (raw, again)
     assert again.get("/camera/preview") == 240
+    # the autopilot's track and attitude at the stream's rate, decoded from MAVLink
+    fixes = [f for p in parts for f in decoded(p, "/vehicle/location")]
+    poses = [q for p in parts for q in decoded(p, "/vehicle/pose")]
+    assert len(fixes) > 8 * 2 and len(poses) > 8 * 2, (len(fixes), len(poses))
+    assert all(abs(f.latitude - 51.89) < 0.01 and f.frame_id == "vehicle" for f in fixes)
+    for q in (p.pose.orientation for p in poses):
+        assert abs(q.w**2 + q.x**2 + q.y**2 + q.z**2 - 1) < 1e-3
+    assert again.get("/vehicle/location") == len(fixes)
     out2 = tmp_path / "replay2"
     r = subprocess.run(
         [str(kf_bin), "select", str(tmp_path / "replay.mcap"), "--out", str(out2), "--quiet"],
