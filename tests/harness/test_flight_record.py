@@ -201,3 +201,35 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert len(a) == len(b) == 240
     assert [[x[k] for k in keys] for x in a] == [[y[k] for k in keys] for y in b]
     assert (out2 / "keyframes.csv").read_text() == (out / "keyframes.csv").read_text()
+
+
+@pytest.mark.skipif(shutil.which("strace") is None, reason="needs strace")
+@pytest.mark.parametrize("fsync", [True, False])
+def test_mcap_fsync_syncs_the_record_at_each_timed_flush(
+    kf_bin: Path, tmp_path: Path, fsync: bool
+) -> None:
+    """output.mcap_fsync (default on): the record reaches the disk about once a second,
+    so a power cut loses about a second; off, only at open and close."""
+    fl = flight("nadir", width=320, height=180, seconds=6.0)
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True)
+    (cfg / "keyframed.toml").write_text("" if fsync else "[output]\nmcap_fsync = false\n")
+    trace = tmp_path / "strace.txt"
+    args = ["strace", "-f", "-y", "-e", "trace=fsync,fdatasync", "-o", str(trace)]
+    args += [str(kf_bin), "run", "--config-dir", str(cfg)]
+    for s in (
+        f"output.state_dir={tmp_path / 'state'}",
+        "zenoh.enabled=false",
+        "camera.source=file",
+        "telemetry.url=",
+        f"camera.path={fl / 'video.avi'}",
+    ):
+        args += ["--set", s]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    syncs = [ln for ln in trace.read_text().splitlines() if "flight.mcap>" in ln]
+    print(f"mcap_fsync={fsync}: {len(syncs)} syncs of flight.mcap in a 6 s run")
+    if fsync:
+        assert len(syncs) >= 4, syncs
+    else:
+        assert len(syncs) <= 2, syncs
