@@ -527,6 +527,7 @@ int Daemon::run() {
                                                                 : "zstd";
   fo.liveClock = true;  // frames and MAVLink on CLOCK_MONOTONIC
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
   fo.zenoh = config_.zenoh.enabled;
   fo.zenohConfig = config_.zenoh.config;
   fo.zenohSetting = "zenoh.config";

@@ -233,6 +233,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
                           .count();
   }
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
   if (!outputs.open(fo, source->info().width, source->info().height, camera ? &*camera : nullptr,
                     error)) {
     s.error = error;

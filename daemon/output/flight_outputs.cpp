@@ -110,6 +110,13 @@ struct FlightOutputs::Impl {
   std::mutex logMutex;              // log() (any thread) against close() taking the recorder away
 
   std::int64_t nowNs() const { return options.liveClock ? wallNs() : frameNs.load(); }
+  void note(const std::string& message) const {
+    if (options.note) {
+      options.note(message);
+    } else {
+      std::fprintf(stderr, "keyframed: %s\n", message.c_str());
+    }
+  }
   void warn(const std::string& message) const {
     if (options.warn) {
       options.warn(message);
@@ -147,6 +154,9 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     ro.compression = o.mcapCompression;
     ro.timeOffsetNs = impl_->options.unixOffsetNs;
     ro.blockWhenFull = o.offline;
+    ro.onNewPart = [impl = impl_.get()](const std::string& path) {
+      impl->note("MCAP: recording continues in " + path);
+    };
     ro.rotateBytes = o.mcapRotateBytes;
     ro.rotateSeconds = o.mcapRotateSeconds;
     auto rec = std::make_unique<McapRecorder>();
@@ -409,7 +419,14 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
     std::lock_guard lock(impl_->logMutex);
     recorder = std::move(impl_->recorder);
   }
-  if (recorder) ok = recorder->close(error);
+  if (recorder) {
+    ok = recorder->close(error);
+    if (const std::uint64_t dropped = recorder->stats().dropped; dropped > 0) {
+      impl_->warn("MCAP: " + std::to_string(dropped) +
+                  " messages not recorded (the writer fell behind or stopped; a live run drops "
+                  "rather than stall)");
+    }
+  }
   return ok;
 }
 

@@ -33,6 +33,7 @@ struct FlightOutputOptions {
   std::int64_t startNs = 0;
   // Where FlightOutputs' own warnings go (a publish that failed); empty: stderr.
   std::function<void(const std::string&)> warn;
+  std::function<void(const std::string&)> note;  // informational lines; empty: stderr
 };
 
 // Everything a run sends beyond its keyframe directory: the MCAP flight record and

@@ -267,6 +267,7 @@ void McapRecorder::run() {
           break;
         }
         dirty = false;
+        if (options_.onNewPart) options_.onNewPart(partPath(part_));
       }
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;

@@ -5,6 +5,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -48,6 +49,9 @@ struct McapRecorderOptions {
   // schema and channel, and the latest calibration repeated.
   std::uint64_t rotateBytes = 0;
   std::int64_t rotateSeconds = 0;
+  // Called on the writer thread with each new part's path (not under any lock of the
+  // recorder's: it may log).
+  std::function<void(const std::string&)> onNewPart;
 };
 
 struct McapRecorderStats {

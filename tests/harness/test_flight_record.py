@@ -139,7 +139,7 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
 ) -> None:
     mport = free_port(socket.SOCK_DGRAM)
     ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", mport))
-    t0, t1, _ = run(
+    t0, t1, stderr = run(
         kf_bin,
         tmp_path,
         f"camera.path={short_nadir / 'video.avi'}",
@@ -153,6 +153,10 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert len(parts) >= 3 and parts[-1].name == "flight.mcap", parts  # flight-001, ...
     for part in parts:
         assert_doctor_clean(part)
+    # each rotation is a log line, recorded too
+    assert "MCAP: recording continues in " + str(fd / "flight-001.mcap") in stderr, stderr
+    logged = [g.message for p in parts for g in decoded(p, "/keyframed/log")]
+    assert sum("MCAP: recording continues in" in m for m in logged) == len(parts) - 1, logged
     live = json.loads((fd / "summary.json").read_text())
 
     out = tmp_path / "replay"
