@@ -237,8 +237,8 @@ void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::ui
                  z = field<float>(pl, 16);
     rec->record(McapTopic::VehiclePose, timeNs,
                 proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {x, y, z, w}));
-  } else if (messageId == 30 && !impl_->quaternionAttitude) {  // ATTITUDE: roll, pitch, yaw (rad,
-                                                               // body to NED) at 4, 8, 12
+  } else if (messageId == 30 && !impl_->quaternionAttitude) {
+    // ATTITUDE: roll, pitch, yaw (rad, body to NED) at 4, 8, 12; quaternion of Z-Y-X.
     const auto pl = mavlinkPayload(packet, 16);
     if (pl.empty()) return;
     const double r = field<float>(pl, 4) / 2, p = field<float>(pl, 8) / 2,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 import socket
 import subprocess
@@ -13,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
@@ -127,6 +129,25 @@ def rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def matrix(w: float, x: float, y: float, z: float) -> Any:
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rot(axis: str, a: float) -> Any:
+    c, s = math.cos(a), math.sin(a)
+    return {
+        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
+
+
 def counts(path: Path) -> dict[str, int]:
     with open(path, "rb") as f:
         summ = mcap_reader.make_reader(f).get_summary()
@@ -191,6 +212,27 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert all(abs(f.latitude - 51.89) < 0.01 and f.frame_id == "vehicle" for f in fixes)
     for q in (p.pose.orientation for p in poses):
         assert abs(q.w**2 + q.x**2 + q.y**2 + q.z**2 - 1) < 1e-3
+    # each pose is the attitude packet received at that instant, decoded again here
+    from pymavlink.dialects.v20 import common
+
+    mav = common.MAVLink(None)
+    raw = {}
+    for p in parts:
+        for pkt in decoded(p, "/mavlink/raw"):
+            if pkt.message_id in (30, 31):
+                raw[pkt.timestamp.ToNanoseconds()] = mav.decode(bytearray(pkt.packet))
+    kinds = set()
+    for pose in poses:
+        m = raw[pose.timestamp.ToNanoseconds()]
+        kinds.add(m.get_type())
+        o = pose.pose.orientation
+        got = matrix(o.w, o.x, o.y, o.z)
+        if m.get_type() == "ATTITUDE_QUATERNION":
+            want = matrix(m.q1, m.q2, m.q3, m.q4)
+        else:  # body to NED: yaw about z, then pitch about y, then roll about x
+            want = rot("z", m.yaw) @ rot("y", m.pitch) @ rot("x", m.roll)
+        assert np.allclose(got, want, atol=1e-5), (m, got, want)
+    print(f"{len(poses)} poses from {sorted(kinds)}")
     assert again.get("/vehicle/location") == len(fixes)
     out2 = tmp_path / "replay2"
     r = subprocess.run(
