@@ -126,6 +126,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       return s;
     }
     camera = model;
+  } else if (replay != nullptr && replay->calibration()) {
+    camera = replay->calibration();  // the intrinsics the flight was recorded with
   } else if (!opts.telemetry.empty()) {
     std::fprintf(stderr,
                  "keyframed select: warning: no --calibration: keyframes carry position and "

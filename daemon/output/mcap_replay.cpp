@@ -82,6 +82,66 @@ namespace {
   return seconds * 1'000'000'000 + nanos;
 }
 
+// foxglove.CameraCalibration (width 2, height 3: fixed32; D 5, K 6: packed doubles)
+// as a camera model; nothing when it lacks K or a size.
+[[maybe_unused]] std::optional<CameraModel> calibrationOf(std::span<const std::uint8_t> msg) {
+  CameraModel c;
+  std::vector<double> k;
+  std::size_t i = 0;
+  auto varint = [&](std::uint64_t& v) {
+    v = 0;
+    for (int shift = 0; i < msg.size() && shift < 64; shift += 7) {
+      const std::uint8_t b = msg[i++];
+      v |= static_cast<std::uint64_t>(b & 0x7F) << shift;
+      if ((b & 0x80) == 0) return true;
+    }
+    return false;
+  };
+  auto doubles = [&](std::size_t n, std::vector<double>& out) {
+    for (std::size_t j = 0; j + 8 <= n; j += 8) {
+      double d = 0;
+      std::memcpy(&d, msg.data() + i + j, 8);
+      out.push_back(d);
+    }
+  };
+  while (i < msg.size()) {
+    std::uint64_t key = 0, v = 0;
+    if (!varint(key)) return std::nullopt;
+    const auto field = key >> 3;
+    switch (key & 7) {
+      case 0:
+        if (!varint(v)) return std::nullopt;
+        break;
+      case 1: i += 8; break;
+      case 5: {
+        if (i + 4 > msg.size()) return std::nullopt;
+        std::uint32_t u = 0;
+        std::memcpy(&u, msg.data() + i, 4);
+        if (field == 2) c.width = static_cast<int>(u);
+        if (field == 3) c.height = static_cast<int>(u);
+        i += 4;
+        break;
+      }
+      case 2: {
+        if (!varint(v) || v > msg.size() - i) return std::nullopt;
+        const auto n = static_cast<std::size_t>(v);
+        if (field == 5) doubles(n, c.distortion);
+        if (field == 6) doubles(n, k);
+        i += n;
+        break;
+      }
+      default: return std::nullopt;
+    }
+  }
+  if (k.size() != 9 || c.width <= 0 || c.height <= 0) return std::nullopt;
+  c.fx = k[0];
+  c.cx = k[2];
+  c.fy = k[4];
+  c.cy = k[5];
+  if (!c.calibrated()) return std::nullopt;
+  return c;
+}
+
 }  // namespace
 
 std::vector<std::string> mcapParts(const std::string& path) {
@@ -149,7 +209,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   // second streams the frames. Memory does not grow with the file. Times are the
   // messages' own (the run's clock, which the MAVLink link's TIMESYNC used too); the
   // log time of the first frame gives the record's offset to unix time.
-  const char* topics[] = {"/camera/preview", "/mavlink/raw"};
+  const char* topics[] = {"/camera/preview", "/mavlink/raw", "/camera/calibration"};
   char err[512] = {};
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
@@ -159,7 +219,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   std::int64_t lastNs = 0;
   for (std::size_t part = 0; part < s->parts_.size(); ++part) {
     kfio_mcap_reader* r =
-        kfio_mcap_reader_open(s->parts_[part].c_str(), topics, 2, err, sizeof err);
+        kfio_mcap_reader_open(s->parts_[part].c_str(), topics, 3, err, sizeof err);
     if (r == nullptr) {
       error = err;
       return nullptr;
@@ -170,6 +230,10 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
     std::size_t len = 0;
     while (kfio_mcap_reader_next(r, &topic, &time, &data, &len) == 1) {
       const std::span<const std::uint8_t> msg(data, len);
+      if (topic == 2) {
+        if (!s->calibration_) s->calibration_ = calibrationOf(msg);
+        continue;
+      }
       const auto field = bytesField(msg, topic == 0 ? 2 : 5);
       if (!field) continue;
       const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));

@@ -2,11 +2,13 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
 
 #include "capture/frame_source.h"
+#include "tagging/camera_model.h"
 
 namespace keyframed {
 
@@ -42,6 +44,9 @@ class McapReplaySource final : public FrameSource {
   // replay's own record can carry the preview stream on.
   [[nodiscard]] std::span<const std::uint8_t> encoded() const;
   [[nodiscard]] const std::string& format() const { return format_; }
+  // The record's camera calibration (/camera/calibration: K and D at the video's
+  // resolution), when it has one.
+  [[nodiscard]] const std::optional<CameraModel>& calibration() const { return calibration_; }
 
  private:
   McapReplaySource() = default;
@@ -56,6 +61,7 @@ class McapReplaySource final : public FrameSource {
   std::int64_t unixOffsetNs_ = 0;
   std::int64_t firstTimeNs_ = 0;
   std::string format_;
+  std::optional<CameraModel> calibration_;
 };
 
 // System, component and message id from a MAVLink v1 or v2 packet's header; false

@@ -123,6 +123,25 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
     assert previews[0].timestamp.ToNanoseconds() == decisions[0]["timestamp_ns"]
     assert_doctor_clean(mcap)
 
+    # Replayed without --calibration: the record's own calibration (K, D; no sensor
+    # size, so no focal length in mm) tags the keyframes with the 35 mm equivalent.
+    from PIL import Image
+
+    out = tmp_path / "replay"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    intr = json.loads((short_nadir / "intrinsics.json").read_text())
+    jpegs = sorted(out.glob("*.jpg"))
+    assert jpegs
+    for jpeg in jpegs:
+        exif = Image.open(jpeg).getexif().get_ifd(0x8769)
+        assert exif.get(0xA405) == round(intr["fx"] * 36 / 480), "FocalLengthIn35mmFilm"
+
 
 def rows(path: Path) -> list[dict[str, str]]:
     with open(path) as f:
