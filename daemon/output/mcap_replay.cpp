@@ -11,7 +11,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #ifdef KEYFRAMED_HAVE_IO
-#include "output/io_ffi.h"
+#include "output/io.h"
 #endif
 
 namespace keyframed {
@@ -185,10 +185,7 @@ bool isMcapFile(const std::string& path) {
 
 struct McapReplaySource::Impl {
 #ifdef KEYFRAMED_HAVE_IO
-  ~Impl() {
-    if (images != nullptr) kfio_mcap_reader_close(images);
-  }
-  kfio_mcap_reader* images = nullptr;  // the preview stream, read as frames are asked for
+  std::unique_ptr<McapReader> images;  // the preview stream, read as frames are asked for
 #endif
   std::int64_t frames = 0;  // preview frames the first pass found
   std::vector<std::uint8_t> jpeg;
@@ -209,8 +206,8 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   // second streams the frames. Memory does not grow with the file. Times are the
   // messages' own (the run's clock, which the MAVLink link's TIMESYNC used too); the
   // log time of the first frame gives the record's offset to unix time.
-  const char* topics[] = {"/camera/preview", "/mavlink/raw", "/camera/calibration"};
-  char err[512] = {};
+  const std::vector<std::string> topics = {"/camera/preview", "/mavlink/raw",
+                                           "/camera/calibration"};
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
   s->parts_ = mcapParts(path);
@@ -218,18 +215,13 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   std::int64_t firstNs = 0;
   std::int64_t lastNs = 0;
   for (std::size_t part = 0; part < s->parts_.size(); ++part) {
-    kfio_mcap_reader* r =
-        kfio_mcap_reader_open(s->parts_[part].c_str(), topics, 3, err, sizeof err);
-    if (r == nullptr) {
-      error = err;
-      return nullptr;
-    }
-    std::uint32_t topic = 0;
-    std::uint64_t time = 0;
-    const std::uint8_t* data = nullptr;
-    std::size_t len = 0;
-    while (kfio_mcap_reader_next(r, &topic, &time, &data, &len) == 1) {
-      const std::span<const std::uint8_t> msg(data, len);
+    const auto r = McapReader::open(s->parts_[part], topics, error);
+    if (!r) return nullptr;
+    McapReader::Message m;
+    while (r->next(m)) {
+      const std::span<const std::uint8_t> msg = m.data;
+      const std::uint32_t topic = m.topic;
+      const std::uint64_t time = m.logTimeNs;
       if (topic == 2) {
         if (!s->calibration_) s->calibration_ = calibrationOf(msg);
         continue;
@@ -249,9 +241,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
         s->mavlink_.push_back({t, {field->begin(), field->end()}});
       }
     }
-    const bool cut = kfio_mcap_reader_truncated(r) != 0;
-    kfio_mcap_reader_close(r);
-    if (cut) {
+    if (r->truncated()) {
       s->truncated_ = true;
       // A cut part ends the record: what follows would leave a hole in the flight.
       if (part + 1 < s->parts_.size()) {
@@ -279,11 +269,8 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
     error = path + ": the first preview frame is not a JPEG";
     return nullptr;
   }
-  impl.images = kfio_mcap_reader_open(s->parts_[0].c_str(), topics, 1, err, sizeof err);
-  if (impl.images == nullptr) {
-    error = err;
-    return nullptr;
-  }
+  impl.images = McapReader::open(s->parts_[0], {topics[0]}, error);
+  if (!impl.images) return nullptr;
   s->info_.width = first.cols;
   s->info_.height = first.rows;
   s->info_.frameCount = impl.frames;
@@ -301,26 +288,18 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
 #ifdef KEYFRAMED_HAVE_IO
   Impl& impl = *impl_;
   if (index_ >= impl.frames) return ReadStatus::End;
-  std::uint32_t topic = 0;
-  std::uint64_t time = 0;
-  const std::uint8_t* data = nullptr;
-  std::size_t len = 0;
+  McapReader::Message m;
   while (true) {
-    if (kfio_mcap_reader_next(impl.images, &topic, &time, &data, &len) != 1) {
+    if (!impl.images->next(m)) {
       // The next part of a rotated record, if any.
       if (part_ + 1 >= parts_.size()) break;
-      kfio_mcap_reader_close(impl.images);
-      impl.images = nullptr;
-      const char* topics[] = {"/camera/preview"};
-      char err[512] = {};
-      impl.images = kfio_mcap_reader_open(parts_[++part_].c_str(), topics, 1, err, sizeof err);
-      if (impl.images == nullptr) {
-        error = err;
-        return ReadStatus::Error;
-      }
+      impl.images.reset();
+      impl.images = McapReader::open(parts_[++part_], {"/camera/preview"}, error);
+      if (!impl.images) return ReadStatus::Error;
       continue;
     }
-    const std::span<const std::uint8_t> msg(data, len);
+    const std::span<const std::uint8_t> msg = m.data;
+    const std::uint64_t time = m.logTimeNs;
     const auto field = bytesField(msg, 2);
     if (!field) continue;  // skipped by the first pass too
     impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
