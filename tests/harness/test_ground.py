@@ -287,3 +287,37 @@ def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path)
     summary = json.loads(stdout.strip().splitlines()[-1])
     assert summary["keyframes"] == 3 and summary["missing"] == [1]
     assert (1, 1) in vehicle.queries
+
+
+def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:
+    """The station was killed while writing: a half-written image (``.tmp``) and a
+    half-written metadata line. Started again on the same folder, it throws both away,
+    keeps what was complete, and fetches the rest in one range query."""
+    port = free_port()
+    vehicle = Vehicle("uav3", tagged, port)
+    n = len(vehicle.rows)
+    ds = tmp_path / "dataset" / "uav3"
+    (ds / "images").mkdir(parents=True)
+    first, second = vehicle.rows[0], vehicle.rows[1]
+    (ds / "images" / first["file"]).write_bytes((tagged / first["file"]).read_bytes())
+    (ds / "images" / (second["file"] + ".tmp")).write_bytes(b"\xff\xd8 half a jpeg")
+    line = json.dumps(vehicle.meta(first), sort_keys=True) + "\n"
+    (ds / "keyframes.jsonl").write_text(line + line[: len(line) // 2])
+    proc = ground(tmp_path / "dataset", port)
+    try:
+        wait_connected(vehicle)
+        vehicle.status()  # "I have written n"
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n and summary["fetched_by_query"] == n - 1
+    assert vehicle.queries == [(1, n - 1)]
+    assert not list(ds.rglob("*.tmp"))
+    for row in vehicle.rows:
+        assert (ds / "images" / row["file"]).read_bytes() == (tagged / row["file"]).read_bytes()
+    seqs = [json.loads(x)["sequence"] for x in (ds / "keyframes.jsonl").read_text().splitlines()]
+    assert seqs == list(range(n))

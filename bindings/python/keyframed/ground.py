@@ -283,7 +283,10 @@ class VehicleDataset:
         self.sift_jobs: list[Future[int]] = []
         if sift is not None:
             (self.dir / "features").mkdir(exist_ok=True)
-        # resume: what an earlier run already holds
+        # resume: what an earlier run already holds; a file half-written when it was
+        # killed is thrown away (the keyframe is fetched again by query)
+        for tmp in self.dir.rglob("*.tmp"):
+            tmp.unlink(missing_ok=True)
         index = self.dir / "keyframes.jsonl"
         if index.exists():
             for line in index.read_text().splitlines():
