@@ -75,7 +75,8 @@ class McapRecorder {
   // Creates the file, writes every schema and channel and flushes them at once, so
   // a file cut short at any later point still names its channels.
   bool open(const McapRecorderOptions& options, std::string& error);
-  // Queues one encoded message (see foxglove_proto.h); log and publish time in ns.
+  // Queues one encoded message (see foxglove_proto.h); timeNs on the caller's clock
+  // (the file's log and publish time: timeNs + options.timeOffsetNs).
   // sequence 0: the channel's own counter.
   void record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
               std::uint32_t sequence = 0);
