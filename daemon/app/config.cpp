@@ -516,6 +516,15 @@ std::vector<Field> makeSchema() {
   f.push_back(integer(
       "output", "mcap_rotate_s", [](auto& c) -> auto& { return c.output.mcapRotateS; },
       R{0, 86400}));
+  f.push_back(boolean(
+      "output", "mcap_fsync", [](auto& c) -> auto& { return c.output.mcapFsync; }));
+  f.push_back(text(
+      "output", "mcap_compression", [](auto& c) -> auto& { return c.output.mcapCompression; },
+      [](const std::string& s) -> std::string {
+        return s == "auto" || s == "zstd" || s == "lz4" || s == "none"
+                   ? ""
+                   : "must be auto, zstd, lz4 or none (got " + quote(s) + ")";
+      }));
   f.push_back(integer(
       "output", "preview_width", [](auto& c) -> auto& { return c.output.previewWidth; },
       R{0, 16384}));

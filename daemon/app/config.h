@@ -64,6 +64,8 @@ struct DaemonConfig {
     bool mcap = true;                             // output.mcap
     std::int64_t mcapRotateMb = 1024;             // output.mcap_rotate_mb (0: never)
     std::int64_t mcapRotateS = 1800;              // output.mcap_rotate_s (0: never)
+    bool mcapFsync = true;                        // output.mcap_fsync (timed flush + fsync)
+    std::string mcapCompression = "auto";         // output.mcap_compression
     std::int64_t previewWidth = 640;              // output.preview_width (0: no preview)
   };
 

@@ -15,12 +15,6 @@ KeyframeWriter::~KeyframeWriter() {
   close(ignored);
 }
 
-std::string KeyframeWriter::fileName(std::int64_t frameIndex) {
-  char name[32];
-  std::snprintf(name, sizeof name, "%06lld.jpg", static_cast<long long>(frameIndex));
-  return name;
-}
-
 std::string KeyframeWriter::indexHeader() {
   return "sequence,index,file,time_ns,utc_us,lat,lon,alt_amsl,alt_rel,cam_qw,cam_qx,cam_qy,"
          "cam_qz,yaw,pitch,roll,hdop,fix_type,geotag";

@@ -63,7 +63,12 @@ class KeyframeWriter {
   [[nodiscard]] const std::vector<std::uint8_t>& lastJpeg() const { return jpeg_; }
   [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
   [[nodiscard]] const CameraMount& mount() const { return config_.mount; }
-  [[nodiscard]] static std::string fileName(std::int64_t frameIndex);
+  // Inline: keyframed_output names files too, without linking the app library.
+  [[nodiscard]] static std::string fileName(std::int64_t frameIndex) {
+    char name[32];
+    std::snprintf(name, sizeof name, "%06lld.jpg", static_cast<long long>(frameIndex));
+    return name;
+  }
   [[nodiscard]] static std::string indexHeader();
 
  private:

@@ -34,6 +34,7 @@
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "app/log.h"
+#include "app/log_to_record.h"
 #include "app/paced_source.h"
 #include "app/sd_notify.h"
 #include "app/settings.h"
@@ -282,6 +283,7 @@ class Daemon {
   KeyframeWriter writer_;
   DecisionLog log_;
   FlightOutputs outputs_;
+  std::unique_ptr<LogToRecord> logToRecord_;  // the log into the MCAP; goes before outputs_
   std::unique_ptr<KeyframeStage> stage_;
   std::unique_ptr<KeyframeOutput> output_;
   // Analysis -> output: blocks the analysis when the output falls behind, so that no
@@ -520,6 +522,14 @@ int Daemon::run() {
   if (config_.output.mcap) fo.mcapPath = flightDir_ + "/flight.mcap";
   fo.mcapRotateBytes = static_cast<std::uint64_t>(config_.output.mcapRotateMb) << 20;
   fo.mcapRotateSeconds = config_.output.mcapRotateS;
+  fo.mcapFsync = config_.output.mcapFsync;
+  // Preview frames (JPEG, PNG) are most of the record and do not compress.
+  fo.mcapCompression = config_.output.mcapCompression != "auto" ? config_.output.mcapCompression
+                       : config_.output.previewWidth > 0        ? "none"
+                                                                : "zstd";
+  fo.liveClock = true;  // frames and MAVLink on CLOCK_MONOTONIC
+  fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
   fo.zenoh = config_.zenoh.enabled;
   fo.zenohConfig = config_.zenoh.config;
   fo.zenohSetting = "zenoh.config";
@@ -535,6 +545,7 @@ int Daemon::run() {
     KF_LOG(Output, Error) << error;
     return 1;
   }
+  logToRecord_ = std::make_unique<LogToRecord>(outputs_);
 
   if (telemetry_) recordRawMavlink(*telemetry_, outputs_);
   MonotonicClock clock;

@@ -15,6 +15,8 @@
 #include "app/keyframe_output.h"
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
+#include "app/log.h"
+#include "app/log_to_record.h"
 #include "app/paced_source.h"
 #include "app/telemetry_log.h"
 #include "app/text_io.h"
@@ -125,6 +127,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       return s;
     }
     camera = model;
+  } else if (replay != nullptr && replay->calibration()) {
+    camera = replay->calibration();  // the intrinsics the flight was recorded with
   } else if (!opts.telemetry.empty()) {
     std::fprintf(stderr,
                  "keyframed select: warning: no --calibration: keyframes carry position and "
@@ -211,12 +215,35 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   }
   FlightOutputs outputs;  // --mcap, --zenoh-config
-  if (!outputs.open({opts.mcap, opts.zenohConfig, opts.vehicle, opts.outDir, !opts.realtime},
-                    source->info().width, source->info().height, camera ? &*camera : nullptr,
+  FlightOutputOptions fo;
+  fo.mcapPath = opts.mcap;
+  fo.zenohConfig = opts.zenohConfig;
+  fo.vehicle = opts.vehicle;
+  fo.keyframeDir = opts.outDir;
+  fo.offline = !opts.realtime;
+  // The record's log times in unix time: frames paced in real time are on
+  // CLOCK_MONOTONIC; a replay keeps the original flight's times; --video-start
+  // times are unix already; plain container times count from the start of this run.
+  if (opts.realtime) {
+    fo.liveClock = true;
+  } else if (replay != nullptr) {
+    fo.unixOffsetNs = replay->unixOffsetNs();
+    fo.startNs = replay->firstTimeNs();
+  } else if (opts.videoStartUnixNs) {
+    fo.startNs = *opts.videoStartUnixNs;
+  } else {
+    fo.unixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                          std::chrono::system_clock::now().time_since_epoch())
+                          .count();
+  }
+  fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
+  if (!outputs.open(fo, source->info().width, source->info().height, camera ? &*camera : nullptr,
                     error)) {
     s.error = error;
     return s;
   }
+  const LogToRecord logToRecord(outputs);
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs);
   if (telemetry) recordRawMavlink(*telemetry, outputs);
@@ -230,6 +257,17 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   });
 
+  // A replay's record carries the preview stream and the MAVLink packets on, in
+  // time order, so that it can be replayed in its turn.
+  std::size_t nextPacket = 0;
+  const auto rerecordMavlink = [&](std::int64_t upToNs) {
+    const auto& packets = replay->mavlink();
+    for (; nextPacket < packets.size() && packets[nextPacket].timeNs <= upToNs; ++nextPacket) {
+      const TimedPacket& p = packets[nextPacket];
+      std::uint32_t sys = 0, comp = 0, id = 0;
+      if (mavlinkHeader(p.bytes, sys, comp, id)) outputs.mavlink(p.timeNs, sys, comp, id, p.bytes);
+    }
+  };
   const auto start = std::chrono::steady_clock::now();
   auto lastProgress = start;
   Frame frame;
@@ -249,6 +287,10 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       s.truncated = file != nullptr && file->truncated();
       break;
     }
+    if (replay != nullptr && outputs.recording()) {
+      rerecordMavlink(frame.timestampNs);
+      outputs.preview(frame.timestampNs, replay->encoded(), replay->format().c_str());
+    }
     stage.process(frame);
     s.framesRead = stage.counts().framesRead;
     s.kept = stage.counts().kept;
@@ -266,6 +308,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   // (also after a read error: the video up to the break is covered; not after
   // an output error, which is already the run's failure)
   if (!outputFailed) stage.finish();
+  if (replay != nullptr && outputs.recording()) rerecordMavlink(INT64_MAX);
   {
     const StageCounts& c = stage.counts();
     s.framesRead = c.framesRead;

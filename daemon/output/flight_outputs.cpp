@@ -1,14 +1,19 @@
 #include "output/flight_outputs.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <string_view>
+#include <vector>
 
 #include "tagging/camera_mount.h"
 
 #ifdef KEYFRAMED_HAVE_IO
+#include <atomic>
 #include <map>
+#include <mutex>
 
 #include "output/foxglove_proto.h"
 #include "output/keyframe_publisher.h"
@@ -22,10 +27,26 @@ namespace {
 
 constexpr const char* kCameraFrame = "camera";
 
+constexpr std::int64_t kPublishWarningIntervalNs = 10'000'000'000;
+
+// CLOCK_MONOTONIC (libstdc++'s steady_clock), the clock of a live run's frames.
 std::int64_t wallNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(
              std::chrono::steady_clock::now().time_since_epoch())
       .count();
+}
+
+std::int64_t unixNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+proto::LogLevel foxgloveLevel(int syslogLevel) {
+  if (syslogLevel <= 3) return proto::LogLevel::Error;
+  if (syslogLevel == 4) return proto::LogLevel::Warning;
+  if (syslogLevel <= 6) return proto::LogLevel::Info;
+  return proto::LogLevel::Debug;
 }
 
 std::string num(double v, int decimals) {
@@ -38,6 +59,26 @@ std::string num(double v, int decimals) {
 std::string jnum(double v, int decimals) {
   const std::string s = num(v, decimals);
   return s.empty() ? "null" : s;
+}
+
+// The payload of a MAVLink v1/v2 packet, zero-extended to `size` (MAVLink 2 trims
+// trailing zero bytes); empty when the bytes are not a packet.
+std::vector<std::uint8_t> mavlinkPayload(std::span<const std::uint8_t> p, std::size_t size) {
+  std::size_t start = 0;
+  if (p.size() >= 10 && p[0] == 0xFD) start = 10;
+  if (p.size() >= 6 && p[0] == 0xFE) start = 6;
+  if (start == 0 || p.size() < start + p[1]) return {};
+  std::vector<std::uint8_t> out(p.begin() + static_cast<long>(start),
+                                p.begin() + static_cast<long>(start + p[1]));
+  out.resize(std::max(out.size(), size), 0);
+  return out;
+}
+
+template <typename T>
+T field(const std::vector<std::uint8_t>& payload, std::size_t offset) {
+  T v;
+  std::memcpy(&v, payload.data() + offset, sizeof v);  // MAVLink is little-endian, as is the host
+  return v;
 }
 
 }  // namespace
@@ -56,7 +97,33 @@ struct FlightOutputs::Impl {
   std::int64_t lastPreviewNs = 0;
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
-  bool publishFailed = false;
+  // Failed keyframe puts: every keyframe is still tried; the log gets one line at
+  // most every kPublishWarningIntervalNs, with the count since the last line.
+  std::int64_t publishFailures = 0;
+  std::int64_t unreportedFailures = 0;
+  std::int64_t lastFailureLogNs = 0;
+  KeyframePut putForTesting;
+  // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
+  // an offline run the time of the latest frame.
+  std::atomic<std::int64_t> frameNs{0};
+  bool quaternionAttitude = false;  // ATTITUDE_QUATERNION seen: ATTITUDE is not recorded
+  std::mutex logMutex;              // log() (any thread) against close() taking the recorder away
+
+  std::int64_t nowNs() const { return options.liveClock ? wallNs() : frameNs.load(); }
+  void note(const std::string& message) const {
+    if (options.note) {
+      options.note(message);
+    } else {
+      std::fprintf(stderr, "keyframed: %s\n", message.c_str());
+    }
+  }
+  void warn(const std::string& message) const {
+    if (options.warn) {
+      options.warn(message);
+    } else {
+      std::fprintf(stderr, "keyframed: %s\n", message.c_str());
+    }
+  }
 };
 
 FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
@@ -77,10 +144,19 @@ bool FlightOutputs::recording() const {
 bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
                          const CameraModel* camera, std::string& error) {
   impl_->options = o;
+  // MCAP log times are unix time (what Foxglove and `mcap info` show).
+  if (o.liveClock) impl_->options.unixOffsetNs = unixNs() - wallNs();
+  impl_->frameNs.store(o.startNs);
   if (!o.mcapPath.empty()) {
     McapRecorderOptions ro;
     ro.path = o.mcapPath;
+    ro.fsync = o.mcapFsync;
+    ro.compression = o.mcapCompression;
+    ro.timeOffsetNs = impl_->options.unixOffsetNs;
     ro.blockWhenFull = o.offline;
+    ro.onNewPart = [impl = impl_.get()](const std::string& path) {
+      impl->note("MCAP: recording continues in " + path);
+    };
     ro.rotateBytes = o.mcapRotateBytes;
     ro.rotateSeconds = o.mcapRotateSeconds;
     auto rec = std::make_unique<McapRecorder>();
@@ -102,13 +178,11 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       if (m.d.size() > 5) m.distortionModel = "rational_polynomial";
       m.k = {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1};
       m.p = {c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0};
-      impl_->recorder->record(McapTopic::Calibration, 0, proto::cameraCalibration(m));
+      m.timeNs = impl_->nowNs() + impl_->options.unixOffsetNs;
+      impl_->recorder->record(McapTopic::Calibration, impl_->nowNs(), proto::cameraCalibration(m));
     }
-    impl_->recorder->record(McapTopic::Log, 0,
-                            proto::log(0, proto::LogLevel::Info,
-                                       "recording started (" + std::to_string(width) + "x" +
-                                           std::to_string(height) + ")",
-                                       "keyframed"));
+    log(6, "output",
+        "recording started (" + std::to_string(width) + "x" + std::to_string(height) + ")");
   }
   if (o.zenoh || !o.zenohConfig.empty()) {
     KeyframePublisherOptions po;
@@ -128,6 +202,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
 }
 
 void FlightOutputs::decision(const Decision& d, const std::string& decisionJson) {
+  if (!impl_->options.liveClock) impl_->frameNs.store(d.timestampNs);
   if (active())
     impl_->scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
   if (impl_->recorder)
@@ -136,9 +211,49 @@ void FlightOutputs::decision(const Decision& d, const std::string& decisionJson)
 
 void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                             std::uint32_t messageId, std::span<const std::uint8_t> packet) {
-  if (impl_->recorder)
-    impl_->recorder->record(McapTopic::Mavlink, timeNs,
-                            proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+  McapRecorder* rec = impl_->recorder.get();
+  if (rec == nullptr) return;
+  rec->record(McapTopic::Mavlink, timeNs,
+              proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+  // The autopilot's position and attitude as Foxglove reads them, at the stream's
+  // own rate (the keyframe channels have them only at keyframes).
+  constexpr std::uint32_t kAutopilotComponent = 1;
+  if (componentId != kAutopilotComponent) return;
+  if (messageId == 33) {  // GLOBAL_POSITION_INT: lat, lon (1e-7 deg), alt (mm AMSL) at 4, 8, 12
+    const auto pl = mavlinkPayload(packet, 28);
+    if (pl.empty()) return;
+    proto::LocationFixMsg f;
+    f.timeNs = timeNs;
+    f.frameId = "vehicle";
+    f.latitude = field<std::int32_t>(pl, 4) * 1e-7;
+    f.longitude = field<std::int32_t>(pl, 8) * 1e-7;
+    f.altitude = field<std::int32_t>(pl, 12) * 1e-3;
+    rec->record(McapTopic::VehicleLocation, timeNs, proto::locationFix(f));
+  } else if (messageId == 31) {  // ATTITUDE_QUATERNION: q1..q4 (w, x, y, z) at 4
+    const auto pl = mavlinkPayload(packet, 20);
+    if (pl.empty()) return;
+    impl_->quaternionAttitude = true;
+    const double w = field<float>(pl, 4), x = field<float>(pl, 8), y = field<float>(pl, 12),
+                 z = field<float>(pl, 16);
+    rec->record(McapTopic::VehiclePose, timeNs,
+                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {x, y, z, w}));
+  } else if (messageId == 30 && !impl_->quaternionAttitude) {
+    // ATTITUDE: roll, pitch, yaw (rad, body to NED) at 4, 8, 12; quaternion of Z-Y-X.
+    const auto pl = mavlinkPayload(packet, 16);
+    if (pl.empty()) return;
+    const double r = field<float>(pl, 4) / 2, p = field<float>(pl, 8) / 2,
+                 y = field<float>(pl, 12) / 2;
+    const double w =
+        std::cos(r) * std::cos(p) * std::cos(y) + std::sin(r) * std::sin(p) * std::sin(y);
+    const double qx =
+        std::sin(r) * std::cos(p) * std::cos(y) - std::cos(r) * std::sin(p) * std::sin(y);
+    const double qy =
+        std::cos(r) * std::sin(p) * std::cos(y) + std::sin(r) * std::cos(p) * std::sin(y);
+    const double qz =
+        std::cos(r) * std::cos(p) * std::sin(y) - std::sin(r) * std::sin(p) * std::cos(y);
+    rec->record(McapTopic::VehiclePose, timeNs,
+                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {qx, qy, qz, w}));
+  }
 }
 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
@@ -234,14 +349,41 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
           proto::poseInFrame(rec.timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
     }
   }
-  if (impl_->publisher && !impl_->publishFailed) {
+  if (impl_->publisher) {
+    // Every keyframe is put, whatever happened to the one before: Zenoh reconnects by
+    // itself, and a ground station fetches what it missed from the queryable.
     std::string error;
-    if (!impl_->publisher->publishKeyframe(jpeg, meta, error)) {
-      // Zenoh reconnects by itself; one line, then keep going.
-      std::fprintf(stderr, "keyframed: zenoh: %s (further failures not reported)\n", error.c_str());
-      impl_->publishFailed = true;
+    const bool ok = impl_->putForTesting ? impl_->putForTesting(jpeg, meta, error)
+                                         : impl_->publisher->publishKeyframe(jpeg, meta, error);
+    if (!ok) {
+      ++impl_->publishFailures;
+      ++impl_->unreportedFailures;
+      const std::int64_t now = wallNs();
+      if (impl_->lastFailureLogNs == 0 ||
+          now - impl_->lastFailureLogNs >= kPublishWarningIntervalNs) {
+        impl_->warn("zenoh: keyframe " + std::to_string(rec.sequence) + " not published: " + error +
+                    " (" + std::to_string(impl_->unreportedFailures) +
+                    " failed since the last report, " + std::to_string(impl_->publishFailures) +
+                    " in all)");
+        impl_->lastFailureLogNs = now;
+        impl_->unreportedFailures = 0;
+      }
     }
   }
+}
+
+void FlightOutputs::log(int level, std::string_view category, std::string_view message) {
+  std::lock_guard lock(impl_->logMutex);
+  McapRecorder* recorder = impl_->recorder.get();
+  if (recorder == nullptr) return;
+  const std::int64_t t = impl_->nowNs();
+  recorder->tryRecord(McapTopic::Log, t,
+                      proto::log(t + impl_->options.unixOffsetNs, foxgloveLevel(level),
+                                 std::string(message), "keyframed." + std::string(category)));
+}
+
+void FlightOutputs::setKeyframePutForTesting(KeyframePut put) {
+  impl_->putForTesting = std::move(put);
 }
 
 void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
@@ -259,6 +401,11 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
+  if (impl_->unreportedFailures > 0) {
+    impl_->warn("zenoh: " + std::to_string(impl_->publishFailures) +
+                " keyframe puts failed in this flight (the queryable serves them)");
+    impl_->unreportedFailures = 0;
+  }
   if (impl_->publisher) {
     std::string ignored;
     impl_->publisher->publishStatus("{\"state\":\"" + state +
@@ -267,9 +414,18 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
                                     ignored);
     impl_->publisher.reset();
   }
-  if (impl_->recorder) {
-    ok = impl_->recorder->close(error);
-    impl_->recorder.reset();
+  std::unique_ptr<McapRecorder> recorder;
+  {
+    std::lock_guard lock(impl_->logMutex);
+    recorder = std::move(impl_->recorder);
+  }
+  if (recorder) {
+    ok = recorder->close(error);
+    if (const std::uint64_t dropped = recorder->stats().dropped; dropped > 0) {
+      impl_->warn("MCAP: " + std::to_string(dropped) +
+                  " messages not recorded (the writer fell behind or stopped; a live run drops "
+                  "rather than stall)");
+    }
   }
   return ok;
 }
@@ -306,9 +462,11 @@ bool FlightOutputs::publishing() const {
 void FlightOutputs::mavlink(std::int64_t, std::uint32_t, std::uint32_t, std::uint32_t,
                             std::span<const std::uint8_t>) {}
 void FlightOutputs::progress(std::int64_t, std::int64_t) {}
+void FlightOutputs::log(int, std::string_view, std::string_view) {}
 bool FlightOutputs::close(const std::string&, std::string&) {
   return true;
 }
+void FlightOutputs::setKeyframePutForTesting(KeyframePut) {}
 
 #endif
 

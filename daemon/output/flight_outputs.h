@@ -1,9 +1,11 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <span>
 #include <string>
+#include <string_view>
 
 #include "app/keyframe_writer.h"
 #include "core/selector.h"
@@ -21,6 +23,17 @@ struct FlightOutputOptions {
   std::uint64_t mcapRotateBytes = 0;   // a new MCAP part after this many bytes (0: never)
   std::int64_t mcapRotateSeconds = 0;  // ... or seconds (0: never)
   std::string zenohSetting = "--zenoh-config";  // how the user named the Zenoh config
+  bool mcapFsync = false;                       // output.mcap_fsync: fsync at each timed flush
+  std::string mcapCompression = "zstd";         // zstd | lz4 | none
+  // The clock of the times given to decision(), keyframe(), ...: liveClock means
+  // CLOCK_MONOTONIC (a live run), mapped onto unix time with the offset measured at
+  // open(); otherwise unixOffsetNs maps it, and startNs is its time at open().
+  bool liveClock = false;
+  std::int64_t unixOffsetNs = 0;
+  std::int64_t startNs = 0;
+  // Where FlightOutputs' own warnings go (a publish that failed); empty: stderr.
+  std::function<void(const std::string&)> warn;
+  std::function<void(const std::string&)> note;  // informational lines; empty: stderr
 };
 
 // Everything a run sends beyond its keyframe directory: the MCAP flight record and
@@ -53,8 +66,17 @@ class FlightOutputs {
   [[nodiscard]] bool publishing() const;  // a Zenoh session is open
   // Progress (status on Zenoh about once a second).
   void progress(std::int64_t framesRead, std::int64_t kept);
+  // One line of the daemon's log into the record's /keyframed/log, stamped now.
+  // Thread-safe and never waits (the logger calls it under its lock); level is a
+  // syslog priority (3 error ... 7 debug).
+  void log(int level, std::string_view category, std::string_view message);
   // Last status and close; false when the MCAP file is incomplete (error says why).
   bool close(const std::string& state, std::string& error);
+
+  // Tests: replaces the Zenoh put of keyframes (false with an error: a failed put).
+  using KeyframePut = std::function<bool(std::span<const std::uint8_t> jpeg,
+                                         const std::string& meta, std::string& error)>;
+  void setKeyframePutForTesting(KeyframePut put);
 
  private:
   struct Impl;  // empty when built without the I/O crate

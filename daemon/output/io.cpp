@@ -29,6 +29,38 @@ std::unique_ptr<McapWriter> McapWriter::open(const McapWriterOptions& o, std::st
   return std::unique_ptr<McapWriter>(new McapWriter(h, o.path));
 }
 
+std::unique_ptr<McapReader> McapReader::open(const std::string& path,
+                                             const std::vector<std::string>& topics,
+                                             std::string& error) {
+  std::vector<const char*> names;
+  names.reserve(topics.size());
+  for (const std::string& t : topics) names.push_back(t.c_str());
+  Err e;
+  kfio_mcap_reader* h =
+      kfio_mcap_reader_open(path.c_str(), names.data(), names.size(), e.data(), e.size());
+  if (h == nullptr) {
+    error = e.str();
+    return nullptr;
+  }
+  return std::unique_ptr<McapReader>(new McapReader(h));
+}
+
+McapReader::~McapReader() {
+  kfio_mcap_reader_close(handle_);
+}
+
+bool McapReader::next(Message& m) {
+  const std::uint8_t* data = nullptr;
+  std::size_t len = 0;
+  if (kfio_mcap_reader_next(handle_, &m.topic, &m.logTimeNs, &data, &len) != 1) return false;
+  m.data = {data, len};
+  return true;
+}
+
+bool McapReader::truncated() const {
+  return kfio_mcap_reader_truncated(handle_) != 0;
+}
+
 McapWriter::~McapWriter() {
   if (handle_ != nullptr) kfio_mcap_close(handle_, nullptr, 0);
 }

@@ -48,6 +48,31 @@ class McapWriter {
   std::string path_;
 };
 
+// One MCAP file read in order, only the wanted topics, one chunk in memory at a time.
+class McapReader {
+ public:
+  struct Message {
+    std::uint32_t topic = 0;  // index into the topics open() was given
+    std::uint64_t logTimeNs = 0;
+    std::span<const std::uint8_t> data;  // valid until the next call
+  };
+  static std::unique_ptr<McapReader> open(const std::string& path,
+                                          const std::vector<std::string>& topics,
+                                          std::string& error);
+  ~McapReader();
+  McapReader(const McapReader&) = delete;
+  McapReader& operator=(const McapReader&) = delete;
+
+  // The next message; false at the end (of the file, or where it was cut short).
+  bool next(Message& message);
+  // Once next() has returned false: the file was cut short or is corrupt there.
+  [[nodiscard]] bool truncated() const;
+
+ private:
+  explicit McapReader(kfio_mcap_reader* handle) : handle_(handle) {}
+  kfio_mcap_reader* handle_;
+};
+
 // A Zenoh session. Publishers and queryables must not outlive it.
 class ZenohSession {
  public:

@@ -176,8 +176,8 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
     KeyframePublisher* self = p.get();
     p->queryable_ = ZenohQueryable::declare(
         *p->session_, p->prefix_ + "/keyframes/*",
-        [self](const std::string& key, const std::string&, ZenohReply& reply) {
-          self->answer(key, reply);
+        [self](const std::string& key, const std::string& parameters, ZenohReply& reply) {
+          self->answer(key, parameters, reply);
         },
         error);
     if (!p->queryable_) return nullptr;
@@ -193,7 +193,43 @@ KeyframePublisher::~KeyframePublisher() {
   session_.reset();
 }
 
-void KeyframePublisher::answer(const std::string& key, ZenohReply& reply) {
+bool parseKeyframeRange(const std::string& parameters, std::int64_t& first, std::int64_t& last,
+                        std::string& error) {
+  first = 0;
+  last = INT64_MAX;
+  std::string value;
+  bool found = false;
+  std::size_t start = 0;
+  while (start <= parameters.size()) {
+    std::size_t end = parameters.find_first_of(";&", start);
+    if (end == std::string::npos) end = parameters.size();
+    const std::string item = parameters.substr(start, end - start);
+    if (item.rfind("range=", 0) == 0) {
+      value = item.substr(6);
+      found = true;
+    }
+    start = end + 1;
+  }
+  if (!found) return true;
+  const std::size_t dots = value.find("..");
+  const auto number = [](const std::string& text, std::int64_t& out) {
+    if (text.empty() || text.find_first_not_of("0123456789") != std::string::npos) return false;
+    errno = 0;
+    out = std::strtoll(text.c_str(), nullptr, 10);
+    return errno == 0;
+  };
+  const std::string a = dots == std::string::npos ? value : value.substr(0, dots);
+  const std::string b = dots == std::string::npos ? value : value.substr(dots + 2);
+  if (!number(a, first) || (!b.empty() && !number(b, last)) || last < first) {
+    error =
+        "bad range '" + value + "': FIRST..LAST, FIRST.. or N (sequence numbers, LAST >= FIRST)";
+    return false;
+  }
+  return true;
+}
+
+void KeyframePublisher::answer(const std::string& key, const std::string& parameters,
+                               ZenohReply& reply) {
   std::string error;
   const std::string last = key.substr(key.rfind('/') + 1);
   const bool all = last == "*" || last == "**";
@@ -207,6 +243,13 @@ void KeyframePublisher::answer(const std::string& key, ZenohReply& reply) {
       return;
     }
   }
+  // keyframes/*?range=A..B: the keyframes A to B (both included) in one query.
+  std::int64_t first = 0, final = INT64_MAX;
+  if (!parseKeyframeRange(parameters, first, final, error)) {
+    std::string ignored;
+    reply.fail(error, ignored);
+    return;
+  }
   std::vector<StoredKeyframe> rows;
   if (!readKeyframeIndex(dir_, prefix_.substr(prefix_.find('/') + 1), rows, error)) {
     std::string ignored;
@@ -217,6 +260,7 @@ void KeyframePublisher::answer(const std::string& key, ZenohReply& reply) {
   std::vector<std::uint8_t> jpeg;
   for (const StoredKeyframe& r : rows) {
     if (!all && r.sequence != wanted) continue;
+    if (r.sequence < first || r.sequence > final) continue;
     found = true;
     if (!readFile(dir_ + "/" + r.file, jpeg, error)) {
       std::string ignored;

@@ -20,8 +20,8 @@ struct KeyframePublisherOptions {
 };
 
 // Publishes keyframes and status under keyframed/<vehicle>/ and answers queries for
-// any keyframe already on disk (keyframed/<vehicle>/keyframes/<seq>), so a ground
-// station that missed some fetches them again.
+// any keyframe already on disk (keyframed/<vehicle>/keyframes/<seq>, or a range:
+// keyframes/*?range=A..B), so a ground station that missed some fetches them again.
 class KeyframePublisher {
  public:
   static std::unique_ptr<KeyframePublisher> open(const KeyframePublisherOptions& options,
@@ -48,7 +48,7 @@ class KeyframePublisher {
 
  private:
   KeyframePublisher() = default;
-  void answer(const std::string& key, ZenohReply& reply);
+  void answer(const std::string& key, const std::string& parameters, ZenohReply& reply);
 
   std::string prefix_;  // keyframed/<vehicle>
   std::string dir_;
@@ -83,6 +83,11 @@ struct StoredKeyframe {
   std::string metadataJson;
 };
 // Reads <dir>/keyframes.csv; false with an error when it cannot be read.
+// The query parameter range=A..B (both included; A.. to the end; N alone), as the
+// queryable takes it. No range parameter: every keyframe (0..INT64_MAX).
+bool parseKeyframeRange(const std::string& parameters, std::int64_t& first, std::int64_t& last,
+                        std::string& error);
+
 bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
                        std::vector<StoredKeyframe>& out, std::string& error);
 

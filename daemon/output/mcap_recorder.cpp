@@ -86,6 +86,8 @@ constexpr TopicSpec kTopics[] = {
     {"/camera/calibration", "foxglove.CameraCalibration", "protobuf", "protobuf"},
     {"/keyframed/log", "foxglove.Log", "protobuf", "protobuf"},
     {"/camera/preview", "foxglove.CompressedImage", "protobuf", "protobuf"},
+    {"/vehicle/location", "foxglove.LocationFix", "protobuf", "protobuf"},
+    {"/vehicle/pose", "foxglove.PoseInFrame", "protobuf", "protobuf"},
 };
 static_assert(std::size(kTopics) == static_cast<std::size_t>(McapTopic::Count));
 
@@ -129,7 +131,8 @@ bool McapRecorder::rotate(std::string& error) {
   if (!openFile(partPath(part_), error)) return false;
   if (!latchedCalibration_.empty()) {
     const int t = static_cast<int>(McapTopic::Calibration);
-    const auto now = static_cast<std::uint64_t>(std::max<std::int64_t>(lastTimeNs_, 0));
+    const auto now =
+        static_cast<std::uint64_t>(std::max<std::int64_t>(lastTimeNs_ + options_.timeOffsetNs, 0));
     if (!writer_->write(channels_[t], ++sequences_[t], now, now, latchedCalibration_, error))
       return false;
   }
@@ -173,12 +176,22 @@ bool McapRecorder::openFile(const std::string& path, std::string& error) {
 
 void McapRecorder::record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
                           std::uint32_t sequence) {
+  enqueue(topic, timeNs, std::move(message), sequence, options_.blockWhenFull);
+}
+
+void McapRecorder::tryRecord(McapTopic topic, std::int64_t timeNs,
+                             std::vector<std::uint8_t> message) {
+  enqueue(topic, timeNs, std::move(message), 0, false);
+}
+
+void McapRecorder::enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
+                           std::uint32_t sequence, bool mayWait) {
   if (failed_.load() || !thread_.joinable()) return;
   std::unique_lock lock(mutex_);
   if (closing_) return;
   const std::size_t n = message.size();
   if (queuedBytes_ + n > options_.maxQueueBytes && !queue_.empty()) {
-    if (!options_.blockWhenFull) {
+    if (!mayWait) {
       ++stats_.dropped;
       return;
     }
@@ -233,7 +246,8 @@ void McapRecorder::run() {
       if (failed_.load()) break;
       const int t = static_cast<int>(it.topic);
       const std::uint32_t seq = it.sequence != 0 ? it.sequence : ++sequences_[t];
-      const auto time = static_cast<std::uint64_t>(std::max<std::int64_t>(it.timeNs, 0));
+      const auto time =
+          static_cast<std::uint64_t>(std::max<std::int64_t>(it.timeNs + options_.timeOffsetNs, 0));
       if (!writer_->write(channels_[t], seq, time, time, it.data, error)) {
         fail(error);
         break;
@@ -253,6 +267,7 @@ void McapRecorder::run() {
           break;
         }
         dirty = false;
+        if (options_.onNewPart) options_.onNewPart(partPath(part_));
       }
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;

@@ -5,6 +5,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -17,24 +18,29 @@ namespace keyframed {
 
 // What the flight recorder writes; each is one MCAP channel (see docs/formats.md).
 enum class McapTopic : std::uint8_t {
-  Keyframe,      // /keyframed/keyframe       foxglove.CompressedImage (the tagged JPEG)
-  KeyframeMeta,  // /keyframed/keyframe_meta  JSON: sequence, frame index, pose, scores
-  Decision,      // /keyframed/decision       JSON: one per analysed frame
-  Mavlink,       // /mavlink/raw              keyframed.MavlinkPacket
-  Location,      // /keyframed/location       foxglove.LocationFix at each keyframe
-  CameraPose,    // /keyframed/camera_pose    foxglove.PoseInFrame (camera -> NED)
-  Calibration,   // /camera/calibration       foxglove.CameraCalibration
-  Log,           // /keyframed/log            foxglove.Log
-  Preview,       // /camera/preview           foxglove.CompressedImage (every frame, JPEG)
+  Keyframe,         // /keyframed/keyframe       foxglove.CompressedImage (the tagged JPEG)
+  KeyframeMeta,     // /keyframed/keyframe_meta  JSON: sequence, frame index, pose, scores
+  Decision,         // /keyframed/decision       JSON: one per analysed frame
+  Mavlink,          // /mavlink/raw              keyframed.MavlinkPacket
+  Location,         // /keyframed/location       foxglove.LocationFix at each keyframe
+  CameraPose,       // /keyframed/camera_pose    foxglove.PoseInFrame (camera -> NED)
+  Calibration,      // /camera/calibration       foxglove.CameraCalibration
+  Log,              // /keyframed/log            foxglove.Log
+  Preview,          // /camera/preview           foxglove.CompressedImage (every frame, JPEG)
+  VehicleLocation,  // /vehicle/location     foxglove.LocationFix (GLOBAL_POSITION_INT)
+  VehiclePose,      // /vehicle/pose         foxglove.PoseInFrame (ATTITUDE[_QUATERNION])
   Count
 };
 
 struct McapRecorderOptions {
   std::string path;
-  std::string compression = "zstd";       // zstd | lz4 | none
-  std::uint64_t chunkSize = 256 * 1024;   // small chunks: a crash loses one at most
-  int flushIntervalMs = 1000;             // chunks end at least this often
-  bool fsync = false;                     // fsync at each timed flush (power loss)
+  std::string compression = "zstd";      // zstd | lz4 | none
+  std::uint64_t chunkSize = 256 * 1024;  // small chunks: a crash loses one at most
+  int flushIntervalMs = 1000;            // chunks end at least this often
+  bool fsync = false;                    // fsync at each timed flush (power loss)
+  // Added to every message's time for its log and publish time: maps the clock the
+  // caller stamps with (CLOCK_MONOTONIC for a live run) onto unix time.
+  std::int64_t timeOffsetNs = 0;
   std::size_t maxQueueBytes = 64u << 20;  // queued but unwritten message bytes
   bool blockWhenFull = false;             // true: producers wait (offline); false: drop
   // Rotation: a new file once this many message bytes (uncompressed) or seconds went
@@ -43,6 +49,9 @@ struct McapRecorderOptions {
   // schema and channel, and the latest calibration repeated.
   std::uint64_t rotateBytes = 0;
   std::int64_t rotateSeconds = 0;
+  // Called on the writer thread with each new part's path (not under any lock of the
+  // recorder's: it may log).
+  std::function<void(const std::string&)> onNewPart;
 };
 
 struct McapRecorderStats {
@@ -66,10 +75,14 @@ class McapRecorder {
   // Creates the file, writes every schema and channel and flushes them at once, so
   // a file cut short at any later point still names its channels.
   bool open(const McapRecorderOptions& options, std::string& error);
-  // Queues one encoded message (see foxglove_proto.h); log and publish time in ns.
+  // Queues one encoded message (see foxglove_proto.h); timeNs on the caller's clock
+  // (the file's log and publish time: timeNs + options.timeOffsetNs).
   // sequence 0: the channel's own counter.
   void record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
               std::uint32_t sequence = 0);
+  // As record(), but never waits for room (drops instead): for callers that hold a
+  // lock the writer thread may need, such as the logger's.
+  void tryRecord(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message);
   void recordText(McapTopic topic, std::int64_t timeNs, const std::string& json);
   // Drains the queue, writes the summary and closes. False when the recorder failed
   // at any point (error says why).
@@ -87,6 +100,8 @@ class McapRecorder {
     std::int64_t timeNs;
     std::vector<std::uint8_t> data;
   };
+  void enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
+               std::uint32_t sequence, bool mayWait);
   void run();
   void fail(const std::string& error);
   bool openFile(const std::string& path, std::string& error);

@@ -1,6 +1,8 @@
 #include "output/mcap_replay.h"
 
+#include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <optional>
 #include <span>
@@ -9,7 +11,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #ifdef KEYFRAMED_HAVE_IO
-#include "output/io_ffi.h"
+#include "output/io.h"
 #endif
 
 namespace keyframed {
@@ -54,7 +56,125 @@ namespace {
   return std::nullopt;
 }
 
+// A google.protobuf.Timestamp in field `field` (seconds 1, nanos 2) as ns.
+[[maybe_unused]] std::optional<std::int64_t> timestampField(std::span<const std::uint8_t> msg,
+                                                            std::uint32_t field) {
+  const auto ts = bytesField(msg, field);
+  if (!ts) return std::nullopt;
+  std::int64_t seconds = 0, nanos = 0;
+  std::size_t i = 0;
+  while (i < ts->size()) {
+    std::uint64_t key = 0, v = 0;
+    for (int shift = 0; i < ts->size() && shift < 64; shift += 7) {
+      const std::uint8_t b = (*ts)[i++];
+      key |= static_cast<std::uint64_t>(b & 0x7F) << shift;
+      if ((b & 0x80) == 0) break;
+    }
+    if ((key & 7) != 0) return std::nullopt;
+    for (int shift = 0; i < ts->size() && shift < 64; shift += 7) {
+      const std::uint8_t b = (*ts)[i++];
+      v |= static_cast<std::uint64_t>(b & 0x7F) << shift;
+      if ((b & 0x80) == 0) break;
+    }
+    if ((key >> 3) == 1) seconds = static_cast<std::int64_t>(v);
+    if ((key >> 3) == 2) nanos = static_cast<std::int64_t>(v);
+  }
+  return seconds * 1'000'000'000 + nanos;
+}
+
+// foxglove.CameraCalibration (width 2, height 3: fixed32; D 5, K 6: packed doubles)
+// as a camera model; nothing when it lacks K or a size.
+[[maybe_unused]] std::optional<CameraModel> calibrationOf(std::span<const std::uint8_t> msg) {
+  CameraModel c;
+  std::vector<double> k;
+  std::size_t i = 0;
+  auto varint = [&](std::uint64_t& v) {
+    v = 0;
+    for (int shift = 0; i < msg.size() && shift < 64; shift += 7) {
+      const std::uint8_t b = msg[i++];
+      v |= static_cast<std::uint64_t>(b & 0x7F) << shift;
+      if ((b & 0x80) == 0) return true;
+    }
+    return false;
+  };
+  auto doubles = [&](std::size_t n, std::vector<double>& out) {
+    for (std::size_t j = 0; j + 8 <= n; j += 8) {
+      double d = 0;
+      std::memcpy(&d, msg.data() + i + j, 8);
+      out.push_back(d);
+    }
+  };
+  while (i < msg.size()) {
+    std::uint64_t key = 0, v = 0;
+    if (!varint(key)) return std::nullopt;
+    const auto field = key >> 3;
+    switch (key & 7) {
+      case 0:
+        if (!varint(v)) return std::nullopt;
+        break;
+      case 1: i += 8; break;
+      case 5: {
+        if (i + 4 > msg.size()) return std::nullopt;
+        std::uint32_t u = 0;
+        std::memcpy(&u, msg.data() + i, 4);
+        if (field == 2) c.width = static_cast<int>(u);
+        if (field == 3) c.height = static_cast<int>(u);
+        i += 4;
+        break;
+      }
+      case 2: {
+        if (!varint(v) || v > msg.size() - i) return std::nullopt;
+        const auto n = static_cast<std::size_t>(v);
+        if (field == 5) doubles(n, c.distortion);
+        if (field == 6) doubles(n, k);
+        i += n;
+        break;
+      }
+      default: return std::nullopt;
+    }
+  }
+  if (k.size() != 9 || c.width <= 0 || c.height <= 0) return std::nullopt;
+  c.fx = k[0];
+  c.cx = k[2];
+  c.fy = k[4];
+  c.cy = k[5];
+  if (!c.calibrated()) return std::nullopt;
+  return c;
+}
+
 }  // namespace
+
+std::vector<std::string> mcapParts(const std::string& path) {
+  std::vector<std::string> parts{path};
+  const std::filesystem::path p(path);
+  for (int i = 1; i < 100000; ++i) {
+    char suffix[16];
+    std::snprintf(suffix, sizeof suffix, "-%03d", i);
+    const std::filesystem::path next =
+        p.parent_path() / (p.stem().string() + suffix + p.extension().string());
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(next, ec)) break;
+    parts.push_back(next.string());
+  }
+  return parts;
+}
+
+bool mavlinkHeader(std::span<const std::uint8_t> p, std::uint32_t& systemId,
+                   std::uint32_t& componentId, std::uint32_t& messageId) {
+  if (p.size() >= 10 && p[0] == 0xFD) {
+    systemId = p[5];
+    componentId = p[6];
+    messageId = p[7] | (p[8] << 8) | (p[9] << 16);
+    return true;
+  }
+  if (p.size() >= 6 && p[0] == 0xFE) {
+    systemId = p[3];
+    componentId = p[4];
+    messageId = p[5];
+    return true;
+  }
+  return false;
+}
 
 bool isMcapFile(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
@@ -65,10 +185,7 @@ bool isMcapFile(const std::string& path) {
 
 struct McapReplaySource::Impl {
 #ifdef KEYFRAMED_HAVE_IO
-  ~Impl() {
-    if (images != nullptr) kfio_mcap_reader_close(images);
-  }
-  kfio_mcap_reader* images = nullptr;  // the preview stream, read as frames are asked for
+  std::unique_ptr<McapReader> images;  // the preview stream, read as frames are asked for
 #endif
   std::int64_t frames = 0;  // preview frames the first pass found
   std::vector<std::uint8_t> jpeg;
@@ -77,45 +194,67 @@ struct McapReplaySource::Impl {
 
 McapReplaySource::~McapReplaySource() = default;
 
+std::span<const std::uint8_t> McapReplaySource::encoded() const {
+  return impl_->jpeg;
+}
+
 std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path,
                                                          std::string& error) {
 #ifdef KEYFRAMED_HAVE_IO
   // Two passes, each one chunk at a time: the first keeps the MAVLink packets (small;
   // telemetry must be known ahead of the frames) and counts the preview frames; the
-  // second streams the frames. Memory does not grow with the file.
-  const char* topics[] = {"/camera/preview", "/mavlink/raw"};
-  char err[512] = {};
-  kfio_mcap_reader* r = kfio_mcap_reader_open(path.c_str(), topics, 2, err, sizeof err);
-  if (r == nullptr) {
-    error = err;
-    return nullptr;
-  }
+  // second streams the frames. Memory does not grow with the file. Times are the
+  // messages' own (the run's clock, which the MAVLink link's TIMESYNC used too); the
+  // log time of the first frame gives the record's offset to unix time.
+  const std::vector<std::string> topics = {"/camera/preview", "/mavlink/raw",
+                                           "/camera/calibration"};
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
+  s->parts_ = mcapParts(path);
   Impl& impl = *s->impl_;
-  std::uint32_t topic = 0;
-  std::uint64_t time = 0;
-  const std::uint8_t* data = nullptr;
-  std::size_t len = 0;
   std::int64_t firstNs = 0;
   std::int64_t lastNs = 0;
-  while (kfio_mcap_reader_next(r, &topic, &time, &data, &len) == 1) {
-    const std::span<const std::uint8_t> msg(data, len);
-    const auto field = bytesField(msg, topic == 0 ? 2 : 5);
-    if (!field) continue;
-    if (topic == 0) {
-      if (impl.frames == 0) {
-        impl.jpeg.assign(field->begin(), field->end());
-        firstNs = static_cast<std::int64_t>(time);
+  for (std::size_t part = 0; part < s->parts_.size(); ++part) {
+    const auto r = McapReader::open(s->parts_[part], topics, error);
+    if (!r) return nullptr;
+    McapReader::Message m;
+    while (r->next(m)) {
+      const std::span<const std::uint8_t> msg = m.data;
+      const std::uint32_t topic = m.topic;
+      const std::uint64_t time = m.logTimeNs;
+      if (topic == 2) {
+        if (!s->calibration_) s->calibration_ = calibrationOf(msg);
+        continue;
       }
-      lastNs = static_cast<std::int64_t>(time);
-      ++impl.frames;
-    } else {
-      s->mavlink_.push_back({static_cast<std::int64_t>(time), {field->begin(), field->end()}});
+      const auto field = bytesField(msg, topic == 0 ? 2 : 5);
+      if (!field) continue;
+      const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
+      if (topic == 0) {
+        if (impl.frames == 0) {
+          impl.jpeg.assign(field->begin(), field->end());
+          firstNs = t;
+          s->unixOffsetNs_ = static_cast<std::int64_t>(time) - t;
+        }
+        lastNs = t;
+        ++impl.frames;
+      } else {
+        s->mavlink_.push_back({t, {field->begin(), field->end()}});
+      }
+    }
+    if (r->truncated()) {
+      s->truncated_ = true;
+      // A cut part ends the record: what follows would leave a hole in the flight.
+      if (part + 1 < s->parts_.size()) {
+        std::fprintf(stderr,
+                     "keyframed: %s is cut short: replaying the record up to it, not the %zu "
+                     "part(s) after it\n",
+                     s->parts_[part].c_str(), s->parts_.size() - part - 1);
+      }
+      s->parts_.resize(part + 1);
+      break;
     }
   }
-  s->truncated_ = kfio_mcap_reader_truncated(r) != 0;
-  kfio_mcap_reader_close(r);
+  s->firstTimeNs_ = firstNs;
   if (impl.frames == 0 && s->truncated_) {
     error = path + ": corrupt or cut short before its first preview frame";
     return nullptr;
@@ -130,11 +269,8 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
     error = path + ": the first preview frame is not a JPEG";
     return nullptr;
   }
-  impl.images = kfio_mcap_reader_open(path.c_str(), topics, 1, err, sizeof err);
-  if (impl.images == nullptr) {
-    error = err;
-    return nullptr;
-  }
+  impl.images = McapReader::open(s->parts_[0], {topics[0]}, error);
+  if (!impl.images) return nullptr;
   s->info_.width = first.cols;
   s->info_.height = first.rows;
   s->info_.frameCount = impl.frames;
@@ -152,12 +288,19 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
 #ifdef KEYFRAMED_HAVE_IO
   Impl& impl = *impl_;
   if (index_ >= impl.frames) return ReadStatus::End;
-  std::uint32_t topic = 0;
-  std::uint64_t time = 0;
-  const std::uint8_t* data = nullptr;
-  std::size_t len = 0;
-  while (kfio_mcap_reader_next(impl.images, &topic, &time, &data, &len) == 1) {
-    const auto field = bytesField(std::span<const std::uint8_t>(data, len), 2);
+  McapReader::Message m;
+  while (true) {
+    if (!impl.images->next(m)) {
+      // The next part of a rotated record, if any.
+      if (part_ + 1 >= parts_.size()) break;
+      impl.images.reset();
+      impl.images = McapReader::open(parts_[++part_], {"/camera/preview"}, error);
+      if (!impl.images) return ReadStatus::Error;
+      continue;
+    }
+    const std::span<const std::uint8_t> msg = m.data;
+    const std::uint64_t time = m.logTimeNs;
+    const auto field = bytesField(msg, 2);
     if (!field) continue;  // skipped by the first pass too
     impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
                                     const_cast<std::uint8_t*>(field->data())),
@@ -166,7 +309,11 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       error = "preview frame " + std::to_string(index_) + " cannot be decoded";
       return ReadStatus::Error;
     }
-    frame = Frame::ofBgr(impl.bgr, index_++, static_cast<std::int64_t>(time));
+    const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
+    frame = Frame::ofBgr(impl.bgr, index_++, t);
+    impl.jpeg.assign(field->begin(), field->end());
+    const auto format = bytesField(msg, 4);
+    format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");
     return ReadStatus::Frame;
   }
   return ReadStatus::End;

@@ -2,10 +2,13 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
 #include "capture/frame_source.h"
+#include "tagging/camera_model.h"
 
 namespace keyframed {
 
@@ -17,9 +20,11 @@ struct TimedPacket {
 
 // A flight record (MCAP written by `keyframed run`) as a frame source: the preview
 // stream (/camera/preview, JPEG) decoded frame by frame with the live capture
-// timestamps, and the raw MAVLink packets (/mavlink/raw) for the telemetry. open()
-// reads the file once for the MAVLink packets; frames are then streamed, one chunk
-// in memory at a time. A file cut short replays up to the cut.
+// timestamps (the messages' own timestamp fields, on the run's clock), and the raw
+// MAVLink packets (/mavlink/raw) for the telemetry. open() reads the record once for
+// the MAVLink packets; frames are then streamed, one chunk in memory at a time. A
+// file cut short replays up to the cut. A record rotated into parts (flight.mcap,
+// flight-001.mcap, ...) replays whole when given its first part.
 class McapReplaySource final : public FrameSource {
  public:
   static std::unique_ptr<McapReplaySource> open(const std::string& path, std::string& error);
@@ -30,6 +35,18 @@ class McapReplaySource final : public FrameSource {
 
   [[nodiscard]] const std::vector<TimedPacket>& mavlink() const { return mavlink_; }
   [[nodiscard]] bool truncated() const { return truncated_; }
+  // The files replayed, in order (one, or every part of a rotated record).
+  [[nodiscard]] const std::vector<std::string>& parts() const { return parts_; }
+  // Run clock -> unix time, as the record's log times map it (0 for older records).
+  [[nodiscard]] std::int64_t unixOffsetNs() const { return unixOffsetNs_; }
+  [[nodiscard]] std::int64_t firstTimeNs() const { return firstTimeNs_; }
+  // The last frame next() returned as recorded (JPEG or PNG) and its format, so a
+  // replay's own record can carry the preview stream on.
+  [[nodiscard]] std::span<const std::uint8_t> encoded() const;
+  [[nodiscard]] const std::string& format() const { return format_; }
+  // The record's camera calibration (/camera/calibration: K and D at the video's
+  // resolution), when it has one.
+  [[nodiscard]] const std::optional<CameraModel>& calibration() const { return calibration_; }
 
  private:
   McapReplaySource() = default;
@@ -39,7 +56,22 @@ class McapReplaySource final : public FrameSource {
   std::vector<TimedPacket> mavlink_;
   bool truncated_ = false;
   std::int64_t index_ = 0;
+  std::vector<std::string> parts_;
+  std::size_t part_ = 0;  // the part next() reads
+  std::int64_t unixOffsetNs_ = 0;
+  std::int64_t firstTimeNs_ = 0;
+  std::string format_;
+  std::optional<CameraModel> calibration_;
 };
+
+// System, component and message id from a MAVLink v1 or v2 packet's header; false
+// when the bytes are not a packet.
+bool mavlinkHeader(std::span<const std::uint8_t> packet, std::uint32_t& systemId,
+                   std::uint32_t& componentId, std::uint32_t& messageId);
+
+// The parts of a rotated flight record, given its first: path itself, then
+// <stem>-001<ext>, <stem>-002<ext>, ... for as long as they exist.
+std::vector<std::string> mcapParts(const std::string& path);
 
 // True when `path` names an MCAP file (by its magic bytes).
 bool isMcapFile(const std::string& path);

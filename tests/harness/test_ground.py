@@ -47,7 +47,8 @@ def rows(out: Path) -> list[dict[str, str]]:
 
 
 class Vehicle:
-    """Publishes keyframes and serves keyframed/<name>/keyframes/<seq> from a folder."""
+    """Publishes keyframes and serves keyframed/<name>/keyframes/<seq> and the range
+    form keyframes/*?range=A..B from a folder, as the daemon does."""
 
     def __init__(self, name: str, folder: Path, port: int) -> None:
         conf = zenoh.Config()
@@ -58,7 +59,7 @@ class Vehicle:
         self.name = name
         self.folder = folder
         self.rows = rows(folder)
-        self.queries: list[str] = []
+        self.queries: list[tuple[int, int]] = []  # (first, last) asked for
         self.stopped = threading.Event()
         self.unavailable: set[int] = set()
         self.status_thread: threading.Thread | None = None
@@ -80,18 +81,26 @@ class Vehicle:
         }
 
     def _serve(self, query: Any) -> None:
-        key = str(query.key_expr)
-        self.queries.append(key)
-        seq = int(key.rsplit("/", 1)[1])
-        if seq in self.unavailable:
-            query.reply_err(b"not in the store")
-            return
-        row = self.rows[seq]
-        query.reply(
-            key,
-            (self.folder / row["file"]).read_bytes(),
-            attachment=json.dumps(self.meta(row)).encode(),
-        )
+        last = str(query.key_expr).rsplit("/", 1)[1]
+        params = str(query.parameters)
+        if last != "*":
+            first = final = int(last)
+        elif params.startswith("range="):
+            a, b = params.removeprefix("range=").split("..")
+            first, final = int(a), int(b)
+        else:
+            first, final = 0, len(self.rows) - 1
+        self.queries.append((first, final))
+        for seq in range(first, min(final, len(self.rows) - 1) + 1):
+            if seq in self.unavailable:
+                query.reply_err(b"not in the store")
+                continue
+            row = self.rows[seq]
+            query.reply(
+                f"keyframed/{self.name}/keyframes/{seq}",
+                (self.folder / row["file"]).read_bytes(),
+                attachment=json.dumps(self.meta(row)).encode(),
+            )
 
     def publish(self, seq: int) -> None:
         row = self.rows[seq]
@@ -169,7 +178,9 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     assert summary["keyframes"] == n
     assert summary["fetched_by_query"] == len(lost)
     assert summary["duplicates_ignored"] == 1
-    assert sorted(int(q.rsplit("/", 1)[1]) for q in vehicle.queries) == sorted(lost)
+    # one query per gap: 1..2 in the middle, n-1 at the end
+    assert sorted(vehicle.queries) == [(1, 2), (n - 1, n - 1)], vehicle.queries
+    assert summary["gap_queries"] == 2
 
     ds = out / "uav1"
     for row in vehicle.rows:
@@ -275,4 +286,38 @@ def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path)
     assert "still missing" in stderr
     summary = json.loads(stdout.strip().splitlines()[-1])
     assert summary["keyframes"] == 3 and summary["missing"] == [1]
-    assert 1 in [int(q.rsplit("/", 1)[1]) for q in vehicle.queries]
+    assert (1, 1) in vehicle.queries
+
+
+def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:
+    """The station was killed while writing: a half-written image (``.tmp``) and a
+    half-written metadata line. Started again on the same folder, it throws both away,
+    keeps what was complete, and fetches the rest in one range query."""
+    port = free_port()
+    vehicle = Vehicle("uav3", tagged, port)
+    n = len(vehicle.rows)
+    ds = tmp_path / "dataset" / "uav3"
+    (ds / "images").mkdir(parents=True)
+    first, second = vehicle.rows[0], vehicle.rows[1]
+    (ds / "images" / first["file"]).write_bytes((tagged / first["file"]).read_bytes())
+    (ds / "images" / (second["file"] + ".tmp")).write_bytes(b"\xff\xd8 half a jpeg")
+    line = json.dumps(vehicle.meta(first), sort_keys=True) + "\n"
+    (ds / "keyframes.jsonl").write_text(line + line[: len(line) // 2])
+    proc = ground(tmp_path / "dataset", port)
+    try:
+        wait_connected(vehicle)
+        vehicle.status()  # "I have written n"
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n and summary["fetched_by_query"] == n - 1
+    assert vehicle.queries == [(1, n - 1)]
+    assert not list(ds.rglob("*.tmp"))
+    for row in vehicle.rows:
+        assert (ds / "images" / row["file"]).read_bytes() == (tagged / row["file"]).read_bytes()
+    seqs = [json.loads(x)["sequence"] for x in (ds / "keyframes.jsonl").read_text().splitlines()]
+    assert seqs == list(range(n))

@@ -12,6 +12,7 @@
 
 #include <gtest/gtest.h>
 
+#include "output/flight_outputs.h"
 #include "output/foxglove_proto.h"
 #include "output/io.h"
 #include "output/io_ffi.h"
@@ -319,6 +320,112 @@ TEST(Zenoh, PublisherAndQueryableDeclareAndUndeclare) {
   pub.reset();
   session.reset();
   SUCCEED();
+}
+
+TEST(KeyframeRange, QueryParameterForms) {
+  std::int64_t a = -1, b = -1;
+  std::string error;
+  ASSERT_TRUE(parseKeyframeRange("", a, b, error));
+  EXPECT_EQ(a, 0);
+  EXPECT_EQ(b, INT64_MAX);
+  ASSERT_TRUE(parseKeyframeRange("range=3..7", a, b, error)) << error;
+  EXPECT_EQ(a, 3);
+  EXPECT_EQ(b, 7);
+  ASSERT_TRUE(parseKeyframeRange("x=1;range=5..", a, b, error)) << error;
+  EXPECT_EQ(a, 5);
+  EXPECT_EQ(b, INT64_MAX);
+  ASSERT_TRUE(parseKeyframeRange("range=4", a, b, error)) << error;
+  EXPECT_EQ(a, 4);
+  EXPECT_EQ(b, 4);
+  for (const char* bad : {"range=7..3", "range=..3", "range=a..b", "range=-1..2", "range="}) {
+    EXPECT_FALSE(parseKeyframeRange(bad, a, b, error)) << bad;
+    EXPECT_NE(error.find("bad range"), std::string::npos) << error;
+  }
+}
+
+// An isolated Zenoh peer (no scouting, no listeners) for FlightOutputs.
+std::string isolatedZenohConfig() {
+  const std::string path = tempPath("isolated.json5");
+  std::ofstream(path) << R"({mode: "peer", scouting: {multicast: {enabled: false}},
+                            listen: {endpoints: []}, connect: {endpoints: []}})";
+  return path;
+}
+
+TEST(FlightOutputs, AFailedKeyframePublishDoesNotStopTheNextOnes) {
+  std::vector<std::string> warnings;
+  FlightOutputOptions o;
+  o.zenohConfig = isolatedZenohConfig();
+  o.vehicle = "unit";
+  o.warn = [&warnings](const std::string& m) { warnings.push_back(m); };
+  FlightOutputs outputs;
+  std::string error;
+  ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
+  std::vector<std::int64_t> tried;
+  outputs.setKeyframePutForTesting(
+      [&tried](std::span<const std::uint8_t>, const std::string& meta, std::string& e) {
+        const auto at = meta.find("\"sequence\":");
+        tried.push_back(std::stoll(meta.substr(at + 11)));
+        if (tried.back() >= 1 && tried.back() <= 3) {
+          e = "link down";
+          return false;
+        }
+        return true;
+      });
+  const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
+  for (std::int64_t i = 0; i < 6; ++i) {
+    KeyframeRecord r;
+    r.sequence = i;
+    r.frameIndex = 10 * i;
+    r.timeNs = i * 1'000'000;
+    outputs.keyframe(r, jpeg);
+  }
+  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5}));
+  // Three failures in a burst: one line, not three.
+  ASSERT_EQ(warnings.size(), 1U);
+  EXPECT_NE(warnings[0].find("keyframe 1 not published: link down"), std::string::npos)
+      << warnings[0];
+  ASSERT_TRUE(outputs.close("done", error)) << error;
+  ASSERT_EQ(warnings.size(), 2U);  // at close: how many failed in all
+  EXPECT_NE(warnings[1].find("3 keyframe puts failed"), std::string::npos) << warnings[1];
+}
+
+std::int64_t unixNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+TEST(FlightOutputs, LiveRecordIsInUnixTimeWithTheLogInIt) {
+  const std::string path = tempPath("live-times.mcap");
+  FlightOutputOptions o;
+  o.mcapPath = path;
+  o.liveClock = true;
+  FlightOutputs outputs;
+  std::string error;
+  const std::int64_t before = unixNowNs();
+  ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
+  // A frame stamped on CLOCK_MONOTONIC, as a camera does.
+  const std::int64_t mono = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                std::chrono::steady_clock::now().time_since_epoch())
+                                .count();
+  Decision d;
+  d.index = 0;
+  d.timestampNs = mono;
+  outputs.decision(d, "{}");
+  outputs.log(4, "test", "something to warn about");
+  ASSERT_TRUE(outputs.close("done", error)) << error;
+  const std::int64_t after = unixNowNs();
+
+  ReadBack r = readMcap(path, {"/keyframed/decision", "/keyframed/log"});
+  ASSERT_EQ(r.error, "");
+  ASSERT_EQ(r.messages.size(), 3U);  // the decision, "recording started", the warning
+  bool warned = false;
+  for (const auto& [topic, time, data] : r.messages) {
+    EXPECT_GE(static_cast<std::int64_t>(time), before) << topic;
+    EXPECT_LE(static_cast<std::int64_t>(time), after) << topic;
+    if (data.find("something to warn about") != std::string::npos) warned = true;
+  }
+  EXPECT_TRUE(warned);
 }
 
 }  // namespace

@@ -6,8 +6,8 @@ dataset per vehicle that COLMAP and OpenDroneMap take as it is.
 Subscribes to ``keyframed/<vehicle>/keyframe`` (``*``: every vehicle). Each keyframe
 arrives as the tagged JPEG with its metadata (JSON) in the attachment; a gap in the
 sequence numbers, or a vehicle whose status says it has written more than we hold,
-is filled by querying ``keyframed/<vehicle>/keyframes/<seq>``, which the vehicle
-answers from its on-disk store. Nothing is written twice; every file is written to a
+is filled by one query per gap, ``keyframed/<vehicle>/keyframes/*?range=A..B``, which
+the vehicle answers from its on-disk store. Nothing is written twice; every file is written to a
 temporary name and renamed.
 
 ``DATASET/<vehicle>/`` holds:
@@ -57,6 +57,22 @@ def status_key(vehicle: str) -> str:
 
 def store_key(vehicle: str, seq: int | str) -> str:
     return f"{KEY_PREFIX}/{vehicle}/keyframes/{seq}"
+
+
+def range_selector(vehicle: str, first: int, last: int) -> str:
+    """The query for keyframes ``first`` to ``last`` (both included) in one go."""
+    return f"{store_key(vehicle, '*')}?range={first}..{last}"
+
+
+def runs(seqs: list[int]) -> list[tuple[int, int]]:
+    """Sorted sequence numbers as (first, last) runs of consecutive numbers."""
+    out: list[tuple[int, int]] = []
+    for s in sorted(seqs):
+        if out and s == out[-1][1] + 1:
+            out[-1] = (out[-1][0], s)
+        else:
+            out.append((s, s))
+    return out
 
 
 # ----------------------------------------------------------------------------- tags
@@ -257,6 +273,7 @@ class VehicleDataset:
         self.meta: dict[int, dict[str, Any]] = {}
         self.duplicates = 0
         self.fetched = 0
+        self.queries = 0  # gap-filling queries sent (one per gap)
         self.announced = -1  # highest sequence the vehicle says it has written
         self.missing_since: dict[int, float] = {}
         self.done = False  # the vehicle said its flight ended
@@ -266,7 +283,10 @@ class VehicleDataset:
         self.sift_jobs: list[Future[int]] = []
         if sift is not None:
             (self.dir / "features").mkdir(exist_ok=True)
-        # resume: what an earlier run already holds
+        # resume: what an earlier run already holds; a file half-written when it was
+        # killed is thrown away (the keyframe is fetched again by query)
+        for tmp in self.dir.rglob("*.tmp"):
+            tmp.unlink(missing_ok=True)
         index = self.dir / "keyframes.jsonl"
         if index.exists():
             for line in index.read_text().splitlines():
@@ -347,6 +367,7 @@ class VehicleDataset:
             "vehicle": self.vehicle,
             "keyframes": len(metas),
             "fetched_by_query": self.fetched,
+            "gap_queries": self.queries,
             "duplicates_ignored": self.duplicates,
             "missing": self.missing(),
             "pairs": len(pairs),
@@ -429,18 +450,22 @@ class GroundStation:
         ``grace`` seconds; returns how many arrived."""
         got = 0
         for ds in list(self.datasets.values()):
-            for seq in ds.overdue(grace):
-                replies = self.session.get(store_key(ds.vehicle, seq), timeout=timeout)
+            for first, last in runs(ds.overdue(grace)):
+                # One query per gap; each keyframe is one reply, keyed .../keyframes/<seq>.
+                ds.queries += 1
+                replies = self.session.get(range_selector(ds.vehicle, first, last), timeout=timeout)
                 for reply in replies:
                     if reply.ok is None:
                         continue
                     s = reply.ok
                     meta = json.loads(s.attachment.to_bytes()) if s.attachment else {}
-                    meta.setdefault("sequence", seq)
+                    if "sequence" not in meta:
+                        meta["sequence"] = int(str(s.key_expr).rsplit("/", 1)[-1])
+                    if not first <= int(meta["sequence"]) <= last:
+                        continue
                     if ds.add(meta, s.payload.to_bytes(), fetched=True):
                         got += 1
                         self.last_arrival = time.monotonic()
-                    break
         return got
 
     def progress(self) -> str:

@@ -1,0 +1,300 @@
+"""The MCAP flight record of `keyframed run`: unix log times, the daemon's log in
+it, doctor-clean files, rotated parts that replay as one flight."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fake_autopilot import autopilot_fixture
+from flights import flight
+from ports import free_port
+
+mcap_reader = pytest.importorskip("mcap.reader")
+from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
+
+fake_autopilot = autopilot_fixture()
+
+PYMCAP_CLI = shutil.which("pymcap-cli") or str(Path(sys.executable).parent / "pymcap-cli")
+
+
+@pytest.fixture(scope="module")
+def short_nadir() -> Path:
+    return flight("nadir", width=480, height=270, seconds=8.0)
+
+
+def run(
+    kf_bin: Path, tmp_path: Path, *sets: str, autopilot: Any = None
+) -> tuple[float, float, str]:
+    """`keyframed run` to the end of the video; its unix start and end, its stderr."""
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True, exist_ok=True)
+    (cfg / "keyframed.toml").write_text("")
+    args = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    base = [f"output.state_dir={tmp_path / 'state'}", "zenoh.enabled=false", "camera.source=file"]
+    for s in base + list(sets):
+        args += ["--set", s]
+    t0 = time.time()
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    if autopilot is not None:
+        time.sleep(0.3)
+        autopilot.start()
+    _, stderr = proc.communicate(timeout=120)
+    t1 = time.time()
+    assert proc.returncode == 0, stderr
+    return t0, t1, stderr
+
+
+def messages(path: Path) -> list[tuple[str, Any, Any]]:
+    out = []
+    with open(path, "rb") as f:
+        reader = mcap_reader.make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message in reader.iter_messages():
+            out.append((channel.topic, message, channel))
+    return out
+
+
+def decoded(path: Path, topic: str) -> list[Any]:
+    with open(path, "rb") as f:
+        reader = mcap_reader.make_reader(f, decoder_factories=[DecoderFactory()])
+        return [m.decoded_message for m in reader.iter_decoded_messages(topics=[topic])]
+
+
+def doctor(path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [PYMCAP_CLI, "doctor", str(path)], capture_output=True, text=True, timeout=120
+    )
+
+
+def assert_doctor_clean(path: Path) -> None:
+    r = doctor(path)
+    text = " ".join(r.stdout.split())
+    assert r.returncode == 0 and "passed MCAP doctor checks" in text, r.stdout + r.stderr
+    assert "warning" not in text.lower(), text
+
+
+def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    # An autopilot that never speaks: the daemon warns, and the warning is recorded.
+    t0, t1, stderr = run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        "telemetry.url=udpin:127.0.0.1:9",
+        "telemetry.start_wait_ms=200",
+        f"tagging.calibration={short_nadir / 'intrinsics.json'}",
+    )
+    assert "no attitude and position yet" in stderr
+    mcap = (tmp_path / "state" / "latest" / "flight.mcap").resolve()
+    msgs = messages(mcap)
+    topics = {t for t, _, _ in msgs}
+    assert {"/keyframed/decision", "/camera/preview", "/camera/calibration"} <= topics
+    lo, hi = int(t0 * 1e9), int(t1 * 1e9)
+    for topic, m, _ in msgs:
+        assert lo <= m.log_time <= hi, (topic, m.log_time, lo, hi)
+        assert m.publish_time == m.log_time, topic
+    # calibration and log: stamped when written, in unix time inside the message too
+    (cal,) = decoded(mcap, "/camera/calibration")
+    assert lo <= cal.timestamp.ToNanoseconds() <= hi and cal.width == 480
+    logs = decoded(mcap, "/keyframed/log")
+    assert all(lo <= g.timestamp.ToNanoseconds() <= hi for g in logs)
+    warnings = [g for g in logs if g.level == 3]  # foxglove.Log.WARNING
+    assert any("no attitude and position yet" in g.message for g in warnings), [
+        (g.level, g.message) for g in logs
+    ]
+    assert any(g.name == "keyframed.telemetry" for g in warnings)
+    assert any("recording started" in g.message for g in logs)
+    # the preview stream (full size: lossless PNG, which zstd would only grow, so
+    # the record is stored uncompressed and doctor has nothing to warn about) keeps
+    # the run's clock inside its messages, for replay
+    decisions = [json.loads(m.data) for t, m, _ in msgs if t == "/keyframed/decision"]
+    previews = decoded(mcap, "/camera/preview")
+    assert previews[0].timestamp.ToNanoseconds() == decisions[0]["timestamp_ns"]
+    assert_doctor_clean(mcap)
+
+    # Replayed without --calibration: the record's own calibration (K, D; no sensor
+    # size, so no focal length in mm) tags the keyframes with the 35 mm equivalent.
+    from PIL import Image
+
+    out = tmp_path / "replay"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    intr = json.loads((short_nadir / "intrinsics.json").read_text())
+    jpegs = sorted(out.glob("*.jpg"))
+    assert jpegs
+    for jpeg in jpegs:
+        exif = Image.open(jpeg).getexif().get_ifd(0x8769)
+        assert exif.get(0xA405) == round(intr["fx"] * 36 / 480), "FocalLengthIn35mmFilm"
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def matrix(w: float, x: float, y: float, z: float) -> Any:
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rot(axis: str, a: float) -> Any:
+    c, s = math.cos(a), math.sin(a)
+    return {
+        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
+
+
+def counts(path: Path) -> dict[str, int]:
+    with open(path, "rb") as f:
+        summ = mcap_reader.make_reader(f).get_summary()
+    topics = {c.id: c.topic for c in summ.channels.values()}
+    return {topics[c]: n for c, n in summ.statistics.channel_message_counts.items()}
+
+
+def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    mport = free_port(socket.SOCK_DGRAM)
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", mport))
+    t0, t1, stderr = run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{mport}",
+        "output.preview_width=240",
+        "output.mcap_rotate_mb=1",
+        autopilot=ap,
+    )
+    fd = (tmp_path / "state" / "latest").resolve()
+    parts = sorted(fd.glob("flight*.mcap"))
+    assert len(parts) >= 3 and parts[-1].name == "flight.mcap", parts  # flight-001, ...
+    for part in parts:
+        assert_doctor_clean(part)
+    # each rotation is a log line, recorded too
+    assert "MCAP: recording continues in " + str(fd / "flight-001.mcap") in stderr, stderr
+    logged = [g.message for p in parts for g in decoded(p, "/keyframed/log")]
+    assert sum("MCAP: recording continues in" in m for m in logged) == len(parts) - 1, logged
+    live = json.loads((fd / "summary.json").read_text())
+
+    out = tmp_path / "replay"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(fd / "flight.mcap"), "--out", str(out), "--quiet"]
+        + ["--mcap", str(tmp_path / "replay.mcap")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    replay = json.loads((out / "summary.json").read_text())
+    assert replay["frames_read"] == live["frames_read"] == 240, (replay, live)
+    # the replay's record keeps the original flight's times
+    lo, hi = int(t0 * 1e9), int(t1 * 1e9)
+    msgs = messages(tmp_path / "replay.mcap")
+    decisions = [m for t, m, _ in msgs if t == "/keyframed/decision"]
+    assert len(decisions) == 240
+    assert all(lo <= m.log_time <= hi for _, m, _ in msgs)
+    assert_doctor_clean(tmp_path / "replay.mcap")
+
+    # The replay's record carries the preview and the MAVLink stream on: it replays
+    # in its turn, to the same decisions.
+    raw = sum(counts(p).get("/mavlink/raw", 0) for p in parts)
+    again = counts(tmp_path / "replay.mcap")
+    assert raw > 100 and again.get("/mavlink/raw") == raw, (raw, again)
+    assert again.get("/camera/preview") == 240
+    # the autopilot's track and attitude at the stream's rate, decoded from MAVLink
+    fixes = [f for p in parts for f in decoded(p, "/vehicle/location")]
+    poses = [q for p in parts for q in decoded(p, "/vehicle/pose")]
+    assert len(fixes) > 8 * 2 and len(poses) > 8 * 2, (len(fixes), len(poses))
+    assert all(abs(f.latitude - 51.89) < 0.01 and f.frame_id == "vehicle" for f in fixes)
+    for q in (p.pose.orientation for p in poses):
+        assert abs(q.w**2 + q.x**2 + q.y**2 + q.z**2 - 1) < 1e-3
+    # each pose is the attitude packet received at that instant, decoded again here
+    from pymavlink.dialects.v20 import common
+
+    mav = common.MAVLink(None)
+    raw = {}
+    for p in parts:
+        for pkt in decoded(p, "/mavlink/raw"):
+            if pkt.message_id in (30, 31):
+                raw[pkt.timestamp.ToNanoseconds()] = mav.decode(bytearray(pkt.packet))
+    kinds = set()
+    for pose in poses:
+        m = raw[pose.timestamp.ToNanoseconds()]
+        kinds.add(m.get_type())
+        o = pose.pose.orientation
+        got = matrix(o.w, o.x, o.y, o.z)
+        if m.get_type() == "ATTITUDE_QUATERNION":
+            want = matrix(m.q1, m.q2, m.q3, m.q4)
+        else:  # body to NED: yaw about z, then pitch about y, then roll about x
+            want = rot("z", m.yaw) @ rot("y", m.pitch) @ rot("x", m.roll)
+        assert np.allclose(got, want, atol=1e-5), (m, got, want)
+    print(f"{len(poses)} poses from {sorted(kinds)}")
+    assert again.get("/vehicle/location") == len(fixes)
+    out2 = tmp_path / "replay2"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(tmp_path / "replay.mcap"), "--out", str(out2), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    keys = ("index", "timestamp_ns", "kept", "reason", "sharpness", "overlap")
+    a, b = rows(out / "decisions.csv"), rows(out2 / "decisions.csv")
+    assert len(a) == len(b) == 240
+    assert [[x[k] for k in keys] for x in a] == [[y[k] for k in keys] for y in b]
+    assert (out2 / "keyframes.csv").read_text() == (out / "keyframes.csv").read_text()
+
+
+@pytest.mark.skipif(shutil.which("strace") is None, reason="needs strace")
+@pytest.mark.parametrize("fsync", [True, False])
+def test_mcap_fsync_syncs_the_record_at_each_timed_flush(
+    kf_bin: Path, tmp_path: Path, fsync: bool
+) -> None:
+    """output.mcap_fsync (default on): the record reaches the disk about once a second,
+    so a power cut loses about a second; off, only at open and close."""
+    fl = flight("nadir", width=320, height=180, seconds=6.0)
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True)
+    (cfg / "keyframed.toml").write_text("" if fsync else "[output]\nmcap_fsync = false\n")
+    trace = tmp_path / "strace.txt"
+    args = ["strace", "-f", "-y", "-e", "trace=fsync,fdatasync", "-o", str(trace)]
+    args += [str(kf_bin), "run", "--config-dir", str(cfg)]
+    for s in (
+        f"output.state_dir={tmp_path / 'state'}",
+        "zenoh.enabled=false",
+        "camera.source=file",
+        "telemetry.url=",
+        f"camera.path={fl / 'video.avi'}",
+    ):
+        args += ["--set", s]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    syncs = [ln for ln in trace.read_text().splitlines() if "flight.mcap>" in ln]
+    print(f"mcap_fsync={fsync}: {len(syncs)} syncs of flight.mcap in a 6 s run")
+    if fsync:
+        assert len(syncs) >= 4, syncs
+    else:
+        assert len(syncs) <= 2, syncs

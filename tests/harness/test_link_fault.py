@@ -1,0 +1,163 @@
+"""The link between the daemon and the ground station fails: `keyframed run` on a
+sample flight with the fake autopilot, the real ground station stopped for part of
+the flight and started again on the same folder; the gap is filled from the
+daemon's queryable (its range form, one query per gap)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fake_autopilot import autopilot_fixture
+from flights import flight
+from ports import free_port
+
+zenoh = pytest.importorskip("zenoh")
+
+fake_autopilot = autopilot_fixture()
+
+
+def start_run(kf_bin: Path, tmp_path: Path, *sets: str) -> subprocess.Popen[str]:
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True, exist_ok=True)
+    (cfg / "keyframed.toml").write_text("")
+    args = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    for s in [f"output.state_dir={tmp_path / 'state'}", "camera.source=file", *sets]:
+        args += ["--set", s]
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def written(tmp_path: Path) -> list[dict[str, str]]:
+    """The daemon's keyframes.csv so far (complete rows only)."""
+    path = tmp_path / "state" / "latest" / "keyframes" / "keyframes.csv"
+    if not path.exists():
+        return []
+    with open(path) as f:
+        return [r for r in csv.DictReader(f) if r.get("geotag") is not None]
+
+
+def ground(out: Path, port: int, *extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
+        + ["--connect", f"tcp/127.0.0.1:{port}", *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_for(what: Any, timeout: float, step: float = 0.05) -> None:
+    deadline = time.monotonic() + timeout
+    while not what():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(step)
+
+
+def query(session: Any, selector: str) -> tuple[list[int], list[str]]:
+    seqs, errors = [], []
+    for reply in session.get(selector, timeout=10.0):
+        if reply.ok is not None:
+            seqs.append(json.loads(reply.ok.attachment.to_bytes())["sequence"])
+            assert str(reply.ok.key_expr).endswith(f"/keyframes/{seqs[-1]}")
+        else:
+            errors.append(reply.err.payload.to_string())
+    return seqs, errors
+
+
+def test_ground_station_stopped_mid_flight_ends_with_every_keyframe_once(
+    kf_bin: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    fl = flight("nadir", width=960, height=540, seconds=20.0)
+    zport, mport = free_port(), free_port(socket.SOCK_DGRAM)
+    zconf = tmp_path / "zenoh.json5"
+    zconf.write_text(
+        json.dumps(
+            {
+                "mode": "peer",
+                "listen": {"endpoints": [f"tcp/127.0.0.1:{zport}"]},
+                "scouting": {"multicast": {"enabled": False}},
+            }
+        )
+    )
+    out = tmp_path / "dataset"
+    images = out / "uav9" / "images"
+    first = ground(out, zport)
+    ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))
+    proc = start_run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={fl / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{mport}",
+        f"tagging.calibration={fl / 'intrinsics.json'}",
+        "zenoh.enabled=true",
+        f"zenoh.config={zconf}",
+        "zenoh.vehicle=uav9",
+        "output.preview_width=240",
+    )
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    watcher = zenoh.open(conf)
+    second = None
+    try:
+        time.sleep(0.3)
+        ap.start()
+        # The ground station holds a couple of keyframes, then goes down hard.
+        wait_for(lambda: len(list(images.glob("*.jpg"))) >= 2, 30)
+        first.send_signal(signal.SIGKILL)
+        first.communicate(timeout=10)
+        held = {p.name for p in images.glob("*.jpg")}
+        at_stop = len(written(tmp_path))
+        # While it is down the vehicle goes on: at least two keyframes it never saw.
+        wait_for(lambda: len(written(tmp_path)) >= at_stop + 2, 30)
+        missed = len(written(tmp_path)) - len(held)
+
+        # The daemon's queryable, range form: exactly the keyframes asked for.
+        seqs, errors = query(watcher, "keyframed/uav9/keyframes/*?range=1..2")
+        assert sorted(seqs) == [1, 2] and not errors, (seqs, errors)
+        seqs, _ = query(watcher, "keyframed/uav9/keyframes/1")
+        assert seqs == [1]
+        seqs, errors = query(watcher, "keyframed/uav9/keyframes/*?range=2..1")
+        assert not seqs and errors and "bad range" in errors[0], errors
+
+        assert proc.poll() is None, "the flight must outlast the outage"
+        second = ground(out, zport, "--until-done", "--duration", "100")
+        _, stderr = proc.communicate(timeout=120)
+        g_out, g_err = second.communicate(timeout=60)
+    finally:
+        for p in (proc, first, second):
+            if p is not None and p.poll() is None:
+                p.kill()
+        watcher.close()
+    assert proc.returncode == 0, stderr
+    assert second.returncode == 0, g_err
+    fd = (tmp_path / "state" / "latest").resolve()
+    kfs = written(tmp_path)
+    result = json.loads(g_out.strip().splitlines()[-1])
+    print(
+        f"link fault: {len(kfs)} keyframes; {len(held)} before the outage, {missed} missed "
+        f"during it; after restart {result['fetched_by_query']} fetched by "
+        f"{result['gap_queries']} queries"
+    )
+    assert result["vehicle"] == "uav9" and result["keyframes"] == len(kfs) and not result["missing"]
+    # the outage's keyframes came back by query, a gap at a time (not one per keyframe)
+    assert result["fetched_by_query"] >= missed >= 2
+    assert 1 <= result["gap_queries"] < result["fetched_by_query"]
+    # every keyframe once, byte for byte what the daemon's dataset holds
+    assert sorted(p.name for p in images.glob("*.jpg")) == sorted(k["file"] for k in kfs)
+    assert not list(images.glob("*.tmp"))
+    for k in kfs:
+        assert (images / k["file"]).read_bytes() == (fd / "keyframes" / k["file"]).read_bytes()
+    seqs = [json.loads(line)["sequence"] for line in (out / "uav9" / "keyframes.jsonl").open()]
+    assert seqs == list(range(len(kfs)))
+    assert os.path.getsize(out / "uav9" / "cameras.txt") > 0
