@@ -33,9 +33,10 @@ bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
   const TelemetryDecoder& d = telemetry_->decoder();
   const std::int64_t widest = std::max(limits_.maxAttitudeGapNs, limits_.maxPositionGapNs);
   if (!d.covers(nowNs - widest - limits_.maxHoldNs, gimbal)) return false;
-  // Attitude, the fast stream, says sooner that the link went quiet: there is one
-  // at this instant only when a sample came within attitude_gap + stale.
-  return d.poseAt(nowNs - limits_.maxAttitudeGapNs).attitude.has_value();
+  // Attitude, the fast stream, says sooner that the link went quiet: a sample came
+  // within attitude_gap + stale. (Only the newest sample's age counts, so a link that
+  // has just started delivers as soon as its first samples are in.)
+  return d.hasAttitudeSince(nowNs - limits_.maxAttitudeGapNs - limits_.maxHoldNs);
 }
 
 bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::string& error) {

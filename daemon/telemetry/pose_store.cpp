@@ -257,6 +257,11 @@ std::optional<std::int64_t> PoseStore::newestNs() const {
   return t;
 }
 
+bool PoseStore::hasAttitudeSince(std::int64_t timeNs) const {
+  std::lock_guard lock(mutex_);
+  return !attitude_.empty() && attitude_.back().timeNs >= timeNs;
+}
+
 std::size_t PoseStore::size() const {
   std::lock_guard lock(mutex_);
   return attitude_.size() + position_.size() + gps_.size();

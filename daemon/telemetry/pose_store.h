@@ -50,6 +50,8 @@ class PoseStore {
   // query without waiting for more.
   [[nodiscard]] bool covers(std::int64_t timeNs, bool gimbal = false) const;
   [[nodiscard]] std::optional<std::int64_t> newestNs() const;
+  // True when an attitude sample at or after timeNs has arrived.
+  [[nodiscard]] bool hasAttitudeSince(std::int64_t timeNs) const;
   [[nodiscard]] std::size_t size() const;
 
  private:

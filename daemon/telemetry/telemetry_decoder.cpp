@@ -210,6 +210,15 @@ bool TelemetryDecoder::covers(std::int64_t localNs, bool gimbal) const {
   return offset && store_.covers(localNs - *offset, gimbal);
 }
 
+bool TelemetryDecoder::hasAttitudeSince(std::int64_t localNs) const {
+  std::optional<std::int64_t> offset;
+  {
+    std::lock_guard lock(mutex_);
+    offset = clock_.offsetNs();
+  }
+  return offset && store_.hasAttitudeSince(localNs - *offset);
+}
+
 bool TelemetryDecoder::hasPose() const {
   bool mapped = false;
   {

@@ -48,6 +48,8 @@ class TelemetryDecoder {
   // True when telemetry newer than localNs has arrived (no need to wait more);
   // gimbal: the gimbal's too, once one has reported.
   [[nodiscard]] bool covers(std::int64_t localNs, bool gimbal = false) const;
+  // An attitude sample at or after localNs has arrived (false before the clock is mapped).
+  [[nodiscard]] bool hasAttitudeSince(std::int64_t localNs) const;
   // True once the clock is mapped and both attitude and position have arrived.
   [[nodiscard]] bool hasPose() const;
 
