@@ -425,6 +425,19 @@ TEST(PoseStore, CoversWaitsForAGimbalOnceOneReports) {
   EXPECT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
 }
 
+TEST(PoseStore, HasAttitudeSinceLooksOnlyAtTheNewestSample) {
+  // A link that has just started: one attitude sample, nothing before it. It counts
+  // as delivering at once (the output thread then waits for the samples after a frame).
+  PoseStore store;
+  EXPECT_FALSE(store.hasAttitudeSince(0));
+  store.addAttitude(1000 * kMs, quaternionFromEuler(0, 0, 0));
+  EXPECT_TRUE(store.hasAttitudeSince(600 * kMs));
+  EXPECT_TRUE(store.hasAttitudeSince(1000 * kMs));
+  EXPECT_FALSE(store.hasAttitudeSince(1001 * kMs));
+  store.addPosition(2000 * kMs, {51.0, 1.0, 100.0, 10.0});  // position is not attitude
+  EXPECT_FALSE(store.hasAttitudeSince(1500 * kMs));
+}
+
 TEST(PoseStore, GimbalGapsAreSaidNotInvented) {
   PoseStore store;
   store.addAttitude(1000 * kMs, quaternionFromEuler(0, 0, 0));
