@@ -188,8 +188,12 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
 KeyframePublisher::~KeyframePublisher() {
   // The queryable's thread may be inside answer(): stop it before the rest goes.
   queryable_.reset();
+  // Every publisher is undeclared before the session closes: one left for after
+  // keeps the session's runtime alive (LeakSanitizer reports it).
   keyframes_.reset();
   status_.reset();
+  preview_.reset();
+  telemetry_.reset();
   session_.reset();
 }
 
