@@ -321,3 +321,58 @@ def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:
         assert (ds / "images" / row["file"]).read_bytes() == (tagged / row["file"]).read_bytes()
     seqs = [json.loads(x)["sequence"] for x in (ds / "keyframes.jsonl").read_text().splitlines()]
     assert seqs == list(range(n))
+
+
+@pytest.mark.parametrize("name", ["nadir", "orbit"])
+def test_pairs_follow_the_ground_truth_overlap_graph(name: str) -> None:
+    """pairs.txt's graph against the generator's exact overlap between frames: on the
+    nadir survey (a lawn-mower with turns, a hover and yaw) and the oblique orbit,
+    every two keyframes that share a quarter of their view are paired, and frames that
+    share nothing are not (beyond the sequential neighbours)."""
+    from keyframed import ground, synth
+
+    fl = synth.load_flight(flight(name, width=480, height=270))
+    intr = fl.intrinsics
+    frames = list(range(0, len(fl), 12))
+    ned_from_enu = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])
+    tags, quats, heights = [], [], []
+    for i in frames:
+        lat, lon, _ = fl.geodetic[i]
+        tags.append(
+            ground.ImageTags(
+                width=fl.width,
+                height=fl.height,
+                lat=float(lat),
+                lon=float(lon),
+                focal_mm=intr["focal_length_mm"],
+                pixels_per_mm=fl.width / intr["sensor_width_mm"],
+                principal_mm=(
+                    (intr["cx"] + 0.5) * intr["sensor_width_mm"] / fl.width,
+                    (intr["cy"] + 0.5) * intr["sensor_width_mm"] / fl.width,
+                ),
+            )
+        )
+        r_ned_cam = ned_from_enu @ fl.rotations[i]
+        quats.append([float(v) for v in synth._rotmat_to_quat(r_ned_cam[None])[0]])
+        heights.append(float(fl.positions[i][2]))  # the ground is the plane z = 0
+    names = [f"{i:06d}.jpg" for i in frames]
+    pairs = set(ground.image_pairs(names, tags, alt_above_ground=heights, cam_q=quats))
+    sequential = {(names[k], names[k + d]) for d in (1, 2, 3) for k in range(len(names) - d)}
+    missed, extra, overlapping = [], [], 0
+    for a in range(len(frames)):
+        for b in range(a + 1, len(frames)):
+            i, j = frames[a], frames[b]
+            truth = max(fl.overlap(i, j), fl.overlap(j, i))
+            pair = (names[a], names[b])
+            if truth >= 0.25 and pair not in pairs:
+                missed.append((pair, round(truth, 2)))
+            if truth == 0.0 and pair in pairs and pair not in sequential:
+                extra.append(pair)
+            overlapping += truth > 0.0
+    assert not missed, missed
+    assert not extra, extra
+    total = len(frames) * (len(frames) - 1) // 2
+    print(f"{len(pairs)} pairs of {total}; {overlapping} overlap in truth")
+    assert len(pairs) < total, "not exhaustive"
+    # sideways neighbours (the next survey line) are in it, not only the sequence
+    assert len(pairs - sequential) > 0

@@ -17,9 +17,11 @@ temporary name and renamed.
 - ``keyframes.jsonl``: the metadata of each, in sequence order;
 - ``cameras.txt``: the camera in COLMAP's text format (OPENCV model, from the
   intrinsics in the JPEG's tags);
-- ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``: each
-  keyframe with its neighbours along the flight and with those whose ground footprint
-  lies near its own (the next survey line), so matching need not be exhaustive;
+- ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``, the
+  edges of the overlap graph: each keyframe with its neighbours along the flight and
+  with those whose ground footprints (projected from position, camera attitude and
+  intrinsics) overlap its own (the next survey line), so matching need not be
+  exhaustive;
 - ``geo.txt``: positions for OpenDroneMap (EPSG:4326; lon lat alt, accuracies);
 - with ``--sift``: ``features/<image>.txt``, SIFT keypoints and descriptors in the
   text format ``colmap feature_importer`` reads, computed by a low-priority worker.
@@ -176,39 +178,116 @@ def _local_xy(lat: float, lon: float, lat0: float, lon0: float) -> tuple[float, 
     )
 
 
+def _rotate(q: list[float], v: tuple[float, float, float]) -> tuple[float, float, float]:
+    """v rotated by the unit quaternion q = [w, x, y, z]."""
+    w, x, y, z = q
+    vx, vy, vz = v
+    # t = 2 q_vec x v; v' = v + w t + q_vec x t
+    tx, ty, tz = 2 * (y * vz - z * vy), 2 * (z * vx - x * vz), 2 * (x * vy - y * vx)
+    return (
+        vx + w * tx + (y * tz - z * ty),
+        vy + w * ty + (z * tx - x * tz),
+        vz + w * tz + (x * ty - y * tx),
+    )
+
+
+def footprint(
+    north_east: tuple[float, float], height: float, cam_q: list[float], tags: ImageTags
+) -> list[tuple[float, float]] | None:
+    """The image's outline on flat ground ``height`` metres below the camera, as a
+    polygon of (north, east) metres: each corner's ray (OpenCV camera axes, turned to
+    NED by ``cam_q``) meets the ground. None when a corner looks at or above the
+    horizon (no bounded footprint) or the intrinsics are unknown."""
+    if not (tags.focal_mm and tags.pixels_per_mm and tags.width and tags.height) or height <= 0:
+        return None
+    f = tags.focal_mm * tags.pixels_per_mm
+    cx, cy = tags.width / 2, tags.height / 2
+    if tags.principal_mm:
+        cx, cy = (v * tags.pixels_per_mm for v in tags.principal_mm)
+    out = []
+    for u, v in ((0, 0), (tags.width, 0), (tags.width, tags.height), (0, tags.height)):
+        dn, de, dd = _rotate(cam_q, ((u - cx) / f, (v - cy) / f, 1.0))
+        if dd < 0.05 * math.hypot(dn, de, dd):  # within ~3 degrees of the horizon
+            return None
+        out.append((north_east[0] + dn * height / dd, north_east[1] + de * height / dd))
+    return out
+
+
+def _area(poly: list[tuple[float, float]]) -> float:
+    return 0.5 * abs(
+        sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(poly, poly[1:] + poly[:1], strict=True))
+    )
+
+
+def _clip(subject: list[tuple[float, float]], clip: list[tuple[float, float]]) -> list:
+    """Sutherland-Hodgman: subject polygon clipped by a convex polygon."""
+
+    def side(a: tuple[float, float], b: tuple[float, float], p: tuple[float, float]) -> float:
+        return (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
+
+    orient = 1.0 if side(clip[0], clip[1], clip[2]) > 0 else -1.0
+    out = subject
+    for a, b in zip(clip, clip[1:] + clip[:1], strict=True):
+        if not out:
+            break
+        pts, out = out, []
+        for p, q in zip(pts, pts[1:] + pts[:1], strict=True):
+            sp, sq = orient * side(a, b, p), orient * side(a, b, q)
+            if sp >= 0:
+                out.append(p)
+            if (sp >= 0) != (sq >= 0):
+                t = sp / (sp - sq)
+                out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    return out
+
+
+def footprint_overlap(a: list[tuple[float, float]], b: list[tuple[float, float]]) -> float:
+    """Shared ground area over the smaller footprint's area (0..1)."""
+    inter = _clip(a, b)
+    small = min(_area(a), _area(b))
+    return _area(inter) / small if len(inter) >= 3 and small > 0 else 0.0
+
+
 def image_pairs(
     names: list[str],
     tags: list[ImageTags],
     sequential: int = 3,
-    footprint_fraction: float = 0.8,
+    min_overlap: float = 0.1,
     alt_above_ground: list[float | None] | None = None,
+    cam_q: list[list[float] | None] | None = None,
 ) -> list[tuple[str, str]]:
-    """Pairs to match: each image with the next ``sequential`` ones, and any two whose
-    camera positions lie closer than ``footprint_fraction`` of the ground footprint
-    width (estimated from height above ground and the field of view); a lawn-mower
-    survey's neighbouring lines overlap sideways, which sequence alone misses."""
+    """Pairs to match, from the overlap graph: each image with the next ``sequential``
+    ones (the daemon kept them at the target overlap), and any two whose ground
+    footprints overlap by ``min_overlap`` or more of the smaller one. A footprint is
+    the image outline projected from the keyframe's position, camera attitude,
+    intrinsics and height above the take-off point onto flat ground; a lawn-mower
+    survey's neighbouring lines overlap sideways, which sequence alone misses. Without
+    an attitude the footprint is taken as nadir (north up)."""
     pairs: set[tuple[int, int]] = set()
     n = len(names)
     for i in range(n):
         for j in range(i + 1, min(n, i + 1 + sequential)):
             pairs.add((i, j))
     known = [i for i in range(n) if tags[i].lat is not None and tags[i].lon is not None]
-    if known:
-        lat0, lon0 = tags[known[0]].lat or 0.0, tags[known[0]].lon or 0.0
-        xy = {i: _local_xy(tags[i].lat or 0.0, tags[i].lon or 0.0, lat0, lon0) for i in known}
-        for a_i, i in enumerate(known):
-            for j in known[a_i + 1 :]:
-                h = None
-                if alt_above_ground is not None:
-                    hs = [v for v in (alt_above_ground[i], alt_above_ground[j]) if v is not None]
-                    h = min(hs) if hs else None
-                t = tags[i]
-                if h is None or not (t.focal_mm and t.pixels_per_mm and t.width):
-                    continue
-                footprint = h * min(t.width, t.height) / (t.focal_mm * t.pixels_per_mm)
-                d = math.dist(xy[i], xy[j])
-                if d < footprint_fraction * footprint:
-                    pairs.add((i, j))
+    if not known:
+        return [(names[i], names[j]) for i, j in sorted(pairs)]
+    lat0, lon0 = tags[known[0]].lat or 0.0, tags[known[0]].lon or 0.0
+    nadir = [math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]  # image top north, looking down
+    polys: dict[int, list[tuple[float, float]]] = {}
+    for i in known:
+        h = alt_above_ground[i] if alt_above_ground is not None else None
+        if h is None:
+            continue
+        east, north = _local_xy(tags[i].lat or 0.0, tags[i].lon or 0.0, lat0, lon0)
+        q = cam_q[i] if cam_q is not None and cam_q[i] else nadir
+        poly = footprint((north, east), h, q, tags[i])
+        if poly is not None:
+            polys[i] = poly
+    have = sorted(polys)
+    for a_i, i in enumerate(have):
+        for j in have[a_i + 1 :]:
+            if footprint_overlap(polys[i], polys[j]) >= min_overlap:
+                pairs.add((i, j))
     return [(names[i], names[j]) for i, j in sorted(pairs)]
 
 
@@ -352,7 +431,8 @@ class VehicleDataset:
         header += "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
         _write_atomic(self.dir / "cameras.txt", (header + (camera or "") + "\n").encode())
         rel = [_float_or_none(m.get("alt_rel")) for m in metas]
-        pairs = image_pairs(names, tags, alt_above_ground=rel)
+        quats = [m.get("cam_q") if isinstance(m.get("cam_q"), list) else None for m in metas]
+        pairs = image_pairs(names, tags, alt_above_ground=rel, cam_q=quats)
         _write_atomic(self.dir / "pairs.txt", "".join(f"{a} {b}\n" for a, b in pairs).encode())
         geo = ["EPSG:4326"]
         for n, t in zip(names, tags, strict=True):
