@@ -413,14 +413,40 @@ def quat_to_matrix(q: Any) -> np.ndarray:
 MAV_IN_CV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 
 
-def check_captures(fl: Path, out: Path, ap: FakeAutopilot) -> None:
+CAPTURE_FIELDS = (
+    "time_utc",
+    "camera_id",
+    "lat",
+    "lon",
+    "alt",
+    "relative_alt",
+    "q",
+    "image_index",
+    "capture_result",
+    "file_url",
+)
+
+
+def check_captures(fl: Path, out: Path, ap: FakeAutopilot, resent: tuple[int, ...] = ()) -> None:
     """One CAMERA_IMAGE_CAPTURED per keyframe, with the keyframe's position, altitudes,
     UTC, and the camera attitude in MAVLink's camera frame (identity: looking north,
-    level), checked against the flight's truth."""
+    level), checked against the flight's truth; a second one only for the image
+    indices in ``resent`` (re-requested), the same as the first."""
     truth = Truth(fl)
     kfs = keyframes(out)
-    caps = ap.received("CAMERA_IMAGE_CAPTURED")
+    caps = []
+    again = []
+    for c in ap.received("CAMERA_IMAGE_CAPTURED"):
+        (again if any(o.image_index == c.image_index for o in caps) else caps).append(c)
     assert [c.image_index for c in caps] == list(range(len(kfs)))
+    assert sorted(c.image_index for c in again) == sorted(resent)
+    for c in again:
+        first = caps[c.image_index]
+        assert [getattr(c, f) for f in CAPTURE_FIELDS] == [
+            getattr(first, f) for f in CAPTURE_FIELDS
+        ]
+        # the frame time on the autopilot's clock, through the clock mapping of now
+        assert abs(c.time_boot_ms - first.time_boot_ms) <= 5
     pitch_down = quat_to_matrix((math.cos(math.pi / 4), 0.0, -math.sin(math.pi / 4), 0.0))
     for c, k in zip(caps, kfs, strict=True):
         assert c.lat == round(float(k["lat"]) * 1e7)
@@ -468,6 +494,11 @@ def test_live_udp_autopilot_with_clock_offset(
         # The ground station asks the camera who it is.
         ap.wait_for("HEARTBEAT", timeout=10)
         ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_INFORMATION)
+        # It missed the second capture report and asks for it again (param2: the image
+        # index, param3 0: that one only), then for one never taken.
+        ap.wait_for("CAMERA_IMAGE_CAPTURED", 2, timeout=10)
+        ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 1, 0)
+        ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 500, 0)
 
     out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
     errs = check_live_tags(short_nadir, out, ap)
@@ -493,8 +524,15 @@ def test_live_udp_autopilot_with_clock_offset(
     assert info.sensor_size_h == pytest.approx(intr["sensor_width_mm"], rel=1e-5)
     assert info.resolution_h == 480
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == 512]
-    assert acks and acks[0].result == 0
-    check_captures(short_nadir, out, ap)
+    # CAMERA_INFORMATION and the resent capture accepted, the unknown one failed
+    assert [a.result for a in acks] == [
+        mav2.MAV_RESULT_ACCEPTED,
+        mav2.MAV_RESULT_ACCEPTED,
+        mav2.MAV_RESULT_FAILED,
+    ]
+    check_captures(short_nadir, out, ap, resent=(1,))
+    assert tel["captures_resent"] == 1 and tel["captures_sent"] == len(keyframes(out)), tel
+    assert tel["captures_pending"] == 0 and tel["captures_dropped"] == 0, tel
     hb = ap.received("HEARTBEAT")
     assert hb and hb[0].type == mav2.MAV_TYPE_CAMERA
     assert hb[0].get_srcComponent() == mav2.MAV_COMP_ID_CAMERA
