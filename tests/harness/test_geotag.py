@@ -15,7 +15,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from fake_autopilot import FakeAutopilot, Noise, autopilot_fixture, read_tlog
+from fake_autopilot import (
+    FakeAutopilot,
+    Noise,
+    autopilot_fixture,
+    read_tlog,
+    with_noise,
+    write_tlog,
+)
 from flights import flight
 from keyframed import synth
 from ports import free_port
@@ -161,6 +168,54 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
     summary = json.loads((out / "summary.json").read_text())
     assert summary["telemetry"]["geotagged"] == len(kfs)
     assert summary["telemetry"]["truncated"] is False
+
+
+@needs_exiftool
+def test_noisy_tlog_errors_stay_at_the_noise_level(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The flight's tlog with the fake autopilot's noise on attitude and position: the
+    tags are off by about the injected noise, no more (and, so the noise is known to be
+    there, not much less)."""
+    noise = Noise(attitude_deg=0.5, position_m=0.5, altitude_m=0.3)
+    tlog = tmp_path / "noisy.tlog"
+    write_tlog(tlog, with_noise(read_tlog(short_nadir / "flight.tlog"), noise, seed=4))
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        str(synth.EPOCH_UNIX_S),
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    assert all(k["geotag"] == "ok" for k in kfs), kfs
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    errs = np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
+    rms = np.sqrt(np.mean(errs**2, axis=0))
+    print(
+        f"noisy tlog tags vs truth: RMS horizontal {rms[0]:.3f} m, vertical {rms[1]:.3f} m, "
+        f"attitude {rms[2]:.3f} deg; max {errs[:, 0].max():.3f} m, {errs[:, 1].max():.3f} m, "
+        f"{errs[:, 2].max():.3f} deg"
+    )
+    # A horizontal error is two axes of noise, a rotation angle three; interpolating
+    # between two noisy samples averages them a little. At the noise level: no more than
+    # 1.5 sigma RMS, no gross outlier, and at least a fifth of sigma (the noise did reach
+    # the tags).
+    sigma = np.array(
+        [noise.position_m * math.sqrt(2), noise.altitude_m, noise.attitude_deg * math.sqrt(3)]
+    )
+    assert np.all(rms < 1.5 * sigma), rms
+    assert np.all(rms > 0.2 * sigma), rms
+    assert errs[:, 2].max() < 5 * noise.attitude_deg, errs
 
 
 def rewrite_tlog(src: Path, dst: Path, edit: Any) -> None:
