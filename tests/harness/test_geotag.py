@@ -504,8 +504,9 @@ def check_captures(fl: Path, out: Path, ap: FakeAutopilot, resent: tuple[int, ..
         assert abs(c.time_boot_ms - first.time_boot_ms) <= 5
     pitch_down = quat_to_matrix((math.cos(math.pi / 4), 0.0, -math.sin(math.pi / 4), 0.0))
     for c, k in zip(caps, kfs, strict=True):
-        assert c.lat == round(float(k["lat"]) * 1e7)
-        assert c.lon == round(float(k["lon"]) * 1e7)
+        # (the CSV's 9 decimals can end in 5: a tie that C++ and Python round apart)
+        assert abs(c.lat - float(k["lat"]) * 1e7) <= 0.5 + 1e-6
+        assert abs(c.lon - float(k["lon"]) * 1e7) <= 0.5 + 1e-6
         assert abs(c.alt - float(k["alt_amsl"]) * 1e3) <= 1.0
         assert abs(c.relative_alt - float(k["alt_rel"]) * 1e3) <= 1.0
         assert c.time_utc == int(k["utc_us"])
