@@ -34,7 +34,9 @@ bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
   const std::int64_t widest = std::max(limits_.maxAttitudeGapNs, limits_.maxPositionGapNs);
   if (!d.covers(nowNs - widest - limits_.maxHoldNs, gimbal)) return false;
   // Attitude, the fast stream, says sooner that the link went quiet: there is one
-  // at this instant only when a sample came within attitude_gap + stale.
+  // at this instant only when a sample came within attitude_gap + stale. Not while
+  // the clock settles at start-up: the history may be shorter than attitude_gap.
+  if (!d.clockSettled()) return true;
   return d.poseAt(nowNs - limits_.maxAttitudeGapNs).attitude.has_value();
 }
 

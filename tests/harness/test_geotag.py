@@ -532,6 +532,12 @@ def check_captures(fl: Path, out: Path, ap: FakeAutopilot, resent: tuple[int, ..
         assert rotation_angle_deg(r_mav, rz @ pitch_down) < 20.0, c.q
 
 
+# Live, every keyframe within 3 cm (the issue asks 0.1 m; 1-6 mm is usual here): the
+# first one too, which waits for a settled clock estimate (it used to be tagged with
+# the latency of the first few messages, 2-11 cm off).
+LIVE_HORIZONTAL_M = 0.03
+
+
 def true_clock_offset_ms(ap: FakeAutopilot) -> float:
     """local - autopilot, from the replay's own clock."""
     boot_ms = 500_000.0
@@ -558,7 +564,7 @@ def test_live_udp_autopilot_with_clock_offset(
 
     out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
     errs = check_live_tags(short_nadir, out, ap)
-    assert max(e[0] for e in errs) < 0.1, errs
+    assert max(e[0] for e in errs) < LIVE_HORIZONTAL_M, errs
     assert max(e[1] for e in errs) < 0.1, errs
     assert max(e[2] for e in errs) < 0.2, errs
 
@@ -605,7 +611,7 @@ def test_live_udp_autopilot_without_timesync(
     )
     out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
     errs = check_live_tags(short_nadir, out, ap)
-    assert max(e[0] for e in errs) < 0.1, errs
+    assert max(e[0] for e in errs) < LIVE_HORIZONTAL_M, errs
     assert max(e[1] for e in errs) < 0.1, errs
     assert max(e[2] for e in errs) < 0.2, errs
     tel = json.loads((out / "summary.json").read_text())["telemetry"]
@@ -691,7 +697,9 @@ def test_live_udpin_daemon_listens(
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
     errs = np.array(check_live_tags(short_nadir, out, ap))
-    assert errs[:, 0].max() < 0.1 and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2, errs
+    assert (
+        errs[:, 0].max() < LIVE_HORIZONTAL_M and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2
+    ), errs
     # our HEARTBEATs reach the autopilot through the address it streams to
     assert ap.wait_for("HEARTBEAT", timeout=5)
 
