@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import select
+import subprocess
 import threading
 import time
 import tty
@@ -303,3 +304,45 @@ def test_serial_device_unplugged_and_back(
     # and the daemon speaks on the new device: HEARTBEAT as a camera
     hb = ap.received("HEARTBEAT", epoch=1)
     assert hb and hb[0][2].type == mav2.MAV_TYPE_CAMERA
+
+
+def test_daemon_run_over_serial_reports_its_captures(
+    kf_bin: Path,
+    short_nadir: Path,  # noqa: F811 - the fixture imported above
+    tmp_path: Path,
+) -> None:
+    """`keyframed run` with telemetry.url on a serial device: its summary.json counts
+    the capture reports (all sent, none pending, dropped or resent) and the link's
+    errors and reopens (none)."""
+    ap = PtyAutopilot(short_nadir / "flight.tlog", tmp_path / "ttyFC")
+    etc = tmp_path / "etc"
+    (etc / "conf.d").mkdir(parents=True)
+    (etc / "keyframed.toml").write_text("")
+    sets = [
+        f"output.state_dir={tmp_path / 'state'}",
+        "zenoh.enabled=false",
+        "output.mcap=false",
+        "camera.source=file",
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=serial:{ap.device}:115200",
+        f"tagging.calibration={short_nadir / 'intrinsics.json'}",
+    ]
+    args = [str(kf_bin), "run", "--config-dir", str(etc)]
+    for s in sets:
+        args += ["--set", s]
+    try:
+        r = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    finally:
+        ap.stop()
+    assert r.returncode == 0, r.stderr
+    fd = (tmp_path / "state" / "latest").resolve()
+    summary = json.loads((fd / "summary.json").read_text())
+    tel = summary["telemetry"]
+    kfs = keyframes(fd / "keyframes")
+    assert len(kfs) == summary["kept"] >= 5
+    assert tel["geotagged"] == len(kfs), tel
+    assert tel["captures_sent"] == len(kfs), tel
+    assert tel["captures_pending"] == tel["captures_dropped"] == tel["captures_resent"] == 0
+    assert tel["link_errors"] == tel["reconnects"] == 0, tel
+    caps = [m for _, _, m in ap.received("CAMERA_IMAGE_CAPTURED")]
+    assert [c.image_index for c in caps] == list(range(len(kfs)))
