@@ -1,8 +1,20 @@
 #!/usr/bin/env bash
-# Coverage-guided fuzzing of the MAVLink parser and telemetry decoder with clang's
-# libFuzzer (+ AddressSanitizer, UBSan). The seed corpus is generated (well-formed
-# MAVLink 1/2 frames of every message the decoder reads); crashes land in
-# build/fuzz/artifacts/.
+# Coverage-guided fuzzing (clang's libFuzzer + AddressSanitizer, UBSan) of everything
+# that reads bytes from the autopilot's side. One target, tests/fuzz/fuzz_mavlink.cpp,
+# feeds each input, cut into pieces of 1-64 bytes as a link delivers them, to:
+#   - the MAVLink 1/2 parser and the telemetry decoder behind it (every byte counted
+#     once; pose queries safe on whatever history results);
+#   - TelemetryService, the camera component, on a link that plays the input and now
+#     and then refuses a write: COMMAND_LONG (REQUEST_MESSAGE for CAMERA_INFORMATION,
+#     CAMERA_IMAGE_CAPTURED re-requests by index and range), TIMESYNC requests and
+#     answers, queued capture reports; each write must be one well-formed frame
+#     (MAVLink 1 or 2), and every capture is sent, pending or counted dropped;
+#   - the tlog reader (the input as a file): records inside the file, packets that
+#     start with a MAVLink start byte.
+# The seed corpus is generated (well-formed frames of every message the decoder reads,
+# the camera commands, a byte stream and a tlog); crashes land in build/fuzz/artifacts/.
+# The same target also runs without libFuzzer in every test build, on the seeds and
+# deterministic mutations of them (fuzz_mavlink_standalone, a ctest).
 #   tools/fuzz.sh [SECONDS]   (default 60)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

@@ -50,7 +50,10 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
       // A gimbal only when its attitude is used: a dead gimbal on the link must not
       // hold up a fixed-mount camera's keyframes.
       const bool gimbal = writer_.mount().gimbal;
-      while (!telemetry_->decoder().covers(frame.timestampNs, gimbal)) {
+      // And for a clock estimate that has settled: the first keyframe, taken as the
+      // first telemetry arrives, would otherwise be placed by a few messages' latency.
+      const TelemetryDecoder& d = telemetry_->decoder();
+      while (!d.covers(frame.timestampNs, gimbal) || !d.clockSettled()) {
         const std::int64_t now = monotonicNowNs();
         if (now >= deadline || !linkDelivers(now, gimbal)) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));

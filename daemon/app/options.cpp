@@ -82,7 +82,8 @@ telemetry and tags:
                              or 'gimbal': the attitude of GIMBAL_DEVICE_ATTITUDE_STATUS
   --autopilot SYS[:COMP]     follow this autopilot (default: the first one heard)
   --mavlink-sysid N          our system id on a live link (default: the autopilot's)
-  --telemetry-wait MS        wait this long for telemetry newer than a keyframe (default 1000)
+  --telemetry-wait MS        wait this long for telemetry newer than a keyframe and a settled
+                             clock (default 1000)
   --telemetry-start-wait MS  live link: wait this long for a first pose before
                              reading video (default 10000; 0 = do not wait)
   --realtime                 deliver frames at the video's own rate, stamped with the

@@ -406,12 +406,14 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   std::string tel = "null";
   if (telemetry_) {
     const TelemetryServiceStats ts = telemetry_->stats();
-    char b[512];
+    char b[1024];
     const auto off = telemetry_->decoder().clockOffsetNs();
     std::snprintf(b, sizeof b,
                   "{\"source\": \"%s\", \"geotagged\": %lld, \"clock\": \"%s\", "
                   "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
-                  "\"skipped_bytes\": %llu, \"captures_sent\": %llu, \"gimbal_messages\": %llu}",
+                  "\"skipped_bytes\": %llu, \"captures_sent\": %llu, \"captures_pending\": %llu, "
+                  "\"captures_dropped\": %llu, \"captures_resent\": %llu, \"link_errors\": %llu, "
+                  "\"reconnects\": %llu, \"gimbal_messages\": %llu}",
                   config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
                   toString(telemetry_->decoder().clockSource()),
                   off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
@@ -419,6 +421,11 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   static_cast<unsigned long long>(ts.parser.rejected),
                   static_cast<unsigned long long>(ts.parser.skippedBytes),
                   static_cast<unsigned long long>(ts.capturesSent),
+                  static_cast<unsigned long long>(ts.capturesPending),
+                  static_cast<unsigned long long>(ts.capturesDropped),
+                  static_cast<unsigned long long>(ts.capturesResent),
+                  static_cast<unsigned long long>(ts.linkErrors),
+                  static_cast<unsigned long long>(ts.reconnects),
                   static_cast<unsigned long long>(ts.decoder.gimbal));
     tel = b;
   }

@@ -31,7 +31,7 @@ namespace {
 
 bool writeSummary(const std::string& path, const SelectOptions& o, const SourceInfo& info,
                   const SelectSummary& s, std::string& error) {
-  char tel[1024] = "null";
+  char tel[2048] = "null";
   if (!s.telemetry.source.empty()) {
     std::snprintf(tel, sizeof tel,
                   "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
@@ -39,7 +39,10 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
                   "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
                   "    \"gimbal_messages\": %llu,\n"
-                  "    \"captures_sent\": %llu,\n    \"truncated\": %s\n  }",
+                  "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
+                  "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
+                  "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
+                  "    \"truncated\": %s\n  }",
                   jsonEscape(s.telemetry.source).c_str(),
                   static_cast<long long>(s.telemetry.geotagged), s.telemetry.clock.c_str(),
                   s.telemetry.clockOffsetMs.c_str(),
@@ -49,6 +52,11 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.otherSources),
                   static_cast<unsigned long long>(s.telemetry.gimbal),
                   static_cast<unsigned long long>(s.telemetry.capturesSent),
+                  static_cast<unsigned long long>(s.telemetry.capturesPending),
+                  static_cast<unsigned long long>(s.telemetry.capturesDropped),
+                  static_cast<unsigned long long>(s.telemetry.capturesResent),
+                  static_cast<unsigned long long>(s.telemetry.linkErrors),
+                  static_cast<unsigned long long>(s.telemetry.reconnects),
                   s.telemetry.truncated ? "true" : "false");
   }
   const SelectorConfig& c = o.selector;
@@ -340,6 +348,11 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     s.telemetry.otherSources = ts.decoder.otherSources;
     s.telemetry.gimbal = ts.decoder.gimbal;
     s.telemetry.capturesSent = ts.capturesSent;
+    s.telemetry.capturesPending = ts.capturesPending;
+    s.telemetry.capturesDropped = ts.capturesDropped;
+    s.telemetry.capturesResent = ts.capturesResent;
+    s.telemetry.linkErrors = ts.linkErrors;
+    s.telemetry.reconnects = ts.reconnects;
     s.telemetry.truncated = ts.truncated;
   }
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

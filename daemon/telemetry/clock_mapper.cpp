@@ -4,8 +4,13 @@
 
 namespace keyframed {
 
+namespace {
+constexpr std::int64_t kArrivalSettleNs = 500'000'000;
+}  // namespace
+
 void ClockMapper::observeArrival(std::uint32_t bootMs, std::int64_t localNs) {
   const std::int64_t offset = localNs - static_cast<std::int64_t>(bootMs) * 1'000'000;
+  if (arrivals_.empty()) firstArrivalNs_ = localNs;
   // Sliding-window minimum: drop entries that can never be the minimum again.
   while (!arrivals_.empty() && arrivals_.back().offsetNs >= offset) arrivals_.pop_back();
   arrivals_.push_back({localNs, offset});
@@ -19,19 +24,25 @@ void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::i
   const std::int64_t rtt = nowNs - ts1Ns;
   if (rtt < 0 || tc1Ns <= 0) return;
   // Forget the best round trip slowly, so a link that got slower is still used.
-  if (bestRttNs_ < 0 || rtt < bestRttNs_) {
+  const bool best = bestRttNs_ < 0 || rtt <= bestRttNs_;
+  if (best) {
     bestRttNs_ = rtt;
   } else {
     bestRttNs_ += (rtt - bestRttNs_) / 64;
   }
   if (rtt * 2 > bestRttNs_ * 3 + 1'000'000) return;
   const std::int64_t offset = ts1Ns + rtt / 2 - tc1Ns;
-  if (!timesyncOffsetNs_ || nowNs - timesyncAtNs_ > config_.timesyncTimeoutNs) {
+  const bool restart = !timesyncOffsetNs_ || nowNs - timesyncAtNs_ > config_.timesyncTimeoutNs;
+  if (restart) timesyncSamples_ = 0;
+  // The shortest round trip is the least asymmetric: a first answer that waited in a
+  // queue must not linger in the average.
+  if (restart || best) {
     timesyncOffsetNs_ = offset;
   } else {
     timesyncOffsetNs_ = *timesyncOffsetNs_ + (offset - *timesyncOffsetNs_) / 4;
   }
   timesyncAtNs_ = nowNs;
+  ++timesyncSamples_;
 }
 
 void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) {
@@ -46,6 +57,15 @@ ClockMapper::Source ClockMapper::source() const {
   if (!arrivals_.empty()) return Source::Arrival;
   if (timesyncOffsetNs_) return Source::Timesync;
   return Source::None;
+}
+
+bool ClockMapper::settled() const {
+  switch (source()) {
+    case Source::Timesync: return timesyncSamples_ >= 3;
+    case Source::Arrival: return lastArrivalNs_ - firstArrivalNs_ >= kArrivalSettleNs;
+    case Source::None: break;
+  }
+  return false;
 }
 
 std::optional<std::int64_t> ClockMapper::offsetNs() const {

@@ -12,7 +12,8 @@ namespace keyframed {
 // Two estimates of offset = local - autopilot:
 //  - TIMESYNC: the companion sends ts1 = local time, the autopilot answers with its
 //    own time tc1; offset = (ts1 + now) / 2 - tc1, good to half the round trip.
-//    Samples with a round trip above 1.5x the best recent one are ignored.
+//    Samples with a round trip above 1.5x the best recent one are ignored; one with
+//    the best round trip yet replaces the estimate, the others are averaged in.
 //  - arrival: every timestamped message arrives after it was stamped, so
 //    min(arrival - time_boot_ms) over a sliding window is the offset plus the
 //    smallest latency seen. Used while TIMESYNC is not answered.
@@ -41,7 +42,11 @@ class ClockMapper {
 
   [[nodiscard]] Source source() const;
   [[nodiscard]] std::optional<std::int64_t> offsetNs() const;  // local - autopilot
-  [[nodiscard]] double bestRoundTripMs() const;                // NaN without TIMESYNC
+  // True once the estimate is worth tagging with: three TIMESYNC answers, or arrivals
+  // over half a second. One answer, or the first few arrivals, can be late by a
+  // scheduler's hiccup (tens of ms at start-up) that only more of them expose.
+  [[nodiscard]] bool settled() const;
+  [[nodiscard]] double bestRoundTripMs() const;  // NaN without TIMESYNC
 
  private:
   struct Arrival {
@@ -51,10 +56,12 @@ class ClockMapper {
 
   Config config_;
   std::deque<Arrival> arrivals_;  // monotonic deque: offsets increasing from front
+  std::int64_t firstArrivalNs_ = 0;
   std::int64_t lastArrivalNs_ = 0;
   std::optional<std::int64_t> timesyncOffsetNs_;
   std::int64_t timesyncAtNs_ = 0;
   std::int64_t bestRttNs_ = -1;
+  int timesyncSamples_ = 0;  // used since the estimate (re)started
   std::optional<std::int64_t> utcMinusBootUs_;
 };
 

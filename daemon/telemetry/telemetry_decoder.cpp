@@ -243,6 +243,11 @@ std::optional<std::int64_t> TelemetryDecoder::clockOffsetNs() const {
   return clock_.offsetNs();
 }
 
+bool TelemetryDecoder::clockSettled() const {
+  std::lock_guard lock(mutex_);
+  return clock_.settled();
+}
+
 double TelemetryDecoder::clockRoundTripMs() const {
   std::lock_guard lock(mutex_);
   return clock_.bestRoundTripMs();

@@ -56,6 +56,7 @@ class TelemetryDecoder {
   [[nodiscard]] TelemetryStats stats() const;
   [[nodiscard]] ClockMapper::Source clockSource() const;
   [[nodiscard]] std::optional<std::int64_t> clockOffsetNs() const;
+  [[nodiscard]] bool clockSettled() const;        // ClockMapper::settled()
   [[nodiscard]] double clockRoundTripMs() const;  // best TIMESYNC round trip; NaN without
   [[nodiscard]] int autopilotSystem() const;
   [[nodiscard]] int autopilotComponent() const;

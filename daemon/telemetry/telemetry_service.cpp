@@ -441,7 +441,10 @@ void TelemetryService::run() {
       lastHeartbeat = now;
       sendHeartbeat();
     }
-    if (config_.timesync && decoder_.autopilotSystem() != 0 && now - lastTimesync >= kSecond) {
+    // 10 Hz until the clock estimate has settled, so that it settles in a moment.
+    const std::int64_t timesyncInterval = decoder_.clockSettled() ? kSecond : kSecond / 10;
+    if (config_.timesync && decoder_.autopilotSystem() != 0 &&
+        now - lastTimesync >= timesyncInterval) {
       lastTimesync = now;
       sendTimesync(now);
     }

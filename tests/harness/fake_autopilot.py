@@ -12,7 +12,8 @@ would stream it to a companion computer:
 * Every message is re-encoded with pymavlink (MAVLink 2, or MAVLink 1 with
   ``mavlink1=True``) under the tlog's system/component ids with a running sequence
   number. ``time_boot_ms`` fields are shifted by ``boot_offset_ms``; ``noise`` adds
-  Gaussian noise (deterministic for a ``seed``) to the attitude and position messages.
+  Gaussian noise (deterministic for a ``seed``) to the attitude and position messages;
+  ``with_noise`` and ``write_tlog`` write the same noisy flight as a tlog.
 * The autopilot's boot clock (what its ``time_boot_ms`` would read now) answers
   TIMESYNC requests (``tc1 == 0``) with ``tc1`` in nanoseconds and ``ts1`` echoed, as
   ArduPilot and PX4 do; ``answer_timesync=False`` makes it an autopilot that does not
@@ -205,6 +206,33 @@ def _add_noise(msg: Message, noise: Noise, rng: np.random.Generator) -> None:
         )
 
 
+def with_noise(records: list[TlogRecord], noise: Noise, seed: int = 0) -> list[TlogRecord]:
+    """Copies of ``records`` with Gaussian ``noise`` on the attitude and position
+    messages, deterministic for a ``seed`` (what ``FakeAutopilot(noise=, seed=)``
+    replays)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for rec in records:
+        msg = _copy(rec.msg)
+        _add_noise(msg, noise, rng)
+        out.append(TlogRecord(rec.unix_us, msg))
+    return out
+
+
+def write_tlog(path: Path, records: list[TlogRecord]) -> None:
+    """Writes ``records`` as a tlog, each message re-encoded (MAVLink 2) under the
+    system/component id and sequence number it came with."""
+    encoders: dict[tuple[int, int], mavlink.MAVLink] = {}
+    out = bytearray()
+    for rec in records:
+        header = rec.msg.get_header()
+        ids = (int(header.srcSystem), int(header.srcComponent))
+        mav = encoders.setdefault(ids, mavlink.MAVLink(None, srcSystem=ids[0], srcComponent=ids[1]))
+        mav.seq = rec.msg.get_seq()
+        out += struct.pack(">Q", rec.unix_us) + rec.msg.pack(mav)
+    Path(path).write_bytes(bytes(out))
+
+
 class _TimesyncReply(mavlink.MAVLink_timesync_message):
     """TIMESYNC with the target_system/target_component extension fields of newer
     common.xml (pymavlink 2.4.50 generates only tc1/ts1); MAVLink 1 drops them."""
@@ -321,7 +349,6 @@ class FakeAutopilot:
     # ------------------------------------------------------------------ planning
 
     def _plan(self) -> list[TlogRecord]:
-        rng = np.random.default_rng(self.seed)
         planned = []
         for rec in self.records:
             msg = _copy(rec.msg)
@@ -332,10 +359,8 @@ class FakeAutopilot:
                         f"boot_offset_ms {self.boot_offset_ms} puts time_boot_ms out of range"
                     )
                 msg.time_boot_ms = shifted
-            if self.noise is not None:
-                _add_noise(msg, self.noise, rng)
             planned.append(TlogRecord(rec.unix_us, msg))
-        return planned
+        return planned if self.noise is None else with_noise(planned, self.noise, self.seed)
 
     def planned(self, msg_type: str | None = None) -> list[TlogRecord]:
         """The replayed messages as they will be sent (offset and noise applied)."""

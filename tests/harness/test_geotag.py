@@ -15,7 +15,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from fake_autopilot import FakeAutopilot, Noise, autopilot_fixture, read_tlog
+from fake_autopilot import (
+    FakeAutopilot,
+    Noise,
+    autopilot_fixture,
+    read_tlog,
+    with_noise,
+    write_tlog,
+)
 from flights import flight
 from keyframed import synth
 from ports import free_port
@@ -161,6 +168,54 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
     summary = json.loads((out / "summary.json").read_text())
     assert summary["telemetry"]["geotagged"] == len(kfs)
     assert summary["telemetry"]["truncated"] is False
+
+
+@needs_exiftool
+def test_noisy_tlog_errors_stay_at_the_noise_level(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The flight's tlog with the fake autopilot's noise on attitude and position: the
+    tags are off by about the injected noise, no more (and, so the noise is known to be
+    there, not much less)."""
+    noise = Noise(attitude_deg=0.5, position_m=0.5, altitude_m=0.3)
+    tlog = tmp_path / "noisy.tlog"
+    write_tlog(tlog, with_noise(read_tlog(short_nadir / "flight.tlog"), noise, seed=4))
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        str(synth.EPOCH_UNIX_S),
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    assert all(k["geotag"] == "ok" for k in kfs), kfs
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    errs = np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
+    rms = np.sqrt(np.mean(errs**2, axis=0))
+    print(
+        f"noisy tlog tags vs truth: RMS horizontal {rms[0]:.3f} m, vertical {rms[1]:.3f} m, "
+        f"attitude {rms[2]:.3f} deg; max {errs[:, 0].max():.3f} m, {errs[:, 1].max():.3f} m, "
+        f"{errs[:, 2].max():.3f} deg"
+    )
+    # A horizontal error is two axes of noise, a rotation angle three; interpolating
+    # between two noisy samples averages them a little. At the noise level: no more than
+    # 1.5 sigma RMS, no gross outlier, and at least a fifth of sigma (the noise did reach
+    # the tags).
+    sigma = np.array(
+        [noise.position_m * math.sqrt(2), noise.altitude_m, noise.attitude_deg * math.sqrt(3)]
+    )
+    assert np.all(rms < 1.5 * sigma), rms
+    assert np.all(rms > 0.2 * sigma), rms
+    assert errs[:, 2].max() < 5 * noise.attitude_deg, errs
 
 
 def rewrite_tlog(src: Path, dst: Path, edit: Any) -> None:
@@ -413,18 +468,45 @@ def quat_to_matrix(q: Any) -> np.ndarray:
 MAV_IN_CV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 
 
-def check_captures(fl: Path, out: Path, ap: FakeAutopilot) -> None:
+CAPTURE_FIELDS = (
+    "time_utc",
+    "camera_id",
+    "lat",
+    "lon",
+    "alt",
+    "relative_alt",
+    "q",
+    "image_index",
+    "capture_result",
+    "file_url",
+)
+
+
+def check_captures(fl: Path, out: Path, ap: FakeAutopilot, resent: tuple[int, ...] = ()) -> None:
     """One CAMERA_IMAGE_CAPTURED per keyframe, with the keyframe's position, altitudes,
     UTC, and the camera attitude in MAVLink's camera frame (identity: looking north,
-    level), checked against the flight's truth."""
+    level), checked against the flight's truth; a second one only for the image
+    indices in ``resent`` (re-requested), the same as the first."""
     truth = Truth(fl)
     kfs = keyframes(out)
-    caps = ap.received("CAMERA_IMAGE_CAPTURED")
+    caps = []
+    again = []
+    for c in ap.received("CAMERA_IMAGE_CAPTURED"):
+        (again if any(o.image_index == c.image_index for o in caps) else caps).append(c)
     assert [c.image_index for c in caps] == list(range(len(kfs)))
+    assert sorted(c.image_index for c in again) == sorted(resent)
+    for c in again:
+        first = caps[c.image_index]
+        assert [getattr(c, f) for f in CAPTURE_FIELDS] == [
+            getattr(first, f) for f in CAPTURE_FIELDS
+        ]
+        # the frame time on the autopilot's clock, through the clock mapping of now
+        assert abs(c.time_boot_ms - first.time_boot_ms) <= 5
     pitch_down = quat_to_matrix((math.cos(math.pi / 4), 0.0, -math.sin(math.pi / 4), 0.0))
     for c, k in zip(caps, kfs, strict=True):
-        assert c.lat == round(float(k["lat"]) * 1e7)
-        assert c.lon == round(float(k["lon"]) * 1e7)
+        # (the CSV's 9 decimals can end in 5: a tie that C++ and Python round apart)
+        assert abs(c.lat - float(k["lat"]) * 1e7) <= 0.5 + 1e-6
+        assert abs(c.lon - float(k["lon"]) * 1e7) <= 0.5 + 1e-6
         assert abs(c.alt - float(k["alt_amsl"]) * 1e3) <= 1.0
         assert abs(c.relative_alt - float(k["alt_rel"]) * 1e3) <= 1.0
         assert c.time_utc == int(k["utc_us"])
@@ -450,6 +532,12 @@ def check_captures(fl: Path, out: Path, ap: FakeAutopilot) -> None:
         assert rotation_angle_deg(r_mav, rz @ pitch_down) < 20.0, c.q
 
 
+# Live, every keyframe within 3 cm (the issue asks 0.1 m; 1-6 mm is usual here): the
+# first one too, which waits for a settled clock estimate (it used to be tagged with
+# the latency of the first few messages, 2-11 cm off).
+LIVE_HORIZONTAL_M = 0.03
+
+
 def true_clock_offset_ms(ap: FakeAutopilot) -> float:
     """local - autopilot, from the replay's own clock."""
     boot_ms = 500_000.0
@@ -468,10 +556,15 @@ def test_live_udp_autopilot_with_clock_offset(
         # The ground station asks the camera who it is.
         ap.wait_for("HEARTBEAT", timeout=10)
         ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_INFORMATION)
+        # It missed the second capture report and asks for it again (param2: the image
+        # index, param3 0: that one only), then for one never taken.
+        ap.wait_for("CAMERA_IMAGE_CAPTURED", 2, timeout=10)
+        ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 1, 0)
+        ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 500, 0)
 
     out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
     errs = check_live_tags(short_nadir, out, ap)
-    assert max(e[0] for e in errs) < 0.1, errs
+    assert max(e[0] for e in errs) < LIVE_HORIZONTAL_M, errs
     assert max(e[1] for e in errs) < 0.1, errs
     assert max(e[2] for e in errs) < 0.2, errs
 
@@ -493,8 +586,15 @@ def test_live_udp_autopilot_with_clock_offset(
     assert info.sensor_size_h == pytest.approx(intr["sensor_width_mm"], rel=1e-5)
     assert info.resolution_h == 480
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == 512]
-    assert acks and acks[0].result == 0
-    check_captures(short_nadir, out, ap)
+    # CAMERA_INFORMATION and the resent capture accepted, the unknown one failed
+    assert [a.result for a in acks] == [
+        mav2.MAV_RESULT_ACCEPTED,
+        mav2.MAV_RESULT_ACCEPTED,
+        mav2.MAV_RESULT_FAILED,
+    ]
+    check_captures(short_nadir, out, ap, resent=(1,))
+    assert tel["captures_resent"] == 1 and tel["captures_sent"] == len(keyframes(out)), tel
+    assert tel["captures_pending"] == 0 and tel["captures_dropped"] == 0, tel
     hb = ap.received("HEARTBEAT")
     assert hb and hb[0].type == mav2.MAV_TYPE_CAMERA
     assert hb[0].get_srcComponent() == mav2.MAV_COMP_ID_CAMERA
@@ -511,7 +611,7 @@ def test_live_udp_autopilot_without_timesync(
     )
     out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
     errs = check_live_tags(short_nadir, out, ap)
-    assert max(e[0] for e in errs) < 0.1, errs
+    assert max(e[0] for e in errs) < LIVE_HORIZONTAL_M, errs
     assert max(e[1] for e in errs) < 0.1, errs
     assert max(e[2] for e in errs) < 0.2, errs
     tel = json.loads((out / "summary.json").read_text())["telemetry"]
@@ -597,79 +697,11 @@ def test_live_udpin_daemon_listens(
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
     errs = np.array(check_live_tags(short_nadir, out, ap))
-    assert errs[:, 0].max() < 0.1 and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2, errs
+    assert (
+        errs[:, 0].max() < LIVE_HORIZONTAL_M and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2
+    ), errs
     # our HEARTBEATs reach the autopilot through the address it streams to
     assert ap.wait_for("HEARTBEAT", timeout=5)
-
-
-@needs_exiftool
-def test_serial_link_over_a_pty(kf_bin: Path, short_nadir: Path, tmp_path: Path) -> None:
-    """A serial link (telemetry radio, flight controller UART): the flight's packets
-    written in real time into a pseudo-terminal whose other end keyframed opens."""
-    import os
-    import threading
-    import time
-
-    records = read_tlog(short_nadir / "flight.tlog")
-    master, slave = os.openpty()
-    device = os.ttyname(slave)
-    stop = threading.Event()
-    heard = bytearray()
-    start_ns = time.monotonic_ns() + 300_000_000
-    t0 = records[0].unix_us
-
-    def writer() -> None:
-        for rec in records:
-            due = start_ns + (rec.unix_us - t0) * 1000
-            while not stop.is_set() and time.monotonic_ns() < due:
-                time.sleep(min(0.01, max(0.0, (due - time.monotonic_ns()) / 1e9)))
-            if stop.is_set():
-                return
-            os.write(master, bytes(rec.msg.get_msgbuf()))
-
-    def reader() -> None:  # drain what keyframed sends (HEARTBEAT, TIMESYNC, captures)
-        import select
-
-        while not stop.is_set():
-            r, _, _ = select.select([master], [], [], 0.05)
-            if r:
-                try:
-                    heard.extend(os.read(master, 4096))
-                except OSError:
-                    return
-
-    threads = [threading.Thread(target=writer), threading.Thread(target=reader)]
-    out = tmp_path / "serial"
-    try:
-        for t in threads:
-            t.start()
-        r = run_select(
-            kf_bin,
-            short_nadir,
-            out,
-            "--telemetry",
-            f"serial:{device}:921600",
-            "--calibration",
-            str(short_nadir / "intrinsics.json"),
-        )
-    finally:
-        stop.set()
-        for t in threads:
-            t.join()
-        os.close(master)
-        os.close(slave)
-    assert r.returncode == 0, r.stderr
-    truth = Truth(short_nadir)
-    kfs = keyframes(out)
-    assert len(kfs) >= 5
-    tags = exif([out / k["file"] for k in kfs])
-    for k in kfs:
-        assert k["geotag"] == "ok", k
-        flight_t = (int(k["time_ns"]) - start_ns) / 1e9 + (t0 - truth.epoch_us) / 1e6
-        e = tag_errors(tags[k["file"]], truth.at(flight_t))
-        assert e[0] < 0.1 and e[1] < 0.1 and e[2] < 0.2, (k["index"], e)
-    # keyframed spoke on the serial line too: its HEARTBEATs (MAVLink 2 frames)
-    assert heard.count(0xFD) >= 1 and len(heard) > 20
 
 
 def _rx(a: float) -> np.ndarray:

@@ -251,6 +251,39 @@ TEST(ClockMapper, ArrivalMinimumFindsTheOffsetUnderJitter) {
   EXPECT_LT(err, 1 * kMs);
 }
 
+TEST(ClockMapper, SettlesAfterHalfASecondOfArrivalsOrOnTimesync) {
+  ClockMapper clock;
+  EXPECT_FALSE(clock.settled());
+  const std::int64_t offset = 300 * kMs;
+  for (int i = 0; i <= 20; ++i) {  // 20 ms apart: 0.4 s
+    clock.observeArrival(1000 + static_cast<std::uint32_t>(i * 20), (1000 + i * 20) * kMs + offset);
+  }
+  EXPECT_EQ(clock.source(), ClockMapper::Source::Arrival);
+  EXPECT_FALSE(clock.settled());
+  for (int i = 21; i <= 25; ++i) {  // 0.5 s
+    clock.observeArrival(1000 + static_cast<std::uint32_t>(i * 20), (1000 + i * 20) * kMs + offset);
+  }
+  EXPECT_TRUE(clock.settled());
+
+  // TIMESYNC: the first answer waited 30 ms in a queue on its way back (the estimate
+  // is 15 ms off); the next two, with 1 ms round trips, replace it, and three settle.
+  ClockMapper synced;
+  synced.observeArrival(1000, 1000 * kMs + offset);
+  EXPECT_FALSE(synced.settled());
+  auto exchange = [&](std::int64_t sentLocal, std::int64_t there, std::int64_t back) {
+    const std::int64_t tc1 = sentLocal + there - offset;  // their clock on receipt
+    synced.observeTimesync(tc1, sentLocal, sentLocal + there + back);
+  };
+  exchange(1000 * kMs + offset, kMs / 2, 30 * kMs);
+  EXPECT_EQ(synced.source(), ClockMapper::Source::Timesync);
+  EXPECT_NEAR(static_cast<double>(*synced.offsetNs() - offset), 14.75 * kMs, 1e3);
+  EXPECT_FALSE(synced.settled());
+  exchange(1100 * kMs + offset, kMs / 2, kMs / 2);
+  exchange(1200 * kMs + offset, kMs / 2, kMs / 2);
+  EXPECT_TRUE(synced.settled());
+  EXPECT_NEAR(static_cast<double>(*synced.offsetNs() - offset), 0.0, 1e3);
+}
+
 TEST(ClockMapper, TimesyncWinsAndUtcFollows) {
   ClockMapper clock;
   const std::int64_t trueOffset = 777 * kMs;                       // local = autopilot + offset
