@@ -18,11 +18,19 @@ namespace keyframed {
 
 namespace {
 
-// The bytes of length-delimited field `field` of a protobuf message (the first
-// occurrence), or nothing. Enough for foxglove.CompressedImage.data (2) and
-// keyframed.MavlinkPacket.packet (5).
-[[maybe_unused]] std::optional<std::span<const std::uint8_t>> bytesField(
-    std::span<const std::uint8_t> msg, std::uint32_t field) {
+// One field of a protobuf message: its number and wire type, and its value (varint,
+// fixed32, fixed64) or its bytes (length-delimited).
+struct ProtoField {
+  std::uint64_t number = 0;
+  int wire = 0;
+  std::uint64_t value = 0;
+  std::span<const std::uint8_t> bytes;
+};
+
+// Calls `f` for each field of `msg` in order until it returns false. False when the
+// message is malformed (a truncated varint or field, an unknown wire type).
+template <typename F>
+bool forEachField(std::span<const std::uint8_t> msg, F&& f) {
   std::size_t i = 0;
   auto varint = [&](std::uint64_t& v) {
     v = 0;
@@ -33,52 +41,69 @@ namespace {
     }
     return false;
   };
+  auto fixed = [&](std::size_t n, std::uint64_t& v) {
+    if (msg.size() - i < n) return false;
+    v = 0;
+    std::memcpy(&v, msg.data() + i, n);  // little-endian, as protobuf and the hosts
+    i += n;
+    return true;
+  };
   while (i < msg.size()) {
     std::uint64_t key = 0;
-    if (!varint(key)) return std::nullopt;
-    const auto wire = static_cast<int>(key & 7);
-    std::uint64_t v = 0;
-    switch (wire) {
+    if (!varint(key)) return false;
+    ProtoField field;
+    field.number = key >> 3;
+    field.wire = static_cast<int>(key & 7);
+    switch (field.wire) {
       case 0:
-        if (!varint(v)) return std::nullopt;
+        if (!varint(field.value)) return false;
         break;
-      case 1: i += 8; break;
-      case 5: i += 4; break;
+      case 1:
+        if (!fixed(8, field.value)) return false;
+        break;
+      case 5:
+        if (!fixed(4, field.value)) return false;
+        break;
       case 2: {
-        if (!varint(v) || v > msg.size() - i) return std::nullopt;
-        if ((key >> 3) == field) return msg.subspan(i, static_cast<std::size_t>(v));
-        i += static_cast<std::size_t>(v);
+        std::uint64_t n = 0;
+        if (!varint(n) || n > msg.size() - i) return false;
+        field.bytes = msg.subspan(i, static_cast<std::size_t>(n));
+        i += static_cast<std::size_t>(n);
         break;
       }
-      default: return std::nullopt;
+      default: return false;
     }
+    if (!f(field)) return true;
   }
-  return std::nullopt;
+  return true;
 }
 
-// A google.protobuf.Timestamp in field `field` (seconds 1, nanos 2) as ns.
+// The bytes of length-delimited field `number` (the first occurrence), or nothing.
+// Enough for foxglove.CompressedImage.data (2) and keyframed.MavlinkPacket.packet (5).
+[[maybe_unused]] std::optional<std::span<const std::uint8_t>> bytesField(
+    std::span<const std::uint8_t> msg, std::uint64_t number) {
+  std::optional<std::span<const std::uint8_t>> found;
+  const bool ok = forEachField(msg, [&](const ProtoField& f) {
+    if (f.wire == 2 && f.number == number) found = f.bytes;
+    return !found;
+  });
+  return ok ? found : std::nullopt;
+}
+
+// A google.protobuf.Timestamp in field `number` (seconds 1, nanos 2) as ns.
 [[maybe_unused]] std::optional<std::int64_t> timestampField(std::span<const std::uint8_t> msg,
-                                                            std::uint32_t field) {
-  const auto ts = bytesField(msg, field);
+                                                            std::uint64_t number) {
+  const auto ts = bytesField(msg, number);
   if (!ts) return std::nullopt;
   std::int64_t seconds = 0, nanos = 0;
-  std::size_t i = 0;
-  while (i < ts->size()) {
-    std::uint64_t key = 0, v = 0;
-    for (int shift = 0; i < ts->size() && shift < 64; shift += 7) {
-      const std::uint8_t b = (*ts)[i++];
-      key |= static_cast<std::uint64_t>(b & 0x7F) << shift;
-      if ((b & 0x80) == 0) break;
-    }
-    if ((key & 7) != 0) return std::nullopt;
-    for (int shift = 0; i < ts->size() && shift < 64; shift += 7) {
-      const std::uint8_t b = (*ts)[i++];
-      v |= static_cast<std::uint64_t>(b & 0x7F) << shift;
-      if ((b & 0x80) == 0) break;
-    }
-    if ((key >> 3) == 1) seconds = static_cast<std::int64_t>(v);
-    if ((key >> 3) == 2) nanos = static_cast<std::int64_t>(v);
-  }
+  bool varints = true;
+  const bool ok = forEachField(*ts, [&](const ProtoField& f) {
+    varints = f.wire == 0;
+    if (f.number == 1) seconds = static_cast<std::int64_t>(f.value);
+    if (f.number == 2) nanos = static_cast<std::int64_t>(f.value);
+    return varints;
+  });
+  if (!ok || !varints) return std::nullopt;
   return seconds * 1'000'000'000 + nanos;
 }
 
@@ -87,52 +112,21 @@ namespace {
 [[maybe_unused]] std::optional<CameraModel> calibrationOf(std::span<const std::uint8_t> msg) {
   CameraModel c;
   std::vector<double> k;
-  std::size_t i = 0;
-  auto varint = [&](std::uint64_t& v) {
-    v = 0;
-    for (int shift = 0; i < msg.size() && shift < 64; shift += 7) {
-      const std::uint8_t b = msg[i++];
-      v |= static_cast<std::uint64_t>(b & 0x7F) << shift;
-      if ((b & 0x80) == 0) return true;
-    }
-    return false;
-  };
-  auto doubles = [&](std::size_t n, std::vector<double>& out) {
-    for (std::size_t j = 0; j + 8 <= n; j += 8) {
+  auto doubles = [](std::span<const std::uint8_t> bytes, std::vector<double>& out) {
+    for (std::size_t j = 0; j + 8 <= bytes.size(); j += 8) {
       double d = 0;
-      std::memcpy(&d, msg.data() + i + j, 8);
+      std::memcpy(&d, bytes.data() + j, 8);
       out.push_back(d);
     }
   };
-  while (i < msg.size()) {
-    std::uint64_t key = 0, v = 0;
-    if (!varint(key)) return std::nullopt;
-    const auto field = key >> 3;
-    switch (key & 7) {
-      case 0:
-        if (!varint(v)) return std::nullopt;
-        break;
-      case 1: i += 8; break;
-      case 5: {
-        if (i + 4 > msg.size()) return std::nullopt;
-        std::uint32_t u = 0;
-        std::memcpy(&u, msg.data() + i, 4);
-        if (field == 2) c.width = static_cast<int>(u);
-        if (field == 3) c.height = static_cast<int>(u);
-        i += 4;
-        break;
-      }
-      case 2: {
-        if (!varint(v) || v > msg.size() - i) return std::nullopt;
-        const auto n = static_cast<std::size_t>(v);
-        if (field == 5) doubles(n, c.distortion);
-        if (field == 6) doubles(n, k);
-        i += n;
-        break;
-      }
-      default: return std::nullopt;
-    }
-  }
+  const bool ok = forEachField(msg, [&](const ProtoField& f) {
+    if (f.wire == 5 && f.number == 2) c.width = static_cast<int>(f.value);
+    if (f.wire == 5 && f.number == 3) c.height = static_cast<int>(f.value);
+    if (f.wire == 2 && f.number == 5) doubles(f.bytes, c.distortion);
+    if (f.wire == 2 && f.number == 6) doubles(f.bytes, k);
+    return true;
+  });
+  if (!ok) return std::nullopt;
   if (k.size() != 9 || c.width <= 0 || c.height <= 0) return std::nullopt;
   c.fx = k[0];
   c.cx = k[2];
