@@ -59,6 +59,22 @@ def start(
     )
 
 
+def sigterm(proc: subprocess.Popen[str]) -> tuple[str, float]:
+    """SIGTERM the daemon; its stderr and how long it took to exit, in seconds."""
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=20)
+    return stderr, time.monotonic() - t0
+
+
+def wait_ready(ns: NotifySocket, proc: subprocess.Popen[str], timeout: float = 30.0) -> None:
+    """Until the daemon says READY=1 (its first frame), or fails the test."""
+    deadline = time.monotonic() + timeout
+    while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert ns.has("READY=1"), "no first frame"
+
+
 def flight_dir(tmp_path: Path) -> Path:
     return (tmp_path / "state" / "latest").resolve()
 
@@ -106,10 +122,7 @@ def test_sigterm_stops_within_a_second_with_everything_flushed(
 ) -> None:
     proc = start(kf_bin, tmp_path, f"camera.path={short_nadir / 'video.avi'}")
     time.sleep(3.0)
-    t0 = time.monotonic()
-    proc.send_signal(signal.SIGTERM)
-    _, stderr = proc.communicate(timeout=20)
-    took = time.monotonic() - t0
+    stderr, took = sigterm(proc)
     assert proc.returncode == 0, stderr
     assert took < 1.0, f"SIGTERM took {took:.2f} s"
     fd = flight_dir(tmp_path)
@@ -478,10 +491,7 @@ def test_silent_telemetry_link_holds_up_nothing(
     )
     try:
         time.sleep(5.0)
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=20)
-        took = time.monotonic() - t0
+        stderr, took = sigterm(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -517,10 +527,7 @@ def test_telemetry_lost_mid_flight_holds_up_nothing(
     try:
         time.sleep(0.3)
         ap.start()
-        deadline = time.monotonic() + 30
-        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert ns.has("READY=1"), "no first frame"
+        wait_ready(ns, proc)
         # Silent from about frame 96 on, just before the keyframes at 106 and 122.
         time.sleep(3.2)
         ap.stop()
@@ -608,15 +615,9 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         time.sleep(0.3)
         ap.start()
         # Stopped by SIGTERM near the end of the flight, as a pilot's shutdown would.
-        deadline = time.monotonic() + 30
-        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert ns.has("READY=1"), "no first frame"
+        wait_ready(ns, proc)
         time.sleep(6.5)  # about 195 of the video's 240 frames
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=20)
-        took = time.monotonic() - t0
+        stderr, took = sigterm(proc)
         g_out, g_err = ground.communicate(timeout=60)
     finally:
         for p in (proc, ground):
