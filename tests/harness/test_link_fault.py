@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
-from ports import free_port
+from ports import free_port, zenoh_listener_config
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -79,16 +79,7 @@ def test_ground_station_stopped_mid_flight_ends_with_every_keyframe_once(
 ) -> None:
     fl = flight("nadir", width=960, height=540, seconds=20.0)
     zport, mport = free_port(), free_port(socket.SOCK_DGRAM)
-    zconf = tmp_path / "zenoh.json5"
-    zconf.write_text(
-        json.dumps(
-            {
-                "mode": "peer",
-                "listen": {"endpoints": [f"tcp/127.0.0.1:{zport}"]},
-                "scouting": {"multicast": {"enabled": False}},
-            }
-        )
-    )
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
     out = tmp_path / "dataset"
     images = out / "uav9" / "images"
     first = ground(out, zport)

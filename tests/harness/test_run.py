@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
-from ports import free_port
+from ports import free_port, zenoh_listener_config
 
 fake_autopilot = autopilot_fixture()
 
@@ -563,16 +563,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     import sys
 
     zport, mport = free_port(), free_port(socket.SOCK_DGRAM)
-    zconf = tmp_path / "zenoh.json5"
-    zconf.write_text(
-        json.dumps(
-            {
-                "mode": "peer",
-                "listen": {"endpoints": [f"tcp/127.0.0.1:{zport}"]},
-                "scouting": {"multicast": {"enabled": False}},
-            }
-        )
-    )
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
     ground_out = tmp_path / "dataset"
     ground = subprocess.Popen(
         [sys.executable, "-m", "keyframed.ground", "--out", str(ground_out), "--quiet"]
