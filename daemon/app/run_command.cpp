@@ -34,6 +34,7 @@
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "app/log.h"
+#include "app/log_throttle.h"
 #include "app/log_to_record.h"
 #include "app/paced_source.h"
 #include "app/sd_notify.h"
@@ -331,28 +332,22 @@ void Daemon::analysisLoop() {
 
 void Daemon::outputLoop() {
   std::string error;
-  std::string lastError;
-  std::int64_t lastLoggedNs = 0;
-  std::uint64_t unlogged = 0;
+  LogThrottle errorLog;  // once per kind, then every 10 s
   while (std::optional<KeyframeEvent> ev = events_.pop()) {
     if (!output_->handle(*ev, error)) {
       // Something could not be saved (disk full, ...): selection, recording and
-      // publishing of what can be go on. Said once per kind, then every 10 s.
+      // publishing of what can be go on.
       stats_.writeErrors.fetch_add(1);
-      const std::int64_t now = monotonicNowNs();
       // The kind: the reason after the last ": " ("No space left on device"), not the path.
       const auto colon = error.rfind(": ");
-      const std::string kind = colon == std::string::npos ? error : error.substr(colon + 2);
-      if (kind != lastError || now - lastLoggedNs > 10'000'000'000) {
+      const std::string_view kind = colon == std::string::npos
+                                        ? std::string_view(error)
+                                        : std::string_view(error).substr(colon + 2);
+      if (const auto held = errorLog.pass(kind, monotonicNowNs())) {
         KF_LOG(Output, Error) << error
-                              << (unlogged > 0
-                                      ? " (and " + std::to_string(unlogged) + " more write errors)"
+                              << (*held > 0
+                                      ? " (and " + std::to_string(*held) + " more write errors)"
                                       : std::string());
-        lastError = kind;
-        lastLoggedNs = now;
-        unlogged = 0;
-      } else {
-        ++unlogged;
       }
     }
     stats_.written.store(writer_.count());

@@ -5,6 +5,7 @@
 #include <cstdio>
 
 #include "app/log.h"
+#include "app/log_throttle.h"
 
 namespace keyframed {
 
@@ -31,20 +32,13 @@ class ErrorLog {
     const auto now = Clock::now();
     if (errors_ == 0) outageStart_ = now;
     ++errors_;
-    const std::string kind = kindOf(message);
-    const auto since = now - lastLogged_;
-    const bool first = errors_ == 1;
-    if (first || (kind != lastKind_ && since >= std::chrono::seconds(1)) ||
-        since >= std::chrono::seconds(10)) {
+    const std::int64_t nowNs =
+        std::chrono::duration_cast<std::chrono::nanoseconds>(now.time_since_epoch()).count();
+    if (const auto held = throttle_.pass(kindOf(message), nowNs)) {
       KF_LOG(Capture, Warning) << message
-                               << (unsaid_ > 0 ? " (" + std::to_string(unsaid_) +
-                                                     " more capture errors since the last line)"
-                                               : std::string());
-      lastLogged_ = now;
-      lastKind_ = kind;
-      unsaid_ = 0;
-    } else {
-      ++unsaid_;
+                               << (*held > 0 ? " (" + std::to_string(*held) +
+                                                   " more capture errors since the last line)"
+                                             : std::string());
     }
   }
   void frame() {
@@ -55,16 +49,13 @@ class ErrorLog {
     KF_LOG(Capture, Notice) << "capture recovered after " << errors_ << " error"
                             << (errors_ == 1 ? "" : "s") << " in " << took;
     errors_ = 0;
-    unsaid_ = 0;
-    lastKind_.clear();
+    throttle_.reset();
   }
 
  private:
   std::uint64_t errors_ = 0;  // in the current outage
-  std::uint64_t unsaid_ = 0;
   Clock::time_point outageStart_{};
-  Clock::time_point lastLogged_{};
-  std::string lastKind_;
+  LogThrottle throttle_{10'000'000'000, 1'000'000'000};
 };
 
 }  // namespace

@@ -8,6 +8,7 @@
 #include <string_view>
 #include <vector>
 
+#include "app/log_throttle.h"
 #include "tagging/camera_mount.h"
 
 #ifdef KEYFRAMED_HAVE_IO
@@ -26,8 +27,6 @@ namespace keyframed {
 namespace {
 
 constexpr const char* kCameraFrame = "camera";
-
-constexpr std::int64_t kPublishWarningIntervalNs = 10'000'000'000;
 
 // CLOCK_MONOTONIC (libstdc++'s steady_clock), the clock of a live run's frames.
 std::int64_t wallNs() {
@@ -98,10 +97,9 @@ struct FlightOutputs::Impl {
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
   // Failed keyframe puts: every keyframe is still tried; the log gets one line at
-  // most every kPublishWarningIntervalNs, with the count since the last line.
+  // most every 10 s, with the count since the last line.
   std::int64_t publishFailures = 0;
-  std::int64_t unreportedFailures = 0;
-  std::int64_t lastFailureLogNs = 0;
+  LogThrottle publishFailureLog;
   KeyframePut putForTesting;
   // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
   // an offline run the time of the latest frame.
@@ -357,16 +355,10 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
                                          : impl_->publisher->publishKeyframe(jpeg, meta, error);
     if (!ok) {
       ++impl_->publishFailures;
-      ++impl_->unreportedFailures;
-      const std::int64_t now = wallNs();
-      if (impl_->lastFailureLogNs == 0 ||
-          now - impl_->lastFailureLogNs >= kPublishWarningIntervalNs) {
+      if (const auto held = impl_->publishFailureLog.pass("", wallNs())) {
         impl_->warn("zenoh: keyframe " + std::to_string(rec.sequence) + " not published: " + error +
-                    " (" + std::to_string(impl_->unreportedFailures) +
-                    " failed since the last report, " + std::to_string(impl_->publishFailures) +
-                    " in all)");
-        impl_->lastFailureLogNs = now;
-        impl_->unreportedFailures = 0;
+                    " (" + std::to_string(*held + 1) + " failed since the last report, " +
+                    std::to_string(impl_->publishFailures) + " in all)");
       }
     }
   }
@@ -401,10 +393,10 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
-  if (impl_->unreportedFailures > 0) {
+  if (impl_->publishFailureLog.heldBack() > 0) {
     impl_->warn("zenoh: " + std::to_string(impl_->publishFailures) +
                 " keyframe puts failed in this flight (the queryable serves them)");
-    impl_->unreportedFailures = 0;
+    impl_->publishFailureLog.reset();
   }
   if (impl_->publisher) {
     std::string ignored;

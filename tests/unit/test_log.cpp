@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "app/log.h"
+#include "app/log_throttle.h"
 #include "app/sd_notify.h"
 
 namespace keyframed {
@@ -142,6 +143,27 @@ TEST(Notifier, ReadsTheWatchdogInterval) {
   ::unsetenv("WATCHDOG_PID");
   EXPECT_EQ(n.watchdogTimeout().count(), 10'000'000);
   EXPECT_EQ(n.watchdogPingInterval().count(), 5'000'000);
+}
+
+}  // namespace
+}  // namespace keyframed
+
+namespace keyframed {
+namespace {
+
+TEST(LogThrottle, FirstAtOnceNewKindAfterItsGapSameKindAfterTheRepeatGap) {
+  constexpr std::int64_t kS = 1'000'000'000;
+  LogThrottle t(10 * kS, 1 * kS);
+  EXPECT_EQ(t.pass("disk full", 0), 0U);        // the first line at once
+  EXPECT_FALSE(t.pass("disk full", 2 * kS));    // same kind: held back
+  EXPECT_FALSE(t.pass("device lost", kS / 2));  // new kind, too soon after the last line
+  EXPECT_EQ(t.heldBack(), 2U);
+  EXPECT_EQ(t.pass("device lost", 3 * kS), 2U);   // new kind after 1 s: written, 2 held back
+  EXPECT_FALSE(t.pass("device lost", 12 * kS));   // same kind within 10 s of the last line
+  EXPECT_EQ(t.pass("device lost", 13 * kS), 1U);  // ... and after them
+  t.reset();                                      // the problem is over
+  EXPECT_EQ(t.heldBack(), 0U);
+  EXPECT_EQ(t.pass("device lost", 13 * kS + 1), 0U);  // a new outage is said at once
 }
 
 }  // namespace
