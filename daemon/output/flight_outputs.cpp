@@ -10,6 +10,7 @@
 
 #include "app/log_throttle.h"
 #include "tagging/camera_mount.h"
+#include "telemetry/pose_store.h"
 
 #ifdef KEYFRAMED_HAVE_IO
 #include <atomic>
@@ -236,21 +237,13 @@ void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::ui
     rec->record(McapTopic::VehiclePose, timeNs,
                 proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {x, y, z, w}));
   } else if (messageId == 30 && !impl_->quaternionAttitude) {
-    // ATTITUDE: roll, pitch, yaw (rad, body to NED) at 4, 8, 12; quaternion of Z-Y-X.
+    // ATTITUDE: roll, pitch, yaw (rad, body to NED) at 4, 8, 12.
     const auto pl = mavlinkPayload(packet, 16);
     if (pl.empty()) return;
-    const double r = field<float>(pl, 4) / 2, p = field<float>(pl, 8) / 2,
-                 y = field<float>(pl, 12) / 2;
-    const double w =
-        std::cos(r) * std::cos(p) * std::cos(y) + std::sin(r) * std::sin(p) * std::sin(y);
-    const double qx =
-        std::sin(r) * std::cos(p) * std::cos(y) - std::cos(r) * std::sin(p) * std::sin(y);
-    const double qy =
-        std::cos(r) * std::sin(p) * std::cos(y) + std::sin(r) * std::cos(p) * std::sin(y);
-    const double qz =
-        std::cos(r) * std::cos(p) * std::sin(y) - std::sin(r) * std::sin(p) * std::cos(y);
+    const Quaternion q =
+        quaternionFromEuler(field<float>(pl, 4), field<float>(pl, 8), field<float>(pl, 12));
     rec->record(McapTopic::VehiclePose, timeNs,
-                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {qx, qy, qz, w}));
+                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
   }
 }
 
