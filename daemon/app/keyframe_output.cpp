@@ -9,16 +9,6 @@
 
 namespace keyframed {
 
-void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
-  if (telemetry.isReplay()) return;
-  telemetry.setRawSink([&outputs](const mavlink_message_t& msg, std::int64_t timeNs) {
-    std::uint8_t buf[MAVLINK_MAX_PACKET_LEN];
-    const std::uint16_t n = mavlink_msg_to_send_buffer(buf, &msg);
-    outputs.mavlink(timeNs, msg.sysid, msg.compid, msg.msgid,
-                    std::span<const std::uint8_t>(buf, n));
-  });
-}
-
 KeyframeOutput::KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
                                TelemetryService* telemetry, int telemetryWaitMs,
                                const PoseStore::Config& limits)

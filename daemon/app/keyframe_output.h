@@ -16,10 +16,7 @@ namespace keyframed {
 // output thread): for each KeyframeEvent, tags and writes the keyframes it carries
 // (pose at the frame's time, waiting briefly on a live link for telemetry newer
 // than the frame while the link delivers), logs the decision, feeds the MCAP/Zenoh outputs and
-// reports the capture to the autopilot. Events must arrive in frame order. Records every MAVLink
-// packet a live link receives into the flight outputs (MCAP /mavlink/raw); nothing for a tlog,
-// which is the raw record already.
-void recordRawMavlink(TelemetryService& telemetry, FlightOutputs& outputs);
+// reports the capture to the autopilot. Events must arrive in frame order.
 
 class KeyframeOutput {
  public:

@@ -31,6 +31,7 @@
 #include "app/config.h"
 #include "app/decision_log.h"
 #include "app/keyframe_output.h"
+#include "app/mavlink_record.h"
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "app/log.h"
@@ -549,7 +550,7 @@ int Daemon::run() {
   }
   logToRecord_ = std::make_unique<LogToRecord>(outputs_);
 
-  if (telemetry_) recordRawMavlink(*telemetry_, outputs_);
+  if (telemetry_) recordLiveMavlink(*telemetry_, outputs_);
   MonotonicClock clock;
   stage_ = std::make_unique<KeyframeStage>(
       config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });

@@ -17,6 +17,7 @@
 #include "app/keyframe_writer.h"
 #include "app/log.h"
 #include "app/log_to_record.h"
+#include "app/mavlink_record.h"
 #include "app/paced_source.h"
 #include "app/telemetry_log.h"
 #include "app/text_io.h"
@@ -157,11 +158,11 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   if (replay != nullptr && opts.telemetry.empty() && !replay->mavlink().empty()) {
     // The flight record's own MAVLink stream, with its arrival times: the frames'
     // timestamps are on the same clock.
-    std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>> packets;
-    packets.reserve(replay->mavlink().size());
-    for (const auto& p : replay->mavlink()) packets.emplace_back(p.timeNs, p.bytes);
-    telemetry = std::make_unique<TelemetryService>(TelemetryServiceConfig{}, CameraDescription{});
-    telemetry->startFromPackets(packets);
+    TelemetryServiceConfig tc;
+    tc.decoder.autopilotSystem = opts.autopilotSystem;
+    tc.decoder.autopilotComponent = opts.autopilotComponent;
+    telemetry = std::make_unique<TelemetryService>(tc, CameraDescription{});
+    telemetry->startFromPackets(replay->mavlink());
     s.telemetry.source = opts.video + " (/mavlink/raw)";
   } else if (!opts.telemetry.empty()) {
     TelemetryServiceConfig tc;
@@ -254,7 +255,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   const LogToRecord logToRecord(outputs);
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs);
-  if (telemetry) recordRawMavlink(*telemetry, outputs);
+  if (telemetry) recordLiveMavlink(*telemetry, outputs);
   bool outputFailed = false;
 
   MonotonicClock clock;
@@ -265,16 +266,18 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
   });
 
-  // A replay's record carries the preview stream and the MAVLink packets on, in
-  // time order, so that it can be replayed in its turn.
+  // The record of an offline run carries its telemetry on (a tlog's packets, or a
+  // replayed record's), and a replay's the preview stream too, in time order with the
+  // frames, so that it can be replayed in its turn.
+  std::optional<MavlinkRecord> mavlinkRecord;
+  if (telemetry && telemetry->isReplay() && outputs.recording())
+    mavlinkRecord.emplace(outputs, telemetry->decoder());
   std::size_t nextPacket = 0;
   const auto rerecordMavlink = [&](std::int64_t upToNs) {
-    const auto& packets = replay->mavlink();
-    for (; nextPacket < packets.size() && packets[nextPacket].timeNs <= upToNs; ++nextPacket) {
-      const TimedPacket& p = packets[nextPacket];
-      std::uint32_t sys = 0, comp = 0, id = 0;
-      if (mavlinkHeader(p.bytes, sys, comp, id)) outputs.mavlink(p.timeNs, sys, comp, id, p.bytes);
-    }
+    if (!mavlinkRecord) return;
+    const auto& packets = telemetry->replayPackets();
+    for (; nextPacket < packets.size() && packets[nextPacket].timeNs <= upToNs; ++nextPacket)
+      mavlinkRecord->packet(packets[nextPacket]);
   };
   const auto start = std::chrono::steady_clock::now();
   auto lastProgress = start;
@@ -295,10 +298,9 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
       s.truncated = file != nullptr && file->truncated();
       break;
     }
-    if (replay != nullptr && outputs.recording()) {
-      rerecordMavlink(frame.timestampNs);
+    rerecordMavlink(frame.timestampNs);
+    if (replay != nullptr && outputs.recording())
       outputs.preview(frame.timestampNs, replay->encoded(), replay->format().c_str());
-    }
     stage.process(frame);
     s.framesRead = stage.counts().framesRead;
     s.kept = stage.counts().kept;
@@ -316,7 +318,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   // (also after a read error: the video up to the break is covered; not after
   // an output error, which is already the run's failure)
   if (!outputFailed) stage.finish();
-  if (replay != nullptr && outputs.recording()) rerecordMavlink(INT64_MAX);
+  rerecordMavlink(INT64_MAX);
   {
     const StageCounts& c = stage.counts();
     s.framesRead = c.framesRead;

@@ -1,16 +1,13 @@
 #include "output/flight_outputs.h"
 
-#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstring>
 #include <string_view>
-#include <vector>
 
 #include "app/log_throttle.h"
 #include "tagging/camera_mount.h"
-#include "telemetry/pose_store.h"
+#include "telemetry/pose.h"
 
 #ifdef KEYFRAMED_HAVE_IO
 #include <atomic>
@@ -61,26 +58,6 @@ std::string jnum(double v, int decimals) {
   return s.empty() ? "null" : s;
 }
 
-// The payload of a MAVLink v1/v2 packet, zero-extended to `size` (MAVLink 2 trims
-// trailing zero bytes); empty when the bytes are not a packet.
-std::vector<std::uint8_t> mavlinkPayload(std::span<const std::uint8_t> p, std::size_t size) {
-  std::size_t start = 0;
-  if (p.size() >= 10 && p[0] == 0xFD) start = 10;
-  if (p.size() >= 6 && p[0] == 0xFE) start = 6;
-  if (start == 0 || p.size() < start + p[1]) return {};
-  std::vector<std::uint8_t> out(p.begin() + static_cast<long>(start),
-                                p.begin() + static_cast<long>(start + p[1]));
-  out.resize(std::max(out.size(), size), 0);
-  return out;
-}
-
-template <typename T>
-T field(const std::vector<std::uint8_t>& payload, std::size_t offset) {
-  T v;
-  std::memcpy(&v, payload.data() + offset, sizeof v);  // MAVLink is little-endian, as is the host
-  return v;
-}
-
 }  // namespace
 
 struct FlightOutputs::Impl {
@@ -105,8 +82,7 @@ struct FlightOutputs::Impl {
   // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
   // an offline run the time of the latest frame.
   std::atomic<std::int64_t> frameNs{0};
-  bool quaternionAttitude = false;  // ATTITUDE_QUATERNION seen: ATTITUDE is not recorded
-  std::mutex logMutex;              // log() (any thread) against close() taking the recorder away
+  std::mutex logMutex;  // log() (any thread) against close() taking the recorder away
 
   std::int64_t nowNs() const { return options.liveClock ? wallNs() : frameNs.load(); }
   void note(const std::string& message) const {
@@ -210,41 +186,27 @@ void FlightOutputs::decision(const Decision& d, const std::string& decisionJson)
 
 void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                             std::uint32_t messageId, std::span<const std::uint8_t> packet) {
-  McapRecorder* rec = impl_->recorder.get();
-  if (rec == nullptr) return;
-  rec->record(McapTopic::Mavlink, timeNs,
-              proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
-  // The autopilot's position and attitude as Foxglove reads them, at the stream's
-  // own rate (the keyframe channels have them only at keyframes).
-  constexpr std::uint32_t kAutopilotComponent = 1;
-  if (componentId != kAutopilotComponent) return;
-  if (messageId == 33) {  // GLOBAL_POSITION_INT: lat, lon (1e-7 deg), alt (mm AMSL) at 4, 8, 12
-    const auto pl = mavlinkPayload(packet, 28);
-    if (pl.empty()) return;
-    proto::LocationFixMsg f;
-    f.timeNs = timeNs;
-    f.frameId = "vehicle";
-    f.latitude = field<std::int32_t>(pl, 4) * 1e-7;
-    f.longitude = field<std::int32_t>(pl, 8) * 1e-7;
-    f.altitude = field<std::int32_t>(pl, 12) * 1e-3;
-    rec->record(McapTopic::VehicleLocation, timeNs, proto::locationFix(f));
-  } else if (messageId == 31) {  // ATTITUDE_QUATERNION: q1..q4 (w, x, y, z) at 4
-    const auto pl = mavlinkPayload(packet, 20);
-    if (pl.empty()) return;
-    impl_->quaternionAttitude = true;
-    const double w = field<float>(pl, 4), x = field<float>(pl, 8), y = field<float>(pl, 12),
-                 z = field<float>(pl, 16);
-    rec->record(McapTopic::VehiclePose, timeNs,
-                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {x, y, z, w}));
-  } else if (messageId == 30 && !impl_->quaternionAttitude) {
-    // ATTITUDE: roll, pitch, yaw (rad, body to NED) at 4, 8, 12.
-    const auto pl = mavlinkPayload(packet, 16);
-    if (pl.empty()) return;
-    const Quaternion q =
-        quaternionFromEuler(field<float>(pl, 4), field<float>(pl, 8), field<float>(pl, 12));
-    rec->record(McapTopic::VehiclePose, timeNs,
-                proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
-  }
+  if (impl_->recorder)
+    impl_->recorder->record(McapTopic::Mavlink, timeNs,
+                            proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+}
+
+void FlightOutputs::vehicleLocation(std::int64_t timeNs, double latDeg, double lonDeg,
+                                    double altAmslM) {
+  if (!impl_->recorder) return;
+  proto::LocationFixMsg f;
+  f.timeNs = timeNs;
+  f.frameId = "vehicle";
+  f.latitude = latDeg;
+  f.longitude = lonDeg;
+  f.altitude = altAmslM;
+  impl_->recorder->record(McapTopic::VehicleLocation, timeNs, proto::locationFix(f));
+}
+
+void FlightOutputs::vehicleAttitude(std::int64_t timeNs, const Quaternion& q) {
+  if (impl_->recorder)
+    impl_->recorder->record(McapTopic::VehiclePose, timeNs,
+                            proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
 }
 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
@@ -446,6 +408,8 @@ bool FlightOutputs::publishing() const {
 }
 void FlightOutputs::mavlink(std::int64_t, std::uint32_t, std::uint32_t, std::uint32_t,
                             std::span<const std::uint8_t>) {}
+void FlightOutputs::vehicleLocation(std::int64_t, double, double, double) {}
+void FlightOutputs::vehicleAttitude(std::int64_t, const Quaternion&) {}
 void FlightOutputs::progress(std::int64_t, std::int64_t) {}
 void FlightOutputs::log(int, std::string_view, std::string_view) {}
 bool FlightOutputs::close(const std::string&, std::string&) {

@@ -10,6 +10,7 @@
 #include "app/keyframe_writer.h"
 #include "core/selector.h"
 #include "tagging/camera_model.h"
+#include "telemetry/pose.h"
 
 namespace keyframed {
 
@@ -59,6 +60,10 @@ class FlightOutputs {
   // A raw MAVLink packet as received (thread-safe; the telemetry thread calls it).
   void mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                std::uint32_t messageId, std::span<const std::uint8_t> packet);
+  // The autopilot's position (WGS84, metres above mean sea level) and attitude (body to
+  // NED) as it reported them, for the record's /vehicle/location and /vehicle/pose.
+  void vehicleLocation(std::int64_t timeNs, double latDeg, double lonDeg, double altAmslM);
+  void vehicleAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
   // One frame of the preview stream (a JPEG), for replay.
   void preview(std::int64_t timeNs, std::span<const std::uint8_t> image, const char* format);
   // The vehicle's pose (JSON) on Zenoh's .../telemetry key.

@@ -153,23 +153,6 @@ std::vector<std::string> mcapParts(const std::string& path) {
   return parts;
 }
 
-bool mavlinkHeader(std::span<const std::uint8_t> p, std::uint32_t& systemId,
-                   std::uint32_t& componentId, std::uint32_t& messageId) {
-  if (p.size() >= 10 && p[0] == 0xFD) {
-    systemId = p[5];
-    componentId = p[6];
-    messageId = p[7] | (p[8] << 8) | (p[9] << 16);
-    return true;
-  }
-  if (p.size() >= 6 && p[0] == 0xFE) {
-    systemId = p[3];
-    componentId = p[4];
-    messageId = p[5];
-    return true;
-  }
-  return false;
-}
-
 bool isMcapFile(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
   char magic[8] = {};

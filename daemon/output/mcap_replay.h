@@ -9,14 +9,9 @@
 
 #include "capture/frame_source.h"
 #include "tagging/camera_model.h"
+#include "telemetry/timed_packet.h"
 
 namespace keyframed {
-
-// A MAVLink packet as the live link received it, with its arrival time.
-struct TimedPacket {
-  std::int64_t timeNs = 0;
-  std::vector<std::uint8_t> bytes;
-};
 
 // A flight record (MCAP written by `keyframed run`) as a frame source: the preview
 // stream (/camera/preview, JPEG) decoded frame by frame with the live capture
@@ -63,11 +58,6 @@ class McapReplaySource final : public FrameSource {
   std::string format_;
   std::optional<CameraModel> calibration_;
 };
-
-// System, component and message id from a MAVLink v1 or v2 packet's header; false
-// when the bytes are not a packet.
-bool mavlinkHeader(std::span<const std::uint8_t> packet, std::uint32_t& systemId,
-                   std::uint32_t& componentId, std::uint32_t& messageId);
 
 // The parts of a rotated flight record, given its first: path itself, then
 // <stem>-001<ext>, <stem>-002<ext>, ... for as long as they exist.

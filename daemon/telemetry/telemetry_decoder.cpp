@@ -16,6 +16,11 @@ TelemetryDecoder::TelemetryDecoder(TelemetryConfig config)
       system_(config.autopilotSystem),
       component_(config.autopilotComponent) {}
 
+bool plausiblePosition(const mavlink_global_position_int_t& p) {
+  return !(p.lat == 0 && p.lon == 0) && p.lat >= -900'000'000 && p.lat <= 900'000'000 &&
+         p.lon >= -1'800'000'000 && p.lon <= 1'800'000'000;
+}
+
 bool TelemetryDecoder::accept(const mavlink_message_t& msg) {
   if (system_ == 0 || component_ == 0) {
     // Lock onto the first autopilot that says so in its HEARTBEAT.
@@ -120,10 +125,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       mavlink_global_position_int_t p;
       mavlink_msg_global_position_int_decode(&msg, &p);
       observeBootTime(p.time_boot_ms, localNs);
-      // 0,0 is what an estimator without an origin yet sends (and what an unset
-      // field reads); out of range is corruption. Neither is a place to tag with.
-      if ((p.lat == 0 && p.lon == 0) || p.lat < -900'000'000 || p.lat > 900'000'000 ||
-          p.lon < -1'800'000'000 || p.lon > 1'800'000'000) {
+      if (!plausiblePosition(p)) {
         ++stats_.badPositions;
         break;
       }

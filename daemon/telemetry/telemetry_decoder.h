@@ -28,6 +28,10 @@ struct TelemetryStats {
   std::uint64_t badPositions = 0;  // GLOBAL_POSITION_INT at 0,0 or out of range: not used
 };
 
+// A GLOBAL_POSITION_INT that names a place: not 0,0 (what an estimator without an
+// origin yet sends, and what an unset field reads) and within range (else corrupt).
+bool plausiblePosition(const mavlink_global_position_int_t& p);
+
 // Turns the autopilot's messages into pose history and clock mapping. Thread-safe:
 // the telemetry thread calls handle(); any thread calls poseAt().
 class TelemetryDecoder {

@@ -64,6 +64,7 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
     std::int64_t t = 0;
     while (link_->read(buf.data(), buf.size(), n, t, 0, error) == MavlinkLink::Status::Data) {
       parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) { decoder_.handle(m, t); });
+      replayPackets_.push_back({t, std::vector<std::uint8_t>(buf.begin(), buf.begin() + n)});
     }
     error.clear();
     std::lock_guard lock(mutex_);
@@ -77,15 +78,14 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
   return true;
 }
 
-void TelemetryService::startFromPackets(
-    const std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>>& packets) {
+void TelemetryService::startFromPackets(std::vector<TimedPacket> packets) {
   replay_ = true;
   startNs_ = monotonicNowNs();
-  for (const auto& packet : packets) {
-    const std::int64_t t = packet.first;  // (clang 14 cannot capture a structured binding)
-    parser_.feed(packet.second.data(), packet.second.size(),
-                 [&](const mavlink_message_t& m) { decoder_.handle(m, t); });
+  for (const TimedPacket& p : packets) {
+    parser_.feed(p.bytes.data(), p.bytes.size(),
+                 [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
   }
+  replayPackets_ = std::move(packets);
   std::lock_guard lock(mutex_);
   stats_.replayDone = true;
   stats_.parser = parser_.stats();

@@ -15,6 +15,7 @@
 #include "telemetry/link.h"
 #include "telemetry/mavlink_codec.h"
 #include "telemetry/telemetry_decoder.h"
+#include "telemetry/timed_packet.h"
 
 namespace keyframed {
 
@@ -90,12 +91,14 @@ class TelemetryService {
   bool start(std::unique_ptr<MavlinkLink> link, std::string& error);
   // A replay of recorded packets (arrival time in ns, bytes), e.g. a flight
   // record's /mavlink/raw: parsed now, like a tlog; no link, nothing sent.
-  void startFromPackets(
-      const std::vector<std::pair<std::int64_t, std::vector<std::uint8_t>>>& packets);
+  void startFromPackets(std::vector<TimedPacket> packets);
   void stop();
 
   [[nodiscard]] const TelemetryDecoder& decoder() const { return decoder_; }
   [[nodiscard]] bool isReplay() const { return replay_; }
+  // A replay's packets as recorded, in order (empty for a live link), so that an
+  // offline run's flight record can carry them on.
+  [[nodiscard]] const std::vector<TimedPacket>& replayPackets() const { return replayPackets_; }
   // Queues a capture report; the telemetry thread sends it, and keeps it queued
   // (up to maxPendingCaptures, oldest dropped first) while the link cannot take it.
   // Thread-safe.
@@ -146,6 +149,7 @@ class TelemetryService {
   std::mutex logMutex_;
   LogSink logSink_;
   bool replay_ = false;
+  std::vector<TimedPacket> replayPackets_;
   std::int64_t startNs_ = 0;
 
   // Telemetry thread only.

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from fake_autopilot import autopilot_fixture
+from fake_autopilot import autopilot_fixture, read_tlog, write_tlog
 from flights import flight
 from ports import free_port
 
@@ -298,3 +298,56 @@ def test_mcap_fsync_syncs_the_record_at_each_timed_flush(
         assert len(syncs) >= 4, syncs
     else:
         assert len(syncs) <= 2, syncs
+
+
+def two_vehicle_tlog(src: Path, dst: Path) -> tuple[int, int]:
+    """src's flight with a second vehicle (system 2, also component 1) on the same link,
+    one degree further north; returns how many GLOBAL_POSITION_INT each one sent."""
+    from pymavlink.dialects.v20 import common
+
+    records = read_tlog(src)
+    out, own, other = [], 0, 0
+    for rec in records:
+        out.append(rec)
+        kind = rec.msg.get_type()
+        if kind not in ("HEARTBEAT", "GLOBAL_POSITION_INT", "ATTITUDE", "ATTITUDE_QUATERNION"):
+            continue
+        twin = common.MAVLink(None).decode(bytearray(rec.msg.get_msgbuf()))
+        twin._header.srcSystem = 2
+        if kind == "GLOBAL_POSITION_INT":
+            twin.lat += 10_000_000
+            own, other = own + 1, other + 1
+        out.append(type(rec)(rec.unix_us + 1, twin))
+    write_tlog(dst, out)
+    return own, other
+
+
+def test_offline_record_carries_the_tlog_and_the_chosen_autopilot_only(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    from keyframed import synth
+
+    tlog = tmp_path / "two.tlog"
+    own, other = two_vehicle_tlog(short_nadir / "flight.tlog", tlog)
+    packets = sorted(bytes(r.msg.get_msgbuf()) for r in read_tlog(tlog))
+
+    for system, lat0 in ((1, 51.89), (2, 52.89)):
+        rec = tmp_path / f"sys{system}.mcap"
+        r = subprocess.run(
+            [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(tmp_path / "o")]
+            + ["--quiet", "--telemetry", str(tlog), "--video-start", str(synth.EPOCH_UNIX_S)]
+            + ["--autopilot", str(system), "--mcap", str(rec)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert r.returncode == 0, r.stderr
+        assert_doctor_clean(rec)
+        c = counts(rec)
+        # every packet of the link, both vehicles', byte for byte
+        assert c.get("/mavlink/raw") == len(packets), (c, len(packets))
+        assert sorted(bytes(p.packet) for p in decoded(rec, "/mavlink/raw")) == packets
+        fixes = decoded(rec, "/vehicle/location")
+        assert len(fixes) == (own if system == 1 else other) > 0
+        assert all(abs(f.latitude - lat0) < 0.01 for f in fixes), (system, fixes[0])
+        assert len(decoded(rec, "/vehicle/pose")) > len(fixes)

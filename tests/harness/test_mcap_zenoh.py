@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from fake_autopilot import read_tlog
 from flights import flight
 from keyframed import synth
 
@@ -145,7 +146,12 @@ def test_mcap_record_is_valid_and_complete(kf_bin: Path, short_nadir: Path, tmp_
         channels = reader.get_summary().channels.values()
         proto_topics = [c.topic for c in channels if c.message_encoding == "protobuf"]
         decoded = [m for _, _, _, m in reader.iter_decoded_messages(topics=proto_topics)]
-    assert len(decoded) == len(kf) + len(fixes) + len(poses) + 2  # + calibration + log
+    # The tlog's packets ride along, with the autopilot's track and attitude decoded.
+    raw = by_topic(msgs, "/mavlink/raw")
+    track = by_topic(msgs, "/vehicle/location") + by_topic(msgs, "/vehicle/pose")
+    assert len(raw) == len(read_tlog(short_nadir / "flight.tlog")) and len(track) > len(kf)
+    # + calibration + log
+    assert len(decoded) == len(kf) + len(fixes) + len(poses) + len(raw) + len(track) + 2
 
 
 # ---- (b) crash safety ----------------------------------------------------------------

@@ -1,0 +1,59 @@
+#include "app/mavlink_record.h"
+
+namespace keyframed {
+
+void MavlinkRecord::message(const mavlink_message_t& msg, std::int64_t timeNs) {
+  std::uint8_t buf[MAVLINK_MAX_PACKET_LEN];
+  const std::uint16_t n = mavlink_msg_to_send_buffer(buf, &msg);
+  outputs_.mavlink(timeNs, msg.sysid, msg.compid, msg.msgid, std::span<const std::uint8_t>(buf, n));
+  vehicle(msg, timeNs);
+}
+
+void MavlinkRecord::packet(const TimedPacket& p) {
+  // Bytes that hold no whole, checked packet (a record cut short) are left out.
+  parser_.feed(p.bytes.data(), p.bytes.size(), [&](const mavlink_message_t& msg) {
+    outputs_.mavlink(p.timeNs, msg.sysid, msg.compid, msg.msgid, p.bytes);
+    vehicle(msg, p.timeNs);
+  });
+}
+
+void MavlinkRecord::vehicle(const mavlink_message_t& msg, std::int64_t timeNs) {
+  if (msg.sysid != decoder_.autopilotSystem() || msg.compid != decoder_.autopilotComponent())
+    return;
+  constexpr std::int64_t kQuaternionHoldNs = 2'000'000'000;
+  switch (msg.msgid) {
+    case MAVLINK_MSG_ID_GLOBAL_POSITION_INT: {
+      mavlink_global_position_int_t p;
+      mavlink_msg_global_position_int_decode(&msg, &p);
+      if (!plausiblePosition(p)) return;
+      outputs_.vehicleLocation(timeNs, p.lat * 1e-7, p.lon * 1e-7, p.alt * 1e-3);
+      break;
+    }
+    case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
+      mavlink_attitude_quaternion_t a;
+      mavlink_msg_attitude_quaternion_decode(&msg, &a);
+      lastQuaternionNs_ = timeNs;
+      outputs_.vehicleAttitude(timeNs, {a.q1, a.q2, a.q3, a.q4});
+      break;
+    }
+    case MAVLINK_MSG_ID_ATTITUDE: {
+      // Both streams describe the same estimate, as telemetry decodes them.
+      if (lastQuaternionNs_ >= 0 && timeNs - lastQuaternionNs_ < kQuaternionHoldNs) return;
+      mavlink_attitude_t a;
+      mavlink_msg_attitude_decode(&msg, &a);
+      outputs_.vehicleAttitude(timeNs, quaternionFromEuler(a.roll, a.pitch, a.yaw));
+      break;
+    }
+    default: break;
+  }
+}
+
+void recordLiveMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
+  if (telemetry.isReplay()) return;
+  auto record = std::make_shared<MavlinkRecord>(outputs, telemetry.decoder());
+  telemetry.setRawSink([record](const mavlink_message_t& msg, std::int64_t timeNs) {
+    record->message(msg, timeNs);
+  });
+}
+
+}  // namespace keyframed
