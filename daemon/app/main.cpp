@@ -5,6 +5,9 @@
 
 #include "app/config.h"
 #include "app/probe_v4l2.h"
+#ifdef KEYFRAMED_WITH_LIBCAMERA
+#include "app/probe_libcamera.h"
+#endif
 #include "app/run_command.h"
 #include "app/sd_notify.h"
 #include "app/select_command.h"
@@ -35,6 +38,9 @@ int main(int argc, char** argv) {
     if (command == "run") return keyframed::runMain(args);
     // Diagnostic, not in the usage text: V4L2 devices, formats and frame timing.
     if (command == "probe-v4l2") return keyframed::probeV4l2Main(args);
+#ifdef KEYFRAMED_WITH_LIBCAMERA
+    if (command == "probe-libcamera") return keyframed::probeLibcameraMain(args);
+#endif
     if (command == "check-config") return keyframed::checkConfigMain(args);
     if (command == "notify-selftest") return keyframed::notifySelftestMain();  // tests only
     if (command == "version" || command == "--version") {

@@ -19,10 +19,19 @@
 #include <string>
 #include <vector>
 
+#include "app/probe_util.h"
 #include "capture/v4l2_source.h"
 
 namespace keyframed {
 namespace {
+
+using probe::cpuSeconds;
+using probe::emit;
+using probe::jsonNumber;
+using probe::jsonString;
+using probe::parseDouble;
+using probe::parseInt;
+using probe::sampleMean;
 
 constexpr const char* kUsage = R"(usage: keyframed probe-v4l2 [options]
 
@@ -45,40 +54,6 @@ options:
 exit status: 0 ok, 1 device error, 2 usage
 )";
 
-std::string jsonString(const std::string& s) {
-  std::string out = "\"";
-  for (char c : s) {
-    switch (c) {
-      case '"': out += "\\\""; break;
-      case '\\': out += "\\\\"; break;
-      case '\n': out += "\\n"; break;
-      case '\t': out += "\\t"; break;
-      default:
-        if (static_cast<unsigned char>(c) < 0x20) {
-          char buf[8];
-          std::snprintf(buf, sizeof(buf), "\\u%04x", static_cast<unsigned>(c));
-          out += buf;
-        } else {
-          out += c;
-        }
-    }
-  }
-  return out + "\"";
-}
-
-std::string jsonNumber(double v) {
-  if (!std::isfinite(v)) return "null";
-  char buf[32];
-  std::snprintf(buf, sizeof(buf), "%.6g", v);
-  return buf;
-}
-
-void emit(const std::string& line) {
-  std::fputs(line.c_str(), stdout);
-  std::fputc('\n', stdout);
-  std::fflush(stdout);  // the VM test reads these off a serial console as they come
-}
-
 std::string deviceJson(const V4l2DeviceInfo& d) {
   std::string formats = "[";
   for (std::size_t i = 0; i < d.formats.size(); ++i) {
@@ -90,48 +65,6 @@ std::string deviceJson(const V4l2DeviceInfo& d) {
          ",\"driver\":" + jsonString(d.driver) + ",\"card\":" + jsonString(d.card) +
          ",\"bus\":" + jsonString(d.busInfo) + ",\"capture\":" + (d.capture ? "true" : "false") +
          ",\"streaming\":" + (d.streaming ? "true" : "false") + ",\"formats\":" + formats + "}";
-}
-
-double cpuSeconds() {
-  rusage ru{};
-  getrusage(RUSAGE_SELF, &ru);
-  const auto tv = [](const timeval& t) {
-    return static_cast<double>(t.tv_sec) + static_cast<double>(t.tv_usec) * 1e-6;
-  };
-  return tv(ru.ru_utime) + tv(ru.ru_stime);
-}
-
-// Mean of a sparse sample of the first plane (or of BGR bytes): shows the
-// pixels are real without costing much.
-double sampleMean(const Frame& f) {
-  if (f.data == nullptr || f.width <= 0 || f.height <= 0) return 0.0;
-  const int bpp = f.format == PixelFormat::BGR24 ? 3 : f.format == PixelFormat::YUYV ? 2 : 1;
-  double sum = 0.0;
-  int n = 0;
-  for (int y = 0; y < f.height; y += std::max(1, f.height / 16)) {
-    const std::uint8_t* row = f.data + static_cast<std::ptrdiff_t>(y) * f.stride;
-    for (int x = 0; x < f.width; x += std::max(1, f.width / 16)) {
-      sum += row[x * bpp];
-      ++n;
-    }
-  }
-  return n > 0 ? sum / n : 0.0;
-}
-
-bool parseInt(const std::string& s, int lo, int hi, int& out) {
-  char* end = nullptr;
-  const long v = std::strtol(s.c_str(), &end, 10);
-  if (s.empty() || *end != '\0' || v < lo || v > hi) return false;
-  out = static_cast<int>(v);
-  return true;
-}
-
-bool parseDouble(const std::string& s, double lo, double hi, double& out) {
-  char* end = nullptr;
-  const double v = std::strtod(s.c_str(), &end);
-  if (s.empty() || *end != '\0' || !(v >= lo && v <= hi)) return false;
-  out = v;
-  return true;
 }
 
 int usage(const std::string& why) {

@@ -31,12 +31,12 @@
 #include "app/config.h"
 #include "app/decision_log.h"
 #include "app/keyframe_output.h"
-#include "app/mavlink_record.h"
 #include "app/keyframe_stage.h"
 #include "app/keyframe_writer.h"
 #include "app/log.h"
 #include "app/log_throttle.h"
 #include "app/log_to_record.h"
+#include "app/mavlink_record.h"
 #include "app/paced_source.h"
 #include "app/sd_notify.h"
 #include "app/settings.h"
@@ -483,6 +483,15 @@ int Daemon::run() {
   const SourceInfo& info = source_->info();
   KF_LOG(Capture, Notice) << "capturing from " << info.description << " (" << info.width << "x"
                           << info.height << " @ " << info.fps << " fps)";
+  // A camera that does not offer the configured size gives its nearest one: say so, the
+  // keyframes and the calibration's scaling depend on it.
+  if (config_.camera.source != DaemonConfig::Source::File &&
+      (info.width != config_.camera.width || info.height != config_.camera.height)) {
+    KF_LOG(Capture, Warning) << "the camera delivers " << info.width << "x" << info.height
+                             << ", not the configured camera.width x camera.height "
+                             << config_.camera.width << "x" << config_.camera.height
+                             << " (the nearest size it offers)";
+  }
   if (!makeFlightDir(config_.output.stateDir, flightDir_, error)) {
     KF_LOG(Output, Error) << error;
     return 1;
