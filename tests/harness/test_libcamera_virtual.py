@@ -21,16 +21,15 @@ the releases.
 
 from __future__ import annotations
 
-import gzip
 import json
 import os
 import re
 import shutil
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
+import qemu_vm
 
 ROOT = Path(__file__).resolve().parents[2]
 TRIXIE = ROOT / "build" / "debian" / "trixie"
@@ -128,26 +127,10 @@ def test_libcamera_sources_compile_against_newer_releases(release: Path) -> None
     print(f"compiled against libcamera {version_of(root)}")
 
 
-def _cpio(root: Path, out: Path) -> None:
-    files = subprocess.run(["find", "."], cwd=root, capture_output=True, check=True).stdout
-    archive = subprocess.run(
-        ["cpio", "-o", "-H", "newc", "--quiet"], cwd=root, input=files, capture_output=True
-    )
-    assert archive.returncode == 0, archive.stderr
-    out.write_bytes(gzip.compress(archive.stdout, compresslevel=1))
-
-
 @pytest.fixture(scope="module")
 def vm(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     lc = libcamera_root(TRIXIE)
-    qemu = shutil.which("qemu-system-x86_64")
-    if qemu is None:
-        pytest.skip("qemu-system-x86_64 not found: apt-get install qemu-system-x86")
-    busybox = shutil.which("busybox") or "/bin/busybox"
-    if not Path(busybox).exists():
-        pytest.skip("busybox not found: apt-get install busybox-static")
-    if shutil.which("cpio") is None:
-        pytest.skip("cpio not found")
+    qemu, busybox = qemu_vm.tools()
     work = tmp_path_factory.mktemp("libcamera-vm")
     probe = work / "keyframed-libcamera-probe"
     r = compile_probe(lc, probe)
@@ -174,25 +157,12 @@ def vm(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     init = root / "init"
     init.write_text(INIT.replace("@CASES@", cases))
     init.chmod(0o755)
-    initrd = work / "initrd.gz"
-    _cpio(root, initrd)
-
-    cmd = [qemu, "-accel", "tcg", "-m", "1024", "-smp", "1", "-kernel", str(TRIXIE / "vmlinuz")]
-    cmd += ["-initrd", str(initrd), "-append", "console=ttyS0 rdinit=/init quiet panic=-1"]
-    cmd += ["-nographic", "-no-reboot", "-nodefaults", "-serial", "stdio"]
-    t0 = time.monotonic()
-    try:
-        out = subprocess.run(cmd, capture_output=True, timeout=BOOT_TIMEOUT_S)
-    except subprocess.TimeoutExpired as e:
-        text = (e.stdout or b"").decode(errors="replace")
-        pytest.fail(f"VM did not finish in {BOOT_TIMEOUT_S} s; console:\n{text[-4000:]}")
-    console = out.stdout.decode(errors="replace").replace("\r", "")
-    if "KF-BOOTED" not in console:
-        if out.returncode != 0 and not console.strip():
-            pytest.skip(f"qemu could not run: {out.stderr.decode(errors='replace')[-500:]}")
-        pytest.fail(f"VM did not boot into the test init; console:\n{console[-4000:]}")
-    (work / "console.log").write_text(console)
-    print(f"libcamera VM: {time.monotonic() - t0:.1f} s wall, console {work / 'console.log'}")
+    initrd = work / "initrd.cpio"
+    qemu_vm.initramfs(root, initrd)
+    console, elapsed = qemu_vm.boot(
+        qemu, TRIXIE / "vmlinuz", initrd, timeout_s=BOOT_TIMEOUT_S, log=work / "console.log"
+    )
+    print(f"libcamera VM: {elapsed:.1f} s wall, console {work / 'console.log'}")
 
     sections: dict[str, dict] = {}
     current: dict | None = None

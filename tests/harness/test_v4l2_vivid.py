@@ -28,12 +28,12 @@ import os
 import re
 import shutil
 import subprocess
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import qemu_vm
 from conftest import keyframed_bin
 
 WIDTH, HEIGHT, FPS = 640, 360, 30
@@ -298,14 +298,7 @@ def _scratch_dir(binary: Path) -> str:
 
 @pytest.fixture(scope="module")
 def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    qemu = shutil.which("qemu-system-x86_64")
-    if not qemu:
-        pytest.skip("qemu-system-x86_64 not found: apt-get install qemu-system-x86")
-    busybox = shutil.which("busybox") or "/bin/busybox"
-    if not Path(busybox).exists():
-        pytest.skip("busybox not found: apt-get install busybox-static")
-    if not shutil.which("cpio"):
-        pytest.skip("cpio not found: apt-get install cpio")
+    qemu, busybox = qemu_vm.tools()
     vmlinuz, moddir = _kernel()
     probe = _probe_bin()
 
@@ -362,50 +355,17 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     (root / "init").write_text(init)
     (root / "init").chmod(0o755)
     initrd = work / "initrd.cpio"
-    files = subprocess.run(["find", "."], cwd=root, capture_output=True, check=True).stdout
-    with initrd.open("wb") as f:
-        subprocess.run(
-            ["cpio", "-o", "-H", "newc", "--quiet"], cwd=root, input=files, stdout=f, check=True
-        )
-
-    cmd = [
+    qemu_vm.initramfs(root, initrd)
+    # The daemon section mounts the host's root read-only over virtio-9p.
+    virtfs = "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap"
+    console, elapsed = qemu_vm.boot(
         qemu,
-        "-accel",
-        "tcg",
-        "-m",
-        "1024",
-        "-smp",
-        "1",
-        "-kernel",
-        str(vmlinuz),
-        "-initrd",
-        str(initrd),
-        "-append",
-        "console=ttyS0 rdinit=/init quiet loglevel=3 panic=-1",
-        "-nographic",
-        "-no-reboot",
-        "-nodefaults",
-        "-serial",
-        "stdio",
-    ]
-    if not daemon_skip:
-        cmd += [
-            "-virtfs",
-            "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap",
-        ]
-    t0 = time.monotonic()
-    try:
-        out = subprocess.run(cmd, capture_output=True, timeout=BOOT_TIMEOUT_S)
-    except subprocess.TimeoutExpired as e:
-        text = (e.stdout or b"").decode(errors="replace")
-        pytest.fail(f"VM did not finish in {BOOT_TIMEOUT_S} s; console:\n{text[-4000:]}")
-    elapsed = time.monotonic() - t0
-    console = out.stdout.decode(errors="replace").replace("\r", "")
-    if "KF-BOOTED" not in console:
-        if out.returncode != 0 and not console.strip():
-            pytest.skip(f"qemu could not run: {out.stderr.decode(errors='replace')[-500:]}")
-        pytest.fail(f"VM did not boot into the test init; console:\n{console[-4000:]}")
-    (work / "console.log").write_text(console)
+        vmlinuz,
+        initrd,
+        timeout_s=BOOT_TIMEOUT_S,
+        log=work / "console.log",
+        extra=[] if daemon_skip else ["-virtfs", virtfs],
+    )
     print(f"vivid VM: {elapsed:.1f} s wall, console log {work / 'console.log'}")
     return {
         "console": console,
