@@ -7,8 +7,14 @@ cd "$ROOT"
 JOBS="${KEYFRAMED_JOBS:-2}"
 export CMAKE_BUILD_PARALLEL_LEVEL="$JOBS"
 
-if [ ! -f build/release/build.ninja ]; then
-  cmake -S . -B build/release -G Ninja -DCMAKE_BUILD_TYPE=Release -DKEYFRAMED_WERROR=ON
+# With libcamera 0.4 unpacked by tools/setup.sh, a second daemon linked against it
+# (keyframed-libcamera-alt) for tests/harness/test_libcamera_virtual.py.
+ALT=""
+if [ -f build/debian/trixie/complete ]; then ALT="$ROOT/build/debian/trixie/root"; fi
+if [ ! -f build/release/build.ninja ] ||
+   ! grep -qx "KEYFRAMED_LIBCAMERA_ALT_ROOT:PATH=$ALT" build/release/CMakeCache.txt; then
+  cmake -S . -B build/release -G Ninja -DCMAKE_BUILD_TYPE=Release -DKEYFRAMED_WERROR=ON \
+    -DKEYFRAMED_LIBCAMERA_ALT_ROOT="$ALT"
 fi
 ninja -C build/release -j"$JOBS"
 

@@ -5,17 +5,19 @@ into a directory (no apt sources touched, nothing installed on this machine).
 The libcamera tests use it: Debian 12 ships libcamera 0.0.3, while a Raspberry Pi
 runs newer releases. `--suite trixie libcamera0.4 ...` gives libcamera 0.4 (the first
 with a kernel-free virtual camera) with the C/C++ runtime it needs, run under qemu
-with trixie's cloud kernel (`--kernel`), which has the dma-buf heaps that camera
-allocates from; `--suite sid libcamera-dev` gives the newest headers to compile
-against.
+with trixie's kernel (`--kernel amd64 --modules 9p,9pnet_virtio`), which has the
+dma-buf heaps that camera allocates from and virtio-9p to reach this machine's
+files; `--suite sid libcamera-dev` gives the newest headers to compile against.
 
-    fetch_debian.py --suite trixie --dest DIR [--kernel FLAVOUR] [--no-deps] PACKAGE...
+    fetch_debian.py --suite S --dest DIR [--kernel FLAVOUR [--modules M,...]]
+                    [--no-deps] PACKAGE...
 
 Unpacks each package and its dependencies (first alternative of each, transitively)
 into DIR/root; with --kernel, the kernel image of linux-image-FLAVOUR into
-DIR/vmlinuz. DIR/complete records what was fetched: a second run with the same
-arguments does nothing (no network). Exit status 1 with a one-line reason when the
-mirror cannot be reached.
+DIR/vmlinuz, and with --modules the modules named (and their dependencies) into
+DIR/modules, uncompressed, in load order in DIR/modules/order. DIR/complete records
+what was fetched: a second run with the same arguments does nothing (no network).
+Exit status 1 with a one-line reason when the mirror cannot be reached.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import lzma
+import re
 import shutil
 import subprocess
 import sys
@@ -94,11 +97,50 @@ def download(filename: str, into: Path) -> Path:
     return out
 
 
+def module_bytes(path: Path) -> bytes:
+    data = path.read_bytes()
+    return lzma.decompress(data) if path.name.endswith(".xz") else data
+
+
+def copy_modules(kernel_tree: Path, names: list[str], out: Path) -> None:
+    """The modules named and their dependencies (from each module's own modinfo: Debian's
+    package ships no modules.dep), uncompressed (busybox insmod reads plain .ko), with
+    `order` listing them dependencies first."""
+    found = {}
+    for ko in kernel_tree.glob("**/lib/modules/*/kernel/**/*.ko*"):
+        found[ko.name.split(".ko")[0].replace("-", "_")] = ko
+    out.mkdir(parents=True)
+    order: list[str] = []
+
+    def add(name: str) -> None:
+        name = name.replace("-", "_")
+        if name in order:
+            return
+        if name not in found:
+            raise SystemExit(f"fetch_debian: no kernel module {name} (built in?)")
+        data = module_bytes(found[name])
+        m = re.search(rb"depends=([^\0]*)\0", data)
+        for dep in m.group(1).decode().split(",") if m else []:
+            if dep:
+                add(dep)
+        (out / f"{name}.ko").write_bytes(data)
+        order.append(name)
+
+    for n in names:
+        add(n)
+    (out / "order").write_text("".join(f"{n}.ko\n" for n in order))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--suite", required=True)
     ap.add_argument("--dest", required=True, type=Path)
     ap.add_argument("--kernel", help="also fetch linux-image-FLAVOUR's kernel image")
+    ap.add_argument(
+        "--modules",
+        default="",
+        help="with --kernel: these modules (comma-separated) and what they depend on",
+    )
     ap.add_argument("--no-deps", action="store_true", help="only the packages named (headers)")
     ap.add_argument("packages", nargs="+")
     args = ap.parse_args()
@@ -108,6 +150,7 @@ def main() -> int:
         "kernel": args.kernel,
         "packages": args.packages,
         "deps": not args.no_deps,
+        "modules": args.modules,
     }
     done = args.dest / "complete"
     if done.is_file() and json.loads(done.read_text()).get("request") == request:
@@ -142,6 +185,8 @@ def main() -> int:
                 subprocess.run(["dpkg-deb", "-x", str(deb), str(unpacked)], check=True)
                 (image,) = (unpacked / "boot").glob("vmlinuz-*")
                 shutil.copy(image, args.dest / "vmlinuz")
+                if args.modules:
+                    copy_modules(unpacked, args.modules.split(","), args.dest / "modules")
     except OSError as e:  # URLError is an OSError
         print(f"fetch_debian: cannot fetch from {MIRROR} ({args.suite}): {e}", file=sys.stderr)
         return 1

@@ -67,11 +67,12 @@ fi
 
 # tests/harness/test_libcamera_virtual.py: newer libcamera releases than Debian 12's
 # 0.0.3, unpacked under build/debian (nothing installed): trixie's 0.4 with its
-# runtime and cloud kernel (run under qemu on its virtual camera), sid's newest
+# runtime, kernel and 9p modules (run under qemu on its virtual camera), sid's newest
 # headers (compiled against). Not fatal: without them that test skips, saying why.
 if [ "$(dpkg --print-architecture)" = amd64 ]; then
   python3 "$ROOT/tools/fetch_debian.py" --suite trixie --dest "$ROOT/build/debian/trixie" \
-    --kernel cloud-amd64 libcamera0.4 libcamera-dev libc6 libstdc++6 libgcc-s1 ||
+    --kernel amd64 --modules 9p,9pnet_virtio libcamera0.4 libcamera-dev libc6 libstdc++6 \
+    libgcc-s1 ||
     echo "setup: warning: no libcamera 0.4 from trixie; the libcamera VM test will skip" >&2
   python3 "$ROOT/tools/fetch_debian.py" --suite sid --dest "$ROOT/build/debian/sid" \
     --no-deps libcamera-dev ||

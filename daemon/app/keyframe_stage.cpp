@@ -38,6 +38,7 @@ void KeyframeStage::process(const Frame& frame) {
     --(candidateBlur_ ? counts_.rejectedBlur : counts_.rejectedOverlap);
     candidateIndex_ = -1;
   }
+  // Featureless frames count with the redundant ones: nothing new to measure.
   const bool blur = d.reason == Reason::Blurry || d.reason == Reason::Lost;
   if (d.kept) {
     ev.keyframe = copyOf(frame);

@@ -14,6 +14,7 @@ const char* toString(Reason reason) {
     case Reason::Blurry: return "blurry";
     case Reason::Redundant: return "redundant";
     case Reason::Lost: return "lost";
+    case Reason::Featureless: return "featureless";
   }
   return "unknown";
 }
@@ -75,8 +76,14 @@ void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
   d.candidate = false;
   overlap_->setReferenceToCurrent();
   haveKeyframe_ = true;
+  keyframeFeatures_ = d.features;
   clearCandidate();
   ++keyframes_;
+}
+
+int KeyframeSelector::minTrackable() const {
+  return config_.overlap.mode == OverlapMode::Paper ? config_.overlap.paperMinMatches
+                                                    : config_.overlap.minInliers;
 }
 
 bool KeyframeSelector::promoteCandidate(Decision& d) {
@@ -140,6 +147,16 @@ Decision KeyframeSelector::process(const Frame& frame) {
       keepCurrent(d, Reason::First);
     else
       d.reason = Reason::Blurry;
+  } else if (!ov.valid && keyframeFeatures_ < minTrackable()) {
+    // The keyframe had nothing to track: there was no chain to lose. A new chain
+    // starts at the first sharp frame with texture enough; until then each frame
+    // would be another keyframe of the same blank scene, at the full frame rate.
+    if (d.sharp && d.features >= minTrackable()) {
+      overlap_->reset();
+      keepCurrent(d, Reason::First);
+    } else {
+      d.reason = d.sharp ? Reason::Featureless : Reason::Blurry;
+    }
   } else if (!ov.valid) {
     // Tracking lost: keep the best frame seen since the last keyframe so that no
     // gap opens, then start a new chain at the next sharp frame.

@@ -28,6 +28,9 @@ enum class Reason {
   Blurry,         // dropped: sharpness under the threshold
   Redundant,      // dropped: overlap still above the target (or distance under t)
   Lost,           // dropped: tracking lost and the frame is not sharp
+  Featureless,    // dropped: the last keyframe had too little texture to track (water,
+                  //   sky, a uniform field), and so has this frame: no overlap to
+                  //   measure, and no reason to keep it over the keyframe
 };
 
 const char* toString(Reason reason);
@@ -116,6 +119,8 @@ class KeyframeSelector {
   bool promoteCandidate(Decision& d);
   void clearCandidate();
   bool motionTooFast(double motionPx, int analysisWidth);
+  // Fewer features than this in a reference and overlap cannot be measured against it.
+  [[nodiscard]] int minTrackable() const;
 
   SelectorConfig config_;
   const Clock* clock_;
@@ -124,6 +129,7 @@ class KeyframeSelector {
   std::unique_ptr<OverlapEstimator> overlap_;
   DownScaler scaler_;  // luma -> analysis image
   bool haveKeyframe_ = false;
+  int keyframeFeatures_ = 0;  // features of the frame kept last (keepCurrent)
   std::int64_t keyframes_ = 0;
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;

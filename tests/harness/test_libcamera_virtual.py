@@ -21,6 +21,7 @@ the releases.
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import re
@@ -69,12 +70,72 @@ mount -t sysfs sysfs /sys
 mount -t devtmpfs devtmpfs /dev
 echo KF-BOOTED
 @CASES@
+@DAEMON@
 poweroff -f
 """
+
+# The whole daemon, built against libcamera 0.4 (keyframed-libcamera-alt): this
+# machine's root comes in read-only over virtio-9p for the libraries it shares with
+# the daemon (OpenCV, exiv2, ...); it runs under Debian 13's loader and C/C++ runtime
+# (the initramfs's own /usr), in the initramfs, where the virtual camera's
+# configuration is. Once it is ready it runs a few seconds, then gets SIGTERM.
+DAEMON = r"""
+echo "KF-CASE daemon"
+for m in $(cat /modules/order); do insmod /modules/$m || echo "KF-INSMOD-FAIL $m"; done
+mkdir -p /host /scratch/etc/conf.d
+: > /scratch/etc/keyframed.toml
+if mount -t 9p -o trans=virtio,version=9p2000.L,ro,cache=loose,msize=512000 hostroot /host
+then
+  log=/scratch/daemon.log
+  /lib64/ld-linux-x86-64.so.2 --library-path /usr/lib/x86_64-linux-gnu:@HOSTLIBS@ \
+    /host@ALT@ run --config-dir /scratch/etc @SETS@ > $log 2>&1 &
+  pid=$!
+  n=0
+  while ! grep -q 'ready: first frame' $log && kill -0 $pid 2>/dev/null && [ $n -lt 600 ]
+  do sleep 0.1; n=$((n+1)); done
+  echo "KF-DAEMON-READY $(cut -d' ' -f1 /proc/uptime)"
+  sleep @RUN_S@
+  kill -TERM $pid && echo "KF-DAEMON-TERM $(cut -d' ' -f1 /proc/uptime)"
+  wait $pid
+  rc=$?
+  echo "KF-DAEMON-EXIT $(cut -d' ' -f1 /proc/uptime)"
+  sed 's/^/KF-LOG /' $log
+  flight=$(ls -d /scratch/state/flights/* | head -1)
+  echo "KF-SUMMARY $(tr -d '\n' < $flight/summary.json)"
+  tail -n +2 $flight/decisions.csv | cut -d, -f4 | sort | uniq -c | sed 's/^ */KF-REASON /'
+  first=$(ls $flight/keyframes/*.jpg 2>/dev/null | head -1)
+  if [ -n "$first" ]; then
+    echo "KF-JPEG-BEGIN"; base64 $first; echo "KF-JPEG-END"
+  fi
+  echo "KF-RC $rc"
+else
+  echo "KF-9P-MOUNT-FAIL"
+  echo "KF-RC 99"
+fi
+"""
+DAEMON_RUN_S = 4
 
 # Colour bars at 100 %: white, yellow, cyan, green, magenta, red, blue, black, as
 # BT.601 limited-range luma (Y = 16 + 219 * (0.299 R + 0.587 G + 0.114 B)).
 BAR_LUMA = [235, 210, 170, 145, 106, 81, 41, 16]
+
+
+def alt_bin() -> Path:
+    """The daemon linked against libcamera 0.4 (daemon/CMakeLists.txt)."""
+    default = ROOT / "build/release/daemon/keyframed-libcamera-alt"
+    return Path(os.environ.get("KEYFRAMED_LIBCAMERA_ALT_BIN", default))
+
+
+def host_library_dirs() -> list[str]:
+    """Where this machine's loader finds libraries (its ld.so.cache), in that order."""
+    out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True).stdout
+    dirs: list[str] = []
+    for line in out.splitlines():
+        if "=> " in line and "x86-64" in line:
+            d = str(Path(line.split("=> ", 1)[1].strip()).parent)
+            if d not in dirs:
+                dirs.append(d)
+    return dirs or ["/usr/lib/x86_64-linux-gnu"]
 
 
 def probe_sources() -> list[Path]:
@@ -155,12 +216,55 @@ def vm(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
         f'echo "KF-CASE {name}"\n/probe {args}\necho "KF-RC $?"' for name, args in CASES.items()
     )
     init = root / "init"
-    init.write_text(INIT.replace("@CASES@", cases))
+    # The daemon section, when the daemon was built against this release and qemu
+    # has virtio-9p (the VM reads the host's libraries through it).
+    alt = alt_bin()
+    devices = subprocess.run([qemu, "-device", "help"], capture_output=True, text=True)
+    daemon_skip = None
+    if not alt.exists():
+        daemon_skip = f"{alt} not built (tools/build.sh builds it once setup fetched libcamera)"
+    elif "virtio-9p-pci" not in devices.stdout + devices.stderr:
+        daemon_skip = f"{qemu} has no virtio-9p-pci device (no virtfs support)"
+    daemon = ""
+    if daemon_skip is None:
+        shutil.copytree(TRIXIE / "modules", root / "modules")
+        # Debian's alternatives (BLAS, LAPACK, ...) are absolute links through
+        # /etc/alternatives into subdirectories of the library directory: lead both
+        # to the host's copies.
+        (root / "etc").mkdir(exist_ok=True)
+        os.symlink("/host/etc/alternatives", root / "etc" / "alternatives")
+        libdir = Path("/usr/lib/x86_64-linux-gnu")
+        for sub in libdir.iterdir():
+            target = root / "usr/lib/x86_64-linux-gnu" / sub.name
+            if sub.is_dir() and not sub.is_symlink() and not target.exists():
+                os.symlink(f"/host{sub}", target)
+        sets = [
+            "camera.source=libcamera",
+            "camera.width=640",
+            "camera.height=480",
+            "camera.fps=30",
+            "output.state_dir=/scratch/state",
+            "telemetry.url=",
+            "zenoh.enabled=false",
+        ]
+        daemon = (
+            DAEMON.replace("@ALT@", str(alt.resolve()))
+            .replace("@SETS@", " ".join(f"--set {x}" for x in sets))
+            .replace("@RUN_S@", str(DAEMON_RUN_S))
+            .replace("@HOSTLIBS@", ":".join(f"/host{d}" for d in host_library_dirs()))
+        )
+    init.write_text(INIT.replace("@CASES@", cases).replace("@DAEMON@", daemon))
     init.chmod(0o755)
     initrd = work / "initrd.cpio"
     qemu_vm.initramfs(root, initrd)
+    virtfs = "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap"
     console, elapsed = qemu_vm.boot(
-        qemu, TRIXIE / "vmlinuz", initrd, timeout_s=BOOT_TIMEOUT_S, log=work / "console.log"
+        qemu,
+        TRIXIE / "vmlinuz",
+        initrd,
+        timeout_s=BOOT_TIMEOUT_S,
+        log=work / "console.log",
+        extra=[] if daemon_skip else ["-virtfs", virtfs],
     )
     print(f"libcamera VM: {elapsed:.1f} s wall, console {work / 'console.log'}")
 
@@ -177,6 +281,8 @@ def vm(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
             current["text"].append(line)
             if line.startswith("{"):
                 current["events"].append(json.loads(line))
+    if daemon_skip:
+        sections["daemon"] = {"skip": daemon_skip}
     return sections
 
 
@@ -238,3 +344,67 @@ def test_clear_errors_for_a_missing_format_and_an_unknown_camera(vm: dict[str, d
     assert unknown["rc"] == 1, unknown["text"]
     (err,) = events(unknown, "error")
     assert err["message"] == "camera 'nope' not found (available: Virtual0)", err
+
+
+def daemon_run(vm: dict[str, dict]) -> dict:
+    d = vm["daemon"]
+    if d.get("skip"):
+        pytest.skip(d["skip"])
+    text = d["text"]
+    assert "KF-9P-MOUNT-FAIL" not in text, "mounting the host root over 9p failed"
+    assert not [x for x in text if x.startswith("KF-INSMOD-FAIL")], text
+    log = [x[len("KF-LOG ") :] for x in text if x.startswith("KF-LOG ")]
+    summary = [json.loads(x[len("KF-SUMMARY ") :]) for x in text if x.startswith("KF-SUMMARY ")]
+    marks = {x.split()[0]: float(x.split()[1]) for x in text if x.startswith("KF-DAEMON-")}
+    jpeg = b""
+    if "KF-JPEG-BEGIN" in text:
+        lines = text[text.index("KF-JPEG-BEGIN") + 1 : text.index("KF-JPEG-END")]
+        jpeg = base64.b64decode("".join(lines))
+    return {
+        "rc": d["rc"],
+        "log": log,
+        "summary": summary,
+        "marks": marks,
+        "jpeg": jpeg,
+        "text": text,
+    }
+
+
+def test_daemon_runs_on_libcamera_and_stops_cleanly(vm: dict[str, dict]) -> None:
+    d = daemon_run(vm)
+    log = "\n".join(d["log"])
+    assert d["rc"] == 0, log
+    assert "capturing from libcamera" in log and "640x480" in log, log
+    assert "ready: first frame received" in log, log
+    marks = d["marks"]
+    # SIGTERM ends it within a second, outputs flushed (the summary is written last).
+    assert marks["KF-DAEMON-EXIT"] - marks["KF-DAEMON-TERM"] < 1.0, marks
+    (s,) = d["summary"]
+    assert s["state"] == "stopped" and (s["width"], s["height"]) == (640, 480), s
+    assert "Virtual0" in s["source"], s
+    assert s["frames_read"] >= 10 and s["kept"] >= 1, s
+    # Nothing complains but about the calibration (none given).
+    complaints = [x for x in d["log"] if re.search(r"\d [EW] \w+:", x)]
+    assert all("no tagging.calibration" in x for x in complaints), complaints
+    # A static test pattern, striped without corners: one keyframe, then nothing new
+    # to measure (each frame a keyframe of its own before the selector knew better).
+    reasons = {x.split()[2]: int(x.split()[1]) for x in d["text"] if x.startswith("KF-REASON ")}
+    assert s["kept"] == 1 and reasons.get("first") == 1, (s, reasons)
+    assert reasons.get("featureless", 0) >= s["frames_read"] - 1 - s["rejected_blur"], reasons
+    print(f"daemon on libcamera 0.4: {s['frames_read']} frames read, {s['kept']} kept")
+
+
+def test_daemon_keyframe_is_the_colour_bars(vm: dict[str, dict]) -> None:
+    d = daemon_run(vm)
+    assert d["jpeg"], "no keyframe written"
+    import cv2
+    import numpy as np
+
+    img = cv2.imdecode(np.frombuffer(d["jpeg"], np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape == (480, 640, 3), None if img is None else img.shape
+    # white, yellow, cyan, green, magenta, red, blue, black (BGR)
+    bars = [(255, 255, 255), (0, 255, 255), (255, 255, 0), (0, 255, 0)]
+    bars += [(255, 0, 255), (0, 0, 255), (255, 0, 0), (0, 0, 0)]
+    for i, want in enumerate(bars):
+        got = img[240, 40 + 80 * i].astype(int)
+        assert np.abs(got - np.array(want)).max() <= 40, (i, got.tolist(), want)

@@ -167,6 +167,47 @@ TEST(Selector, FinishKeepsThePendingCandidateSoTheEndIsCovered) {
 namespace keyframed {
 namespace {
 
+TEST(Selector, ASharpSceneWithoutTextureGivesOneKeyframeNotOneAFrame) {
+  // Vertical stripes (like the colour bars of libcamera's virtual camera): strong
+  // edges, so sharp, but no corners to track or ORB features to match. Seen in the
+  // libcamera VM test: every frame became a keyframe ("first" again after each "lost").
+  cv::Mat bars(270, 480, CV_8UC1);
+  for (int x = 0; x < bars.cols; ++x) bars.col(x).setTo(cv::Scalar((x / 25) % 2 == 0 ? 235 : 16));
+  const cv::Mat strip = test::photoStrip();
+  for (const OverlapMode mode : {OverlapMode::Geometric, OverlapMode::Paper}) {
+    SCOPED_TRACE(mode == OverlapMode::Paper ? "paper" : "geometric");
+    SelectorConfig cfg;
+    cfg.analysisWidth = 0;
+    cfg.overlap.mode = mode;
+    // (The adaptive threshold would stay at the stripes' level for its whole window.)
+    cfg.blur.mode = BlurMode::Absolute;
+    KeyframeSelector sel(cfg);
+    std::vector<Decision> ds;
+    auto feed = [&](const cv::Mat& v) {
+      const auto i = static_cast<std::int64_t>(ds.size());
+      ds.push_back(sel.process(Frame::ofGray(v, i, i * 33333333)));
+    };
+    for (int i = 0; i < 30; ++i) feed(bars);
+    ASSERT_TRUE(ds[0].kept) << toString(ds[0].reason) << " sharpness " << ds[0].sharpness;
+    EXPECT_EQ(ds[0].reason, Reason::First);
+    for (int i = 1; i < 30; ++i) {
+      EXPECT_TRUE(ds[i].sharp) << i;
+      EXPECT_FALSE(ds[i].kept) << i;
+      EXPECT_EQ(ds[i].reason, Reason::Featureless) << i;
+    }
+    EXPECT_EQ(sel.keyframes(), 1);
+    // Texture comes into view (a slow pan): a new chain starts at its first sharp
+    // frame and is tracked on from there.
+    for (int i = 0; i < 10; ++i) feed(test::viewAt(strip, 100 + 2.0 * i));
+    std::size_t k = 30;
+    while (k < ds.size() && !ds[k].kept) ++k;
+    ASSERT_LT(k, ds.size() - 1);
+    EXPECT_EQ(ds[k].reason, Reason::First);
+    EXPECT_TRUE(ds[k + 1].tracking);
+    EXPECT_EQ(sel.keyframes(), 2);
+  }
+}
+
 TEST(Selector, LostTrackingKeepsTheCandidateAndRestartsAtTheNextSharpFrame) {
   // A pan inside the band, then a featureless frame (lens covered, a cloud), then
   // the camera sees a different place: the best frame before the loss is kept so
