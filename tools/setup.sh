@@ -53,14 +53,17 @@ MISSING="$(missing_apt)"
 if [ -n "$MISSING" ]; then
   echo "setup: installing apt packages: $MISSING"
   export DEBIAN_FRONTEND=noninteractive
-  $SUDO apt-get update -qq || true
+  APT_LOCK=(-o DPkg::Lock::Timeout=600)
+  # A stale or partial package index (a mirror mid-sync) fails the update; the
+  # install below then fails too, and the next attempt refreshes it again.
   # libsystemd-dev can upgrade systemd and leave dpkg half-configured (exit 100):
   # repair and retry rather than fail.
   for attempt in 1 2 3; do
-    if $SUDO apt-get install -y -qq -o DPkg::Lock::Timeout=600 --no-install-recommends $MISSING; then break; fi
+    $SUDO apt-get update -qq "${APT_LOCK[@]}" || echo "setup: apt-get update failed (attempt $attempt)" >&2
+    if $SUDO apt-get install -y -qq "${APT_LOCK[@]}" --no-install-recommends $MISSING; then break; fi
     echo "setup: apt-get install failed (attempt $attempt), repairing" >&2
-    $SUDO dpkg --configure -a || true
-    $SUDO apt-get -f install -y -qq || true
+    $SUDO dpkg --configure -a --force-confdef --force-confold || true
+    $SUDO apt-get -f install -y -qq "${APT_LOCK[@]}" || true
     [ "$attempt" = 3 ] && { echo "setup: apt-get install failed" >&2; exit 1; }
   done
 fi

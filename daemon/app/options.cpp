@@ -1,6 +1,7 @@
 #include "app/options.h"
 
 #include <cerrno>
+#include <charconv>
 #include <cmath>
 #include <cstdlib>
 #include <functional>
@@ -169,7 +170,13 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          c.bandHigh = hi;
          return {};
        }},
-      {"--analysis-width", integer(c.analysisWidth, limits::kAnalysisWidth)},
+      {"--analysis-width",
+       [&](const std::string& v) -> std::string {
+         if (std::string e = integer(c.analysisWidth, limits::kAnalysisWidth)(v); !e.empty())
+           return e;
+         if (c.analysisWidth > 0 && c.analysisWidth < 64) return "must be 0 (full) or >= 64";
+         return {};
+       }},
       {"--min-overlap", number(c.minOverlap, limits::kMinOverlap)},
       {"--motion-ratio", number(c.motionRatio, limits::kMotionRatio)},
       {"--motion-min-fraction", number(c.motionMinFraction, limits::kMotionMinFraction)},
@@ -207,7 +214,14 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          c.blur.colStep = static_cast<int>(cs);
          return {};
        }},
-      {"--blur-width", integer(c.blur.analysisWidth, limits::kBlurWidth)},
+      {"--blur-width",
+       [&](const std::string& v) -> std::string {
+         if (std::string e = integer(c.blur.analysisWidth, limits::kBlurWidth)(v); !e.empty())
+           return e;
+         if (c.blur.analysisWidth > 0 && c.blur.analysisWidth < 32)
+           return "must be 0 (full) or >= 32";
+         return {};
+       }},
       {"--decisions",
        [&](const std::string& v) -> std::string {
          if (v == "csv")
@@ -345,7 +359,33 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (o.video.empty()) return fail("no video given (usage: keyframed select VIDEO --out DIR)");
   if (o.outDir.empty()) return fail("--out DIR is required");
   relaxDependentDefaults(c, minTracksSet, warmupSet);
-  if (std::string e = c.validate(); !e.empty()) return fail(e);
+  // Settings that must agree with each other, named by their options (the
+  // defaults count too: --target 0.5 alone is under the default band).
+  const auto num = [](double v) {
+    char buf[32];
+    const auto [end, ec] = std::to_chars(buf, buf + sizeof buf, v);
+    return std::string(buf, ec == std::errc() ? end : buf);
+  };
+  if (c.bandLow > c.target)
+    return fail("--band LO (" + num(c.bandLow) + ") must not exceed --target (" + num(c.target) +
+                ")");
+  if (c.target > c.bandHigh)
+    return fail("--target (" + num(c.target) + ") must not exceed --band HI (" + num(c.bandHigh) +
+                ")");
+  if (c.minOverlap > c.bandLow)
+    return fail("--min-overlap (" + num(c.minOverlap) + ") must not exceed --band LO (" +
+                num(c.bandLow) + ")");
+  if (c.overlap.minTracks > c.overlap.maxTracks)
+    return fail("--min-tracks (" + std::to_string(c.overlap.minTracks) +
+                ") must not exceed --max-tracks (" + std::to_string(c.overlap.maxTracks) + ")");
+  if (c.overlap.minInliers > c.overlap.maxTracks)
+    return fail("--min-inliers (" + std::to_string(c.overlap.minInliers) +
+                ") must not exceed --max-tracks (" + std::to_string(c.overlap.maxTracks) + ")");
+  if (c.blur.warmup > c.blur.window)
+    return fail("--blur-warmup (" + std::to_string(c.blur.warmup) +
+                ") must not exceed --blur-window (" + std::to_string(c.blur.window) + ")");
+  // The core's own rules as a last line of defence.
+  if (std::string e = c.validate(); !e.empty()) return fail("selection settings: " + e);
   if (!o.telemetry.empty()) {
     std::string e;
     if (!parseMavlinkUrl(o.telemetry, e)) return fail("--telemetry: " + e);

@@ -3,9 +3,32 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
+#include <initializer_list>
 #include <system_error>
 
 namespace keyframed {
+
+namespace {
+
+// The signatures of the still-image formats FFmpeg opens as a one-frame video:
+// JPEG, PNG, BMP, TIFF (both byte orders), WebP.
+bool isStillImage(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  unsigned char m[12] = {};
+  if (!in.read(reinterpret_cast<char*>(m), sizeof m)) return false;
+  const auto is = [&m](std::initializer_list<unsigned char> sig, std::size_t at = 0) {
+    std::size_t i = at;
+    for (unsigned char c : sig)
+      if (m[i++] != c) return false;
+    return true;
+  };
+  return is({0xFF, 0xD8, 0xFF}) || is({0x89, 'P', 'N', 'G'}) || is({'B', 'M'}) ||
+         is({'I', 'I', 42, 0}) || is({'M', 'M', 0, 42}) ||
+         (is({'R', 'I', 'F', 'F'}) && is({'W', 'E', 'B', 'P'}, 8));
+}
+
+}  // namespace
 
 std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::string& error) {
   std::error_code ec;
@@ -40,6 +63,11 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
   const double count = src->capture_.get(cv::CAP_PROP_FRAME_COUNT);
   info.frameCount = count > 0 && std::isfinite(count) ? static_cast<std::int64_t>(count) : -1;
   info.description = "file:" + path;
+  // FFmpeg reads a photograph as a one-frame video; say what it is instead.
+  if (info.frameCount <= 1 && isStillImage(path)) {
+    error = "a still image, not a video: " + path;
+    return nullptr;
+  }
   return src;
 }
 

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import subprocess
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 
@@ -72,6 +75,17 @@ def test_not_a_video(any_bin: Path, tmp_path):
     )
 
 
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_a_photo_is_not_a_video(any_bin: Path, tmp_path, ext: str):
+    # FFmpeg would read it as a one-frame video; the user most likely meant a video.
+    img = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    photo = tmp_path / f"photo{ext}"
+    assert cv2.imwrite(str(photo), img)
+    out = tmp_path / "o"
+    assert_clean_failure(run(any_bin, "select", photo, "--out", out), "a still image, not a video")
+    assert not any(out.glob("*.jpg"))
+
+
 def test_directory_instead_of_video(any_bin: Path, tmp_path):
     assert_clean_failure(run(any_bin, "select", tmp_path, "--out", tmp_path / "o"), "directory")
 
@@ -102,6 +116,11 @@ def test_truncated_video_keeps_what_was_read_and_fails(any_bin: Path, pan_video:
         (["--band", "0.9,0.2"], "band"),
         (["--jpeg-quality", "0"], "--jpeg-quality"),
         (["--blur-window"], "needs a value"),
+        # cross-field and core rules name the options involved and their values
+        (["--target", "0.5"], "--band LO (0.6) must not exceed --target (0.5)"),
+        (["--analysis-width", "10"], "--analysis-width: must be 0 (full) or >= 64"),
+        (["--min-overlap", "0.65"], "--min-overlap (0.65) must not exceed --band LO (0.6)"),
+        (["--max-tracks", "20", "--min-tracks", "30"], "--min-tracks (30) must not exceed"),
     ],
 )
 def test_bad_options(any_bin: Path, pan_video: Path, tmp_path, args: list[str], needle: str):
@@ -138,6 +157,34 @@ def test_progress_line_on_request(kf_bin: Path, pan_video: Path, tmp_path):
     p = run(kf_bin, "select", pan_video, "--out", tmp_path / "o", "--progress")
     assert p.returncode == 0
     assert "frame 90/90" in p.stderr and "kept" in p.stderr
+
+
+def test_progress_is_automatic_on_a_terminal_only(kf_bin: Path, pan_video: Path, tmp_path):
+    # stderr a pseudo-terminal: progress shows without asking; a pipe: it does not.
+    import pty
+
+    leader, follower = pty.openpty()
+    with subprocess.Popen(
+        [str(kf_bin), "select", str(pan_video), "--out", str(tmp_path / "tty")],
+        stdout=subprocess.DEVNULL,
+        stderr=follower,
+    ) as p:
+        os.close(follower)
+        chunks = []
+        while True:  # read as it runs, so a full terminal buffer cannot stall it
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:  # EIO: the program has exited and closed the terminal
+                break
+            if not chunk:
+                break
+            chunks.append(chunk)
+        os.close(leader)
+        p.wait(timeout=120)
+    assert p.returncode == 0
+    assert "frame 90/90" in b"".join(chunks).decode(errors="replace")
+    piped = run(kf_bin, "select", pan_video, "--out", tmp_path / "pipe")
+    assert piped.returncode == 0 and "frame 90/90" not in piped.stderr
 
 
 def test_interrupt_stops_cleanly_with_outputs_flushed(kf_bin: Path, tmp_path):

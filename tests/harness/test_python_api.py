@@ -54,6 +54,22 @@ def test_selector_on_a_pan_keeps_frames_near_the_target():
     assert np.all(1 - gaps >= 0.6) and np.all(1 - gaps <= 0.75), kept
 
 
+def test_decisions_carry_per_stage_times():
+    # Core reads no clock; the binding lends it one, as the daemon does.
+    sel = keyframed.KeyframeSelector()
+    bgr = cv2.imread(str(PHOTOS / "aero1.jpg"))
+    views = [np.ascontiguousarray(bgr[:, i * 4 : i * 4 + 600]) for i in range(3)]
+    decisions = [sel.process(v, i) for i, v in enumerate(views)]
+    for d in decisions:
+        t = d["times_ms"]
+        assert set(t) == {"luma", "blur", "resize", "overlap", "total"}
+        assert t["total"] == d["total_ms"] > 0
+        assert t["luma"] > 0 and t["blur"] > 0  # BGR is converted to luma, then scored
+        assert all(v >= 0 for v in t.values())
+        assert t["luma"] + t["blur"] + t["resize"] + t["overlap"] == pytest.approx(t["total"])
+    assert decisions[1]["times_ms"]["overlap"] > 0  # tracked against the first keyframe
+
+
 def test_bgr_input_and_bad_arrays():
     sel = keyframed.KeyframeSelector()
     bgr = cv2.imread(str(PHOTOS / "aero3.jpg"))

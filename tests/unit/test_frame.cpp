@@ -17,6 +17,22 @@ TEST(Frame, Nv12LumaIsAViewWithoutACopy) {
   EXPECT_EQ(v.stride, 64);
 }
 
+TEST(Frame, Yuv420LumaIsAViewOfThePaddedYPlane) {
+  // I420 with padded rows (stride 80 for a 64-px-wide image), as cameras deliver.
+  std::vector<std::uint8_t> i420(80 * 48 * 3 / 2, 0);
+  for (int y = 0; y < 48; ++y)
+    for (int x = 0; x < 64; ++x)
+      i420[static_cast<std::size_t>(y * 80 + x)] = static_cast<std::uint8_t>(x + y);
+  Frame f{PixelFormat::YUV420, i420.data(), 64, 48, 80, 0, 0};
+  LumaExtractor x;
+  const GrayView v = x.luma(f);
+  EXPECT_EQ(v.data, i420.data());
+  EXPECT_EQ(v.width, 64);
+  EXPECT_EQ(v.height, 48);
+  EXPECT_EQ(v.stride, 80);
+  EXPECT_EQ(v.row(7)[9], 16);
+}
+
 TEST(Frame, BgrIsConvertedOnceIntoAReusedBuffer) {
   cv::Mat bgr(48, 64, CV_8UC3, cv::Scalar(10, 20, 30));
   LumaExtractor x;

@@ -1,3 +1,4 @@
+#include <algorithm>
 #include <map>
 
 #include <gtest/gtest.h>
@@ -109,11 +110,27 @@ TEST(Selector, PaperModeKeepsFramesAsTheDistanceGrows) {
   c.overlap.mode = OverlapMode::Paper;
   c.overlap.orbFeatures = 800;
   const PanRun r = pan(linear(100, 100, 8.0), {}, c);
-  ASSERT_GE(r.keyframes.size(), 2u);
-  for (const Decision& d : r.decisions)
+  ASSERT_GE(r.keyframes.size(), 3u);
+  // Every keyframe after the first is kept by the distance statistic, when it
+  // reaches t; the frames between are redundant, with their distance under t.
+  int byDistance = 0;
+  for (const Decision& d : r.decisions) {
     if (d.kept && d.reason == Reason::PaperDistance) {
-      EXPECT_GE(d.paperDistance, c.overlap.paperThreshold);
+      ++byDistance;
+      EXPECT_GE(d.paperDistance, c.overlap.paperThreshold) << "frame " << d.index;
+    } else if (d.reason == Reason::Redundant) {
+      EXPECT_LT(d.paperDistance, c.overlap.paperThreshold) << "frame " << d.index;
     }
+  }
+  EXPECT_EQ(byDistance, static_cast<int>(r.keyframes.size()) - 1);
+  // On a steady pan the distance grows with the shift, so keyframes come at a
+  // steady spacing: no spacing more than twice another.
+  std::vector<std::int64_t> gaps;
+  for (std::size_t k = 1; k < r.keyframes.size(); ++k)
+    gaps.push_back(r.keyframes[k] - r.keyframes[k - 1]);
+  const auto [lo, hi] = std::minmax_element(gaps.begin(), gaps.end());
+  EXPECT_GT(*lo, 1);
+  EXPECT_LE(*hi, 2 * *lo);
 }
 
 TEST(Selector, EveryFrameGetsADecisionWithScoresAndTimings) {

@@ -133,6 +133,35 @@ TEST(Sharpness, AdaptiveThresholdFollowsTheSourceAndRejectsBlurredFrames) {
   }
 }
 
+TEST(Sharpness, OneAdaptiveSettingWorksAcrossResolutions) {
+  // The same scene at 1/4, 1/2 and full size: the Laplacian's variance changes
+  // several-fold with the scale, so no absolute threshold fits all three; the
+  // adaptive one, with default settings, follows each and rejects its blur.
+  const cv::Mat full = test::photo("aero3.jpg");
+  std::vector<double> sharpScores;
+  for (const double scale : {0.25, 0.5, 1.0}) {
+    cv::Mat g;
+    cv::resize(full, g, cv::Size(), scale, scale, cv::INTER_AREA);
+    cv::Mat blurred;
+    cv::GaussianBlur(g, blurred, cv::Size(), 2.0 * scale + 0.8);
+    SharpnessScorer s{SharpnessConfig{}};
+    cv::RNG rng(3);
+    for (int i = 0; i < 30; ++i) {
+      cv::Mat n(g.size(), CV_8UC1);
+      rng.fill(n, cv::RNG::NORMAL, 0, 2);
+      cv::Mat f;
+      cv::add(g, n, f);
+      const auto r = s.evaluate(GrayView::of(f));
+      EXPECT_TRUE(r.sharp) << "scale " << scale << " frame " << i;
+      if (i == 29) sharpScores.push_back(r.score);
+    }
+    const auto r = s.evaluate(GrayView::of(blurred));
+    EXPECT_FALSE(r.sharp) << "scale " << scale << " blurred " << r.score << " thr " << r.threshold;
+  }
+  ASSERT_EQ(sharpScores.size(), 3u);
+  EXPECT_GT(sharpScores[0], 2.0 * sharpScores[2]);  // no single absolute threshold fits
+}
+
 TEST(Sharpness, AdaptiveFloorHoldsOnAFeaturelessSource) {
   SharpnessScorer s{SharpnessConfig{}};
   const cv::Mat flat(480, 640, CV_8UC1, cv::Scalar(128));

@@ -10,6 +10,7 @@
 #include <nanobind/stl/tuple.h>
 #include <nanobind/stl/unique_ptr.h>
 
+#include "app/paced_source.h"
 #include "app/select_command.h"
 #include "app/settings.h"
 #include "core/overlap.h"
@@ -97,7 +98,15 @@ nb::dict decisionDict(const Decision& d) {
   r["features"] = d.features;
   r["matches"] = d.matches;
   r["inliers"] = d.inliers;
-  r["total_ms"] = static_cast<double>(d.times.totalNs) / 1e6;
+  const auto ms = [](std::int64_t ns) { return static_cast<double>(ns) / 1e6; };
+  r["total_ms"] = ms(d.times.totalNs);
+  nb::dict t;
+  t["luma"] = ms(d.times.lumaNs);
+  t["blur"] = ms(d.times.blurNs);
+  t["resize"] = ms(d.times.resizeNs);
+  t["overlap"] = ms(d.times.overlapNs);
+  t["total"] = ms(d.times.totalNs);
+  r["times_ms"] = t;
   return r;
 }
 
@@ -217,7 +226,10 @@ NB_MODULE(_core, m) {
           "__init__",
           [](KeyframeSelector* self, const SelectorConfig& c) {
             checkValid(c);
-            new (self) KeyframeSelector(c, nullptr);
+            // Core reads no clock; like the daemon, the binding lends it one so
+            // that decisions carry per-stage times.
+            static const MonotonicClock clock;
+            new (self) KeyframeSelector(c, &clock);
           },
           "config"_a = SelectorConfig{})
       .def(
