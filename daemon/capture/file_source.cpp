@@ -63,10 +63,21 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
   const double count = src->capture_.get(cv::CAP_PROP_FRAME_COUNT);
   info.frameCount = count > 0 && std::isfinite(count) ? static_cast<std::int64_t>(count) : -1;
   info.description = "file:" + path;
-  // FFmpeg reads a photograph as a one-frame video; say what it is instead.
-  if (info.frameCount <= 1 && isStillImage(path)) {
-    error = "a still image, not a video: " + path;
-    return nullptr;
+  // FFmpeg reads a photograph as a one-frame video; say what it is instead. Only a
+  // regular file can be a photograph here: a FIFO or device carrying MJPEG starts
+  // with a JPEG's signature too. A concatenated MJPEG file does as well, so the
+  // verdict needs a second frame to be missing (read with a second decoder, so the
+  // first keeps its position).
+  if (info.frameCount <= 1 && std::filesystem::is_regular_file(path, ec) &&
+      isStillImage(path)) {
+    cv::VideoCapture probe;
+    cv::Mat scratch;
+    const bool second = probe.open(path, cv::CAP_FFMPEG) && probe.read(scratch) &&
+                        probe.read(scratch) && !scratch.empty();
+    if (!second) {
+      error = "a still image, not a video: " + path;
+      return nullptr;
+    }
   }
   return src;
 }

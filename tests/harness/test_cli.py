@@ -86,6 +86,23 @@ def test_a_photo_is_not_a_video(any_bin: Path, tmp_path, ext: str):
     assert not any(out.glob("*.jpg"))
 
 
+def test_a_raw_mjpeg_file_is_a_video(kf_bin: Path, pan_video: Path, tmp_path):
+    # Concatenated JPEGs (what an MJPEG camera dumped to disk looks like) start with a
+    # JPEG's signature; they are still a video, not a photo.
+    cap = cv2.VideoCapture(str(pan_video))
+    chunks = []
+    while len(chunks) < 12:
+        ok, img = cap.read()
+        assert ok
+        chunks.append(cv2.imencode(".jpg", img)[1].tobytes())
+    stream = tmp_path / "camera.mjpeg"
+    stream.write_bytes(b"".join(chunks))
+    out = tmp_path / "o"
+    p = run(kf_bin, "select", stream, "--out", out)
+    assert p.returncode == 0, p.stderr
+    assert json.loads((out / "summary.json").read_text())["frames_read"] == 12
+
+
 def test_directory_instead_of_video(any_bin: Path, tmp_path):
     assert_clean_failure(run(any_bin, "select", tmp_path, "--out", tmp_path / "o"), "directory")
 
