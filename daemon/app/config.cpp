@@ -1,6 +1,8 @@
 #include "app/config.h"
 
 #include <algorithm>
+#include <array>
+#include <cctype>
 #include <charconv>
 #include <cstdio>
 #include <cstdlib>
@@ -210,11 +212,16 @@ bool parseCameraSource(std::string_view s, Source& out) {
 
 std::string checkPixelFormat(const std::string& s) {
   if (s == "auto") return {};
-  const bool fourcc =
-      s.size() == 4 && std::all_of(s.begin(), s.end(), [](char ch) {
-        return (ch >= 'A' && ch <= 'Z') || (ch >= '0' && ch <= '9') || ch == ' ' || ch == '_';
-      });
-  return fourcc ? "" : "must be \"auto\" or a V4L2 FourCC such as \"YUYV\" (got " + quote(s) + ")";
+  // The names the capture backends take (V4L2: all of them; libcamera: the YUV ones,
+  // which it checks again at open with the camera's own list).
+  static constexpr std::array<std::string_view, 11> kNames = {
+      "NV12", "YUV420", "YU12", "I420", "YUYV", "YUY2", "MJPEG", "MJPG", "GREY", "GRAY", "GRAY8"};
+  std::string up;
+  for (char ch : s) up += static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+  if (std::find(kNames.begin(), kNames.end(), up) != kNames.end()) return {};
+  return "must be \"auto\" or one of NV12, YUV420 (YU12, I420), YUYV (YUY2), MJPEG (MJPG), "
+         "GREY (got " +
+         quote(s) + ")";
 }
 
 std::string checkUtcTime(const std::string& s) {
@@ -227,6 +234,11 @@ std::string checkMavlinkUrl(const std::string& s) {
   std::string e;
   if (s.empty() || parseMavlinkUrl(s, e)) return {};
   return e;
+}
+
+std::string checkExifText(const std::string& s) {
+  const std::string e = exifTextError(s);
+  return e.empty() ? e : e + " (got " + quote(s) + ")";
 }
 
 std::string checkCalibration(const std::string& s) {
@@ -483,6 +495,10 @@ std::vector<Field> makeSchema() {
   f.push_back(text(
       "tagging", "calibration", [](auto& c) -> auto& { return c.tagging.calibration; },
       checkCalibration));
+  f.push_back(text(
+      "tagging", "make", [](auto& c) -> auto& { return c.tagging.make; }, checkExifText));
+  f.push_back(text(
+      "tagging", "model", [](auto& c) -> auto& { return c.tagging.model; }, checkExifText));
   f.push_back(choice(
       "tagging", "mount", [](auto& c) -> auto& { return c.tagging.mountGimbal; },
       [](std::string_view s, bool& g) {

@@ -52,6 +52,8 @@ struct DaemonConfig {
 
   struct Tagging {
     std::string calibration;     // tagging.calibration ("": no intrinsics)
+    std::string make;            // tagging.make (EXIF Make; "": the calibration's)
+    std::string model;           // tagging.model (EXIF Model; "": the calibration's)
     double mountRollDeg = 0.0;   // tagging.mount_roll
     double mountPitchDeg = -90;  // tagging.mount_pitch (-90: nadir)
     double mountYawDeg = 0.0;    // tagging.mount_yaw

@@ -9,9 +9,12 @@
 
 namespace keyframed {
 
-// One row per frame, in frame order. Rows since the last keyframe are held back
-// until they are final, because a later frame can promote an earlier candidate
-// to keyframe (Reason::GapFill) and its row must then say so.
+// One row per frame, in frame order, written as soon as it is final. A candidate's
+// row (and every row after it) is held back, because a later frame can promote the
+// candidate to keyframe (Reason::GapFill) and its row must then say so. A hover can
+// hold a candidate for minutes: past kMaxHeldRows rows the held rows are written
+// as they stand (bounded memory, little lost to a power cut); a later promotion of
+// that candidate is then told only by the promoting row's `promoted` column.
 class DecisionLog {
  public:
   DecisionLog() = default;
@@ -29,6 +32,8 @@ class DecisionLog {
   void setGeotag(std::int64_t index, const std::string& geotag);
   bool close(std::string& error);
 
+  static constexpr std::size_t kMaxHeldRows = 900;  // 30 s at 30 fps
+
   static std::string header();
   static std::string csvRow(const Decision& d, const std::string& geotag = {});
   static std::string jsonRow(const Decision& d, const std::string& geotag = {});
@@ -43,6 +48,7 @@ class DecisionLog {
     std::string geotag;
   };
   std::deque<Row> pending_;
+  bool holding_ = false;  // pending_ starts with a candidate that may be promoted
   std::string path_;
 };
 

@@ -22,6 +22,16 @@ std::string KeyframeWriter::indexHeader() {
 
 bool KeyframeWriter::open(KeyframeWriterConfig config, std::string& error) {
   config_ = std::move(config);
+  if (!config_.camera && (!config_.make.empty() || !config_.model.empty())) {
+    config_.camera.emplace();  // identity only: uncalibrated, so no intrinsics are tagged
+    config_.camera->make.clear();
+    config_.camera->model.clear();
+  }
+  if (config_.camera) {
+    if (!config_.make.empty()) config_.camera->make = config_.make;
+    if (!config_.model.empty()) config_.camera->model = config_.model;
+  }
+  scaled_.reset();
   if (!encoder_.isValid()) {
     error = "cannot set up the JPEG encoder (libjpeg-turbo)";
     return false;

@@ -20,6 +20,10 @@ struct KeyframeWriterConfig {
   std::string dir;
   int quality = 92;
   std::optional<CameraModel> camera;  // scaled to the frame size when it differs
+  // EXIF Make/Model: replace the camera model's; with no camera model, tag them
+  // alone (with the image size) rather than nothing. "": keep / leave out.
+  std::string make;
+  std::string model;
   CameraMount mount;
 };
 

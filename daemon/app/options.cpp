@@ -79,6 +79,8 @@ telemetry and tags:
   --video-start TIME         UTC time of the video's first frame (ISO 8601 or unix
                              seconds); needed with a tlog
   --calibration FILE         camera intrinsics (OpenCV YAML/XML, TOML or JSON)
+  --make TEXT, --model TEXT  EXIF Make and Model (default: the calibration file's;
+                             without one, only these are tagged)
   --mount R,P,Y|gimbal       camera mount on the body, degrees (default 0,-90,0: nadir),
                              or 'gimbal': the attitude of GIMBAL_DEVICE_ATTITUDE_STATUS
   --autopilot SYS[:COMP]     follow this autopilot (default: the first one heard)
@@ -132,6 +134,13 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       }
       if (!range.contains(n)) return rangeError(range, n);
       dst = static_cast<std::remove_reference_t<decltype(dst)>>(n);
+      return {};
+    };
+  };
+  auto exifText = [](std::string& dst) -> Handler {
+    return [&dst](const std::string& v) -> std::string {
+      if (std::string e = exifTextError(v); !e.empty()) return e + " (got '" + v + "')";
+      dst = v;
       return {};
     };
   };
@@ -246,6 +255,8 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          o.calibration = v;
          return {};
        }},
+      {"--make", exifText(o.make)},
+      {"--model", exifText(o.model)},
       {"--video-start",
        [&](const std::string& v) -> std::string {
          std::int64_t ns = 0;

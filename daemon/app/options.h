@@ -26,6 +26,8 @@ struct SelectOptions {
   // Telemetry and tagging.
   std::string telemetry;                         // --telemetry URL|FILE.tlog (see openMavlinkLink)
   std::string calibration;                       // --calibration FILE (OpenCV YAML/XML, TOML, JSON)
+  std::string make;                              // --make TEXT (EXIF Make)
+  std::string model;                             // --model TEXT (EXIF Model)
   std::optional<std::int64_t> videoStartUnixNs;  // --video-start ISO8601|UNIX_SECONDS
   double mountRollDeg = 0.0;                     // --mount ROLL,PITCH,YAW (degrees, body FRD)
   double mountPitchDeg = -90.0;

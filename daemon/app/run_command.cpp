@@ -407,7 +407,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
     std::snprintf(b, sizeof b,
                   "{\"source\": \"%s\", \"geotagged\": %lld, \"clock\": \"%s\", "
                   "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
-                  "\"skipped_bytes\": %llu, \"captures_sent\": %llu, \"captures_pending\": %llu, "
+                  "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
+                  "\"captures_pending\": %llu, "
                   "\"captures_dropped\": %llu, \"captures_resent\": %llu, \"link_errors\": %llu, "
                   "\"reconnects\": %llu, \"gimbal_messages\": %llu}",
                   config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
@@ -415,6 +416,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
                   static_cast<unsigned long long>(ts.parser.messages),
                   static_cast<unsigned long long>(ts.parser.rejected),
+                  static_cast<unsigned long long>(ts.parser.unknownIds),
                   static_cast<unsigned long long>(ts.parser.skippedBytes),
                   static_cast<unsigned long long>(ts.capturesSent),
                   static_cast<unsigned long long>(ts.capturesPending),
@@ -524,6 +526,8 @@ int Daemon::run() {
   wc.dir = flightDir_ + "/keyframes";
   wc.quality = config_.tagging.jpegQuality;
   wc.camera = camera_;
+  wc.make = config_.tagging.make;
+  wc.model = config_.tagging.model;
   wc.mount = {config_.tagging.mountRollDeg, config_.tagging.mountPitchDeg,
               config_.tagging.mountYawDeg, config_.tagging.mountGimbal};
   if (!writer_.open(wc, error)) {
@@ -541,6 +545,7 @@ int Daemon::run() {
                                                                 : "zstd";
   fo.liveClock = true;  // frames and MAVLink on CLOCK_MONOTONIC
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  fo.error = [](const std::string& m) { KF_LOG(Output, Error) << m; };
   fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
   fo.zenoh = config_.zenoh.enabled;
   fo.zenohConfig = config_.zenoh.config;
@@ -576,6 +581,7 @@ int Daemon::run() {
       *source_, *pool_, *queue_,
       config_.camera.source == DaemonConfig::Source::File ? kFileMaxErrors : 0);
 
+  bool stopNow = false;  // a signal while waiting for telemetry: stop the usual way
   if (telemetry_ && !telemetry_->isReplay() && config_.telemetry.startWaitMs > 0) {
     // Keyframes taken before the autopilot is heard would go untagged: give the link
     // a moment (telemetry.start_wait_ms) to deliver a first pose. Signals still work.
@@ -585,9 +591,14 @@ int Daemon::run() {
     while (!telemetry_->decoder().hasPose() && monotonicNowNs() < deadline) {
       timespec wait{0, 20'000'000};
       const int sig = sigtimedwait(&sigs, nullptr, &wait);
-      if (sig == SIGINT || sig == SIGTERM) return 0;
+      if (sig == SIGINT || sig == SIGTERM) {
+        KF_LOG(App, Notice) << (sig == SIGINT ? "SIGINT" : "SIGTERM")
+                            << ": stopping before the camera started";
+        stopNow = true;
+        break;
+      }
     }
-    if (!telemetry_->decoder().hasPose()) {
+    if (!stopNow && !telemetry_->decoder().hasPose()) {
       KF_LOG(Telemetry, Warning) << "no attitude and position yet from "
                                  << config_.telemetry.link.url
                                  << "; keyframes are tagged once telemetry arrives";
@@ -596,10 +607,14 @@ int Daemon::run() {
   const auto start = std::chrono::steady_clock::now();
   std::thread output([this] { outputLoop(); });
   std::thread analysis([this] { analysisLoop(); });
-  capture_->start();
+  std::string state = "done";
+  if (stopNow) {
+    state = "stopped";
+  } else {
+    capture_->start();
+  }
 
   bool ready = false;
-  std::string state = "done";
   auto lastStatus = std::chrono::steady_clock::now();
   std::int64_t lastAnalysed = 0;
   const auto ping =
@@ -607,7 +622,7 @@ int Daemon::run() {
           ? std::chrono::duration_cast<std::chrono::milliseconds>(notifier_.watchdogPingInterval())
           : std::chrono::milliseconds(1000);
   auto lastPing = std::chrono::steady_clock::now();
-  while (true) {
+  while (!stopNow) {
     timespec wait{0, 100'000'000};
     const int sig = sigtimedwait(&sigs, nullptr, &wait);
     if (sig == SIGINT || sig == SIGTERM) {

@@ -38,6 +38,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
                   "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
                   "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
+                  "    \"unknown_ids\": %llu,\n"
                   "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
                   "    \"gimbal_messages\": %llu,\n"
                   "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
@@ -49,6 +50,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   s.telemetry.clockOffsetMs.c_str(),
                   static_cast<unsigned long long>(s.telemetry.messages),
                   static_cast<unsigned long long>(s.telemetry.rejected),
+                  static_cast<unsigned long long>(s.telemetry.unknownIds),
                   static_cast<unsigned long long>(s.telemetry.skippedBytes),
                   static_cast<unsigned long long>(s.telemetry.otherSources),
                   static_cast<unsigned long long>(s.telemetry.gimbal),
@@ -217,6 +219,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     wc.dir = opts.outDir;
     wc.quality = opts.jpegQuality;
     wc.camera = camera;
+    wc.make = opts.make;
+    wc.model = opts.model;
     wc.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg, opts.mountGimbal};
     if (!writer.open(wc, error)) {
       s.error = error;
@@ -246,6 +250,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
                           .count();
   }
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
+  fo.error = [](const std::string& m) { KF_LOG(Output, Error) << m; };
   fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
   if (!outputs.open(fo, source->info().width, source->info().height, camera ? &*camera : nullptr,
                     error)) {
@@ -346,6 +351,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     }
     s.telemetry.messages = ts.parser.messages;
     s.telemetry.rejected = ts.parser.rejected;
+    s.telemetry.unknownIds = ts.parser.unknownIds;
     s.telemetry.skippedBytes = ts.parser.skippedBytes;
     s.telemetry.otherSources = ts.decoder.otherSources;
     s.telemetry.gimbal = ts.decoder.gimbal;

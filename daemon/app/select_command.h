@@ -28,6 +28,7 @@ struct SelectSummary {
     std::string clockOffsetMs = "null";
     std::uint64_t messages = 0;
     std::uint64_t rejected = 0;
+    std::uint64_t unknownIds = 0;
     std::uint64_t skippedBytes = 0;
     std::uint64_t otherSources = 0;
     std::uint64_t gimbal = 0;  // gimbal attitude messages used

@@ -127,4 +127,12 @@ bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
   return true;
 }
 
+std::string exifTextError(std::string_view text) {
+  const bool printable = std::all_of(text.begin(), text.end(), [](char ch) {
+    return static_cast<unsigned char>(ch) >= 0x20 && static_cast<unsigned char>(ch) < 0x7f;
+  });
+  if (printable && text.size() <= 63) return {};
+  return "must be at most 63 printable ASCII characters, as EXIF holds them";
+}
+
 }  // namespace keyframed

@@ -82,4 +82,8 @@ std::string parseAutopilot(std::string_view text, int& system, int& component);
 // of unix seconds into unix nanoseconds.
 bool parseUtcTime(const std::string& text, std::int64_t& unixNs);
 
+// An EXIF ASCII value set by the user (Make, Model): at most 63 printable ASCII
+// characters. Empty on success, else why not (without the value).
+std::string exifTextError(std::string_view text);
+
 }  // namespace keyframed

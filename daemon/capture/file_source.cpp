@@ -68,8 +68,7 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
   // with a JPEG's signature too. A concatenated MJPEG file does as well, so the
   // verdict needs a second frame to be missing (read with a second decoder, so the
   // first keeps its position).
-  if (info.frameCount <= 1 && std::filesystem::is_regular_file(path, ec) &&
-      isStillImage(path)) {
+  if (info.frameCount <= 1 && std::filesystem::is_regular_file(path, ec) && isStillImage(path)) {
     cv::VideoCapture probe;
     cv::Mat scratch;
     const bool second = probe.open(path, cv::CAP_FFMPEG) && probe.read(scratch) &&

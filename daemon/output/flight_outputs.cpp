@@ -92,6 +92,13 @@ struct FlightOutputs::Impl {
       std::fprintf(stderr, "keyframed: %s\n", message.c_str());
     }
   }
+  void error(const std::string& message) const {
+    if (options.error) {
+      options.error(message);
+    } else {
+      warn(message);
+    }
+  }
   void warn(const std::string& message) const {
     if (options.warn) {
       options.warn(message);
@@ -132,6 +139,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     ro.onNewPart = [impl = impl_.get()](const std::string& path) {
       impl->note("MCAP: recording continues in " + path);
     };
+    ro.onFailure = [impl = impl_.get()](const std::string& line) { impl->error(line); };
     ro.rotateBytes = o.mcapRotateBytes;
     ro.rotateSeconds = o.mcapRotateSeconds;
     auto rec = std::make_unique<McapRecorder>();
@@ -306,8 +314,9 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     // Every keyframe is put, whatever happened to the one before: Zenoh reconnects by
     // itself, and a ground station fetches what it missed from the queryable.
     std::string error;
-    const bool ok = impl_->putForTesting ? impl_->putForTesting(jpeg, meta, error)
-                                         : impl_->publisher->publishKeyframe(jpeg, meta, error);
+    const bool ok = impl_->putForTesting
+                        ? impl_->putForTesting(jpeg, meta, error)
+                        : impl_->publisher->publishKeyframe(rec.sequence, jpeg, meta, error);
     if (!ok) {
       ++impl_->publishFailures;
       if (const auto held = impl_->publishFailureLog.pass("", wallNs())) {

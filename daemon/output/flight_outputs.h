@@ -35,6 +35,9 @@ struct FlightOutputOptions {
   // Where FlightOutputs' own warnings go (a publish that failed); empty: stderr.
   std::function<void(const std::string&)> warn;
   std::function<void(const std::string&)> note;  // informational lines; empty: stderr
+  // A part of the outputs stopped for the rest of the run (the recorder hit a full
+  // disk); empty: warn.
+  std::function<void(const std::string&)> error;
 };
 
 // Everything a run sends beyond its keyframe directory: the MCAP flight record and

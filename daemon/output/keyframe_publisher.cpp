@@ -260,6 +260,15 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     reply.fail(error, ignored);
     return;
   }
+  {
+    // What was published live, where known (the CSV has no scores).
+    std::lock_guard lock(publishedMutex_);
+    for (StoredKeyframe& r : rows) {
+      if (const auto it = published_.find(r.sequence); it != published_.end()) {
+        r.metadataJson = it->second;
+      }
+    }
+  }
   bool found = false;
   std::vector<std::uint8_t> jpeg;
   for (const StoredKeyframe& r : rows) {
@@ -281,8 +290,12 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
   }
 }
 
-bool KeyframePublisher::publishKeyframe(std::span<const std::uint8_t> jpeg,
+bool KeyframePublisher::publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
                                         const std::string& metadataJson, std::string& error) {
+  {
+    std::lock_guard lock(publishedMutex_);
+    published_[sequence] = metadataJson;
+  }
   const auto* att = reinterpret_cast<const std::uint8_t*>(metadataJson.data());
   return keyframes_->put(jpeg, {att, metadataJson.size()}, error);
 }

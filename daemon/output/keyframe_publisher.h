@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <span>
@@ -30,9 +31,11 @@ class KeyframePublisher {
   KeyframePublisher(const KeyframePublisher&) = delete;
   KeyframePublisher& operator=(const KeyframePublisher&) = delete;
 
-  // Reliable, blocking congestion control: waits rather than drops.
-  bool publishKeyframe(std::span<const std::uint8_t> jpeg, const std::string& metadataJson,
-                       std::string& error);
+  // Reliable, blocking congestion control: waits rather than drops. The metadata is
+  // kept (by sequence) for the queryable, so a keyframe fetched later carries the
+  // same attachment, scores included, as the one published.
+  bool publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
+                       const std::string& metadataJson, std::string& error);
   // Best effort.
   bool publishStatus(const std::string& json, std::string& error);
   // Best effort, dropped under congestion: a low-rate JPEG of the live view.
@@ -58,6 +61,8 @@ class KeyframePublisher {
   std::unique_ptr<ZenohPublisher> preview_;
   std::unique_ptr<ZenohPublisher> telemetry_;
   std::unique_ptr<ZenohQueryable> queryable_;
+  std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)
+  std::map<std::int64_t, std::string> published_;  // sequence -> metadata JSON
 };
 
 // The metadata of one keyframe; numbers as text, empty = unknown (JSON null).

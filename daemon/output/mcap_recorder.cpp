@@ -220,8 +220,12 @@ void McapRecorder::fail(const std::string& error) {
   }
   failed_.store(true);
   space_.notify_all();
-  std::fprintf(stderr, "keyframed: MCAP recorder stopped, the run goes on without it: %s\n",
-               error.c_str());
+  const std::string line = "MCAP recorder stopped, the run goes on without it: " + error;
+  if (options_.onFailure) {
+    options_.onFailure(line);
+  } else {
+    std::fprintf(stderr, "keyframed: %s\n", line.c_str());
+  }
 }
 
 void McapRecorder::run() {

@@ -52,6 +52,10 @@ struct McapRecorderOptions {
   // Called on the writer thread with each new part's path (not under any lock of the
   // recorder's: it may log).
   std::function<void(const std::string&)> onNewPart;
+  // Called once, on the thread that hit it, when a write error stops the recorder
+  // (disk full, I/O error); not under any lock of the recorder's. Unset: one line on
+  // stderr.
+  std::function<void(const std::string&)> onFailure;
 };
 
 struct McapRecorderStats {

@@ -80,8 +80,8 @@ void setByte(Exiv2::ExifData& exif, const char* key, const char* values) {
 }
 
 void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& cam) {
-  exif["Exif.Image.Make"] = cam.make;
-  exif["Exif.Image.Model"] = cam.model;
+  if (!cam.make.empty()) exif["Exif.Image.Make"] = cam.make;
+  if (!cam.model.empty()) exif["Exif.Image.Model"] = cam.model;
   if (cam.width > 0 && cam.height > 0) {
     exif["Exif.Photo.PixelXDimension"] = static_cast<std::uint32_t>(cam.width);
     exif["Exif.Photo.PixelYDimension"] = static_cast<std::uint32_t>(cam.height);

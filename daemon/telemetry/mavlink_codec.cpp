@@ -14,7 +14,9 @@ bool MavlinkParser::parseByte(std::uint8_t byte) {
     if (message_.magic == MAVLINK_STX_MAVLINK1) ++stats_.mavlink1;
     return true;
   }
-  if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE) {
+  if (result == MAVLINK_FRAMING_BAD_CRC && mavlink_get_msg_entry(message_.msgid) == nullptr) {
+    ++stats_.unknownIds;
+  } else if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE) {
     ++stats_.rejected;
   } else if (stateBefore == MAVLINK_PARSE_STATE_IDLE &&
              status_.parse_state == MAVLINK_PARSE_STATE_IDLE) {

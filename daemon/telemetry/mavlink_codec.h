@@ -10,12 +10,16 @@
 namespace keyframed {
 
 // Counts of what a parser saw on a link. "Rejected" frames had a good start byte
-// but a bad checksum, an unknown message id (its CRC_EXTRA is unknown, so it cannot
-// be checked) or a bad signature; bytes between frames are "skipped".
+// but a bad checksum (corruption, or a frame cut short and run into the next) or a
+// bad signature; "unknown" frames carry a message id the common dialect lacks
+// (ArduPilot's or PX4's own messages: not corruption, but their CRC_EXTRA is
+// unknown, so they cannot be checked and are skipped); bytes between frames are
+// "skipped".
 struct ParserStats {
   std::uint64_t bytes = 0;
   std::uint64_t messages = 0;
   std::uint64_t rejected = 0;
+  std::uint64_t unknownIds = 0;
   std::uint64_t skippedBytes = 0;
   std::uint64_t mavlink1 = 0;  // of `messages`, how many were MAVLink 1 frames
 };

@@ -35,6 +35,7 @@ there from the start (the daemon listens with ``udpin``).
 
 from __future__ import annotations
 
+import copy
 import math
 import select
 import socket
@@ -140,7 +141,10 @@ def read_tlog(path: Path) -> list[TlogRecord]:
 
 
 def _copy(msg: Message) -> Message:
-    return mavlink.MAVLink(None).decode(bytearray(msg.get_msgbuf()))
+    # A deep copy of the fields as they are now: decoding get_msgbuf() again would
+    # bring back the bytes it was read from, without any change made since (the
+    # boot offset, before noise is added).
+    return copy.deepcopy(msg)
 
 
 def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:

@@ -142,6 +142,25 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
         exif = Image.open(jpeg).getexif().get_ifd(0x8769)
         assert exif.get(0xA405) == round(intr["fx"] * 36 / 480), "FocalLengthIn35mmFilm"
 
+    # Replayed with other settings: the same frames decided anew, closer together.
+    tight = tmp_path / "replay-tight"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(mcap), "--out", str(tight), "--quiet"]
+        + ["--target", "0.85", "--band", "0.75,0.95"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    base, again = rows(out / "decisions.csv"), rows(tight / "decisions.csv")
+    assert [x["index"] for x in again] == [x["index"] for x in base]
+    kept_base = [x for x in base if x["kept"] == "1"]
+    kept_tight = [x for x in again if x["kept"] == "1"]
+    print(f"replay: {len(kept_base)} keyframes at target 0.70, {len(kept_tight)} at 0.85")
+    assert len(kept_tight) > 1.5 * len(kept_base), (len(kept_tight), len(kept_base))
+    overlaps = [float(x["overlap"]) for x in kept_tight[1:] if x["overlap"]]
+    assert overlaps and float(np.median(overlaps)) > 0.8, overlaps
+
 
 def rows(path: Path) -> list[dict[str, str]]:
     with open(path) as f:
@@ -266,6 +285,70 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert len(a) == len(b) == 240
     assert [[x[k] for k in keys] for x in a] == [[y[k] for k in keys] for y in b]
     assert (out2 / "keyframes.csv").read_text() == (out / "keyframes.csv").read_text()
+
+
+def test_sigkill_of_the_daemon_loses_about_the_last_second(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """`keyframed run` killed outright (SIGKILL: no flush, no summary section) in the
+    middle of a flight: the record reads back up to about a second before the kill,
+    its decisions without a hole, and `pymcap-cli recover` makes a doctor-clean file
+    of it with every message that was readable."""
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True)
+    (cfg / "keyframed.toml").write_text("")
+    args = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    for s in (
+        f"output.state_dir={tmp_path / 'state'}",
+        "zenoh.enabled=false",
+        "camera.source=file",
+        "telemetry.url=",
+        f"camera.path={short_nadir / 'video.avi'}",  # 8 s at 30 fps, in real time
+    ):
+        args += ["--set", s]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    mcap = tmp_path / "state" / "latest" / "flight.mcap"
+    deadline = time.monotonic() + 30
+    while not mcap.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    time.sleep(4.0)
+    assert proc.poll() is None, proc.communicate()[1]
+    killed = time.time()
+    proc.kill()
+    proc.wait(timeout=10)
+    mcap = mcap.resolve()
+
+    read: list[Any] = []
+    with mcap.open("rb") as fh:
+        try:
+            for _, _, msg in mcap_reader.NonSeekingReader(fh).iter_messages(log_time_order=False):
+                read.append(msg)
+        except Exception:
+            pass  # the torn last chunk: the reader stops there
+    assert read
+    lost = killed - max(m.log_time for m in read) / 1e9
+    print(f"SIGKILL: {len(read)} messages read back, the last {lost:.2f} s before the kill lost")
+    # The writer ends a chunk at least once a second; allow half a second for a loaded
+    # machine.
+    assert 0 <= lost < 1.5, lost
+
+    out = tmp_path / "recovered.mcap"
+    r = subprocess.run(
+        [PYMCAP_CLI, "recover", str(mcap), "-o", str(out), "--compression", "none", "--force"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode in (0, 3) and out.exists(), r.stdout + r.stderr
+    assert_doctor_clean(out)
+    with out.open("rb") as fh:
+        reader = mcap_reader.make_reader(fh)
+        recovered = list(reader.iter_messages(log_time_order=False))
+    assert len(recovered) >= len(read)
+    index = sorted(
+        json.loads(m.data)["index"] for _, ch, m in recovered if ch.topic == "/keyframed/decision"
+    )
+    assert index == list(range(len(index))) and len(index) >= 60, index[:5]
 
 
 @pytest.mark.skipif(shutil.which("strace") is None, reason="needs strace")

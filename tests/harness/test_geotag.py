@@ -631,14 +631,29 @@ def test_live_udp_autopilot_with_noise(
     kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
 ) -> None:
     noise = Noise(attitude_deg=0.5, position_m=0.5, altitude_m=0.3)
-    ap = fake_autopilot(short_nadir / "flight.tlog", noise=noise, seed=4, mavlink1=True)
+    ap = fake_autopilot(
+        short_nadir / "flight.tlog", noise=noise, seed=4, mavlink1=True, boot_offset_ms=2_345_678
+    )
     out, _ = live_run(kf_bin, short_nadir, tmp_path, ap)
     errs = np.array(check_live_tags(short_nadir, out, ap))
-    # Interpolating between two noisy samples keeps the error at the noise level:
-    # RMS no larger than the injected sigma (+ a little), no gross outliers.
-    assert math.sqrt(np.mean(errs[:, 0] ** 2)) < 0.5 * math.sqrt(2) * 1.5
-    assert math.sqrt(np.mean(errs[:, 1] ** 2)) < 0.3 * 1.5
-    assert np.max(errs[:, 2]) < 0.5 * 5
+    rms = np.sqrt(np.mean(errs**2, axis=0))
+    print(
+        f"noisy live tags vs truth: RMS horizontal {rms[0]:.3f} m, vertical {rms[1]:.3f} m, "
+        f"attitude {rms[2]:.3f} deg"
+    )
+    # As for the noisy tlog: at the noise level (under 1.5 sigma RMS, no gross
+    # outlier) and not below it (the noise did reach the tags).
+    sigma = np.array(
+        [noise.position_m * math.sqrt(2), noise.altitude_m, noise.attitude_deg * math.sqrt(3)]
+    )
+    assert np.all(rms < 1.5 * sigma), rms
+    assert np.all(rms > 0.2 * sigma), rms
+    assert np.max(errs[:, 2]) < 5 * noise.attitude_deg
+    # Noise on the values, not on the clock: the mapping is as exact as without it.
+    tel = json.loads((out / "summary.json").read_text())["telemetry"]
+    error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
+    print(f"noisy link: clock offset error {error_ms:.3f} ms ({tel['clock']})")
+    assert abs(error_ms) < 5.0
 
 
 def test_live_link_drop_garbage_and_return(
@@ -853,3 +868,40 @@ def test_live_gimbal_component_over_udp(
     assert max(e[2] for e in errs) < 0.2, errs
     summary = json.loads((out / "summary.json").read_text())
     assert summary["telemetry"]["gimbal_messages"] > 100
+
+
+@needs_exiftool
+def test_make_and_model_are_tagged_with_or_without_a_calibration(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """EXIF Make/Model group images into cameras in COLMAP and ODM: the user's values
+    win over the calibration file's; without a calibration they are all that is
+    tagged of the camera (no invented focal length); unset and uncalibrated, none."""
+    cases = {
+        "bare": [],
+        "named": ["--make", "Acme Aero", "--model", "PiCam HQ 6mm"],
+        "calibrated": [
+            "--calibration",
+            str(short_nadir / "intrinsics.json"),
+            "--make",
+            "Acme Aero",
+            "--model",
+            "PiCam HQ 6mm",
+        ],
+    }
+    for name, extra in cases.items():
+        out = tmp_path / name
+        r = run_select(kf_bin, short_nadir, out, "--max-frames", "30", *extra)
+        assert r.returncode == 0, r.stderr
+        (t,) = [exif([p])[p.name] for p in sorted(out.glob("*.jpg"))[:1]]
+        if name == "bare":
+            assert "IFD0:Make" not in t and "IFD0:Model" not in t, t
+            continue
+        assert t["IFD0:Make"] == "Acme Aero" and t["IFD0:Model"] == "PiCam HQ 6mm", t
+        assert t["ExifIFD:ExifImageWidth"] == 480 and t["ExifIFD:ExifImageHeight"] == 270
+        if name == "named":
+            assert "ExifIFD:FocalLengthIn35mmFormat" not in t and "XMP-Camera:ModelType" not in t
+        else:
+            assert t["ExifIFD:FocalLengthIn35mmFormat"] > 0 and "XMP-Camera:ModelType" in t
+    r = run_select(kf_bin, short_nadir, tmp_path / "bad", "--make", "x" * 64)
+    assert r.returncode == 2 and "--make" in r.stderr and "63 printable" in r.stderr, r.stderr

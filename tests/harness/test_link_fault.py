@@ -149,6 +149,8 @@ def test_ground_station_stopped_mid_flight_ends_with_every_keyframe_once(
     assert not list(images.glob("*.tmp"))
     for k in kfs:
         assert (images / k["file"]).read_bytes() == (fd / "keyframes" / k["file"]).read_bytes()
-    seqs = [json.loads(line)["sequence"] for line in (out / "uav9" / "keyframes.jsonl").open()]
-    assert seqs == list(range(len(kfs)))
+    metas = [json.loads(line) for line in (out / "uav9" / "keyframes.jsonl").open()]
+    assert [m["sequence"] for m in metas] == list(range(len(kfs)))
+    # fetched or received live, each carries the metadata the vehicle published
+    assert all(m["scores"] is not None and m["scores"]["reason"] for m in metas), metas
     assert os.path.getsize(out / "uav9" / "cameras.txt") > 0

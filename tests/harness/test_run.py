@@ -59,10 +59,10 @@ def start(
     )
 
 
-def sigterm(proc: subprocess.Popen[str]) -> tuple[str, float]:
-    """SIGTERM the daemon; its stderr and how long it took to exit, in seconds."""
+def sigterm(proc: subprocess.Popen[str], sig: signal.Signals = signal.SIGTERM) -> tuple[str, float]:
+    """SIGTERM (or `sig`) the daemon; its stderr and how long it took to exit, in s."""
     t0 = time.monotonic()
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)
     _, stderr = proc.communicate(timeout=20)
     return stderr, time.monotonic() - t0
 
@@ -117,12 +117,40 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     assert len(rows(fd / "keyframes" / "keyframes.csv")) == len(live_jpgs) == summary["written"]
 
 
-def test_sigterm_stops_within_a_second_with_everything_flushed(
+def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """Stopped before the autopilot was ever heard (telemetry.start_wait_ms): the same
+    clean stop as later on, with a summary and a closed record, not a bare exit."""
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{free_port()}",
+        "telemetry.start_wait_ms=30000",
+    )
+    time.sleep(1.5)
+    assert proc.poll() is None
+    stderr, took = sigterm(proc)
+    assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    assert "stopping before the camera started" in stderr, stderr
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["state"] == "stopped" and summary["frames_read"] == 0, summary
+    from mcap.reader import make_reader
+
+    with open(fd / "flight.mcap", "rb") as f:  # closed properly: the summary section reads
+        assert make_reader(f).get_summary() is not None
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_sigterm_stops_within_a_second_with_everything_flushed(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, sig: signal.Signals
 ) -> None:
     proc = start(kf_bin, tmp_path, f"camera.path={short_nadir / 'video.avi'}")
     time.sleep(3.0)
-    stderr, took = sigterm(proc)
+    stderr, took = sigterm(proc, sig)
     assert proc.returncode == 0, stderr
     assert took < 1.0, f"SIGTERM took {took:.2f} s"
     fd = flight_dir(tmp_path)
@@ -635,7 +663,24 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     ok = [k for k in kfs if k["geotag"] == "ok"]
     assert len(ok) >= len(kfs) - 1, [k["geotag"] for k in kfs]
     assert summary["telemetry"]["captures_sent"] == len(kfs)
-    assert len(ap.received("CAMERA_IMAGE_CAPTURED")) == len(kfs)
+    # The daemon's tags against the flight's truth (exiftool's reading of them), and
+    # one CAMERA_IMAGE_CAPTURED per keyframe with its index, file and position.
+    from test_geotag import Truth, exif, tag_errors
+
+    truth = Truth(short_nadir)
+    tags = exif([fd / "keyframes" / k["file"] for k in ok])
+    for k in ok:
+        flight_t = (ap.unix_us_at_monotonic_ns(int(k["time_ns"])) - truth.epoch_us) / 1e6
+        horizontal, vertical, attitude = tag_errors(tags[k["file"]], truth.at(flight_t))[:3]
+        assert horizontal < 0.1 and vertical < 0.1 and attitude < 0.2, (k, tags[k["file"]])
+    caps = ap.received("CAMERA_IMAGE_CAPTURED")
+    assert [c.image_index for c in caps] == list(range(len(kfs)))
+    for c, k in zip(caps, kfs, strict=True):
+        assert c.file_url.endswith(k["file"]) and c.capture_result == 1
+        if k["geotag"] == "ok":
+            assert abs(c.lat - float(k["lat"]) * 1e7) <= 0.5 + 1e-6
+            assert abs(c.lon - float(k["lon"]) * 1e7) <= 0.5 + 1e-6
+            assert abs(c.relative_alt - float(k["alt_rel"]) * 1e3) <= 1.0
     # the flight record holds the raw MAVLink stream too
     from mcap.reader import make_reader
 
@@ -954,7 +999,11 @@ def test_full_disk_loses_no_keyframe_on_the_link(
         finally:
             session.close()
         assert "Sanitizer" not in stderr and "terminate" not in stderr, stderr
+        # Exit 1: the outputs are incomplete (keyframes not saved, no summary); a
+        # signal (negative) would be a crash.
+        assert proc.returncode == 1, stderr
         assert "No space left on device" in stderr, stderr
+        assert "MCAP recorder stopped" in stderr, stderr
         errors = [ln for ln in stderr.splitlines() if "No space left" in ln]
         assert len(errors) < 10, f"{len(errors)} error lines: logged per frame"
 

@@ -275,6 +275,9 @@ TEST(Config, OutOfRangeAndBadValues) {
                  "2: selection.target: must be between 0.01 and 0.99 (got 1.5)");
   expectOneError(dir, "[tagging]\njpeg_quality = 101\n",
                  "2: tagging.jpeg_quality: must be between 1 and 100 (got 101)");
+  expectOneError(dir, "[tagging]\nmodel = \"tab\\there\"\n",
+                 "2: tagging.model: must be at most 63 printable ASCII characters, as EXIF holds "
+                 "them (got \"tab\\u0009here\")");
   expectOneError(dir, "[tagging]\nmount = \"gimbal2\"\n",
                  "2: tagging.mount: must be one of fixed, gimbal (got \"gimbal2\")");
   expectOneError(dir, "[selection]\nmode = \"fast\"\n",
@@ -282,8 +285,12 @@ TEST(Config, OutOfRangeAndBadValues) {
   expectOneError(dir, "[camera]\nsource = \"usb\"\n",
                  "2: camera.source: must be one of v4l2, libcamera, file (got \"usb\")");
   expectOneError(dir, "[camera]\npixel_format = \"yuyv422\"\n",
-                 "2: camera.pixel_format: must be \"auto\" or a V4L2 FourCC such as \"YUYV\" "
-                 "(got \"yuyv422\")");
+                 "2: camera.pixel_format: must be \"auto\" or one of NV12, YUV420 (YU12, I420), "
+                 "YUYV (YUY2), MJPEG (MJPG), GREY (got \"yuyv422\")");
+  // A well-formed FourCC that no backend decodes is as wrong as a typo.
+  expectOneError(dir, "[camera]\npixel_format = \"H264\"\n",
+                 "2: camera.pixel_format: must be \"auto\" or one of NV12, YUV420 (YU12, I420), "
+                 "YUYV (YUY2), MJPEG (MJPG), GREY (got \"H264\")");
   expectOneError(dir, "[telemetry]\nurl = \"tcp:1.2.3.4\"\n",
                  "2: telemetry.url: bad MAVLink link 'tcp:1.2.3.4': unknown scheme 'tcp'");
   expectOneError(dir, "[telemetry]\nautopilot = \"1:300\"\n",

@@ -41,6 +41,44 @@ TEST(DecisionLog, APromotedCandidateIsRewrittenAsKept) {
   EXPECT_EQ(l[3].rfind("2,0,0,blurry,0,1,", 0), 0u) << l[3];
 }
 
+TEST(DecisionLog, RowsAreWrittenWhenFinalAndAHeldCandidateIsBounded) {
+  const std::string path = testing::TempDir() + "/decisions-hover.csv";
+  DecisionLog log;
+  std::string err;
+  ASSERT_TRUE(log.open(path, DecisionFormat::Csv, err)) << err;
+  Decision d;
+  d.index = 0;
+  d.kept = true;
+  d.reason = Reason::First;
+  ASSERT_TRUE(log.add(d, err));
+  // Blurry frames with no candidate: nothing can change them, so they are on disk
+  // at once (a power cut loses none).
+  d.kept = false;
+  d.reason = Reason::Blurry;
+  for (d.index = 1; d.index <= 10; ++d.index) ASSERT_TRUE(log.add(d, err));
+  EXPECT_EQ(lines(path).size(), 1u + 11u);
+  // A candidate, then a long hover: its rows wait for a promotion, but not forever.
+  d.reason = Reason::Redundant;
+  d.candidate = true;
+  ASSERT_TRUE(log.add(d, err));  // index 11
+  d.candidate = false;
+  for (d.index = 12; d.index < 12 + 50; ++d.index) ASSERT_TRUE(log.add(d, err));
+  EXPECT_EQ(lines(path).size(), 1u + 11u) << "held while the candidate may be promoted";
+  const std::int64_t end = 12 + static_cast<std::int64_t>(DecisionLog::kMaxHeldRows) + 10;
+  for (; d.index < end; ++d.index) ASSERT_TRUE(log.add(d, err));
+  const auto held = lines(path);
+  EXPECT_EQ(held.size(), 1u + static_cast<std::size_t>(end)) << "written once held too long";
+  EXPECT_EQ(held[12].rfind("11,0,0,redundant,1,", 0), 0u) << held[12];
+  // The candidate is promoted after all: the promoting row says which one.
+  d.reason = Reason::Blurry;
+  d.promotedIndex = 11;
+  ASSERT_TRUE(log.add(d, err));
+  ASSERT_TRUE(log.close(err));
+  const auto all = lines(path);
+  ASSERT_EQ(all.size(), 2u + static_cast<std::size_t>(end));
+  EXPECT_EQ(all.back().rfind(std::to_string(end) + ",0,0,blurry,0,11,", 0), 0u) << all.back();
+}
+
 TEST(DecisionLog, JsonLinesHaveOneObjectPerFrame) {
   const std::string path = testing::TempDir() + "/decisions.jsonl";
   DecisionLog log;

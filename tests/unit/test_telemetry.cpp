@@ -334,6 +334,49 @@ TEST(MavlinkParser, SkipsGarbageAndCorruptFramesAndKeepsTheRest) {
   EXPECT_EQ(parser.stats().bytes, stream.size());
 }
 
+TEST(MavlinkParser, CountsEachKindOfBadInputExactly) {
+  MavlinkEncoder ap(1, 1);
+  std::vector<std::uint8_t> s;
+  const auto add = [&s](const std::vector<std::uint8_t>& p) {
+    s.insert(s.end(), p.begin(), p.end());
+  };
+  add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));  // good
+  // A well-formed MAVLink 2 frame of an id the common dialect lacks (another
+  // dialect's message: its CRC_EXTRA, 0x5B here, is unknown to us).
+  std::vector<std::uint8_t> other = {0xFD, 4, 0, 0, 7, 1, 1, 0xB8, 0x2A, 0x00, 1, 2, 3, 4};
+  std::uint16_t crc = crc_calculate(other.data() + 1, static_cast<std::uint16_t>(other.size() - 1));
+  crc_accumulate(0x5B, &crc);
+  other.push_back(static_cast<std::uint8_t>(crc & 0xFF));
+  other.push_back(static_cast<std::uint8_t>(crc >> 8));
+  add(other);
+  auto corrupt = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  corrupt[12] ^= 0x21;  // a payload bit flipped in flight
+  add(corrupt);
+  add(std::vector<std::uint8_t>(10, 0x00));  // noise between frames, no start byte
+  add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));  // good
+  // A frame cut short (the link dropped mid-packet), then silence filled by noise:
+  // the parser completes it with the noise, the CRC fails, the rest is skipped.
+  auto cut = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  const std::size_t kept = 12;
+  const std::size_t missing = cut.size() - kept;
+  cut.resize(kept);
+  add(cut);
+  add(std::vector<std::uint8_t>(missing + 5, 0x00));
+  add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));  // good
+  MavlinkParser parser;
+  int heartbeats = 0;
+  parser.feed(s.data(), s.size(), [&](const mavlink_message_t& m) {
+    if (m.msgid == MAVLINK_MSG_ID_HEARTBEAT) ++heartbeats;
+  });
+  EXPECT_EQ(heartbeats, 3);
+  const ParserStats st = parser.stats();
+  EXPECT_EQ(st.messages, 3U);
+  EXPECT_EQ(st.unknownIds, 1U);
+  EXPECT_EQ(st.rejected, 2U);
+  EXPECT_EQ(st.skippedBytes, 10U + 5U);
+  EXPECT_EQ(st.bytes, s.size());
+}
+
 TEST(MavlinkParser, ReadsMavlink1AndMavlink2) {
   MavlinkEncoder v1(1, 1, true);
   MavlinkEncoder v2(1, 1, false);
