@@ -4,6 +4,7 @@
 #include <array>
 #include <cctype>
 #include <charconv>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -16,6 +17,7 @@
 
 #include "app/settings.h"
 #include "tagging/camera_model.h"
+#include "tagging/camera_model_toml.h"
 #include "telemetry/link.h"
 
 #ifndef KEYFRAMED_DEFAULT_CONFIG_DIR
@@ -499,6 +501,8 @@ std::vector<Field> makeSchema() {
       "tagging", "make", [](auto& c) -> auto& { return c.tagging.make; }, checkExifText));
   f.push_back(text(
       "tagging", "model", [](auto& c) -> auto& { return c.tagging.model; }, checkExifText));
+  f.push_back(boolean(
+      "tagging", "system_clock_utc", [](auto& c) -> auto& { return c.tagging.systemClockUtc; }));
   f.push_back(choice(
       "tagging", "mount", [](auto& c) -> auto& { return c.tagging.mountGimbal; },
       [](std::string_view s, bool& g) {
@@ -683,8 +687,12 @@ class Loader {
       for (auto&& [key, value] : *section) {
         const std::int64_t keyLine = key.source().begin.line;
         const std::string keyName(key.str());
-        const Field* field = findField(sectionName, keyName);
         const std::string where = path + ":" + std::to_string(keyLine);
+        if (sectionName == "tagging" && keyName == "camera") {
+          inlineCamera(value, path, where, keyLine);
+          continue;
+        }
+        const Field* field = findField(sectionName, keyName);
         if (field == nullptr) {
           fail(keyLine, where + ": " + sectionName + "." + keyName + ": unknown key" +
                             suggestion(keyName, keysOf(sectionName)));
@@ -740,6 +748,16 @@ class Loader {
   // Checks that involve more than one key, reported where the last of them was set.
   void crossChecks() {
     const DaemonConfig& c = out_.config;
+    if (c.tagging.camera && !c.tagging.calibration.empty()) {
+      const Origin& a = origins_["tagging.camera"];
+      const Origin& b = origins_["tagging.calibration"];
+      const Origin& latest = (b.layer > a.layer || (b.layer == a.layer && b.line > a.line)) ? b : a;
+      fail(latest.line,
+           (latest.where.empty() ? std::string("built-in defaults") : latest.where) +
+               ": tagging.calibration and [tagging.camera] are both set: give the intrinsics "
+               "one way",
+           latest.layer);
+    }
     const SelectorConfig& s = c.selection;
     auto num = [](double v) { return realText(v); };
     auto require = [this](bool ok, std::vector<std::string> keys, const std::string& message) {
@@ -813,6 +831,25 @@ class Loader {
     origins_[field.name()] = {layer_, where, line};
   }
 
+  // [tagging.camera]: replaces an earlier layer's table as a whole.
+  void inlineCamera(const toml::node& value, const std::string& path, const std::string& where,
+                    std::int64_t line) {
+    const toml::table* table = value.as_table();
+    if (table == nullptr) {
+      fail(line,
+           where + ": tagging.camera: expected a [tagging.camera] table, got " + typeName(value));
+      return;
+    }
+    CameraModel m;
+    std::string e;
+    if (!cameraFromTomlTable(*table, path, "tagging.camera", m, e)) {
+      fail(line, e);
+      return;
+    }
+    out_.config.tagging.camera = std::move(m);
+    origins_["tagging.camera"] = {layer_, where, line};
+  }
+
   void fail(std::int64_t line, std::string text, int layer = -1) {
     errors_.push_back({layer < 0 ? layer_ : layer, line, std::move(text)});
   }
@@ -863,6 +900,14 @@ ConfigLoadResult loadConfig(const ConfigSources& sources) {
   return result;
 }
 
+ConfigLoadResult loadOverrides(const std::vector<std::string>& overrides) {
+  ConfigLoadResult result;
+  Loader loader(result);
+  for (const std::string& o : overrides) loader.overrideKey(o);
+  loader.finish();
+  return result;
+}
+
 std::string takeConfigArgs(std::vector<std::string>& args, ConfigSources& sources) {
   std::vector<std::string> rest;
   for (std::size_t i = 0; i < args.size(); ++i) {
@@ -905,6 +950,31 @@ std::string toToml(const DaemonConfig& config) {
       out.append("[").append(section).append("]\n");
     }
     out.append(f.key).append(" = ").append(f.write(config)).append("\n");
+  }
+  if (const auto& cam = config.tagging.camera) {
+    out += "\n[tagging.camera]\n";
+    out += "make = " + quote(cam->make) + "\nmodel = " + quote(cam->model) + "\n";
+    if (cam->width > 0) {
+      out += "width = " + std::to_string(cam->width) + "\nheight = " + std::to_string(cam->height) +
+             "\n";
+    }
+    const std::pair<const char*, double> numbers[] = {{"fx", cam->fx},
+                                                      {"fy", cam->fy},
+                                                      {"cx", cam->cx},
+                                                      {"cy", cam->cy},
+                                                      {"sensor_width_mm", cam->sensorWidthMm},
+                                                      {"sensor_height_mm", cam->sensorHeightMm},
+                                                      {"focal_length_mm", cam->focalLengthMm}};
+    for (const auto& [key, v] : numbers) {
+      if (std::isfinite(v)) out.append(key).append(" = ").append(realText(v)).append("\n");
+    }
+    if (!cam->distortion.empty()) {
+      out += "distortion = [";
+      for (std::size_t i = 0; i < cam->distortion.size(); ++i) {
+        out += (i > 0 ? ", " : "") + realText(cam->distortion[i]);
+      }
+      out += "]\n";
+    }
   }
   return out;
 }

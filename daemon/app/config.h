@@ -1,12 +1,14 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
 
 #include "app/log.h"
 #include "core/selector.h"
+#include "tagging/camera_model.h"
 #include "telemetry/telemetry_service.h"
 
 // The daemon's configuration (`keyframed run`, `keyframed check-config`). Every
@@ -51,14 +53,18 @@ struct DaemonConfig {
   };
 
   struct Tagging {
-    std::string calibration;     // tagging.calibration ("": no intrinsics)
-    std::string make;            // tagging.make (EXIF Make; "": the calibration's)
-    std::string model;           // tagging.model (EXIF Model; "": the calibration's)
-    double mountRollDeg = 0.0;   // tagging.mount_roll
-    double mountPitchDeg = -90;  // tagging.mount_pitch (-90: nadir)
-    double mountYawDeg = 0.0;    // tagging.mount_yaw
-    bool mountGimbal = false;    // tagging.mount = "gimbal" (else "fixed")
-    int jpegQuality = 92;        // tagging.jpeg_quality
+    std::string calibration;  // tagging.calibration ("": no intrinsics)
+    // [tagging.camera]: the intrinsics inline, as a calibration file's [camera] table
+    // (one or the other, not both).
+    std::optional<CameraModel> camera;
+    std::string make;             // tagging.make (EXIF Make; "": the calibration's)
+    std::string model;            // tagging.model (EXIF Model; "": the calibration's)
+    bool systemClockUtc = false;  // tagging.system_clock_utc
+    double mountRollDeg = 0.0;    // tagging.mount_roll
+    double mountPitchDeg = -90;   // tagging.mount_pitch (-90: nadir)
+    double mountYawDeg = 0.0;     // tagging.mount_yaw
+    bool mountGimbal = false;     // tagging.mount = "gimbal" (else "fixed")
+    int jpegQuality = 92;         // tagging.jpeg_quality
   };
 
   struct Output {
@@ -108,6 +114,9 @@ std::string defaultConfigDir();
 
 // Loads and validates every layer; all problems are reported, not just the first.
 ConfigLoadResult loadConfig(const ConfigSources& sources);
+// The built-in defaults with "section.key=value" overrides applied, no files read
+// (`keyframed select --set telemetry.KEY=VALUE`).
+ConfigLoadResult loadOverrides(const std::vector<std::string>& overrides);
 
 // Takes --config-dir DIR and --set KEY=VALUE (also --opt=value forms) out of args,
 // leaving the rest. Empty, or a one-line error.

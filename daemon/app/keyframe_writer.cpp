@@ -109,6 +109,10 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     }
     if (rec.geotag.empty()) rec.geotag = "incomplete";
   }
+  if (!tags.utcUs && config_.utcFallback) {
+    tags.utcUs = config_.utcFallback(timeNs);
+    rec.pose.utcUs = tags.utcUs;
+  }
   if (!writeTags(jpeg_, tags, error)) return false;
   rec.encoded = true;
   // The sequence number is taken whether or not the file can be saved: a receiver

@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <cstdio>
+#include <functional>
 #include <optional>
 #include <string>
 #include <vector>
@@ -25,6 +26,9 @@ struct KeyframeWriterConfig {
   std::string make;
   std::string model;
   CameraMount mount;
+  // UTC (unix us) of a frame time, for keyframes the autopilot gave no UTC for (no
+  // SYSTEM_TIME, no telemetry); unset or nullopt: none is tagged.
+  std::function<std::optional<std::int64_t>(std::int64_t timeNs)> utcFallback;
 };
 
 // What was written for one keyframe (also a row of keyframes.csv).

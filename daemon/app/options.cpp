@@ -7,6 +7,7 @@
 #include <functional>
 #include <map>
 
+#include "app/config.h"
 #include "telemetry/link.h"
 
 namespace keyframed {
@@ -89,6 +90,9 @@ telemetry and tags:
                              clock (default 1000)
   --telemetry-start-wait MS  live link: wait this long for a first pose before
                              reading video (default 10000; 0 = do not wait)
+  --set telemetry.KEY=VALUE  any [telemetry] setting of the daemon (docs/configuration.md),
+                             e.g. telemetry.stale_ms=300 or telemetry.min_fix_type=2;
+                             (not the keys the options above set)
   --realtime                 deliver frames at the video's own rate, stamped with the
                              monotonic clock, as a camera would
 output:
@@ -255,6 +259,25 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          o.calibration = v;
          return {};
        }},
+      {"--set",
+       [&](const std::string& v) -> std::string {
+         if (v.rfind("telemetry.", 0) != 0)
+           return "only [telemetry] keys (telemetry.KEY=VALUE); the other settings have "
+                  "options of their own (got '" +
+                  v + "')";
+         // Keys this command has options for: one way to set each.
+         static const std::map<std::string, std::string> kOwnOption = {
+             {"telemetry.url", "--telemetry"},
+             {"telemetry.autopilot", "--autopilot"},
+             {"telemetry.mavlink_sysid", "--mavlink-sysid"},
+             {"telemetry.wait_ms", "--telemetry-wait"},
+             {"telemetry.start_wait_ms", "--telemetry-start-wait"}};
+         if (const auto it = kOwnOption.find(v.substr(0, v.find('='))); it != kOwnOption.end()) {
+           return it->first + " is set with " + it->second + " here";
+         }
+         o.telemetrySets.push_back(v);
+         return {};
+       }},
       {"--make", exifText(o.make)},
       {"--model", exifText(o.model)},
       {"--video-start",
@@ -266,29 +289,32 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return {};
        }},
       {"--mount",
-       [&](const std::string& v) -> std::string {
-         if (v == "gimbal") {
-           o.mountGimbal = true;
-           return {};
-         }
-         o.mountGimbal = false;
-         double a[3];
-         std::size_t start = 0;
-         for (int k = 0; k < 3; ++k) {
-           const auto comma = v.find(',', start);
-           if ((k < 2) != (comma != std::string::npos))
-             return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
-           const std::string part =
-               v.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
-           if (!parseDouble(part, a[k]) || !limits::kMountAngleDeg.contains(a[k]))
-             return "bad angle '" + part + "'";
-           start = comma + 1;
-         }
-         o.mountRollDeg = a[0];
-         o.mountPitchDeg = a[1];
-         o.mountYawDeg = a[2];
-         return {};
-       }},
+       [&](const std::string& v) -> std::
+                                     string {
+                                       if (v == "gimbal") {
+                                         o.mountGimbal = true;
+                                         return {};
+                                       }
+                                       o.mountGimbal = false;
+                                       double a[3];
+                                       std::size_t start = 0;
+                                       for (int k = 0; k < 3; ++k) {
+                                         const auto comma = v.find(',', start);
+                                         if ((k < 2) != (comma != std::string::npos))
+                                           return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
+                                         const std::string part = v.substr(
+                                             start, comma == std::string::npos ? std::string::npos
+                                                                               : comma - start);
+                                         if (!parseDouble(part, a[k]) ||
+                                             !limits::kMountAngleDeg.contains(a[k]))
+                                           return "bad angle '" + part + "'";
+                                         start = comma + 1;
+                                       }
+                                       o.mountRollDeg = a[0];
+                                       o.mountPitchDeg = a[1];
+                                       o.mountYawDeg = a[2];
+                                       return {};
+                                     }},
       {"--telemetry-wait", integer(o.telemetryWaitMs, limits::kTelemetryWaitMs)},
       {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, limits::kTelemetryStartWaitMs)},
       {"--autopilot",
@@ -397,6 +423,10 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
                 ") must not exceed --blur-window (" + std::to_string(c.blur.window) + ")");
   // The core's own rules as a last line of defence.
   if (std::string e = c.validate(); !e.empty()) return fail("selection settings: " + e);
+  if (!o.telemetrySets.empty()) {
+    const ConfigLoadResult loaded = loadOverrides(o.telemetrySets);
+    if (!loaded.ok()) return fail(loaded.errors.front());
+  }
   if (!o.telemetry.empty()) {
     std::string e;
     if (!parseMavlinkUrl(o.telemetry, e)) return fail("--telemetry: " + e);

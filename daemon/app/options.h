@@ -24,8 +24,11 @@ struct SelectOptions {
   bool quiet = false;            // --quiet: no summary on stdout
 
   // Telemetry and tagging.
-  std::string telemetry;                         // --telemetry URL|FILE.tlog (see openMavlinkLink)
-  std::string calibration;                       // --calibration FILE (OpenCV YAML/XML, TOML, JSON)
+  std::string telemetry;    // --telemetry URL|FILE.tlog (see openMavlinkLink)
+  std::string calibration;  // --calibration FILE (OpenCV YAML/XML, TOML, JSON)
+  // --set telemetry.KEY=VALUE: the daemon's [telemetry] settings (stale limits,
+  // GPS fix, clock windows, ...), applied before the options above.
+  std::vector<std::string> telemetrySets;
   std::string make;                              // --make TEXT (EXIF Make)
   std::string model;                             // --model TEXT (EXIF Model)
   std::optional<std::int64_t> videoStartUnixNs;  // --video-start ISO8601|UNIX_SECONDS

@@ -474,8 +474,11 @@ int Daemon::run() {
       return 1;
     }
     camera_ = m;
+  } else if (config_.tagging.camera) {
+    camera_ = config_.tagging.camera;  // [tagging.camera], checked when loaded
   } else {
-    KF_LOG(Tagging, Warning) << "no tagging.calibration: keyframes carry no intrinsics";
+    KF_LOG(Tagging, Warning)
+        << "no tagging.calibration or [tagging.camera]: keyframes carry no intrinsics";
   }
   source_ = openSource(config_.camera, error);
   if (!source_) {
@@ -526,6 +529,17 @@ int Daemon::run() {
   wc.dir = flightDir_ + "/keyframes";
   wc.quality = config_.tagging.jpegQuality;
   wc.camera = camera_;
+  if (config_.tagging.systemClockUtc) {
+    // Frames are stamped on CLOCK_MONOTONIC: the companion's UTC at that instant.
+    wc.utcFallback = [](std::int64_t monoNs) -> std::optional<std::int64_t> {
+      timespec rt{}, mono{};
+      clock_gettime(CLOCK_REALTIME, &rt);
+      clock_gettime(CLOCK_MONOTONIC, &mono);
+      const std::int64_t rtNs = rt.tv_sec * 1'000'000'000LL + rt.tv_nsec;
+      const std::int64_t monoNowNs = mono.tv_sec * 1'000'000'000LL + mono.tv_nsec;
+      return (rtNs - (monoNowNs - monoNs)) / 1000;
+    };
+  }
   wc.make = config_.tagging.make;
   wc.model = config_.tagging.model;
   wc.mount = {config_.tagging.mountRollDeg, config_.tagging.mountPitchDeg,

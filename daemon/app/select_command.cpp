@@ -11,6 +11,7 @@
 
 #include <opencv2/core/utils/logger.hpp>
 
+#include "app/config.h"
 #include "app/decision_log.h"
 #include "app/keyframe_output.h"
 #include "app/keyframe_stage.h"
@@ -155,19 +156,23 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   s.decisionsPath = opts.outDir + "/decisions." + ext;
   s.summaryPath = opts.outDir + "/summary.json";
 
-  // Telemetry: a tlog is read whole now; a live link gets its own thread.
+  // Telemetry: a tlog is read whole now; a live link gets its own thread. The
+  // daemon's [telemetry] settings (--set) first, this command's options on top.
+  const DaemonConfig::Telemetry telemetrySettings =
+      loadOverrides(opts.telemetrySets).config.telemetry;
   std::unique_ptr<TelemetryService> telemetry;
   if (replay != nullptr && opts.telemetry.empty() && !replay->mavlink().empty()) {
     // The flight record's own MAVLink stream, with its arrival times: the frames'
     // timestamps are on the same clock.
-    TelemetryServiceConfig tc;
+    TelemetryServiceConfig tc = telemetrySettings.link;
+    tc.url.clear();
     tc.decoder.autopilotSystem = opts.autopilotSystem;
     tc.decoder.autopilotComponent = opts.autopilotComponent;
     telemetry = std::make_unique<TelemetryService>(tc, CameraDescription{});
     telemetry->startFromPackets(replay->mavlink());
     s.telemetry.source = opts.video + " (/mavlink/raw)";
   } else if (!opts.telemetry.empty()) {
-    TelemetryServiceConfig tc;
+    TelemetryServiceConfig tc = telemetrySettings.link;
     tc.url = opts.telemetry;
     tc.systemId = opts.mavlinkSystemId;
     tc.decoder.autopilotSystem = opts.autopilotSystem;
@@ -259,7 +264,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   }
   const LogToRecord logToRecord(outputs);
 
-  KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs);
+  KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs,
+                        telemetrySettings.link.decoder.store);
   if (telemetry) recordLiveMavlink(*telemetry, outputs);
   bool outputFailed = false;
 

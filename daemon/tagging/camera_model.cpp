@@ -1,4 +1,5 @@
 #include "tagging/camera_model.h"
+#include "tagging/camera_model_toml.h"
 
 #include <algorithm>
 #include <cctype>
@@ -162,12 +163,10 @@ bool readToml(const std::string& path, CameraModel& m, std::string& error) {
     error = s.str();
     return false;
   }
-  const auto where = [&](const toml::node& n) {
-    return path + ":" + std::to_string(n.source().begin.line) + ": ";
-  };
   for (auto&& [key, node] : doc) {
     if (key != "camera") {
-      error = where(node) + "unknown key '" + std::string(key.str()) + "'";
+      error = path + ":" + std::to_string(node.source().begin.line) + ": unknown key '" +
+              std::string(key.str()) + "'";
       return false;
     }
   }
@@ -176,6 +175,16 @@ bool readToml(const std::string& path, CameraModel& m, std::string& error) {
     error = path + ": no [camera] table";
     return false;
   }
+  return cameraFromTomlTable(*cam, path, "camera", m, error);
+}
+
+}  // namespace
+
+bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const std::string& prefix,
+                         CameraModel& m, std::string& error) {
+  const auto where = [&](const toml::node& n) {
+    return path + ":" + std::to_string(n.source().begin.line) + ": ";
+  };
   static const std::set<std::string> kKeys = {"make",
                                               "model",
                                               "width",
@@ -188,14 +197,14 @@ bool readToml(const std::string& path, CameraModel& m, std::string& error) {
                                               "sensor_width_mm",
                                               "sensor_height_mm",
                                               "focal_length_mm"};
-  for (auto&& [key, node] : *cam) {
+  for (auto&& [key, node] : cam) {
     const std::string k(key.str());
     if (!kKeys.contains(k)) {
-      error = where(node) + "unknown key 'camera." + k + "'";
+      error = where(node) + "unknown key '" + prefix + "." + k + "'";
       return false;
     }
     const auto wrongType = [&](const char* want) {
-      error = where(node) + "camera." + k + " must be " + want;
+      error = where(node) + prefix + "." + k + " must be " + want;
       return false;
     };
     if (k == "make" || k == "model") {
@@ -231,13 +240,11 @@ bool readToml(const std::string& path, CameraModel& m, std::string& error) {
   const int known =
       std::isfinite(m.fx) + std::isfinite(m.fy) + std::isfinite(m.cx) + std::isfinite(m.cy);
   if (known != 0 && known != 4) {
-    error = path + ": fx, fy, cx, cy go together";
+    error = path + ": " + prefix + ".fx, fy, cx, cy go together";
     return false;
   }
-  return true;
+  return finish(path, m, error);
 }
-
-}  // namespace
 
 bool loadCameraModel(const std::string& path, CameraModel& out, std::string& error) {
   if (!std::ifstream(path).good()) {

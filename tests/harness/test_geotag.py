@@ -905,3 +905,33 @@ def test_make_and_model_are_tagged_with_or_without_a_calibration(
             assert t["ExifIFD:FocalLengthIn35mmFormat"] > 0 and "XMP-Camera:ModelType" in t
     r = run_select(kf_bin, short_nadir, tmp_path / "bad", "--make", "x" * 64)
     assert r.returncode == 2 and "--make" in r.stderr and "63 printable" in r.stderr, r.stderr
+
+
+def test_select_takes_the_daemons_telemetry_settings(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """`select --set telemetry.KEY=VALUE`: the daemon's [telemetry] settings offline. A
+    3D fix is not enough when RTK (fix type 5) is required: no position is tagged, and
+    the decision says why; keys this command has options for, other sections and bad
+    values are refused before anything is read."""
+    start = str(synth.EPOCH_UNIX_S)
+    tlog = str(short_nadir / "flight.tlog")
+    out = tmp_path / "rtk"
+    r = run_select(
+        kf_bin, short_nadir, out, "--telemetry", tlog, "--video-start", start,
+        "--set", "telemetry.min_fix_type=5",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert kfs and all(k["lat"] == "" for k in kfs), kfs
+    assert all("no GPS fix (fix type 3)" in k["geotag"] for k in kfs), kfs
+    assert all(k["cam_qw"] != "" for k in kfs), "attitude needs no fix"
+    for bad, needle in (
+        ("telemetry.url=udpin:0.0.0.0:1", "--telemetry"),
+        ("selection.target=0.5", "only [telemetry] keys"),
+        ("telemetry.stale_ms=-5", "telemetry.stale_ms"),
+        ("telemetry.no_such_key=1", "unknown key"),
+    ):
+        r = run_select(kf_bin, short_nadir, tmp_path / "bad", "--set", bad)
+        assert r.returncode == 2 and needle in r.stderr, (bad, r.stderr)
+        assert "Sanitizer" not in r.stderr

@@ -376,3 +376,43 @@ def test_pairs_follow_the_ground_truth_overlap_graph(name: str) -> None:
     assert len(pairs) < total, "not exhaustive"
     # sideways neighbours (the next survey line) are in it, not only the sequence
     assert len(pairs - sequential) > 0
+
+
+def test_one_vehicle_of_two_with_live_progress(tagged: Path, tmp_path: Path) -> None:
+    """--vehicle NAME takes that vehicle's keyframes only, though another publishes on
+    the same network; without --quiet a progress line (count, rate, last position)
+    goes to stderr."""
+    ports = free_port(), free_port()
+    vehicles = [Vehicle("uav1", tagged, ports[0]), Vehicle("uav2", tagged, ports[1])]
+    out = tmp_path / "dataset"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--vehicle", "uav2"]
+        + [arg for p in ports for arg in ("--connect", f"tcp/127.0.0.1:{p}")]
+        + ["--until-idle", "2.5"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_connected(vehicles[1])
+        n = len(vehicles[1].rows)
+        for seq in range(n):
+            for v in vehicles:
+                v.publish(seq)
+            time.sleep(0.4)  # long enough for a progress line or two
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for v in vehicles:
+            v.close()
+    assert proc.returncode == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == ["uav2"]
+    assert len(list((out / "uav2" / "images").glob("*.jpg"))) == n
+    summaries = [json.loads(line) for line in stdout.strip().splitlines()]
+    assert [s["vehicle"] for s in summaries] == ["uav2"] and summaries[0]["keyframes"] == n
+    # (each update starts with a carriage return; text mode reads it as a newline)
+    lines = [seg.strip() for seg in stderr.replace("\r", "\n").splitlines() if seg.strip()]
+    assert any(line.startswith(f"uav2: {n} keyframes") for line in lines), lines
+    assert any(" at 51." in line and "/min" in line for line in lines), lines
+    assert not any("uav1" in line for line in lines), lines

@@ -117,6 +117,46 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     assert len(rows(fd / "keyframes" / "keyframes.csv")) == len(live_jpgs) == summary["written"]
 
 
+def test_system_clock_utc_dates_keyframes_without_telemetry(kf_bin: Path, tmp_path: Path) -> None:
+    """No autopilot, so no UTC from SYSTEM_TIME: keyframes carry no capture time unless
+    tagging.system_clock_utc says this computer's clock can be trusted; then it is the
+    frame's capture time on that clock."""
+    from PIL import Image
+
+    fl = flight("nadir", width=320, height=180, seconds=3.0)
+    dated: dict[bool, list[tuple[int, str]]] = {}
+    for trust in (False, True):
+        run_dir = tmp_path / str(trust)
+        t0 = time.time()
+        proc = start(
+            kf_bin,
+            run_dir,
+            f"camera.path={fl / 'video.avi'}",
+            f"tagging.system_clock_utc={'true' if trust else 'false'}",
+        )
+        _, stderr = proc.communicate(timeout=60)
+        t1 = time.time()
+        assert proc.returncode == 0, stderr
+        fd = flight_dir(run_dir)
+        kfs = rows(fd / "keyframes" / "keyframes.csv")
+        assert kfs
+        dated[trust] = []
+        for k in kfs:
+            exif = Image.open(fd / "keyframes" / k["file"]).getexif().get_ifd(0x8769)
+            original = exif.get(0x9003)  # DateTimeOriginal
+            if not trust:
+                assert k["utc_us"] == "" and original is None, k
+                continue
+            utc = int(k["utc_us"]) / 1e6
+            assert t0 <= utc <= t1, (t0, utc, t1)
+            assert original == time.strftime("%Y:%m:%d %H:%M:%S", time.gmtime(int(utc)))
+            dated[trust].append((int(k["index"]), k["utc_us"]))
+    # in frame order, about a frame period (1/30 s) per index apart
+    (i0, u0), (i1, u1) = dated[True][0], dated[True][-1]
+    if i1 > i0:
+        assert abs((int(u1) - int(u0)) / 1e6 / (i1 - i0) - 1 / 30) < 0.01
+
+
 def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:

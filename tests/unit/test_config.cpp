@@ -136,7 +136,8 @@ TEST(Config, SchemaCoversEveryMember) {
                 memberCount<TelemetryConfig>() - 2 + memberCount<PoseStore::Config>() +
                 memberCount<ClockMapper::Config>() - 1,
             keysIn("telemetry"));
-  EXPECT_EQ(memberCount<DaemonConfig::Tagging>(), keysIn("tagging"));
+  // ... and the [tagging.camera] table (IntrinsicsInlineInTaggingCamera).
+  EXPECT_EQ(memberCount<DaemonConfig::Tagging>() - 1, keysIn("tagging"));
   EXPECT_EQ(memberCount<DaemonConfig::Output>(), keysIn("output"));
   EXPECT_EQ(memberCount<DaemonConfig::Zenoh>(), keysIn("zenoh"));
   // level, target, and one key per category.
@@ -375,6 +376,38 @@ TEST(Config, PrintedConfigLoadsBackTheSame) {
   EXPECT_EQ(toToml(b.config), text);
   EXPECT_EQ(b.config.telemetry.link.decoder.store.maxHoldNs, 300'000'000);
   EXPECT_EQ(b.config.telemetry.link.decoder.store.historyNs, 60'000'000'000);
+}
+
+TEST(Config, IntrinsicsInlineInTaggingCamera) {
+  TempDir dir;
+  const std::string table =
+      "[tagging.camera]\nmake = \"Arducam\"\nmodel = \"IMX477 6mm\"\nwidth = 4056\n"
+      "height = 3040\nfx = 3712.5\nfy = 3712.5\ncx = 2027.5\ncy = 1519.5\n"
+      "distortion = [-0.11, 0.09, 0.0, 0.0, 0.0]\nsensor_width_mm = 6.287\n";
+  const ConfigLoadResult r = loadText(dir, table);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  ASSERT_TRUE(r.config.tagging.camera.has_value());
+  const CameraModel& c = *r.config.tagging.camera;
+  EXPECT_EQ(c.model, "IMX477 6mm");
+  EXPECT_TRUE(c.calibrated());
+  EXPECT_NEAR(c.focalLengthMm, 3712.5 * 6.287 / 4056, 1e-9);  // derived as for a file
+  // printed back as TOML, it loads back the same
+  ConfigSources s;
+  s.files = {dir.write("printed.toml", toToml(r.config))};
+  const ConfigLoadResult b = loadConfig(s);
+  ASSERT_TRUE(b.ok()) << joined(b.errors);
+  EXPECT_EQ(toToml(b.config), toToml(r.config));
+  EXPECT_EQ(b.config.tagging.camera->distortion, c.distortion);
+
+  expectOneError(dir, "[tagging.camera]\nfz = 1.0\n", "2: unknown key 'tagging.camera.fz'");
+  expectOneError(dir, "[tagging.camera]\nwidth = 640\nheight = 480\nfx = 500.0\n",
+                 " tagging.camera.fx, fy, cx, cy go together");
+  expectOneError(dir, "[tagging]\ncamera = 5\n",
+                 "2: tagging.camera: expected a [tagging.camera] table, got an integer");
+  const std::string yaml = kSource + "/config/camera-example.yaml";
+  expectOneError(dir, "[tagging]\ncalibration = \"" + yaml + "\"\n\n" + table,
+                 "4: tagging.calibration and [tagging.camera] are both set: give the "
+                 "intrinsics one way");
 }
 
 TEST(Config, TakeConfigArgsLeavesTheRest) {
