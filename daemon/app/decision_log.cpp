@@ -129,23 +129,17 @@ bool DecisionLog::add(const Decision& d, std::string& error, const std::string& 
   pending_.push_back({d, geotag});
   // A keyframe or a promotion settles every row up to here; a new candidate
   // settles every row before it.
-  if (d.kept || d.promotedIndex >= 0) {
-    holding_ = false;
-    return flushPending(error);
-  }
+  if (d.kept || d.promotedIndex >= 0) return flushPending(error);
   if (d.candidate) {
     const Row last = pending_.back();
     pending_.pop_back();
     if (!flushPending(error)) return false;
     pending_.push_back(last);
-    holding_ = true;
     return true;
   }
-  // Nothing to promote, or held too long: every row is as final as it gets.
-  if (!holding_ || pending_.size() > kMaxHeldRows) {
-    holding_ = false;
-    return flushPending(error);
-  }
+  // This row alone: no candidate held, nothing can change it. Or held too long:
+  // every row is as final as it gets.
+  if (pending_.size() == 1 || pending_.size() > kMaxHeldRows) return flushPending(error);
   return true;
 }
 

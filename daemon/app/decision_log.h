@@ -47,8 +47,7 @@ class DecisionLog {
     Decision decision;
     std::string geotag;
   };
-  std::deque<Row> pending_;
-  bool holding_ = false;  // pending_ starts with a candidate that may be promoted
+  std::deque<Row> pending_;  // empty, or a held candidate's row and those after it
   std::string path_;
 };
 

@@ -23,11 +23,11 @@ std::string KeyframeWriter::indexHeader() {
 bool KeyframeWriter::open(KeyframeWriterConfig config, std::string& error) {
   config_ = std::move(config);
   if (!config_.camera && (!config_.make.empty() || !config_.model.empty())) {
-    config_.camera.emplace();  // identity only: uncalibrated, so no intrinsics are tagged
-    config_.camera->make.clear();
-    config_.camera->model.clear();
-  }
-  if (config_.camera) {
+    // Identity only: uncalibrated, so no intrinsics are tagged; an unset one stays out.
+    config_.camera.emplace();
+    config_.camera->make = config_.make;
+    config_.camera->model = config_.model;
+  } else if (config_.camera) {
     if (!config_.make.empty()) config_.camera->make = config_.make;
     if (!config_.model.empty()) config_.camera->model = config_.model;
   }

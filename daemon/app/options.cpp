@@ -91,8 +91,8 @@ telemetry and tags:
   --telemetry-start-wait MS  live link: wait this long for a first pose before
                              reading video (default 10000; 0 = do not wait)
   --set telemetry.KEY=VALUE  any [telemetry] setting of the daemon (docs/configuration.md),
-                             e.g. telemetry.stale_ms=300 or telemetry.min_fix_type=2;
-                             (not the keys the options above set)
+                             e.g. telemetry.stale_ms=300 (not the keys the options
+                             above set)
   --realtime                 deliver frames at the video's own rate, stamped with the
                              monotonic clock, as a camera would
 output:
@@ -147,6 +147,25 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       dst = v;
       return {};
     };
+  };
+  // --set telemetry.KEY=VALUE; the keys this command has options for are set one way.
+  auto telemetrySet = [&o](const std::string& v) -> std::string {
+    static const std::map<std::string, std::string> kOwnOption = {
+        {"telemetry.url", "--telemetry"},
+        {"telemetry.autopilot", "--autopilot"},
+        {"telemetry.mavlink_sysid", "--mavlink-sysid"},
+        {"telemetry.wait_ms", "--telemetry-wait"},
+        {"telemetry.start_wait_ms", "--telemetry-start-wait"}};
+    if (v.rfind("telemetry.", 0) != 0) {
+      return "only [telemetry] keys (telemetry.KEY=VALUE); the other settings have options of "
+             "their own (got '" +
+             v + "')";
+    }
+    if (const auto it = kOwnOption.find(v.substr(0, v.find('='))); it != kOwnOption.end()) {
+      return it->first + " is set with " + it->second + " here";
+    }
+    o.telemetrySets.push_back(v);
+    return {};
   };
   // Settings whose defaults give way to a smaller explicit setting they depend on.
   bool minTracksSet = false;
@@ -259,25 +278,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          o.calibration = v;
          return {};
        }},
-      {"--set",
-       [&](const std::string& v) -> std::string {
-         if (v.rfind("telemetry.", 0) != 0)
-           return "only [telemetry] keys (telemetry.KEY=VALUE); the other settings have "
-                  "options of their own (got '" +
-                  v + "')";
-         // Keys this command has options for: one way to set each.
-         static const std::map<std::string, std::string> kOwnOption = {
-             {"telemetry.url", "--telemetry"},
-             {"telemetry.autopilot", "--autopilot"},
-             {"telemetry.mavlink_sysid", "--mavlink-sysid"},
-             {"telemetry.wait_ms", "--telemetry-wait"},
-             {"telemetry.start_wait_ms", "--telemetry-start-wait"}};
-         if (const auto it = kOwnOption.find(v.substr(0, v.find('='))); it != kOwnOption.end()) {
-           return it->first + " is set with " + it->second + " here";
-         }
-         o.telemetrySets.push_back(v);
-         return {};
-       }},
+      {"--set", telemetrySet},
       {"--make", exifText(o.make)},
       {"--model", exifText(o.model)},
       {"--video-start",
@@ -289,32 +290,29 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return {};
        }},
       {"--mount",
-       [&](const std::string& v) -> std::
-                                     string {
-                                       if (v == "gimbal") {
-                                         o.mountGimbal = true;
-                                         return {};
-                                       }
-                                       o.mountGimbal = false;
-                                       double a[3];
-                                       std::size_t start = 0;
-                                       for (int k = 0; k < 3; ++k) {
-                                         const auto comma = v.find(',', start);
-                                         if ((k < 2) != (comma != std::string::npos))
-                                           return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
-                                         const std::string part = v.substr(
-                                             start, comma == std::string::npos ? std::string::npos
-                                                                               : comma - start);
-                                         if (!parseDouble(part, a[k]) ||
-                                             !limits::kMountAngleDeg.contains(a[k]))
-                                           return "bad angle '" + part + "'";
-                                         start = comma + 1;
-                                       }
-                                       o.mountRollDeg = a[0];
-                                       o.mountPitchDeg = a[1];
-                                       o.mountYawDeg = a[2];
-                                       return {};
-                                     }},
+       [&](const std::string& v) -> std::string {
+         if (v == "gimbal") {
+           o.mountGimbal = true;
+           return {};
+         }
+         o.mountGimbal = false;
+         double a[3];
+         std::size_t start = 0;
+         for (int k = 0; k < 3; ++k) {
+           const auto comma = v.find(',', start);
+           if ((k < 2) != (comma != std::string::npos))
+             return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
+           const std::string part =
+               v.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
+           if (!parseDouble(part, a[k]) || !limits::kMountAngleDeg.contains(a[k]))
+             return "bad angle '" + part + "'";
+           start = comma + 1;
+         }
+         o.mountRollDeg = a[0];
+         o.mountPitchDeg = a[1];
+         o.mountYawDeg = a[2];
+         return {};
+       }},
       {"--telemetry-wait", integer(o.telemetryWaitMs, limits::kTelemetryWaitMs)},
       {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, limits::kTelemetryStartWaitMs)},
       {"--autopilot",

@@ -532,12 +532,10 @@ int Daemon::run() {
   if (config_.tagging.systemClockUtc) {
     // Frames are stamped on CLOCK_MONOTONIC: the companion's UTC at that instant.
     wc.utcFallback = [](std::int64_t monoNs) -> std::optional<std::int64_t> {
-      timespec rt{}, mono{};
-      clock_gettime(CLOCK_REALTIME, &rt);
-      clock_gettime(CLOCK_MONOTONIC, &mono);
-      const std::int64_t rtNs = rt.tv_sec * 1'000'000'000LL + rt.tv_nsec;
-      const std::int64_t monoNowNs = mono.tv_sec * 1'000'000'000LL + mono.tv_nsec;
-      return (rtNs - (monoNowNs - monoNs)) / 1000;
+      const std::int64_t unixNowNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                         std::chrono::system_clock::now().time_since_epoch())
+                                         .count();
+      return (unixNowNs - (monotonicNowNs() - monoNs)) / 1000;
     };
   }
   wc.make = config_.tagging.make;
