@@ -6,7 +6,9 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 JOBS="${KEYFRAMED_JOBS:-2}"
-step() { printf '\n==> %s\n' "$*"; }
+START=$SECONDS
+# Each step prints the minutes and seconds since the suite started.
+step() { printf '\n==> [%dm%02ds] %s\n' $(((SECONDS - START) / 60)) $(((SECONDS - START) % 60)) "$*"; }
 
 step "set-up (apt packages, Python venv)"
 tools/setup.sh
@@ -82,4 +84,5 @@ if skipped:
 sys.exit(1 if skipped else 0)
 PY
 fi
+step "done (exit status $rc)"
 exit "$rc"
