@@ -51,11 +51,16 @@ git ls-files -co --exclude-standard -- '*.cpp' '*.h' | xargs clang-format --dry-
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
 
-step "Python and end-to-end tests (pytest)"
+# Two processes (pytest-xdist), one test file each at a time: most tests replay a
+# flight in real time and leave a core idle. KEYFRAMED_TEST_WORKERS=0 runs them in one.
+WORKERS="${KEYFRAMED_TEST_WORKERS:-$JOBS}"
+XDIST=()
+if [ "$WORKERS" -gt 0 ]; then XDIST=(-n "$WORKERS" --dist loadfile); fi
+step "Python and end-to-end tests (pytest, ${WORKERS} workers)"
 set +e
 KEYFRAMED_BIN="$ROOT/build/release/daemon/keyframed" \
 KEYFRAMED_ASAN_BIN="$ROOT/build/asan/daemon/keyframed" \
-  .venv/bin/python -m pytest -q -rs --junitxml=build/pytest.xml "$@"
+  .venv/bin/python -m pytest -q -rs "${XDIST[@]}" --junitxml=build/pytest.xml "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then

@@ -212,15 +212,19 @@ bool parseCameraSource(std::string_view s, Source& out) {
   return false;
 }
 
+std::string upper(const std::string& s) {
+  std::string up;
+  for (char ch : s) up += static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+  return up;
+}
+
 std::string checkPixelFormat(const std::string& s) {
   if (s == "auto") return {};
   // The names the capture backends take (V4L2: all of them; libcamera: the YUV ones,
   // which it checks again at open with the camera's own list).
   static constexpr std::array<std::string_view, 11> kNames = {
       "NV12", "YUV420", "YU12", "I420", "YUYV", "YUY2", "MJPEG", "MJPG", "GREY", "GRAY", "GRAY8"};
-  std::string up;
-  for (char ch : s) up += static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
-  if (std::find(kNames.begin(), kNames.end(), up) != kNames.end()) return {};
+  if (std::find(kNames.begin(), kNames.end(), upper(s)) != kNames.end()) return {};
   return "must be \"auto\" or one of NV12, YUV420 (YU12, I420), YUYV (YUY2), MJPEG (MJPG), "
          "GREY (got " +
          quote(s) + ")";
@@ -794,6 +798,12 @@ class Loader {
             "selection.blur_warmup must not exceed selection.blur_window");
     require(c.camera.source != Source::File || !c.camera.path.empty(),
             {"camera.source", "camera.path"}, "source \"file\" needs camera.path");
+    // (An unknown name is reported by the key's own check.)
+    require(c.camera.source != Source::File || filePixelFormat(c.camera.pixelFormat) ||
+                !checkPixelFormat(c.camera.pixelFormat).empty(),
+            {"camera.source", "camera.pixel_format"},
+            "source \"file\" delivers \"auto\" (BGR, as decoded), YUV420 or NV12 (got " +
+                quote(c.camera.pixelFormat) + ")");
     std::string e;
     const std::string& url = c.telemetry.link.url;
     const bool tlog = (url.starts_with("tlog:") ||
@@ -977,6 +987,14 @@ std::string toToml(const DaemonConfig& config) {
     }
   }
   return out;
+}
+
+std::optional<PixelFormat> filePixelFormat(const std::string& name) {
+  const std::string up = upper(name);
+  if (up == "AUTO") return PixelFormat::BGR24;
+  if (up == "YUV420" || up == "YU12" || up == "I420") return PixelFormat::YUV420;
+  if (up == "NV12") return PixelFormat::NV12;
+  return std::nullopt;
 }
 
 std::vector<std::string> configKeys() {

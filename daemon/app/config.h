@@ -126,6 +126,11 @@ std::string takeConfigArgs(std::vector<std::string>& args, ConfigSources& source
 // gives the same configuration.
 std::string toToml(const DaemonConfig& config);
 
+// What a video file is delivered as for camera.pixel_format (any case): "auto" BGR24,
+// as decoded; YUV420 (YU12, I420) or NV12, converted as a camera would deliver them.
+// nullopt for the formats only a camera has.
+std::optional<PixelFormat> filePixelFormat(const std::string& name);
+
 // Every key as "section.key", in order, and the sections.
 std::vector<std::string> configKeys();
 std::vector<std::string> configSections();

@@ -29,7 +29,8 @@ bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
   return d.hasAttitudeSince(nowNs - limits_.maxAttitudeGapNs - limits_.maxHoldNs);
 }
 
-bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::string& error) {
+bool KeyframeOutput::writeKeyframe(const Frame& frame, std::int64_t decidedNs, std::string& note,
+                                   std::string& error) {
   std::optional<Pose> pose;
   if (telemetry_ != nullptr) {
     if (!telemetry_->isReplay()) {
@@ -54,6 +55,7 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::string& note, std::s
   KeyframeRecord rec;
   const bool saved = writer_.write(frame, pose ? &*pose : nullptr, rec, error);
   if (!rec.encoded) return false;
+  rec.decidedNs = decidedNs;
   // Published and recorded even when it could not be saved (disk full): a keyframe
   // the ground station receives is not lost.
   outputs_.keyframe(rec, writer_.lastJpeg());
@@ -81,7 +83,7 @@ bool KeyframeOutput::handle(const KeyframeEvent& ev, std::string& error) {
   };
   auto write = [&](const Frame& f) {
     std::string e;
-    if (!writeKeyframe(f, note, e)) failed(e);
+    if (!writeKeyframe(f, ev.decidedNs, note, e)) failed(e);
   };
   if (ev.endOfStream) {
     if (!ev.promoted) return true;

@@ -32,7 +32,8 @@ class KeyframeOutput {
   bool handle(const KeyframeEvent& event, std::string& error);
 
  private:
-  bool writeKeyframe(const Frame& frame, std::string& note, std::string& error);
+  bool writeKeyframe(const Frame& frame, std::int64_t decidedNs, std::string& note,
+                     std::string& error);
   // The link still delivers at `nowNs`: attitude within attitude_gap + stale, and
   // attitude and position within the wider gap + stale.
   [[nodiscard]] bool linkDelivers(std::int64_t nowNs, bool gimbal) const;

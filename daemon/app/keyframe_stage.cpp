@@ -12,7 +12,7 @@ constexpr std::size_t kKeyframeBuffers = 6;
 }  // namespace
 
 KeyframeStage::KeyframeStage(const SelectorConfig& config, const Clock* clock, Emit emit)
-    : selector_(config, clock), emit_(std::move(emit)), pool_(kKeyframeBuffers) {}
+    : selector_(config, clock), clock_(clock), emit_(std::move(emit)), pool_(kKeyframeBuffers) {}
 
 FramePtr KeyframeStage::copyOf(const Frame& frame) {
   FramePtr p = pool_.acquire();
@@ -25,6 +25,7 @@ void KeyframeStage::process(const Frame& frame) {
   ++counts_.framesRead;
   KeyframeEvent ev;
   ev.decision = selector_.process(frame);
+  if (clock_ != nullptr) ev.decidedNs = clock_->nowNs();
   const Decision& d = ev.decision;
   counts_.analysisNs += static_cast<double>(d.times.totalNs);
   // Each frame is counted once by its decision; a candidate promoted later moves
@@ -60,6 +61,7 @@ void KeyframeStage::finish() {
   if (last >= 0 && last == candidateIndex_) {
     KeyframeEvent ev;
     ev.endOfStream = true;
+    if (clock_ != nullptr) ev.decidedNs = clock_->nowNs();
     ev.promoted = copyOf(candidate_.frame);
     ++counts_.kept;
     ++counts_.promoted;

@@ -13,9 +13,10 @@ namespace keyframed {
 // stream): the decision, and the pixels of whatever became a keyframe with it.
 struct KeyframeEvent {
   Decision decision;
-  FramePtr keyframe;         // decision.kept: this frame's pixels (owned copy)
-  FramePtr promoted;         // a candidate promoted to keyframe with this decision (gap fill)
-  bool endOfStream = false;  // the selector's finish(): only `promoted` is meaningful
+  FramePtr keyframe;           // decision.kept: this frame's pixels (owned copy)
+  FramePtr promoted;           // a candidate promoted to keyframe with this decision (gap fill)
+  bool endOfStream = false;    // the selector's finish(): only `promoted` is meaningful
+  std::int64_t decidedNs = 0;  // the clock's time when the decision was made (0: no clock)
 };
 
 struct StageCounts {
@@ -52,6 +53,7 @@ class KeyframeStage {
   FramePtr copyOf(const Frame& frame);
 
   KeyframeSelector selector_;
+  const Clock* clock_;
   Emit emit_;
   StageCounts counts_;
   FramePool pool_;         // keyframe copies on their way to the output

@@ -36,7 +36,8 @@ struct KeyframeRecord {
   std::int64_t sequence = 0;  // 0, 1, 2, ... in the order keyframes are written
   std::int64_t frameIndex = 0;
   std::int64_t timeNs = 0;
-  std::string file;  // absolute path
+  std::int64_t decidedNs = 0;  // when the selector kept it (CLOCK_MONOTONIC; 0: unknown)
+  std::string file;            // absolute path
   Pose pose;
   std::optional<Quaternion> cameraToNed;
   std::string geotag;    // "ok", why a part is missing, or "" without telemetry

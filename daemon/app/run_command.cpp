@@ -25,8 +25,6 @@
 #include <thread>
 
 #include <opencv2/core/utils/logger.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 
 #include "app/config.h"
 #include "app/decision_log.h"
@@ -38,6 +36,7 @@
 #include "app/log_to_record.h"
 #include "app/mavlink_record.h"
 #include "app/paced_source.h"
+#include "app/preview_encoder.h"
 #include "app/sd_notify.h"
 #include "app/settings.h"
 #include "app/telemetry_log.h"
@@ -47,7 +46,6 @@
 #include "capture/v4l2_source.h"
 #include "output/flight_outputs.h"
 #include "tagging/camera_model.h"
-#include "tagging/jpeg_encoder.h"
 #include "telemetry/telemetry_service.h"
 #ifdef KEYFRAMED_WITH_LIBCAMERA
 #include "capture/libcamera_source.h"
@@ -119,6 +117,12 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
     case DaemonConfig::Source::File: {
       auto file = FileSource::open(c.path, error);
       if (!file) return nullptr;
+      // Validated with the configuration; as a camera would deliver it, or as decoded.
+      const std::optional<PixelFormat> format = filePixelFormat(c.pixelFormat);
+      if (!format || !file->setOutputFormat(*format, error)) {
+        if (!format) error = "camera.pixel_format: not a format a video file is delivered as";
+        return nullptr;
+      }
       std::optional<std::int64_t> start;
       if (!c.startTime.empty()) {
         std::int64_t ns = 0;
@@ -170,68 +174,6 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
   error = "unknown camera source";
   return nullptr;
 }
-
-// The preview stream: each frame in colour, scaled to `width` (0: off; at or above
-// the frame's width: full resolution), as a JPEG for the flight record.
-class PreviewEncoder {
- public:
-  explicit PreviewEncoder(int width) : width_(width) {}
-  bool encode(const Frame& f, std::vector<std::uint8_t>& jpeg) {
-    if (width_ <= 0) return false;
-    const cv::Mat src(f.height, f.width, CV_8UC1, const_cast<std::uint8_t*>(f.data),
-                      static_cast<std::size_t>(f.stride));
-    switch (f.format) {
-      case PixelFormat::BGR24:
-        bgr_ = cv::Mat(f.height, f.width, CV_8UC3, const_cast<std::uint8_t*>(f.data),
-                       static_cast<std::size_t>(f.stride));
-        break;
-      case PixelFormat::Gray8: cv::cvtColor(src, bgr_, cv::COLOR_GRAY2BGR); break;
-      case PixelFormat::NV12:
-        cv::cvtColor(cv::Mat(f.height * 3 / 2, f.width, CV_8UC1, const_cast<std::uint8_t*>(f.data),
-                             static_cast<std::size_t>(f.stride)),
-                     bgr_, cv::COLOR_YUV2BGR_NV12);
-        break;
-      case PixelFormat::YUV420:
-        cv::cvtColor(cv::Mat(f.height * 3 / 2, f.width, CV_8UC1, const_cast<std::uint8_t*>(f.data),
-                             static_cast<std::size_t>(f.stride)),
-                     bgr_, cv::COLOR_YUV2BGR_I420);
-        break;
-      case PixelFormat::YUYV:
-        cv::cvtColor(cv::Mat(f.height, f.width, CV_8UC2, const_cast<std::uint8_t*>(f.data),
-                             static_cast<std::size_t>(f.stride)),
-                     bgr_, cv::COLOR_YUV2BGR_YUYV);
-        break;
-    }
-    if (width_ >= f.width) {
-      // Full resolution: lossless (PNG), so that a replay sees the very pixels the
-      // live selection saw and reproduces its decisions exactly.
-      format_ = "png";
-      return cv::imencode(".png", bgr_, jpeg, {cv::IMWRITE_PNG_COMPRESSION, 1});
-    }
-    format_ = "jpeg";
-    // Halve with INTER_AREA while that stays above the target, then one bilinear
-    // step: 1080p -> 640 costs a fraction of a direct INTER_AREA (the analysis
-    // image is made the same way; docs/performance.md).
-    const cv::Mat* from = &bgr_;
-    while (from->cols / 2 >= width_) {
-      cv::resize(*from, half_, cv::Size(from->cols / 2, from->rows / 2), 0, 0, cv::INTER_AREA);
-      std::swap(half_, halfSpare_);
-      from = &halfSpare_;
-    }
-    cv::resize(*from, small_, cv::Size(width_, f.height * width_ / f.width), 0, 0,
-               cv::INTER_LINEAR);
-    std::string error;
-    return encoder_.encode(small_, kQuality, jpeg, error);
-  }
-  [[nodiscard]] const char* format() const { return format_; }
-
- private:
-  static constexpr int kQuality = 85;
-  int width_;
-  const char* format_ = "jpeg";
-  cv::Mat bgr_, small_, half_, halfSpare_;
-  JpegEncoder encoder_;
-};
 
 struct RunStats {
   std::atomic<std::int64_t> analysed{0};

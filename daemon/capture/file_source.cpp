@@ -1,11 +1,14 @@
 #include "capture/file_source.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
 #include <system_error>
+
+#include <opencv2/imgproc.hpp>
 
 namespace keyframed {
 
@@ -81,6 +84,46 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
   return src;
 }
 
+bool FileSource::setOutputFormat(PixelFormat format, std::string& error) {
+  if (format != PixelFormat::BGR24 && format != PixelFormat::YUV420 &&
+      format != PixelFormat::NV12) {
+    error = std::string("a video file is delivered as BGR24 (as decoded), YUV420 or NV12, not ") +
+            toString(format);
+    return false;
+  }
+  if (format != PixelFormat::BGR24 && (info_.width % 2 != 0 || info_.height % 2 != 0)) {
+    error = std::string(toString(format)) + " needs an even width and height; the video is " +
+            std::to_string(info_.width) + "x" + std::to_string(info_.height) + ": " + path_;
+    return false;
+  }
+  output_ = format;
+  return true;
+}
+
+void FileSource::toCameraFormat(Frame& frame) {
+  const int w = info_.width, h = info_.height;
+  cv::cvtColor(bgr_, i420_, cv::COLOR_BGR2YUV_I420);
+  frame.format = output_;
+  frame.width = w;
+  frame.height = h;
+  frame.stride = w;
+  frame.data = i420_.data;
+  if (output_ != PixelFormat::NV12) return;
+  // I420 -> NV12: the luma as it is, the chroma planes interleaved.
+  const std::size_t luma = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
+  const std::size_t quarter = luma / 4;
+  nv12_.resize(luma + 2 * quarter);
+  std::copy_n(i420_.data, luma, nv12_.data());
+  const std::uint8_t* u = i420_.data + luma;
+  const std::uint8_t* v = u + quarter;
+  std::uint8_t* uv = nv12_.data() + luma;
+  for (std::size_t i = 0; i < quarter; ++i) {
+    uv[2 * i] = u[i];
+    uv[2 * i + 1] = v[i];
+  }
+  frame.data = nv12_.data();
+}
+
 ReadStatus FileSource::next(Frame& frame, std::string& error) {
   if (!failure_.empty()) {
     error = failure_;
@@ -119,7 +162,13 @@ ReadStatus FileSource::next(Frame& frame, std::string& error) {
   } else if (info_.fps > 0.0) {
     ts = static_cast<std::int64_t>(std::llround(static_cast<double>(index_) * 1e9 / info_.fps));
   }
-  frame = Frame::ofBgr(bgr_, index_, ts);
+  if (output_ == PixelFormat::BGR24) {
+    frame = Frame::ofBgr(bgr_, index_, ts);
+  } else {
+    toCameraFormat(frame);
+    frame.index = index_;
+    frame.timestampNs = ts;
+  }
   ++index_;
   return ReadStatus::Frame;
 }

@@ -2,6 +2,7 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include <opencv2/core/mat.hpp>
 #include <opencv2/videoio.hpp>
@@ -26,12 +27,21 @@ class FileSource final : public FrameSource {
   // True when the stream ended before the frame count its header announced.
   [[nodiscard]] bool truncated() const { return truncated_; }
   [[nodiscard]] std::int64_t framesRead() const { return index_; }
+  // Deliver frames as a camera would: YUV420 (I420) or NV12, converted from the
+  // decoded picture (BT.601, limited range, as cameras' video streams are), instead
+  // of BGR24 as decoded. False with a one-line error for another format or a frame
+  // of odd width or height. Call before the first next().
+  bool setOutputFormat(PixelFormat format, std::string& error);
 
  private:
   FileSource() = default;
+  void toCameraFormat(Frame& frame);  // bgr_ -> output_
 
   cv::VideoCapture capture_;
   cv::Mat bgr_;
+  PixelFormat output_ = PixelFormat::BGR24;
+  cv::Mat i420_;                    // the conversion, I420
+  std::vector<std::uint8_t> nv12_;  // ... and interleaved, for NV12
   SourceInfo info_;
   std::string path_;
   std::int64_t index_ = 0;

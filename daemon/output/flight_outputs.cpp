@@ -252,6 +252,7 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
   m.frameIndex = rec.frameIndex;
   m.file = KeyframeWriter::fileName(rec.frameIndex);
   m.timeNs = rec.timeNs;
+  m.decidedNs = rec.decidedNs;
   const Pose& p = rec.pose;
   if (p.utcUs) m.utcUs = std::to_string(*p.utcUs);
   if (p.position) {

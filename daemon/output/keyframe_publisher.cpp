@@ -61,8 +61,9 @@ std::string toJson(const KeyframeMeta& m) {
   std::string s =
       "{\"vehicle\":" + jsonString(m.vehicle) + ",\"sequence\":" + std::to_string(m.sequence) +
       ",\"frame_index\":" + std::to_string(m.frameIndex) + ",\"file\":" + jsonString(m.file) +
-      ",\"time_ns\":" + std::to_string(m.timeNs) + ",\"utc_us\":" + orNull(m.utcUs) +
-      ",\"lat\":" + orNull(m.lat) + ",\"lon\":" + orNull(m.lon) +
+      ",\"time_ns\":" + std::to_string(m.timeNs) +
+      ",\"decided_ns\":" + (m.decidedNs > 0 ? std::to_string(m.decidedNs) : std::string("null")) +
+      ",\"utc_us\":" + orNull(m.utcUs) + ",\"lat\":" + orNull(m.lat) + ",\"lon\":" + orNull(m.lon) +
       ",\"alt_amsl\":" + orNull(m.altAmsl) + ",\"alt_rel\":" + orNull(m.altRel) + ",\"cam_q\":";
   if (m.camQw.empty()) {
     s += "null";

@@ -72,6 +72,7 @@ struct KeyframeMeta {
   std::int64_t frameIndex = 0;
   std::string file;  // name inside the keyframe directory
   std::int64_t timeNs = 0;
+  std::int64_t decidedNs = 0;  // 0: null
   std::string utcUs, lat, lon, altAmsl, altRel;
   std::string camQw, camQx, camQy, camQz;  // camera -> NED
   std::string yaw, pitch, roll, hdop, fixType;

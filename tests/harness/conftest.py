@@ -70,6 +70,14 @@ def pan_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_pan_video(tmp_path_factory.mktemp("pan") / "pan.avi")
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # The controller (or a run without xdist) starts the flight-quality table afresh;
+    # pytest-xdist workers (they have workerinput) only add rows to it.
+    if not hasattr(config, "workerinput"):
+        for row in (ROOT / "build" / "reports" / "flight_quality").glob("*.json"):
+            row.unlink()
+
+
 def pytest_terminal_summary(terminalreporter) -> None:  # noqa: ANN001 - pytest hook
     try:
         from test_flights import write_report

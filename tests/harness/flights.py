@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import shutil
@@ -28,8 +29,14 @@ def flight(
     out = CACHE / key
     if (out / "meta.json").exists():
         return out
-    tmp = CACHE / (key + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    synth.generate(name, tmp, width=width, height=height, fps=fps, seconds=seconds, seed=0)
-    tmp.rename(out)
+    # pytest-xdist workers may want the same flight at once: one makes it, the
+    # others wait on the lock and find it made.
+    CACHE.mkdir(parents=True, exist_ok=True)
+    with open(CACHE / (key + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (out / "meta.json").exists():
+            tmp = CACHE / (key + ".partial")
+            shutil.rmtree(tmp, ignore_errors=True)
+            synth.generate(name, tmp, width=width, height=height, fps=fps, seconds=seconds, seed=0)
+            tmp.rename(out)
     return out

@@ -238,13 +238,17 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
     out = tmp_path / "out"
 
     received: list[tuple[str, bytes, dict[str, Any]]] = []
+    receipt_ns: list[int] = []  # CLOCK_MONOTONIC, as the daemon's stamps with --realtime
     status: list[dict[str, Any]] = []
     session = zenoh.open(zenoh.Config.from_json5(peer_config(listen=[endpoint])))
     try:
         sub = session.declare_subscriber(
             "keyframed/test1/keyframe",
-            lambda s: received.append(
-                (str(s.key_expr), s.payload.to_bytes(), json.loads(s.attachment.to_bytes()))
+            lambda s: (
+                receipt_ns.append(time.monotonic_ns()),
+                received.append(
+                    (str(s.key_expr), s.payload.to_bytes(), json.loads(s.attachment.to_bytes()))
+                ),
             ),
         )
         st = session.declare_subscriber(
@@ -283,13 +287,15 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
     rows = keyframe_rows(out)
     assert len(rows) >= 2
     assert len(received) == len(rows)
-    for (key, payload, meta), row in zip(received, rows, strict=True):
+    for (key, payload, meta), row, got in zip(received, rows, receipt_ns, strict=True):
         assert key == "keyframed/test1/keyframe"
         assert payload == (out / row["file"]).read_bytes()
         assert meta["vehicle"] == "test1"
         assert meta["sequence"] == int(row["sequence"])
         assert meta["frame_index"] == int(row["index"])
         assert meta["time_ns"] == int(row["time_ns"])
+        # Captured, then decided, then received: the stamps the latency benchmark uses.
+        assert meta["time_ns"] <= meta["decided_ns"] <= got, (meta, got)
         assert meta["file"] == row["file"]
         assert set(meta["scores"]) >= {"sharpness", "threshold", "overlap", "features"}
     assert status and status[-1]["state"] == "done"

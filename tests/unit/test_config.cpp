@@ -292,6 +292,18 @@ TEST(Config, OutOfRangeAndBadValues) {
   expectOneError(dir, "[camera]\npixel_format = \"H264\"\n",
                  "2: camera.pixel_format: must be \"auto\" or one of NV12, YUV420 (YU12, I420), "
                  "YUYV (YUY2), MJPEG (MJPG), GREY (got \"H264\")");
+  // A video file is delivered as decoded or as a camera's YUV, never as YUYV or MJPEG.
+  expectOneError(dir, "[camera]\nsource = \"file\"\npath = \"/v.avi\"\npixel_format = \"YUYV\"\n",
+                 "4: camera.pixel_format: source \"file\" delivers \"auto\" (BGR, as decoded), "
+                 "YUV420 or NV12 (got \"YUYV\")");
+  EXPECT_TRUE(loadText(dir,
+                       "[camera]\nsource = \"file\"\npath = \"/v.avi\"\n"
+                       "pixel_format = \"i420\"\n")
+                  .ok());
+  EXPECT_EQ(filePixelFormat("i420"), PixelFormat::YUV420);
+  EXPECT_EQ(filePixelFormat("NV12"), PixelFormat::NV12);
+  EXPECT_EQ(filePixelFormat("auto"), PixelFormat::BGR24);
+  EXPECT_FALSE(filePixelFormat("MJPEG"));
   expectOneError(dir, "[telemetry]\nurl = \"tcp:1.2.3.4\"\n",
                  "2: telemetry.url: bad MAVLink link 'tcp:1.2.3.4': unknown scheme 'tcp'");
   expectOneError(dir, "[telemetry]\nautopilot = \"1:300\"\n",

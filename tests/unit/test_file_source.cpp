@@ -95,6 +95,78 @@ TEST(FileSource, AWholeVideoHasNotFailed) {
   EXPECT_EQ(src->next(f, err), ReadStatus::End);
 }
 
+// A colour video of a real photo, `size`, three frames, lossless enough to compare.
+std::string writeColourVideo(const std::string& name, cv::Size size) {
+  const std::string path = testing::TempDir() + "/" + name;
+  cv::VideoWriter w(path, cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), 30.0, size);
+  EXPECT_TRUE(w.isOpened());
+  const cv::Mat fruits = test::photo("fruits.jpg", cv::IMREAD_COLOR);
+  for (int i = 0; i < 3; ++i) w.write(fruits(cv::Rect(cv::Point(4 * i, 0), size)));
+  return path;
+}
+
+TEST(FileSource, DeliversYuvAsACameraWould) {
+  const std::string path = writeColourVideo("colour.avi", cv::Size(320, 180));
+  std::string err;
+  auto bgrSrc = FileSource::open(path, err);
+  auto i420Src = FileSource::open(path, err);
+  auto nv12Src = FileSource::open(path, err);
+  ASSERT_TRUE(bgrSrc && i420Src && nv12Src) << err;
+  ASSERT_TRUE(i420Src->setOutputFormat(PixelFormat::YUV420, err)) << err;
+  ASSERT_TRUE(nv12Src->setOutputFormat(PixelFormat::NV12, err)) << err;
+  Frame bgr, i420, nv12;
+  for (int n = 0; n < 3; ++n) {
+    ASSERT_EQ(bgrSrc->next(bgr, err), ReadStatus::Frame) << err;
+    ASSERT_EQ(i420Src->next(i420, err), ReadStatus::Frame) << err;
+    ASSERT_EQ(nv12Src->next(nv12, err), ReadStatus::Frame) << err;
+    EXPECT_EQ(bgr.format, PixelFormat::BGR24);
+    EXPECT_EQ(i420.format, PixelFormat::YUV420);
+    EXPECT_EQ(nv12.format, PixelFormat::NV12);
+    for (const Frame* f : {&i420, &nv12}) {
+      EXPECT_EQ(f->index, bgr.index);
+      EXPECT_EQ(f->timestampNs, bgr.timestampNs);
+      EXPECT_EQ(f->width, 320);
+      EXPECT_EQ(f->height, 180);
+      EXPECT_EQ(f->stride, 320);
+    }
+    // Converted back, each is the decoded picture (BT.601 limited range both ways).
+    const cv::Mat decoded(180, 320, CV_8UC3, const_cast<std::uint8_t*>(bgr.data),
+                          static_cast<std::size_t>(bgr.stride));
+    cv::Mat fromI420, fromNv12;
+    cv::cvtColor(cv::Mat(270, 320, CV_8UC1, const_cast<std::uint8_t*>(i420.data)), fromI420,
+                 cv::COLOR_YUV2BGR_I420);
+    cv::cvtColor(cv::Mat(270, 320, CV_8UC1, const_cast<std::uint8_t*>(nv12.data)), fromNv12,
+                 cv::COLOR_YUV2BGR_NV12);
+    EXPECT_GT(cv::PSNR(fromI420, decoded), 30.0);
+    EXPECT_EQ(cv::norm(fromI420, fromNv12, cv::NORM_INF), 0.0);  // the same samples
+  }
+}
+
+TEST(FileSource, CameraFormatsAVideoCannotBeDeliveredInAreRefused) {
+  std::string err;
+  auto src = FileSource::open(writeVideo("fmt.avi", 2), err);
+  ASSERT_TRUE(src) << err;
+  EXPECT_FALSE(src->setOutputFormat(PixelFormat::YUYV, err));
+  EXPECT_NE(err.find("YUYV"), std::string::npos) << err;
+  // OpenCV's writer rounds sizes to even; a YUV4MPEG2 stream, written by hand, does not.
+  const std::string oddPath = testing::TempDir() + "/odd.y4m";
+  {
+    std::ofstream y4m(oddPath, std::ios::binary);
+    y4m << "YUV4MPEG2 W161 H91 F30:1 Ip A1:1 C420jpeg\n";
+    for (int n = 0; n < 3; ++n) {
+      y4m << "FRAME\n"
+          << std::string(161 * 91, static_cast<char>(90 + 10 * n))
+          << std::string(2 * 81 * 46, static_cast<char>(128));
+    }
+  }
+  auto odd = FileSource::open(oddPath, err);
+  ASSERT_TRUE(odd) << err;
+  ASSERT_EQ(odd->info().width, 161);
+  EXPECT_FALSE(odd->setOutputFormat(PixelFormat::NV12, err));
+  EXPECT_NE(err.find("even width and height"), std::string::npos) << err;
+  EXPECT_TRUE(odd->setOutputFormat(PixelFormat::BGR24, err)) << err;
+}
+
 // Two frames 5 s apart in the file's time, as after a gap in a recording.
 class GapSource final : public FrameSource {
  public:

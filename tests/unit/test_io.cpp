@@ -273,6 +273,8 @@ TEST(KeyframeIndex, ReadsKeyframesCsvAsJson) {
   EXPECT_NE(rows[1].metadataJson.find("\"frame_index\":42"), std::string::npos);
   EXPECT_NE(rows[1].metadataJson.find("\"cam_q\":[1,0,0,0]"), std::string::npos);
   EXPECT_NE(rows[1].metadataJson.find("\"geotag\":\"ok, fresh\""), std::string::npos);
+  // keyframes.csv has no decision time: an earlier run's keyframe says so.
+  EXPECT_NE(rows[1].metadataJson.find("\"decided_ns\":null"), std::string::npos);
   EXPECT_FALSE(readKeyframeIndex(dir + "/missing", "uav1", rows, error));
 }
 

@@ -3,21 +3,27 @@
 # source paced at the video's own rate (as a camera), MCAP recording on. Prints the
 # summary's frame rate, drops, CPU (total, and without the video decoding a camera
 # would do in hardware) and peak RSS.
-#   tools/bench/daemon_bench.sh [SECONDS] [--full]   (default 12 s)
+#   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12]   (default 12 s)
 # Without --full: no telemetry or Zenoh peers (the selection, recording and preview
 # cost alone). With --full: the daemon as shipped, telemetry and Zenoh on, a fake
 # autopilot replaying the flight's tlog over UDP and a ground station (keyframed-ground)
 # receiving the keyframes over loopback; their own CPU is not counted.
+# --format: the file source delivers frames as a camera would (converted from the
+# decoded BGR on the capture thread, counted with the decoding), so that the
+# daemon's own work is what it does behind a YUV camera; default: BGR as decoded.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 cd "$ROOT"
 SECS=12
 FULL=0
-for a in "$@"; do
-  case "$a" in
+FORMAT=auto
+while [ "$#" -gt 0 ]; do
+  case "$1" in
     --full) FULL=1 ;;
-    *) SECS="$a" ;;
+    --format) FORMAT="$2"; shift ;;
+    *) SECS="$1" ;;
   esac
+  shift
 done
 SAMPLE="data/sample/nadir1080-${SECS}s"
 if [ ! -f "$SAMPLE/meta.json" ]; then
@@ -29,7 +35,7 @@ cleanup() { kill "${GROUND_PID:-}" "${AP_PID:-}" 2>/dev/null || true; rm -rf "$S
 trap cleanup EXIT
 mkdir -p "$STATE/etc"
 ARGS=(--set camera.source=file --set "camera.path=$ROOT/$SAMPLE/video.avi"
-      --set "output.state_dir=$STATE")
+      --set "output.state_dir=$STATE" --set "camera.pixel_format=$FORMAT")
 if [ "$FULL" = 1 ]; then
   free_port() { .venv/bin/python -c "import socket,sys; s=socket.socket(socket.AF_INET, getattr(socket, sys.argv[1])); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])" "$1"; }
   ZPORT="$(free_port SOCK_STREAM)"
@@ -49,12 +55,12 @@ else
 fi
 build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" 2>/dev/null
 if [ "$FULL" = 1 ]; then wait "$GROUND_PID" || true; fi
-.venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" <<'PY'
+.venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" "$FORMAT" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))
 full = sys.argv[2] == "1"
 what = "telemetry, tagging, MCAP, Zenoh to a ground station" if full else "MCAP, no peers"
-print(f"keyframed run, {s['width']}x{s['height']} file source in real time, {s['seconds']:.1f} s ({what})")
+print(f"keyframed run, {s['width']}x{s['height']} file source in real time, {s['seconds']:.1f} s ({what}), frames as {'BGR (as decoded)' if sys.argv[4] == 'auto' else sys.argv[4]}")
 for k in ("frames_per_second", "frames_read", "frames_dropped", "kept", "analysis_ms_mean",
           "cpu_percent", "cpu_percent_without_decode", "max_rss_mb"):
     print(f"  {k:28s} {s[k]}")

@@ -1,0 +1,126 @@
+#include <cstring>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "app/preview_encoder.h"
+#include "photos.h"
+
+namespace keyframed {
+namespace {
+
+cv::Mat decode(const std::vector<std::uint8_t>& data) {
+  return cv::imdecode(
+      cv::Mat(1, static_cast<int>(data.size()), CV_8UC1, const_cast<std::uint8_t*>(data.data())),
+      cv::IMREAD_COLOR);
+}
+
+// A camera's frame of `bgr` in YUV420 (I420) or NV12, rows `stride` bytes apart
+// (padding filled with a value no picture sample has nearby, so reading it shows).
+struct CameraFrame {
+  std::vector<std::uint8_t> bytes;
+  Frame frame;
+};
+
+CameraFrame cameraFrame(const cv::Mat& bgr, PixelFormat format, int stride) {
+  cv::Mat i420;
+  cv::cvtColor(bgr, i420, cv::COLOR_BGR2YUV_I420);
+  const int w = bgr.cols, h = bgr.rows, cw = w / 2, ch = h / 2;
+  const std::uint8_t* y = i420.data;
+  const std::uint8_t* u = y + static_cast<std::size_t>(w) * h;
+  const std::uint8_t* v = u + static_cast<std::size_t>(cw) * ch;
+  CameraFrame c;
+  c.bytes.assign(static_cast<std::size_t>(stride) * (h + ch), 255);
+  for (int r = 0; r < h; ++r) std::memcpy(&c.bytes[std::size_t(r) * stride], y + r * w, w);
+  std::uint8_t* chroma = c.bytes.data() + static_cast<std::size_t>(stride) * h;
+  if (format == PixelFormat::NV12) {
+    for (int r = 0; r < ch; ++r)
+      for (int x = 0; x < cw; ++x) {
+        chroma[r * stride + 2 * x] = u[r * cw + x];
+        chroma[r * stride + 2 * x + 1] = v[r * cw + x];
+      }
+  } else {
+    const int cs = (stride + 1) / 2;
+    for (int r = 0; r < ch; ++r) {
+      std::memcpy(chroma + r * cs, u + r * cw, cw);
+      std::memcpy(chroma + cs * ch + r * cs, v + r * cw, cw);
+    }
+  }
+  c.frame.format = format;
+  c.frame.data = c.bytes.data();
+  c.frame.width = w;
+  c.frame.height = h;
+  c.frame.stride = stride;
+  return c;
+}
+
+class PreviewEncoderTest : public testing::Test {
+ protected:
+  void SetUp() override {
+    const cv::Mat img = test::photo("fruits.jpg", cv::IMREAD_COLOR);  // strong colours
+    if (img.empty()) GTEST_SKIP() << "fruits.jpg missing";
+    bgr_ = img(cv::Rect(0, 0, 500, 480)).clone();
+  }
+  // The preview compared with the photo scaled the plain way.
+  double psnr(const std::vector<std::uint8_t>& preview, cv::Size expected) {
+    const cv::Mat back = decode(preview);
+    EXPECT_EQ(back.size(), expected);
+    if (back.size() != expected) return 0.0;
+    cv::Mat reference;
+    cv::resize(bgr_, reference, expected, 0, 0, cv::INTER_AREA);
+    return cv::PSNR(back, reference);
+  }
+  cv::Mat bgr_;
+};
+
+TEST_F(PreviewEncoderTest, CameraYuvIsScaledPlaneByPlaneToTheSamePicture) {
+  PreviewEncoder preview(160);
+  const cv::Size size = preview.sizeFor(bgr_.cols, bgr_.rows);
+  EXPECT_EQ(size, cv::Size(160, 152));  // 480 * 160 / 500 = 153.6, even for 4:2:0 chroma
+  std::vector<std::uint8_t> out;
+  ASSERT_TRUE(preview.encode(Frame::ofBgr(bgr_, 0, 0), out));
+  EXPECT_STREQ(preview.format(), "jpeg");
+  const double fromBgr = psnr(out, size);
+  EXPECT_GT(fromBgr, 24.0);
+  for (PixelFormat format : {PixelFormat::YUV420, PixelFormat::NV12}) {
+    for (int stride : {500, 532}) {  // tight, and padded rows as drivers give them
+      SCOPED_TRACE(std::string(toString(format)) + " stride " + std::to_string(stride));
+      const CameraFrame cam = cameraFrame(bgr_, format, stride);
+      // Swapped or misplaced chroma, or padding read as picture, costs far more
+      // than the 4:2:0 round trip does.
+      ASSERT_TRUE(preview.encode(cam.frame, out));
+      EXPECT_STREQ(preview.format(), "jpeg");
+      EXPECT_GT(psnr(out, size), fromBgr - 2.0);
+    }
+  }
+}
+
+TEST_F(PreviewEncoderTest, FullWidthIsLosslessPng) {
+  PreviewEncoder preview(10000);
+  std::vector<std::uint8_t> out;
+  ASSERT_TRUE(preview.encode(Frame::ofBgr(bgr_, 0, 0), out));
+  EXPECT_STREQ(preview.format(), "png");
+  const cv::Mat back = decode(out);
+  ASSERT_EQ(back.size(), bgr_.size());
+  EXPECT_EQ(cv::norm(back, bgr_, cv::NORM_INF), 0.0);
+  // A camera frame at full width: the PNG holds its colour conversion, unscaled.
+  const CameraFrame cam = cameraFrame(bgr_, PixelFormat::NV12, 512);
+  ASSERT_TRUE(preview.encode(cam.frame, out));
+  EXPECT_STREQ(preview.format(), "png");
+  EXPECT_EQ(decode(out).size(), bgr_.size());
+}
+
+TEST(PreviewEncoder, OffOrEmptyEncodesNothing) {
+  std::vector<std::uint8_t> out;
+  const cv::Mat grey(48, 64, CV_8UC1, cv::Scalar(100));
+  EXPECT_FALSE(PreviewEncoder(0).encode(Frame::ofGray(grey, 0, 0), out));
+  EXPECT_FALSE(PreviewEncoder(32).encode(Frame{}, out));
+  PreviewEncoder preview(32);
+  ASSERT_TRUE(preview.encode(Frame::ofGray(grey, 0, 0), out));
+  EXPECT_EQ(decode(out).size(), cv::Size(32, 24));
+}
+
+}  // namespace
+}  // namespace keyframed
