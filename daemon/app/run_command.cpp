@@ -24,6 +24,7 @@
 #include <optional>
 #include <thread>
 
+#include <opencv2/core/utility.hpp>
 #include <opencv2/core/utils/logger.hpp>
 
 #include "app/config.h"
@@ -675,6 +676,10 @@ int runMain(const std::vector<std::string>& argsIn) {
     return 2;
   }
   cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
+  // OpenCV's calls run on the thread that makes them, not on a pool of its own: the
+  // daemon's threads are the ones DESIGN.md lists, each stage's CPU is its thread's
+  // (the file source's colour conversion counts as decoding), and no pool spins.
+  cv::setNumThreads(1);
   ConfigLoadResult r = loadConfig(sources);
   if (!r.ok()) {
     for (const auto& e : r.errors) std::fprintf(stderr, "keyframed: %s\n", e.c_str());

@@ -74,7 +74,7 @@ def stats(ms: list[float]) -> str:
     p99 = ms[min(len(ms) - 1, round(0.99 * (len(ms) - 1)))]
     return (
         f"median {statistics.median(ms):.1f} ms, p99 {p99:.1f}, max {ms[-1]:.1f} "
-        f"({len(ms)} keyframes)"
+        f"over {len(ms)} keyframes"
     )
 
 
@@ -131,8 +131,8 @@ def main() -> int:
         f"{args.runs} runs"
     )
     print(f"  keyframes received      {len(arrivals)} of {written} written")
-    print(f"  decision to receipt     {stats(decided)} (every keyframe)")
-    print(f"  capture to receipt      {stats(own)} (gap fills excluded)")
+    print(f"  decision to receipt     {stats(decided)}, every keyframe")
+    print(f"  capture to receipt      {stats(own)}, gap fills excluded")
     print(f"  keyframe size           {statistics.mean(n for _, _, n in arrivals) / 1e3:.0f} KB")
     print(f"  MCAP file               {mcap_mb:.1f} MB a run ({frames // args.runs} frames)")
     return 0
