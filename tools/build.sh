@@ -24,7 +24,9 @@ if [ ! -f build/release/build.ninja ] ||
   cmake -S . -B build/release -G Ninja -DCMAKE_BUILD_TYPE=Release \
     -DPython_EXECUTABLE="$ROOT/.venv/bin/python" "${DEFINES[@]}"
 fi
-ninja -C build/release -j"$JOBS"
+# One job more than cores: the cargo build of the Rust crate is one of ninja's jobs but
+# runs its own $JOBS; through its long serial stretches C++ keeps both cores busy.
+ninja -C build/release -j"$((JOBS + 1))"
 
 STAMP=build/.setup/python-installed
 if [ ! -f "$STAMP" ] || ! .venv/bin/python -c "import keyframed._core" 2>/dev/null \

@@ -39,7 +39,20 @@ if [ "$asan_tests" -eq 0 ]; then
   exit 1
 fi
 echo "$asan_tests unit tests under AddressSanitizer + UBSan"
-build/asan/tests/keyframed_unit --gtest_brief=1
+# In $JOBS shards at once (each test runs in one of them), as ctest runs the release
+# build's tests side by side.
+shard_pids=()
+for ((i = 0; i < JOBS; i++)); do
+  GTEST_TOTAL_SHARDS="$JOBS" GTEST_SHARD_INDEX="$i" build/asan/tests/keyframed_unit \
+    --gtest_brief=1 > "build/asan/unit-shard-$i.log" 2>&1 &
+  shard_pids+=($!)
+done
+asan_rc=0
+for ((i = 0; i < JOBS; i++)); do
+  wait "${shard_pids[$i]}" || asan_rc=1
+  cat "build/asan/unit-shard-$i.log"
+done
+[ "$asan_rc" -eq 0 ] || { echo "unit tests failed under AddressSanitizer + UBSan" >&2; exit 1; }
 build/asan/tests/fuzz/fuzz_mavlink_standalone --iterations 100000
 unset ASAN_OPTIONS UBSAN_OPTIONS
 

@@ -61,6 +61,7 @@ def test_install_layout(tmp_path: Path):
     ):
         assert (stage / f).is_file(), f
     assert (stage / etc / "conf.d").is_dir()
+    assert not list(stage.rglob("_core*")), "the Python extension installed with the daemon"
     assert os.access(stage / prefix / "bin/keyframed", os.X_OK)
     unit = (stage / prefix / "lib/systemd/system/keyframed.service").read_text()
     assert f"ExecStart=/{prefix}/bin/keyframed run" in unit  # follows the prefix
@@ -107,6 +108,8 @@ def test_debian_package(deb: Path, tmp_path: Path):
         "./usr/share/doc/keyframed/capture.md",
     ):
         assert f in paths, f
+    # The Python extension, built in the same tree, is the wheel's, not the daemon's.
+    assert not [p for p in paths if "_core" in p or "python" in p], sorted(paths)
 
     control = tmp_path / "control"
     subprocess.run(["dpkg-deb", "-e", str(deb), str(control)], check=True)
@@ -172,3 +175,19 @@ def test_debian_package_installs_runs_and_purges(deb: Path, tmp_path: Path):
         assert not conf.exists()
     finally:
         _dpkg("-P", "keyframed")
+
+
+def test_python_wheel_holds_the_package_only():
+    """The installed keyframed distribution is the Python package, its metadata and
+    the keyframed-ground script: not the daemon, its unit or configuration, which
+    the same CMake installs for a system."""
+    from importlib.metadata import files
+
+    installed = [str(f) for f in files("keyframed") or []]
+    assert any(f.startswith("keyframed/_core") for f in installed), installed
+    outside = [
+        f
+        for f in installed
+        if not f.startswith(("keyframed/", "keyframed-")) and not f.endswith("bin/keyframed-ground")
+    ]
+    assert not outside, outside
