@@ -25,8 +25,8 @@ void KeyframeStage::process(const Frame& frame) {
   ++counts_.framesRead;
   KeyframeEvent ev;
   ev.decision = selector_.process(frame);
-  if (clock_ != nullptr) ev.decidedNs = clock_->nowNs();
   const Decision& d = ev.decision;
+  if (clock_ != nullptr && (d.kept || d.promotedIndex >= 0)) ev.decidedNs = clock_->nowNs();
   counts_.analysisNs += static_cast<double>(d.times.totalNs);
   // Each frame is counted once by its decision; a candidate promoted later moves
   // from its rejection counter to the kept one.

@@ -16,7 +16,7 @@ struct KeyframeEvent {
   FramePtr keyframe;           // decision.kept: this frame's pixels (owned copy)
   FramePtr promoted;           // a candidate promoted to keyframe with this decision (gap fill)
   bool endOfStream = false;    // the selector's finish(): only `promoted` is meaningful
-  std::int64_t decidedNs = 0;  // the clock's time when the decision was made (0: no clock)
+  std::int64_t decidedNs = 0;  // with a keyframe: the clock's time at the decision (0: no clock)
 };
 
 struct StageCounts {

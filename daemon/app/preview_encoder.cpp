@@ -1,5 +1,6 @@
 #include "app/preview_encoder.h"
 
+#include <cstring>
 #include <string>
 #include <utility>
 
@@ -8,24 +9,22 @@
 
 namespace keyframed {
 
+namespace {
+// `rows` x `cols` of `from` into a tight plane at `to`; false when `from` is smaller.
+bool copyPlane(GrayView from, int cols, int rows, std::uint8_t* to) {
+  if (from.width < cols || from.height < rows) return false;
+  for (int r = 0; r < rows; ++r)
+    std::memcpy(to + static_cast<std::size_t>(r) * static_cast<std::size_t>(cols), from.row(r),
+                static_cast<std::size_t>(cols));
+  return true;
+}
+}  // namespace
+
 cv::Size PreviewEncoder::sizeFor(int width, int height) const {
   if (width_ <= 0 || width <= 0) return {0, 0};
   const int w = width_ & ~1;
   const int h = static_cast<int>(static_cast<std::int64_t>(height) * w / width) & ~1;
   return {w, h > 0 ? h : 2};
-}
-
-// Halve with INTER_AREA while that stays above the target, then one bilinear step:
-// 1080p -> 640 costs a fraction of a direct INTER_AREA (the analysis image is made
-// the same way; docs/performance.md).
-void PreviewEncoder::Scaler::scale(const cv::Mat& from, cv::Mat& to) {
-  const cv::Mat* src = &from;
-  while (src->cols / 2 >= to.cols && src->rows / 2 >= to.rows) {
-    cv::resize(*src, half, cv::Size(src->cols / 2, src->rows / 2), 0, 0, cv::INTER_AREA);
-    std::swap(half, spare);
-    src = &spare;
-  }
-  cv::resize(*src, to, to.size(), 0, 0, cv::INTER_LINEAR);
 }
 
 bool PreviewEncoder::encodeYuv(const Frame& f, std::vector<std::uint8_t>& out) {
@@ -35,26 +34,29 @@ bool PreviewEncoder::encodeYuv(const Frame& f, std::vector<std::uint8_t>& out) {
   const std::size_t chromaBytes = static_cast<std::size_t>(cw) * static_cast<std::size_t>(ch);
   planes_.resize(lumaBytes + 2 * chromaBytes);
   std::uint8_t* y = planes_.data();
-  std::uint8_t* u = y + lumaBytes;
-  std::uint8_t* v = u + chromaBytes;
-  cv::Mat yOut(size, CV_8UC1, y), uOut(ch, cw, CV_8UC1, u), vOut(ch, cw, CV_8UC1, v);
 
-  auto* data = const_cast<std::uint8_t*>(f.data);
-  const auto stride = static_cast<std::size_t>(f.stride);
-  luma_.scale(cv::Mat(f.height, f.width, CV_8UC1, data, stride), yOut);
-  std::uint8_t* chroma = data + stride * static_cast<std::size_t>(f.height);
+  const std::size_t stride = static_cast<std::size_t>(f.stride);
+  const std::uint8_t* chroma = f.data + stride * static_cast<std::size_t>(f.height);
   const int srcCw = (f.width + 1) / 2, srcCh = (f.height + 1) / 2;
+  GrayView u, v;
   if (f.format == PixelFormat::NV12) {
-    uv_.create(ch, cw, CV_8UC2);
-    colour_.scale(cv::Mat(srcCh, srcCw, CV_8UC2, chroma, stride), uv_);
-    cv::Mat split[] = {uOut, vOut};
-    cv::split(uv_, split);
+    chromaUFull_.create(srcCh, srcCw, CV_8UC1);
+    chromaVFull_.create(srcCh, srcCw, CV_8UC1);
+    cv::Mat parts[] = {chromaUFull_, chromaVFull_};
+    cv::split(cv::Mat(srcCh, srcCw, CV_8UC2, const_cast<std::uint8_t*>(chroma), stride), parts);
+    u = GrayView::of(chromaUFull_);
+    v = GrayView::of(chromaVFull_);
   } else {
-    const std::size_t cstride = (stride + 1) / 2;
-    chromaU_.scale(cv::Mat(srcCh, srcCw, CV_8UC1, chroma, cstride), uOut);
-    chromaV_.scale(
-        cv::Mat(srcCh, srcCw, CV_8UC1, chroma + cstride * static_cast<std::size_t>(srcCh), cstride),
-        vOut);
+    const int cstride = (f.stride + 1) / 2;
+    u = GrayView{chroma, srcCw, srcCh, cstride};
+    v = GrayView{chroma + static_cast<std::size_t>(cstride) * static_cast<std::size_t>(srcCh),
+                 srcCw, srcCh, cstride};
+  }
+  const GrayView luma{f.data, f.width, f.height, f.stride};
+  if (!copyPlane(luma_.scale(luma, size.width, size.height), size.width, size.height, y) ||
+      !copyPlane(chromaU_.scale(u, cw, ch), cw, ch, y + lumaBytes) ||
+      !copyPlane(chromaV_.scale(v, cw, ch), cw, ch, y + lumaBytes + chromaBytes)) {
+    return false;
   }
   Frame small;
   small.format = PixelFormat::YUV420;
@@ -95,8 +97,16 @@ bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
     // Lossless, so that a replay reproduces the live decisions exactly.
     return cv::imencode(".png", bgr_, out, {cv::IMWRITE_PNG_COMPRESSION, 1});
   }
-  small_.create(sizeFor(f.width, f.height), CV_8UC3);
-  colour_.scale(bgr_, small_);
+  // Halve with INTER_AREA while that stays above the target, then one bilinear step,
+  // as DownScaler does for one plane.
+  const cv::Size size = sizeFor(f.width, f.height);
+  const cv::Mat* from = &bgr_;
+  while (from->cols / 2 >= size.width) {
+    cv::resize(*from, half_, cv::Size(from->cols / 2, from->rows / 2), 0, 0, cv::INTER_AREA);
+    std::swap(half_, halfSpare_);
+    from = &halfSpare_;
+  }
+  cv::resize(*from, small_, size, 0, 0, cv::INTER_LINEAR);
   std::string error;
   return encoder_.encode(small_, kQuality, out, error);
 }

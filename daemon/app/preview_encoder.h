@@ -6,6 +6,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "core/frame.h"
+#include "core/resize.h"
 #include "tagging/jpeg_encoder.h"
 
 namespace keyframed {
@@ -14,10 +15,10 @@ namespace keyframed {
 // (0: off) as a JPEG, or at or above the frame's width lossless as a PNG, so that a
 // replay sees the very pixels the live selection saw.
 //
-// A camera's YUV420 or NV12 frame is scaled plane by plane and encoded from YUV:
-// only the small picture is ever touched in colour (converting 1080p to BGR first
-// cost more than the rest of the preview). BGR24, grey and YUYV go through BGR.
-// Buffers are reused: no allocation a frame in steady state.
+// A camera's YUV420 or NV12 frame is scaled plane by plane (core/resize, as the
+// analysis image) and encoded from YUV: only the small picture is ever touched in
+// colour (converting 1080p to BGR first cost more than the rest of the preview).
+// BGR24, grey and YUYV go through BGR. Buffers are reused.
 class PreviewEncoder {
  public:
   explicit PreviewEncoder(int width) : width_(width) {}
@@ -30,21 +31,15 @@ class PreviewEncoder {
   [[nodiscard]] cv::Size sizeFor(int width, int height) const;
 
  private:
-  // One scaled plane and its halving buffers (each plane keeps its own, so that
-  // their sizes never change from frame to frame).
-  struct Scaler {
-    cv::Mat half, spare;
-    void scale(const cv::Mat& from, cv::Mat& to);  // into `to`, already sized
-  };
   bool encodeYuv(const Frame& frame, std::vector<std::uint8_t>& out);
 
   static constexpr int kQuality = 85;
   int width_;
   const char* format_ = "jpeg";
-  cv::Mat bgr_, small_;
-  Scaler luma_, chromaU_, chromaV_, colour_;
-  cv::Mat uv_;                        // NV12: the scaled interleaved chroma
-  std::vector<std::uint8_t> planes_;  // the scaled picture, I420
+  cv::Mat bgr_, small_, half_, halfSpare_;  // BGR path
+  DownScaler luma_, chromaU_, chromaV_;     // YUV path: one per plane, sizes fixed
+  cv::Mat chromaUFull_, chromaVFull_;       // NV12: its chroma de-interleaved
+  std::vector<std::uint8_t> planes_;        // the scaled picture, I420
   JpegEncoder encoder_;
 };
 

@@ -118,10 +118,10 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
     case DaemonConfig::Source::File: {
       auto file = FileSource::open(c.path, error);
       if (!file) return nullptr;
-      // Validated with the configuration; as a camera would deliver it, or as decoded.
-      const std::optional<PixelFormat> format = filePixelFormat(c.pixelFormat);
-      if (!format || !file->setOutputFormat(*format, error)) {
-        if (!format) error = "camera.pixel_format: not a format a video file is delivered as";
+      // As decoded, or as a camera would deliver it (the name was checked with the
+      // configuration).
+      if (!file->setOutputFormat(filePixelFormat(c.pixelFormat).value_or(PixelFormat::BGR24),
+                                 error)) {
         return nullptr;
       }
       std::optional<std::int64_t> start;

@@ -1,6 +1,5 @@
 #include "capture/file_source.h"
 
-#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -102,26 +101,23 @@ bool FileSource::setOutputFormat(PixelFormat format, std::string& error) {
 
 void FileSource::toCameraFormat(Frame& frame) {
   const int w = info_.width, h = info_.height;
-  cv::cvtColor(bgr_, i420_, cv::COLOR_BGR2YUV_I420);
+  cv::cvtColor(bgr_, yuv_, cv::COLOR_BGR2YUV_I420);
   frame.format = output_;
   frame.width = w;
   frame.height = h;
   frame.stride = w;
-  frame.data = i420_.data;
+  frame.data = yuv_.data;
   if (output_ != PixelFormat::NV12) return;
-  // I420 -> NV12: the luma as it is, the chroma planes interleaved.
+  // I420 -> NV12 in place: the luma stays, the two chroma planes (copied aside)
+  // are written back interleaved.
   const std::size_t luma = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
   const std::size_t quarter = luma / 4;
-  nv12_.resize(luma + 2 * quarter);
-  std::copy_n(i420_.data, luma, nv12_.data());
-  const std::uint8_t* u = i420_.data + luma;
-  const std::uint8_t* v = u + quarter;
-  std::uint8_t* uv = nv12_.data() + luma;
+  std::uint8_t* uv = yuv_.data + luma;
+  chroma_.assign(uv, uv + 2 * quarter);
   for (std::size_t i = 0; i < quarter; ++i) {
-    uv[2 * i] = u[i];
-    uv[2 * i + 1] = v[i];
+    uv[2 * i] = chroma_[i];
+    uv[2 * i + 1] = chroma_[quarter + i];
   }
-  frame.data = nv12_.data();
 }
 
 ReadStatus FileSource::next(Frame& frame, std::string& error) {

@@ -40,8 +40,8 @@ class FileSource final : public FrameSource {
   cv::VideoCapture capture_;
   cv::Mat bgr_;
   PixelFormat output_ = PixelFormat::BGR24;
-  cv::Mat i420_;                    // the conversion, I420
-  std::vector<std::uint8_t> nv12_;  // ... and interleaved, for NV12
+  cv::Mat yuv_;                       // the frame as delivered, I420 or NV12
+  std::vector<std::uint8_t> chroma_;  // NV12: the I420 chroma planes, while interleaving
   SourceInfo info_;
   std::string path_;
   std::int64_t index_ = 0;
