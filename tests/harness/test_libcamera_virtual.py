@@ -95,6 +95,12 @@ then
   do sleep 0.1; n=$((n+1)); done
   echo "KF-DAEMON-READY $(cut -d' ' -f1 /proc/uptime)"
   sleep @RUN_S@
+  # At least a dozen frames decided before SIGTERM, however slow the emulation (the
+  # virtual camera's frames come slower when the host is busy): up to 30 s more.
+  n=0
+  while [ "$(cat /scratch/state/flights/*/decisions.csv 2>/dev/null | wc -l)" -lt 13 ] &&
+        kill -0 $pid 2>/dev/null && [ $n -lt 300 ]
+  do sleep 0.1; n=$((n+1)); done
   kill -TERM $pid && echo "KF-DAEMON-TERM $(cut -d' ' -f1 /proc/uptime)"
   wait $pid
   rc=$?

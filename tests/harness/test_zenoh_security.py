@@ -212,10 +212,16 @@ def fly(proc: subprocess.Popen[str], ap: Any, session: Any) -> str:
     # The subscriptions must have reached the daemon before its first keyframe: a
     # query answered by its queryable (on the same link, after the declarations)
     # says they have, however loaded the machine is.
-    # (Asked again until the daemon has joined: before that nothing answers at once.)
-    deadline = time.monotonic() + 20.0
+    # (Asked again until the daemon has joined: before that nothing answers at once.
+    # The deadline only bounds a failure: a TLS handshake on a loaded 2-core machine,
+    # the other test worker busy, has taken more than 20 s.)
+    deadline = time.monotonic() + 60.0
     while not list(session.get(f"keyframed/{VEHICLE}/keyframes/0", timeout=5.0)):
-        assert time.monotonic() < deadline, "the daemon's queryable did not answer"
+        if proc.poll() is not None or time.monotonic() > deadline:
+            if proc.poll() is None:
+                proc.kill()
+            _, stderr = proc.communicate()
+            pytest.fail(f"the daemon's queryable did not answer (rc {proc.returncode}):\n{stderr}")
         time.sleep(0.05)
     ap.start()
     try:
