@@ -50,6 +50,7 @@ bool KeyframeOutput::writeKeyframe(const Frame& frame, std::int64_t decidedNs, s
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }
+    telemetry_->advanceReplay(frame.timestampNs);
     pose = telemetry_->decoder().poseAt(frame.timestampNs);
   }
   KeyframeRecord rec;

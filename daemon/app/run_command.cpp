@@ -139,12 +139,7 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
       V4l2Options o;
       o.device = c.device;
       if (o.device.empty()) {
-        for (const auto& d : V4l2Source::listDevices()) {
-          if (d.capture) {
-            o.device = d.path;
-            break;
-          }
-        }
+        o.device = V4l2Source::pickDevice(V4l2Source::listDevices());
         if (o.device.empty()) {
           error = "no V4L2 capture device found (camera.device to name one)";
           return nullptr;
@@ -353,7 +348,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
                   "\"captures_pending\": %llu, "
                   "\"captures_dropped\": %llu, \"captures_resent\": %llu, \"link_errors\": %llu, "
-                  "\"reconnects\": %llu, \"gimbal_messages\": %llu}",
+                  "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"autopilot_reboots\": %llu}",
                   config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
                   toString(telemetry_->decoder().clockSource()),
                   off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
@@ -367,7 +362,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   static_cast<unsigned long long>(ts.capturesResent),
                   static_cast<unsigned long long>(ts.linkErrors),
                   static_cast<unsigned long long>(ts.reconnects),
-                  static_cast<unsigned long long>(ts.decoder.gimbal));
+                  static_cast<unsigned long long>(ts.decoder.gimbal),
+                  static_cast<unsigned long long>(ts.decoder.reboots));
     tel = b;
   }
   const SourceInfo& info = source_->info();
@@ -440,6 +436,10 @@ int Daemon::run() {
                              << config_.camera.width << "x" << config_.camera.height
                              << " (the nearest size it offers)";
   }
+  if (camera_) {
+    if (const std::string w = camera_->aspectMismatch(info.width, info.height); !w.empty())
+      KF_LOG(Tagging, Warning) << w;
+  }
   if (!makeFlightDir(config_.output.stateDir, flightDir_, error)) {
     KF_LOG(Output, Error) << error;
     return 1;
@@ -459,10 +459,6 @@ int Daemon::run() {
     }
     telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
     logTelemetryEvents(*telemetry_);
-    if (!telemetry_->start(error)) {
-      KF_LOG(Telemetry, Error) << "telemetry.url: " << error;
-      return 1;
-    }
   }
   if (!log_.open(flightDir_ + "/decisions.csv", DecisionFormat::Csv, error)) {
     KF_LOG(Output, Error) << error;
@@ -512,6 +508,10 @@ int Daemon::run() {
     fo.vehicle = host[0] != '\0' ? host : "uav";
   }
   fo.keyframeDir = wc.dir;
+  // The ground station tells this run's keyframes (sequence numbers from 0 again)
+  // from an earlier run's by the flight directory's name.
+  fo.flight = std::filesystem::path(flightDir_).filename().string();
+  fo.flightsDir = std::filesystem::path(flightDir_).parent_path().string();
   fo.offline = false;  // live: the recorder drops (and counts) rather than stall
   if (!outputs_.open(fo, info.width, info.height, camera_ ? &*camera_ : nullptr, error)) {
     KF_LOG(Output, Error) << error;
@@ -519,7 +519,15 @@ int Daemon::run() {
   }
   logToRecord_ = std::make_unique<LogToRecord>(outputs_);
 
-  if (telemetry_) recordLiveMavlink(*telemetry_, outputs_);
+  if (telemetry_) {
+    // The link opens once the flight record listens: every packet from the first is
+    // recorded, so that a replay of the record tags the first keyframes too.
+    recordLiveMavlink(*telemetry_, outputs_);
+    if (!telemetry_->start(error)) {
+      KF_LOG(Telemetry, Error) << "telemetry.url: " << error;
+      return 1;
+    }
+  }
   MonotonicClock clock;
   stage_ = std::make_unique<KeyframeStage>(
       config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
@@ -647,6 +655,13 @@ int Daemon::run() {
   if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
   if (!writeSummary(seconds, state, error)) {
     KF_LOG(Output, Error) << error;
+    ok = false;
+  }
+  // A keyframe or decision row that could not be saved (a full disk, an I/O error):
+  // the run's outputs are not complete, whatever else went well.
+  if (const std::int64_t failed = stats_.writeErrors.load(); failed > 0) {
+    KF_LOG(Output, Error) << failed << " writes failed in this run, "
+                          << writer_.count() - writer_.saved() << " keyframes not saved";
     ok = false;
   }
   const CaptureThread::Stats cs = capture_->stats();

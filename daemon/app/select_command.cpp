@@ -41,7 +41,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
                   "    \"unknown_ids\": %llu,\n"
                   "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
-                  "    \"gimbal_messages\": %llu,\n"
+                  "    \"gimbal_messages\": %llu,\n    \"autopilot_reboots\": %llu,\n"
                   "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
                   "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
                   "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
@@ -55,6 +55,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.skippedBytes),
                   static_cast<unsigned long long>(s.telemetry.otherSources),
                   static_cast<unsigned long long>(s.telemetry.gimbal),
+                  static_cast<unsigned long long>(s.telemetry.reboots),
                   static_cast<unsigned long long>(s.telemetry.capturesSent),
                   static_cast<unsigned long long>(s.telemetry.capturesPending),
                   static_cast<unsigned long long>(s.telemetry.capturesDropped),
@@ -145,6 +146,10 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     std::fprintf(stderr,
                  "keyframed select: warning: no --calibration: keyframes carry position and "
                  "attitude but no intrinsics\n");
+  }
+  if (camera) {
+    const std::string w = camera->aspectMismatch(source->info().width, source->info().height);
+    if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
   }
   std::error_code ec;
   std::filesystem::create_directories(opts.outDir, ec);
@@ -286,6 +291,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   std::size_t nextPacket = 0;
   const auto rerecordMavlink = [&](std::int64_t upToNs) {
     if (!mavlinkRecord) return;
+    telemetry->advanceReplay(upToNs);  // the autopilot it follows known as in the run
     const auto& packets = telemetry->replayPackets();
     for (; nextPacket < packets.size() && packets[nextPacket].timeNs <= upToNs; ++nextPacket)
       mavlinkRecord->packet(packets[nextPacket]);
@@ -361,6 +367,7 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     s.telemetry.skippedBytes = ts.parser.skippedBytes;
     s.telemetry.otherSources = ts.decoder.otherSources;
     s.telemetry.gimbal = ts.decoder.gimbal;
+    s.telemetry.reboots = ts.decoder.reboots;
     s.telemetry.capturesSent = ts.capturesSent;
     s.telemetry.capturesPending = ts.capturesPending;
     s.telemetry.capturesDropped = ts.capturesDropped;

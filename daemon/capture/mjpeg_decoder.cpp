@@ -10,7 +10,8 @@ MjpegDecoder::~MjpegDecoder() {
   if (handle_ != nullptr) tjDestroy(handle_);
 }
 
-bool MjpegDecoder::decode(const std::uint8_t* data, std::size_t size, std::string& error) {
+bool MjpegDecoder::decode(const std::uint8_t* data, std::size_t size, std::string& error,
+                          int expectedWidth, int expectedHeight) {
   if (handle_ == nullptr) {
     error = "libjpeg-turbo decompressor could not be created";
     return false;
@@ -28,6 +29,11 @@ bool MjpegDecoder::decode(const std::uint8_t* data, std::size_t size, std::strin
   if (tjDecompressHeader3(handle_, src, len, &w, &h, &subsamp, &colorspace) != 0 || w <= 0 ||
       h <= 0) {
     error = std::string("MJPEG header: ") + tjGetErrorStr2(handle_);
+    return false;
+  }
+  if ((expectedWidth > 0 && w != expectedWidth) || (expectedHeight > 0 && h != expectedHeight)) {
+    error = "MJPEG frame is " + std::to_string(w) + "x" + std::to_string(h) + ", not " +
+            std::to_string(expectedWidth) + "x" + std::to_string(expectedHeight);
     return false;
   }
   const std::size_t bytes = static_cast<std::size_t>(w) * static_cast<std::size_t>(h) * 3;

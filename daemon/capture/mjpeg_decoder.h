@@ -18,8 +18,11 @@ class MjpegDecoder {
   MjpegDecoder& operator=(const MjpegDecoder&) = delete;
 
   // Decodes `size` bytes. On success bgr() holds width()*height()*3 bytes,
-  // rows width()*3 apart. On failure `error` holds a one-line reason.
-  [[nodiscard]] bool decode(const std::uint8_t* data, std::size_t size, std::string& error);
+  // rows width()*3 apart. On failure `error` holds a one-line reason. With an
+  // expected size (the negotiated one), a header that says otherwise is refused
+  // before anything is allocated: a garbled frame can claim 65535x65535 (12 GB).
+  [[nodiscard]] bool decode(const std::uint8_t* data, std::size_t size, std::string& error,
+                            int expectedWidth = 0, int expectedHeight = 0);
 
   [[nodiscard]] const std::uint8_t* bgr() const { return bgr_.data(); }
   [[nodiscard]] int width() const { return width_; }

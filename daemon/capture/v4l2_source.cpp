@@ -127,6 +127,19 @@ std::uint32_t V4l2Source::chooseFormat(const std::vector<std::uint32_t>& offered
   return 0;
 }
 
+std::string V4l2Source::pickDevice(const std::vector<V4l2DeviceInfo>& devices) {
+  for (const V4l2DeviceInfo& d : devices) {
+    if (!d.capture || !d.streaming) continue;
+    std::vector<std::uint32_t> offered;
+    for (const std::string& f : d.formats) offered.push_back(parseFormat(f));
+    if (chooseFormat(offered) != 0) return d.path;
+  }
+  for (const V4l2DeviceInfo& d : devices) {
+    if (d.capture) return d.path;
+  }
+  return {};
+}
+
 std::int64_t V4l2Source::timevalToNs(long sec, long usec) {
   return static_cast<std::int64_t>(sec) * 1'000'000'000 + static_cast<std::int64_t>(usec) * 1'000;
 }
@@ -540,8 +553,8 @@ V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const s
   frame.height = layout.height;
   if (layout.fourcc == V4L2_PIX_FMT_MJPEG) {
     std::string why;
-    if (!mjpeg.decode(data, std::min(used, length), why) || mjpeg.width() != layout.width ||
-        mjpeg.height() != layout.height) {
+    if (!mjpeg.decode(data, std::min(used, length), why, layout.width, layout.height) ||
+        mjpeg.width() != layout.width || mjpeg.height() != layout.height) {
       return BufferUse::Corrupt;
     }
     frame.format = PixelFormat::BGR24;

@@ -76,6 +76,10 @@ class V4l2Source final : public FrameSource {
   static std::vector<V4l2DeviceInfo> listDevices();
   // QUERYCAP + ENUM_FMT of one node; false and a one-line error when missing.
   static bool describe(const std::string& path, V4l2DeviceInfo& out, std::string& error);
+  // The camera to use when none is named: the first node that streams a format this
+  // source reads (a Pi's unicam node offers only Bayer, a codec's only its output),
+  // else the first capture node (its open() then says what is wrong); "" for none.
+  static std::string pickDevice(const std::vector<V4l2DeviceInfo>& devices);
 
   // Opens, negotiates and starts streaming. nullptr and a one-line error when
   // the device is missing, not a capture device, or offers no supported format.

@@ -11,8 +11,12 @@
 
 #ifdef KEYFRAMED_HAVE_IO
 #include <atomic>
+#include <condition_variable>
+#include <deque>
 #include <map>
 #include <mutex>
+#include <thread>
+#include <vector>
 
 #include "output/foxglove_proto.h"
 #include "output/keyframe_publisher.h"
@@ -69,7 +73,12 @@ struct FlightOutputs::Impl {
   FlightOutputOptions options;
   std::unique_ptr<McapRecorder> recorder;
   std::unique_ptr<KeyframePublisher> publisher;
-  std::map<std::int64_t, Scores> scores;  // frames since the last keyframe
+  // Frames since the last keyframe, for the keyframe's metadata: at most
+  // kMaxScores of the newest, and the fallback candidate, however long no keyframe
+  // comes (a vehicle standing on the ground for an hour).
+  std::map<std::int64_t, Scores> scores;
+  std::int64_t candidate = -1;
+  static constexpr std::size_t kMaxScores = 1800;
   std::int64_t lastStatusNs = 0;
   std::int64_t lastPreviewNs = 0;
   std::int64_t framesRead = 0;
@@ -79,12 +88,71 @@ struct FlightOutputs::Impl {
   std::int64_t publishFailures = 0;
   LogThrottle publishFailureLog;
   KeyframePut putForTesting;
+  // A live run puts keyframes on a thread of their own: a Block put waits while the
+  // link is congested (up to Zenoh's own timeout, seconds), and must not hold up the
+  // output thread, and through it analysis and capture. At most kMaxQueuedPuts wait;
+  // past that a keyframe is left to the queryable (it is on disk, and the ground
+  // station fetches it when it sees the gap). An offline run puts in line.
+  struct Put {
+    std::int64_t sequence;
+    std::vector<std::uint8_t> jpeg;
+    std::string meta;
+  };
+  static constexpr std::size_t kMaxQueuedPuts = 8;
+  std::mutex putMutex;
+  std::condition_variable putCv;
+  std::deque<Put> puts;
+  bool putStop = false;
+  std::thread putThread;
+  std::int64_t putsSkipped = 0;  // left to the queryable (output thread)
+  LogThrottle putSkipLog;
+
+  void put(std::int64_t sequence, std::span<const std::uint8_t> jpeg, const std::string& meta) {
+    // Every keyframe is put, whatever happened to the one before: Zenoh reconnects by
+    // itself, and a ground station fetches what it missed from the queryable.
+    std::string error;
+    const bool ok = putForTesting ? putForTesting(jpeg, meta, error)
+                                  : publisher->publishKeyframe(sequence, jpeg, meta, error);
+    if (!ok) {
+      ++publishFailures;
+      if (const auto held = publishFailureLog.pass("", wallNs())) {
+        warn("zenoh: keyframe " + std::to_string(sequence) + " not published: " + error + " (" +
+             std::to_string(*held + 1) + " failed since the last report, " +
+             std::to_string(publishFailures) + " in all)");
+      }
+    }
+  }
+  void putLoop() {
+    std::unique_lock lock(putMutex);
+    while (true) {
+      putCv.wait(lock, [this] { return putStop || !puts.empty(); });
+      if (puts.empty()) return;  // stopping, all put
+      Put p = std::move(puts.front());
+      puts.pop_front();
+      lock.unlock();
+      put(p.sequence, p.jpeg, p.meta);
+      lock.lock();
+    }
+  }
+  // The keyframes still queued are put before it returns.
+  void stopPuts() {
+    {
+      std::lock_guard lock(putMutex);
+      putStop = true;
+    }
+    putCv.notify_all();
+    if (putThread.joinable()) putThread.join();
+  }
   // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
   // an offline run the time of the latest frame.
   std::atomic<std::int64_t> frameNs{0};
   std::mutex logMutex;  // log() (any thread) against close() taking the recorder away
 
   std::int64_t nowNs() const { return options.liveClock ? wallNs() : frameNs.load(); }
+  // ,"flight":"ID" for a status message, or nothing without a flight id.
+  std::string flightField() const {
+    return options.flight.empty() ? std::string() : ",\"flight\":\"" + options.flight + "\"";
+  }
   void note(const std::string& message) const {
     if (options.note) {
       options.note(message);
@@ -172,6 +240,8 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     po.configFile = o.zenohConfig;
     po.vehicle = o.vehicle;
     po.keyframeDir = o.keyframeDir;
+    po.flight = o.flight;
+    po.flightsDir = o.flightsDir;
     impl_->publisher = KeyframePublisher::open(po, error);
     if (!impl_->publisher) {
       error = o.zenohSetting + ": " + error;
@@ -179,15 +249,25 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       return false;
     }
     std::string ignored;
-    impl_->publisher->publishStatus("{\"state\":\"running\",\"frames\":0,\"kept\":0}", ignored);
+    impl_->publisher->publishStatus(
+        "{\"state\":\"running\",\"frames\":0,\"kept\":0" + impl_->flightField() + "}", ignored);
+    if (!o.offline) impl_->putThread = std::thread([impl = impl_.get()] { impl->putLoop(); });
   }
   return true;
 }
 
 void FlightOutputs::decision(const Decision& d, const std::string& decisionJson) {
   if (!impl_->options.liveClock) impl_->frameNs.store(d.timestampNs);
-  if (active())
-    impl_->scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
+  if (active()) {
+    auto& scores = impl_->scores;
+    scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
+    if (d.candidate) impl_->candidate = d.index;
+    while (scores.size() > Impl::kMaxScores) {
+      auto oldest = scores.begin();
+      if (oldest->first == impl_->candidate) ++oldest;
+      scores.erase(oldest);
+    }
+  }
   if (impl_->recorder)
     impl_->recorder->recordText(McapTopic::Decision, d.timestampNs, decisionJson);
 }
@@ -248,6 +328,7 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
   ++impl_->kept;
   KeyframeMeta m;
   m.vehicle = impl_->options.vehicle;
+  m.flight = impl_->options.flight;
   m.sequence = rec.sequence;
   m.frameIndex = rec.frameIndex;
   m.file = KeyframeWriter::fileName(rec.frameIndex);
@@ -311,21 +392,25 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
           proto::poseInFrame(rec.timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
     }
   }
-  if (impl_->publisher) {
-    // Every keyframe is put, whatever happened to the one before: Zenoh reconnects by
-    // itself, and a ground station fetches what it missed from the queryable.
-    std::string error;
-    const bool ok = impl_->putForTesting
-                        ? impl_->putForTesting(jpeg, meta, error)
-                        : impl_->publisher->publishKeyframe(rec.sequence, jpeg, meta, error);
-    if (!ok) {
-      ++impl_->publishFailures;
-      if (const auto held = impl_->publishFailureLog.pass("", wallNs())) {
-        impl_->warn("zenoh: keyframe " + std::to_string(rec.sequence) + " not published: " + error +
-                    " (" + std::to_string(*held + 1) + " failed since the last report, " +
-                    std::to_string(impl_->publishFailures) + " in all)");
-      }
+  if (!impl_->publisher) return;
+  if (impl_->options.offline) {
+    impl_->put(rec.sequence, jpeg, meta);
+    return;
+  }
+  {
+    std::lock_guard lock(impl_->putMutex);
+    if (impl_->puts.size() < Impl::kMaxQueuedPuts) {
+      impl_->puts.push_back({rec.sequence, {jpeg.begin(), jpeg.end()}, meta});
+      impl_->putCv.notify_one();
+      return;
     }
+  }
+  impl_->publisher->remember(rec.sequence, meta);
+  ++impl_->putsSkipped;
+  if (const auto held = impl_->putSkipLog.pass("", wallNs())) {
+    impl_->warn("zenoh: the link is too slow, keyframe " + std::to_string(rec.sequence) +
+                " left to the queryable (" + std::to_string(*held + 1) +
+                " since the last report, " + std::to_string(impl_->putsSkipped) + " in all)");
   }
 }
 
@@ -352,12 +437,18 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
   std::string ignored;
   impl_->publisher->publishStatus(
       "{\"state\":\"running\",\"frames\":" + std::to_string(framesRead) +
-          ",\"kept\":" + std::to_string(kept) + "}",
+          ",\"kept\":" + std::to_string(kept) + impl_->flightField() + "}",
       ignored);
 }
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
+  impl_->stopPuts();  // what is queued goes out before the final status
+  if (impl_->putsSkipped > 0) {
+    impl_->warn("zenoh: " + std::to_string(impl_->putsSkipped) +
+                " keyframes left to the queryable in this flight (the link was too slow)");
+    impl_->putsSkipped = 0;
+  }
   if (impl_->publishFailureLog.heldBack() > 0) {
     impl_->warn("zenoh: " + std::to_string(impl_->publishFailures) +
                 " keyframe puts failed in this flight (the queryable serves them)");
@@ -365,10 +456,10 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
   }
   if (impl_->publisher) {
     std::string ignored;
-    impl_->publisher->publishStatus("{\"state\":\"" + state +
-                                        "\",\"frames\":" + std::to_string(impl_->framesRead) +
-                                        ",\"kept\":" + std::to_string(impl_->kept) + "}",
-                                    ignored);
+    impl_->publisher->publishStatus(
+        "{\"state\":\"" + state + "\",\"frames\":" + std::to_string(impl_->framesRead) +
+            ",\"kept\":" + std::to_string(impl_->kept) + impl_->flightField() + "}",
+        ignored);
     impl_->publisher.reset();
   }
   std::unique_ptr<McapRecorder> recorder;

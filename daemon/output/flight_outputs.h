@@ -19,6 +19,8 @@ struct FlightOutputOptions {
   std::string zenohConfig;             // --zenoh-config FILE; empty: no Zenoh
   std::string vehicle = "uav";         // --vehicle NAME
   std::string keyframeDir;             // where KeyframeWriter puts JPEGs + keyframes.csv
+  std::string flight;                  // the run's flight id (KeyframePublisherOptions)
+  std::string flightsDir;              // where earlier flights' directories are
   bool offline = true;                 // offline: the recorder waits instead of dropping
   bool zenoh = false;                  // publish even without a config file (Zenoh's defaults)
   std::uint64_t mcapRotateBytes = 0;   // a new MCAP part after this many bytes (0: never)

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 
@@ -59,7 +60,9 @@ bool readFile(const std::string& path, std::vector<std::uint8_t>& out, std::stri
 
 std::string toJson(const KeyframeMeta& m) {
   std::string s =
-      "{\"vehicle\":" + jsonString(m.vehicle) + ",\"sequence\":" + std::to_string(m.sequence) +
+      "{\"vehicle\":" + jsonString(m.vehicle) +
+      ",\"flight\":" + (m.flight.empty() ? std::string("null") : jsonString(m.flight)) +
+      ",\"sequence\":" + std::to_string(m.sequence) +
       ",\"frame_index\":" + std::to_string(m.frameIndex) + ",\"file\":" + jsonString(m.file) +
       ",\"time_ns\":" + std::to_string(m.timeNs) +
       ",\"decided_ns\":" + (m.decidedNs > 0 ? std::to_string(m.decidedNs) : std::string("null")) +
@@ -79,7 +82,8 @@ std::string toJson(const KeyframeMeta& m) {
 }
 
 bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
-                       std::vector<StoredKeyframe>& out, std::string& error) {
+                       const std::string& flight, std::vector<StoredKeyframe>& out,
+                       std::string& error) {
   const std::string path = dir + "/keyframes.csv";
   std::ifstream f(path);
   if (!f) {
@@ -109,6 +113,7 @@ bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
     };
     KeyframeMeta m;
     m.vehicle = vehicle;
+    m.flight = flight;
     try {
       m.sequence = std::stoll(v[static_cast<std::size_t>(cSeq)]);
       m.frameIndex = std::stoll(v[static_cast<std::size_t>(cIndex)]);
@@ -157,6 +162,8 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   std::unique_ptr<KeyframePublisher> p(new KeyframePublisher());
   p->prefix_ = "keyframed/" + o.vehicle;
   p->dir_ = o.keyframeDir;
+  p->flight_ = o.flight;
+  p->flightsDir_ = o.flightsDir;
   ZenohSession::Options so;
   so.configFile = o.configFile;
   so.overrides = o.overrides;
@@ -196,6 +203,18 @@ KeyframePublisher::~KeyframePublisher() {
   preview_.reset();
   telemetry_.reset();
   session_.reset();
+}
+
+std::string keyframeQueryFlight(const std::string& parameters) {
+  std::size_t start = 0;
+  while (start <= parameters.size()) {
+    std::size_t end = parameters.find_first_of(";&", start);
+    if (end == std::string::npos) end = parameters.size();
+    if (parameters.compare(start, 7, "flight=") == 0 && end - start >= 7)
+      return parameters.substr(start + 7, end - start - 7);
+    start = end + 1;
+  }
+  return {};
 }
 
 bool parseKeyframeRange(const std::string& parameters, std::int64_t& first, std::int64_t& last,
@@ -255,13 +274,30 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     reply.fail(error, ignored);
     return;
   }
+  // flight=ID: an earlier run's keyframes (its own sequence numbers), from its directory.
+  const std::string flight = keyframeQueryFlight(parameters);
+  const bool own = flight.empty() || flight == flight_;
+  std::string dir = dir_;
+  if (!own) {
+    const bool name =
+        flight.find_first_of("/\\") == std::string::npos && flight != "." && flight != "..";
+    std::error_code ec;
+    if (flightsDir_.empty() || !name ||
+        !std::filesystem::is_directory(flightsDir_ + "/" + flight + "/keyframes", ec)) {
+      std::string ignored;
+      reply.fail("no flight '" + flight + "' here", ignored);
+      return;
+    }
+    dir = flightsDir_ + "/" + flight + "/keyframes";
+  }
   std::vector<StoredKeyframe> rows;
-  if (!readKeyframeIndex(dir_, prefix_.substr(prefix_.find('/') + 1), rows, error)) {
+  if (!readKeyframeIndex(dir, prefix_.substr(prefix_.find('/') + 1), own ? flight_ : flight, rows,
+                         error)) {
     std::string ignored;
     reply.fail(error, ignored);
     return;
   }
-  {
+  if (own) {
     // What was published live, where known (the CSV has no scores).
     std::lock_guard lock(publishedMutex_);
     for (StoredKeyframe& r : rows) {
@@ -276,7 +312,7 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     if (!all && r.sequence != wanted) continue;
     if (r.sequence < first || r.sequence > final) continue;
     found = true;
-    if (!readFile(dir_ + "/" + r.file, jpeg, error)) {
+    if (!readFile(dir + "/" + r.file, jpeg, error)) {
       std::string ignored;
       reply.fail(error, ignored);
       continue;
@@ -291,12 +327,14 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
   }
 }
 
+void KeyframePublisher::remember(std::int64_t sequence, const std::string& metadataJson) {
+  std::lock_guard lock(publishedMutex_);
+  published_[sequence] = metadataJson;
+}
+
 bool KeyframePublisher::publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
                                         const std::string& metadataJson, std::string& error) {
-  {
-    std::lock_guard lock(publishedMutex_);
-    published_[sequence] = metadataJson;
-  }
+  remember(sequence, metadataJson);
   const auto* att = reinterpret_cast<const std::uint8_t*>(metadataJson.data());
   return keyframes_->put(jpeg, {att, metadataJson.size()}, error);
 }

@@ -18,11 +18,18 @@ struct KeyframePublisherOptions {
   std::vector<std::pair<std::string, std::string>> overrides;  // key -> JSON5 value
   std::string vehicle = "uav";  // one key chunk: keyframed/<vehicle>/...
   std::string keyframeDir;      // served by the queryable (keyframes.csv + JPEGs)
+  // The run's flight (its directory's name under flightsDir), in every keyframe's
+  // metadata: sequence numbers start again at 0 in each run of the daemon. Earlier
+  // flights' keyframes are served too when a query names them (flight=ID), from
+  // flightsDir/ID/keyframes. Empty: no flight id (an offline run), only this run's.
+  std::string flight;
+  std::string flightsDir;
 };
 
 // Publishes keyframes and status under keyframed/<vehicle>/ and answers queries for
 // any keyframe already on disk (keyframed/<vehicle>/keyframes/<seq>, or a range:
-// keyframes/*?range=A..B), so a ground station that missed some fetches them again.
+// keyframes/*?range=A..B; an earlier flight's with flight=ID), so a ground station
+// that missed some fetches them again, across restarts of the daemon.
 class KeyframePublisher {
  public:
   static std::unique_ptr<KeyframePublisher> open(const KeyframePublisherOptions& options,
@@ -36,6 +43,8 @@ class KeyframePublisher {
   // same attachment, scores included, as the one published.
   bool publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
                        const std::string& metadataJson, std::string& error);
+  // The metadata of a keyframe left to the queryable (never put), for its replies.
+  void remember(std::int64_t sequence, const std::string& metadataJson);
   // Best effort.
   bool publishStatus(const std::string& json, std::string& error);
   // Best effort, dropped under congestion: a low-rate JPEG of the live view.
@@ -55,6 +64,8 @@ class KeyframePublisher {
 
   std::string prefix_;  // keyframed/<vehicle>
   std::string dir_;
+  std::string flight_;
+  std::string flightsDir_;
   std::unique_ptr<ZenohSession> session_;
   std::unique_ptr<ZenohPublisher> keyframes_;
   std::unique_ptr<ZenohPublisher> status_;
@@ -68,6 +79,7 @@ class KeyframePublisher {
 // The metadata of one keyframe; numbers as text, empty = unknown (JSON null).
 struct KeyframeMeta {
   std::string vehicle;
+  std::string flight;  // empty: null
   std::int64_t sequence = 0;
   std::int64_t frameIndex = 0;
   std::string file;  // name inside the keyframe directory
@@ -95,6 +107,9 @@ bool parseKeyframeRange(const std::string& parameters, std::int64_t& first, std:
                         std::string& error);
 
 bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
-                       std::vector<StoredKeyframe>& out, std::string& error);
+                       const std::string& flight, std::vector<StoredKeyframe>& out,
+                       std::string& error);
+// The flight=ID query parameter ("" when absent).
+std::string keyframeQueryFlight(const std::string& parameters);
 
 }  // namespace keyframed

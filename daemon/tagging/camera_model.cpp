@@ -3,6 +3,8 @@
 
 #include <algorithm>
 #include <cctype>
+#include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <set>
 #include <sstream>
@@ -42,6 +44,20 @@ CameraModel CameraModel::scaledTo(int w, int h) const {
     out.cy = (cy + 0.5) * sy - 0.5;
   }
   return out;
+}
+
+std::string CameraModel::aspectMismatch(int w, int h) const {
+  if (width <= 0 || height <= 0 || w <= 0 || h <= 0) return {};
+  const double mine = static_cast<double>(width) / height;
+  const double theirs = static_cast<double>(w) / h;
+  if (std::fabs(theirs / mine - 1.0) <= 0.005) return {};
+  char buf[320];
+  std::snprintf(buf, sizeof buf,
+                "the calibration is for %dx%d (aspect %.3f), the frames are %dx%d (aspect "
+                "%.3f): another sensor mode crops rather than scales, so the intrinsics "
+                "scaled to it are wrong; calibrate in this mode",
+                width, height, mine, w, h, theirs);
+  return buf;
 }
 
 namespace {

@@ -35,6 +35,10 @@ struct CameraModel {
   // The same camera at another resolution (same field of view): intrinsics scale per
   // axis; the OpenCV pixel-centre convention is kept ((c + 0.5) * s - 0.5).
   [[nodiscard]] CameraModel scaledTo(int w, int h) const;
+  // "" when frames of w x h are this calibration scaled (same aspect ratio within
+  // 0.5 %, or no calibrated size), else a one-line warning: another aspect ratio is
+  // a crop of the sensor (a 16:9 mode of a 4:3 sensor), which scaling gets wrong.
+  [[nodiscard]] std::string aspectMismatch(int w, int h) const;
 };
 
 // Reads a camera model from:

@@ -164,7 +164,12 @@ void writeGps(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const GeoPosition& p,
   } else if (q.fixType == 2) {
     exif["Exif.GPSInfo.GPSMeasureMode"] = std::string("2");
   }
-  if (std::isfinite(q.hdop)) exif["Exif.GPSInfo.GPSDOP"] = rational(q.hdop, 1000);
+  // GPSDOP: PDOP for a 3D fix, HDOP for a 2D one, as EXIF defines it. PDOP from HDOP
+  // and VDOP; HDOP alone where VDOP is unknown.
+  double dop = q.hdop;
+  if (q.fixType >= 3 && std::isfinite(q.hdop) && std::isfinite(q.vdop))
+    dop = std::hypot(q.hdop, q.vdop);
+  if (std::isfinite(dop)) exif["Exif.GPSInfo.GPSDOP"] = rational(dop, 1000);
   // Receiver-reported accuracy first; DOP x UERE only for standalone fixes (an RTK
   // fix's DOP says nothing about its centimetre accuracy).
   const bool standalone = q.fixType >= 2 && q.fixType <= 4;

@@ -4,6 +4,7 @@
 #include <climits>
 #include <cstdio>
 #include <cstring>
+#include <limits>
 #include <vector>
 
 namespace keyframed {
@@ -57,20 +58,18 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
   replay_ = link_->isReplay();
   startNs_ = monotonicNowNs();
   if (replay_) {
-    // A recording: read it all now, with its own timestamps (unix time).
+    // A recording: read it all now, with its own timestamps (unix time); the decoder
+    // gets it as the frames go (advanceReplay).
     decoder_.setLocalClockIsUtc(true);
     std::vector<std::uint8_t> buf(512);
     std::size_t n = 0;
     std::int64_t t = 0;
-    while (link_->read(buf.data(), buf.size(), n, t, 0, error) == MavlinkLink::Status::Data) {
-      parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) { decoder_.handle(m, t); });
+    while (link_->read(buf.data(), buf.size(), n, t, 0, error) == MavlinkLink::Status::Data)
       replayPackets_.push_back({t, std::vector<std::uint8_t>(buf.begin(), buf.begin() + n)});
-    }
     error.clear();
     std::lock_guard lock(mutex_);
     stats_.replayDone = true;
     stats_.truncated = link_->truncated();
-    stats_.parser = parser_.stats();
     return true;
   }
   stop_ = false;
@@ -81,19 +80,32 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
 void TelemetryService::startFromPackets(std::vector<TimedPacket> packets) {
   replay_ = true;
   startNs_ = monotonicNowNs();
-  for (const TimedPacket& p : packets) {
-    parser_.feed(p.bytes.data(), p.bytes.size(),
-                 [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
-  }
   replayPackets_ = std::move(packets);
   std::lock_guard lock(mutex_);
   stats_.replayDone = true;
+}
+
+void TelemetryService::advanceReplay(std::int64_t localNs) {
+  if (!replay_) return;
+  std::lock_guard replayLock(replayMutex_);
+  constexpr std::int64_t kMax = std::numeric_limits<std::int64_t>::max();
+  const std::int64_t until = localNs > kMax - kReplayLeadNs ? kMax : localNs + kReplayLeadNs;
+  const std::size_t from = replayFed_;
+  for (; replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until;
+       ++replayFed_) {
+    const TimedPacket& p = replayPackets_[replayFed_];
+    parser_.feed(p.bytes.data(), p.bytes.size(),
+                 [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
+  }
+  if (replayFed_ == from) return;
+  std::lock_guard lock(mutex_);
   stats_.parser = parser_.stats();
 }
 
 void TelemetryService::stop() {
   stop_ = true;
   if (thread_.joinable()) thread_.join();
+  advanceReplay(std::numeric_limits<std::int64_t>::max());
 }
 
 void TelemetryService::setRawSink(RawSink sink) {

@@ -78,7 +78,8 @@ struct TelemetryServiceStats {
 
 // The telemetry thread: reads the link, feeds the decoder, and speaks for the
 // camera (HEARTBEAT, TIMESYNC, CAMERA_INFORMATION on request, CAMERA_IMAGE_CAPTURED).
-// A replay link (tlog) is read to its end at start() instead, with its own times.
+// A replay link (tlog) is read at start() instead, and reaches the decoder, with its
+// own times, as advanceReplay() asks.
 class TelemetryService {
  public:
   TelemetryService(TelemetryServiceConfig config, CameraDescription camera);
@@ -90,8 +91,17 @@ class TelemetryService {
   // Starts on a link opened by the caller (tests, fuzzing); config.url is not used.
   bool start(std::unique_ptr<MavlinkLink> link, std::string& error);
   // A replay of recorded packets (arrival time in ns, bytes), e.g. a flight
-  // record's /mavlink/raw: parsed now, like a tlog; no link, nothing sent.
+  // record's /mavlink/raw: replayed like a tlog; no link, nothing sent.
   void startFromPackets(std::vector<TimedPacket> packets);
+  // A replay reaches the decoder as the frames go: every packet recorded up to
+  // localNs + kReplayLeadNs, what a live link would have delivered by the time that
+  // frame is tagged. The clock estimate (a window of recent arrivals), the history
+  // kept and an autopilot's reboot then act as they did in flight, not as they stand
+  // at the end of a log that may run for an hour. Call it with the frame's time
+  // before asking the decoder about it. Thread-safe; nothing for a live link.
+  void advanceReplay(std::int64_t localNs);
+  static constexpr std::int64_t kReplayLeadNs = 2'000'000'000;
+  // Stops the telemetry thread; a replay is fed to its end (for the statistics).
   void stop();
 
   [[nodiscard]] const TelemetryDecoder& decoder() const { return decoder_; }
@@ -150,6 +160,8 @@ class TelemetryService {
   LogSink logSink_;
   bool replay_ = false;
   std::vector<TimedPacket> replayPackets_;
+  std::mutex replayMutex_;
+  std::size_t replayFed_ = 0;  // packets of replayPackets_ given to the decoder
   std::int64_t startNs_ = 0;
 
   // Telemetry thread only.

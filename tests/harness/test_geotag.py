@@ -3,6 +3,7 @@ with exiftool and compared with the synthetic flight's ground truth."""
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import math
@@ -153,7 +154,8 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
         assert t["XMP-Camera:PerspectiveFocalLength"] == pytest.approx(
             intr["focal_length_mm"], rel=1e-5
         )
-        assert t["GPS:GPSDOP"] == pytest.approx(0.8)
+        # a 3D fix: PDOP from the autopilot's HDOP 0.8 and VDOP 1.2
+        assert t["GPS:GPSDOP"] == pytest.approx(math.hypot(0.8, 1.2), abs=1e-3)
         assert t["XMP-Camera:GPSXYAccuracy"] == pytest.approx(0.8)
         assert decisions(out)[idx]["geotag"] == "ok"
     print(
@@ -201,6 +203,73 @@ def test_noisy_tlog_errors_stay_at_the_noise_level(
     fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
     errs = np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
     assert_at_noise_level(errs, noise, "noisy tlog")
+
+
+def with_a_long_tail(records: list[Any], tail_s: int, reboot_s: int) -> list[Any]:
+    """A ground station's log of a day's flying rather than of one video: the flight's
+    records, then the vehicle standing where the flight ended while the log goes on for
+    ``tail_s`` seconds (the last second of telemetry again and again), then the
+    autopilot rebooted (time_boot_ms from 1 s) for ``reboot_s`` seconds more."""
+    end_us = records[-1].unix_us
+    last = [r for r in records if r.unix_us > end_us - 1_000_000]
+    first_boot_ms = min(r.msg.time_boot_ms for r in last if hasattr(r.msg, "time_boot_ms"))
+    out = list(records)
+    for k in range(1, tail_s + reboot_s + 1):
+        d_us = k * 1_000_000
+        for rec in last:
+            msg = copy.deepcopy(rec.msg)
+            if hasattr(msg, "time_boot_ms"):
+                if k <= tail_s:
+                    msg.time_boot_ms += k * 1000
+                else:
+                    msg.time_boot_ms += (k - tail_s) * 1000 - first_boot_ms
+            if hasattr(msg, "time_unix_usec"):
+                msg.time_unix_usec += d_us
+            if msg.get_type() == "GPS_RAW_INT":
+                msg.time_usec += d_us
+            out.append(type(rec)(rec.unix_us + d_us, msg))
+    return out
+
+
+@needs_exiftool
+def test_a_tlog_far_longer_than_the_video_tags_every_keyframe(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The tlog goes on for 2.5 minutes after the video (the pose history the daemon
+    keeps in flight is 2 minutes) and the autopilot then reboots: the telemetry reaches
+    the selection as the frames go, as it did in flight, so every keyframe is tagged
+    with the pose of its own time, not from what is left at the end of the log."""
+    records = read_tlog(short_nadir / "flight.tlog")
+    long = with_a_long_tail(records, tail_s=150, reboot_s=20)
+    tlog = tmp_path / "long.tlog"
+    write_tlog(tlog, long)
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        str(synth.EPOCH_UNIX_S),
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    assert all(k["geotag"] == "ok" for k in kfs), kfs
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    errs = np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
+    worst = errs.max(axis=0)
+    assert worst[0] < 0.1 and worst[1] < 0.1 and worst[2] < 0.2, worst
+    summary = json.loads((out / "summary.json").read_text())
+    # The whole log was read and counted, the reboot seen.
+    assert summary["telemetry"]["messages"] == len(long), summary["telemetry"]
+    assert summary["telemetry"]["geotagged"] == len(kfs)
+    assert summary["telemetry"]["autopilot_reboots"] == 1, summary["telemetry"]
 
 
 def assert_at_noise_level(errs: np.ndarray, noise: Noise, what: str) -> None:

@@ -60,8 +60,13 @@ class Vehicle:
         self.folder = folder
         self.rows = rows(folder)
         self.queries: list[tuple[int, int]] = []  # (first, last) asked for
+        self.flight_queries: list[tuple[str, int, int]] = []  # naming a flight
         self.stopped = threading.Event()
         self.unavailable: set[int] = set()
+        # The daemon's flight id (none: an offline run), and the earlier ones it serves
+        # on request (flight=ID), as after a restart: the same folder here.
+        self.flight = ""
+        self.earlier_flights: set[str] = set()
         self.status_thread: threading.Thread | None = None
         self.pub = self.session.declare_publisher(
             f"keyframed/{name}/keyframe", congestion_control=zenoh.CongestionControl.BLOCK
@@ -72,6 +77,7 @@ class Vehicle:
 
     def meta(self, row: dict[str, str]) -> dict[str, Any]:
         return {
+            "flight": self.flight or None,
             "sequence": int(row["sequence"]),
             "frame_index": int(row["index"]),
             "file": row["file"],
@@ -82,15 +88,22 @@ class Vehicle:
 
     def _serve(self, query: Any) -> None:
         last = str(query.key_expr).rsplit("/", 1)[1]
-        params = str(query.parameters)
+        params = dict(p.split("=", 1) for p in str(query.parameters).split(";") if "=" in p)
         if last != "*":
             first = final = int(last)
-        elif params.startswith("range="):
-            a, b = params.removeprefix("range=").split("..")
+        elif "range" in params:
+            a, b = params["range"].split("..")
             first, final = int(a), int(b)
         else:
             first, final = 0, len(self.rows) - 1
-        self.queries.append((first, final))
+        flight = params.get("flight", self.flight)
+        if flight != self.flight and flight not in self.earlier_flights:
+            query.reply_err(f"no flight '{flight}' here".encode())
+            return
+        if "flight" in params:
+            self.flight_queries.append((flight, first, final))
+        else:
+            self.queries.append((first, final))
         for seq in range(first, min(final, len(self.rows) - 1) + 1):
             if seq in self.unavailable:
                 query.reply_err(b"not in the store")
@@ -99,7 +112,7 @@ class Vehicle:
             query.reply(
                 f"keyframed/{self.name}/keyframes/{seq}",
                 (self.folder / row["file"]).read_bytes(),
-                attachment=json.dumps(self.meta(row)).encode(),
+                attachment=json.dumps(self.meta(row) | {"flight": flight or None}).encode(),
             )
 
     def publish(self, seq: int) -> None:
@@ -195,9 +208,10 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     assert cam[1] == "OPENCV" and int(cam[2]) == 480 and int(cam[3]) == 270
     fx, fy, cx, cy = (float(v) for v in cam[4:8])
     assert fx == pytest.approx(intr["fx"], rel=1e-4)
-    assert fy == pytest.approx(intr["fx"], rel=1e-4)
-    assert cx == pytest.approx(intr["cx"], abs=0.01)
-    assert cy == pytest.approx(intr["cy"], abs=0.01)
+    assert fy == pytest.approx(intr["fy"], rel=1e-4)
+    # COLMAP's principal point: from the image corner, OpenCV's + 0.5
+    assert cx == pytest.approx(intr["cx"] + 0.5, abs=0.01)
+    assert cy == pytest.approx(intr["cy"] + 0.5, abs=0.01)
 
     pairs = [tuple(line.split()) for line in (ds / "pairs.txt").read_text().splitlines()]
     files = [r["file"] for r in vehicle.rows]
@@ -243,6 +257,50 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
         assert np.allclose(np.sort(got[:, 1]), np.sort(lat_lon[:, 1]), atol=1e-7)
     finally:
         db.close()
+
+
+def test_a_restarted_vehicle_keeps_both_flights_apart(tagged: Path, tmp_path: Path) -> None:
+    """The daemon restarts mid-survey (the watchdog, a power blip): its new flight
+    counts sequence numbers from 0 again and writes the same file names. Both flights
+    end up in the dataset, none overwritten or dropped as a duplicate; a gap in the
+    earlier flight is fetched by a query that names it."""
+    port = free_port()
+    vehicle = Vehicle("uav3", tagged, port)
+    out = tmp_path / "dataset"
+    proc = ground(out, port)
+    n = len(vehicle.rows)
+    try:
+        wait_connected(vehicle)
+        vehicle.flight = "20261202T101500Z"
+        for seq in range(n):
+            if seq != 2:  # lost on the link, and the daemon then restarted
+                vehicle.publish(seq)
+        vehicle.earlier_flights = {vehicle.flight}
+        vehicle.flight = "20261202T102000Z"
+        for seq in range(n):
+            vehicle.publish(seq)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == 2 * n and not summary["missing"], summary
+    assert summary["duplicates_ignored"] == 0 and summary["fetched_by_query"] == 1
+    assert vehicle.flight_queries == [("20261202T101500Z", 2, 2)], vehicle.flight_queries
+    ds = out / "uav3"
+    metas = [json.loads(line) for line in (ds / "keyframes.jsonl").open()]
+    assert [(m["flight"], m["sequence"]) for m in metas] == [
+        (f, s) for f in ("20261202T101500Z", "20261202T102000Z") for s in range(n)
+    ]
+    names = sorted(p.name for p in (ds / "images").glob("*.jpg"))
+    files = [r["file"] for r in vehicle.rows]
+    assert names == sorted(files + [f"20261202T102000Z_{f}" for f in files])
+    for m in metas:
+        source = tagged / m["file"].removeprefix("20261202T102000Z_")
+        assert (ds / "images" / m["file"]).read_bytes() == source.read_bytes()
+    assert len((ds / "geo.txt").read_text().splitlines()) == 2 * n + 1
 
 
 def test_bad_command_lines(tmp_path: Path) -> None:

@@ -154,3 +154,97 @@ def test_ground_station_stopped_mid_flight_ends_with_every_keyframe_once(
     # fetched or received live, each carries the metadata the vehicle published
     assert all(m["scores"] is not None and m["scores"]["reason"] for m in metas), metas
     assert os.path.getsize(out / "uav9" / "cameras.txt") > 0
+
+
+def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
+    kf_bin: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The daemon runs twice on one state directory (a restart mid-survey): the second
+    run serves the first run's keyframes when a query names its flight, and one ground
+    station, up throughout, keeps both flights: every keyframe once, byte for byte,
+    none overwritten by the second run's same file names."""
+    fl = flight("nadir", width=480, height=270, seconds=8.0)
+    zport = free_port()
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
+    out = tmp_path / "dataset"
+    station = ground(out, zport, "--duration", "150")
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    watcher = None
+    flights: list[Path] = []
+    try:
+        for run in range(2):
+            mport = free_port(socket.SOCK_DGRAM)
+            proc = start_run(
+                kf_bin,
+                tmp_path,
+                f"camera.path={fl / 'video.avi'}",
+                f"telemetry.url=udpin:127.0.0.1:{mport}",
+                "telemetry.start_wait_ms=30000",
+                f"tagging.calibration={fl / 'intrinsics.json'}",
+                "zenoh.enabled=true",
+                f"zenoh.config={zconf}",
+                "zenoh.vehicle=uav8",
+            )
+            try:
+                if run == 1:
+                    # Waiting for the autopilot, the new run already serves the old
+                    # flight's keyframes (its own sequence numbers), named by its id.
+                    if watcher is None:
+                        watcher = zenoh.open(conf)
+                    old = flights[0].name
+                    first_file = written_in(flights[0])[0]["file"]
+                    deadline = time.monotonic() + 60
+                    replies: list[Any] = []
+                    while not [r for r in replies if r.ok is not None]:
+                        assert time.monotonic() < deadline and proc.poll() is None
+                        replies = list(
+                            watcher.get(f"keyframed/uav8/keyframes/0?flight={old}", timeout=5.0)
+                        )
+                    (ok,) = [r.ok for r in replies if r.ok is not None]
+                    meta = json.loads(ok.attachment.to_bytes())
+                    assert meta["flight"] == old and meta["sequence"] == 0, meta
+                    payload = ok.payload.to_bytes()
+                    assert payload == (flights[0] / "keyframes" / first_file).read_bytes()
+                    _, errors = query(watcher, "keyframed/uav8/keyframes/0?flight=19700101T000000Z")
+                    assert errors and "no flight" in errors[0], errors
+                ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))
+                ap.start()
+                _, stderr = proc.communicate(timeout=120)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.communicate()
+            assert proc.returncode == 0, stderr
+            flights.append((tmp_path / "state" / "latest").resolve())
+        assert flights[0] != flights[1]
+        rows = [written_in(f) for f in flights]
+        total = sum(len(r) for r in rows)
+        images = out / "uav8" / "images"
+        wait_for(lambda: len(list(images.glob("*.jpg"))) >= total, 30)
+        station.send_signal(signal.SIGINT)
+        g_out, g_err = station.communicate(timeout=60)
+    finally:
+        if station.poll() is None:
+            station.kill()
+        if watcher is not None:
+            watcher.close()
+    assert station.returncode == 0, g_err
+    result = json.loads(g_out.strip().splitlines()[-1])
+    assert result["keyframes"] == total and not result["missing"], result
+    assert result["duplicates_ignored"] == 0, result
+    metas = [json.loads(line) for line in (out / "uav8" / "keyframes.jsonl").open()]
+    assert [(m["flight"], m["sequence"]) for m in metas] == [
+        (f.name, s) for f, r in zip(flights, rows, strict=True) for s in range(len(r))
+    ]
+    for m in metas:
+        fd = flights[0] if m["flight"] == flights[0].name else flights[1]
+        source = fd / "keyframes" / m["file"].removeprefix(f"{flights[1].name}_")
+        assert (images / m["file"]).read_bytes() == source.read_bytes(), m["file"]
+    print(f"restart: {len(rows[0])} + {len(rows[1])} keyframes, both flights kept apart")
+
+
+def written_in(flight_dir: Path) -> list[dict[str, str]]:
+    with open(flight_dir / "keyframes" / "keyframes.csv") as f:
+        return list(csv.DictReader(f))

@@ -59,6 +59,9 @@ def test_unit_has_the_agreed_settings():
     assert one["ExecStart"] == "/usr/bin/keyframed run"
     assert one["ExecReload"] == "/bin/kill -HUP $MAINPID"
     assert one["WatchdogSec"] == "10"
+    # A watchdog stop flushes the outputs (SIGTERM), not a core dump (SIGABRT); systemd
+    # counts it a failure all the same, so Restart=on-failure restarts the daemon.
+    assert one["WatchdogSignal"] == "SIGTERM"
     assert one["Restart"] == "on-failure"
     assert one["StartLimitIntervalSec"] == "0", "a long camera outage must not fail the unit"
     assert one["User"] == "keyframed" and one["DynamicUser"] == "no"

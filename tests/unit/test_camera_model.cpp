@@ -31,6 +31,19 @@ fs::path tempFile(const std::string& name, const std::string& text) {
   return p;
 }
 
+TEST(CameraModel, AnotherAspectRatioIsACropAndSaidSo) {
+  CameraModel c;
+  c.width = 4056;
+  c.height = 3040;                                     // a 4:3 sensor
+  EXPECT_EQ(c.aspectMismatch(2028, 1520), "");         // binned: the same picture, scaled
+  EXPECT_EQ(c.aspectMismatch(2026, 1520), "");         // within 0.5 %
+  const std::string w = c.aspectMismatch(1920, 1080);  // a 16:9 crop
+  EXPECT_NE(w.find("4056x3040"), std::string::npos) << w;
+  EXPECT_NE(w.find("1920x1080"), std::string::npos) << w;
+  EXPECT_EQ(w.find('\n'), std::string::npos);
+  EXPECT_EQ(CameraModel{}.aspectMismatch(1920, 1080), "");  // no calibrated size
+}
+
 TEST(CameraModel, ReadsOpenCvCalibrationYaml) {
   const fs::path p = tempDir() / "calib.yaml";
   {

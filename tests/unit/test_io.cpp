@@ -2,9 +2,11 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <condition_variable>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -265,8 +267,9 @@ TEST(KeyframeIndex, ReadsKeyframesCsvAsJson) {
   }
   std::vector<StoredKeyframe> rows;
   std::string error;
-  ASSERT_TRUE(readKeyframeIndex(dir, "uav1", rows, error)) << error;
+  ASSERT_TRUE(readKeyframeIndex(dir, "uav1", "20261202T101500Z", rows, error)) << error;
   ASSERT_EQ(rows.size(), 2u);
+  EXPECT_NE(rows[0].metadataJson.find("\"flight\":\"20261202T101500Z\""), std::string::npos);
   EXPECT_EQ(rows[1].sequence, 1);
   EXPECT_EQ(rows[1].file, "000042.jpg");
   EXPECT_NE(rows[0].metadataJson.find("\"lat\":null"), std::string::npos) << rows[0].metadataJson;
@@ -275,7 +278,22 @@ TEST(KeyframeIndex, ReadsKeyframesCsvAsJson) {
   EXPECT_NE(rows[1].metadataJson.find("\"geotag\":\"ok, fresh\""), std::string::npos);
   // keyframes.csv has no decision time: an earlier run's keyframe says so.
   EXPECT_NE(rows[1].metadataJson.find("\"decided_ns\":null"), std::string::npos);
-  EXPECT_FALSE(readKeyframeIndex(dir + "/missing", "uav1", rows, error));
+  EXPECT_FALSE(readKeyframeIndex(dir + "/missing", "uav1", "", rows, error));
+  // An offline run's keyframes have no flight.
+  ASSERT_TRUE(readKeyframeIndex(dir, "uav1", "", rows, error)) << error;
+  EXPECT_NE(rows[0].metadataJson.find("\"flight\":null"), std::string::npos);
+}
+
+TEST(KeyframeIndex, QueryParameters) {
+  EXPECT_EQ(keyframeQueryFlight(""), "");
+  EXPECT_EQ(keyframeQueryFlight("range=3..5"), "");
+  EXPECT_EQ(keyframeQueryFlight("range=3..5;flight=20261202T101500Z"), "20261202T101500Z");
+  EXPECT_EQ(keyframeQueryFlight("flight=A-1&range=0.."), "A-1");
+  std::int64_t first = 0, last = 0;
+  std::string error;
+  ASSERT_TRUE(parseKeyframeRange("flight=A;range=3..5", first, last, error)) << error;
+  EXPECT_EQ(first, 3);
+  EXPECT_EQ(last, 5);
 }
 
 TEST(Zenoh, BadConfigIsAClearError) {
@@ -389,6 +407,62 @@ TEST(FlightOutputs, AFailedKeyframePublishDoesNotStopTheNextOnes) {
   ASSERT_TRUE(outputs.close("done", error)) << error;
   ASSERT_EQ(warnings.size(), 2U);  // at close: how many failed in all
   EXPECT_NE(warnings[1].find("3 keyframe puts failed"), std::string::npos) << warnings[1];
+}
+
+TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
+  // The first put hangs (a congested link: a Block put waits for room) until released.
+  std::vector<std::string> warnings;
+  FlightOutputOptions o;
+  o.zenohConfig = isolatedZenohConfig();
+  o.vehicle = "unit";
+  o.offline = false;
+  o.warn = [&warnings](const std::string& m) { warnings.push_back(m); };
+  FlightOutputs outputs;
+  std::string error;
+  ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
+  std::mutex m;
+  std::condition_variable cv;
+  bool released = false;
+  std::vector<std::int64_t> tried;
+  outputs.setKeyframePutForTesting(
+      [&](std::span<const std::uint8_t>, const std::string& meta, std::string&) {
+        std::unique_lock lock(m);
+        const auto at = meta.find("\"sequence\":");
+        tried.push_back(std::stoll(meta.substr(at + 11)));
+        cv.notify_all();
+        cv.wait(lock, [&] { return released; });
+        return true;
+      });
+  const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
+  const auto keyframe = [&](std::int64_t i) {
+    KeyframeRecord r;
+    r.sequence = i;
+    r.frameIndex = 10 * i;
+    outputs.keyframe(r, jpeg);
+  };
+  keyframe(0);
+  {
+    std::unique_lock lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, std::chrono::seconds(10), [&] { return !tried.empty(); }));
+  }
+  // Keyframe 0's put hangs; the output thread goes on: 8 wait, the rest are left to
+  // the queryable, and none of these calls waits.
+  const auto start = std::chrono::steady_clock::now();
+  for (std::int64_t i = 1; i <= 11; ++i) keyframe(i);
+  EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(2));
+  ASSERT_EQ(warnings.size(), 1U);
+  EXPECT_NE(warnings[0].find("keyframe 9 left to the queryable"), std::string::npos) << warnings[0];
+  {
+    std::lock_guard lock(m);
+    released = true;
+  }
+  cv.notify_all();
+  // close() puts what is queued first.
+  ASSERT_TRUE(outputs.close("done", error)) << error;
+  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8}));
+  ASSERT_EQ(warnings.size(), 2U);
+  EXPECT_NE(warnings[1].find("3 keyframes left to the queryable"), std::string::npos)
+      << warnings[1];
 }
 
 std::int64_t unixNowNs() {

@@ -128,7 +128,7 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   EXPECT_EQ(field(j, "GPS:GPSLongitudeRef"), "E");
   EXPECT_NEAR(number(j, "GPS:GPSAltitude"), 123.456, 1e-3);
   EXPECT_EQ(field(j, "GPS:GPSAltitudeRef"), "0");
-  EXPECT_NEAR(number(j, "GPS:GPSDOP"), 0.83, 1e-9);
+  EXPECT_NEAR(number(j, "GPS:GPSDOP"), 0.83, 1e-9);  // 3D, but VDOP unknown: HDOP
   EXPECT_EQ(field(j, "GPS:GPSVersionID"), "2 3 0 0");
   EXPECT_EQ(field(j, "GPS:GPSMapDatum"), "WGS-84");
   EXPECT_EQ(field(j, "GPS:GPSMeasureMode"), "3");
@@ -144,6 +144,7 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   EXPECT_NEAR(number(j, "ExifIFD:FocalLength"), 6.0, 1e-9);
   EXPECT_EQ(field(j, "ExifIFD:FocalLengthIn35mmFormat"), "34");  // 300 * 36 / 320 = 33.75
   EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneXResolution"), 320 / 0.64, 1e-3);
+  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneYResolution"), 240 / 0.48, 1e-3);
   EXPECT_EQ(field(j, "ExifIFD:FocalPlaneResolutionUnit"), "3");
   EXPECT_EQ(field(j, "ExifIFD:ExifImageWidth"), "320");
 
@@ -165,6 +166,7 @@ TEST_F(TaggingTest, SouthWestAndBelowSeaLevel) {
   t.gps.fixType = 2;
   t.gps.hdop = 1.5;
   const std::string j = tagAndRead(t, "sw.jpg");
+  EXPECT_NEAR(number(j, "GPS:GPSDOP"), 1.5, 1e-9);  // a 2D fix: HDOP
   EXPECT_NEAR(number(j, "Composite:GPSLatitude"), -33.8567844, 1e-7) << j;
   EXPECT_NEAR(number(j, "Composite:GPSLongitude"), -70.6482925, 1e-7);
   EXPECT_EQ(field(j, "GPS:GPSLatitudeRef"), "S");

@@ -98,6 +98,17 @@ std::vector<unsigned char> encodeJpeg(int w, int h) {
   return jpeg;
 }
 
+TEST(V4l2Devices, TheFirstNodeWithAReadableFormatIsPicked) {
+  V4l2DeviceInfo bayer{"/dev/video0", "unicam", "unicam", "", true, true, {"pRAA", "RG10"}};
+  V4l2DeviceInfo meta{"/dev/video1", "unicam", "unicam", "", false, true, {}};
+  V4l2DeviceInfo usb{"/dev/video2", "uvcvideo", "cam", "", true, true, {"MJPG", "YUYV"}};
+  EXPECT_EQ(V4l2Source::pickDevice({bayer, meta, usb}), "/dev/video2");
+  // None readable: the first capture node, whose open() says why not.
+  EXPECT_EQ(V4l2Source::pickDevice({meta, bayer}), "/dev/video0");
+  EXPECT_EQ(V4l2Source::pickDevice({meta}), "");
+  EXPECT_EQ(V4l2Source::pickDevice({}), "");
+}
+
 TEST(MjpegDecoder, DecodesToBgr) {
   const auto jpeg = encodeJpeg(64, 48);
   MjpegDecoder dec;
@@ -122,6 +133,27 @@ TEST(MjpegDecoder, RejectsGarbageWithOneLineError) {
   jpeg.resize(20);  // SOI and part of a header
   EXPECT_FALSE(dec.decode(jpeg.data(), jpeg.size(), err));
   EXPECT_EQ(err.find('\n'), std::string::npos);
+}
+
+TEST(MjpegDecoder, AHeaderClaimingAHugePictureIsRefusedBeforeDecoding) {
+  auto jpeg = encodeJpeg(64, 48);
+  // SOF0 (FF C0): length (2), precision (1), height (2), width (2).
+  std::size_t sof = 0;
+  for (std::size_t i = 2; i + 8 < jpeg.size(); ++i) {
+    if (jpeg[i] == 0xFF && (jpeg[i + 1] == 0xC0 || jpeg[i + 1] == 0xC1)) {
+      sof = i;
+      break;
+    }
+  }
+  ASSERT_GT(sof, 0u);
+  // 60000 x 60000 (10 GB of BGR), under libjpeg-turbo's own limit of 65500.
+  for (std::size_t k : {5u, 7u}) jpeg[sof + k] = 0xEA;
+  for (std::size_t k : {6u, 8u}) jpeg[sof + k] = 0x60;
+  MjpegDecoder dec;
+  std::string err;
+  EXPECT_FALSE(dec.decode(jpeg.data(), jpeg.size(), err, 64, 48));
+  EXPECT_NE(err.find("60000x60000, not 64x48"), std::string::npos) << err;
+  EXPECT_EQ(dec.bgr(), nullptr) << "nothing allocated for it";
 }
 
 // The per-buffer step of V4l2Source::next(), with buffers made up in memory.

@@ -61,9 +61,11 @@ def store_key(vehicle: str, seq: int | str) -> str:
     return f"{KEY_PREFIX}/{vehicle}/keyframes/{seq}"
 
 
-def range_selector(vehicle: str, first: int, last: int) -> str:
-    """The query for keyframes ``first`` to ``last`` (both included) in one go."""
-    return f"{store_key(vehicle, '*')}?range={first}..{last}"
+def range_selector(vehicle: str, first: int, last: int, flight: str = "") -> str:
+    """The query for keyframes ``first`` to ``last`` (both included) in one go; of an
+    earlier ``flight`` of the vehicle (a run of its daemon before a restart) if given."""
+    selector = f"{store_key(vehicle, '*')}?range={first}..{last}"
+    return f"{selector};flight={flight}" if flight else selector
 
 
 def runs(seqs: list[int]) -> list[tuple[int, int]]:
@@ -93,6 +95,7 @@ class ImageTags:
     z_accuracy: float | None = None
     focal_mm: float | None = None
     pixels_per_mm: float | None = None  # from FocalPlaneXResolution
+    pixels_per_mm_y: float | None = None  # from FocalPlaneYResolution (fy may differ)
     principal_mm: tuple[float, float] | None = None
     distortion: list[float] = field(default_factory=list)  # Pix4D R1,R2,R3,T1,T2
 
@@ -120,6 +123,9 @@ def read_tags(jpeg: bytes) -> ImageTags:
             unit_mm = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(sub[0xA210]))
             if unit_mm and per_unit > 0:
                 tags.pixels_per_mm = per_unit / unit_mm
+                per_unit_y = float(sub.get(0xA20F, 0) or 0)
+                if per_unit_y > 0:
+                    tags.pixels_per_mm_y = per_unit_y / unit_mm
         gps = exif.get_ifd(0x8825)
         if 2 in gps and 4 in gps:
 
@@ -152,19 +158,25 @@ def read_tags(jpeg: bytes) -> ImageTags:
 
 
 def colmap_camera(tags: ImageTags) -> str | None:
-    """One COLMAP camera line (OPENCV: fx fy cx cy k1 k2 p1 p2), or None when the
-    tags do not give the intrinsics in pixels."""
+    """One COLMAP camera line, or None when the tags do not give the intrinsics in
+    pixels: OPENCV (fx fy cx cy k1 k2 p1 p2), or FULL_OPENCV (k3 to k6 after p2) when
+    the calibration has a k3. COLMAP puts the image's top-left corner at (0, 0), the
+    first pixel's centre at (0.5, 0.5): the principal point is the tags' distance from
+    that corner (OpenCV's cx + 0.5), and the SIFT export counts the same way."""
     if not (tags.focal_mm and tags.pixels_per_mm and tags.width):
         return None
-    f = tags.focal_mm * tags.pixels_per_mm
+    fx = tags.focal_mm * tags.pixels_per_mm
+    fy = tags.focal_mm * (tags.pixels_per_mm_y or tags.pixels_per_mm)
     if tags.principal_mm:
-        cx = tags.principal_mm[0] * tags.pixels_per_mm - 0.5
-        cy = tags.principal_mm[1] * tags.pixels_per_mm - 0.5
+        cx = tags.principal_mm[0] * tags.pixels_per_mm
+        cy = tags.principal_mm[1] * (tags.pixels_per_mm_y or tags.pixels_per_mm)
     else:
-        cx, cy = tags.width / 2.0 - 0.5, tags.height / 2.0 - 0.5
+        cx, cy = tags.width / 2.0, tags.height / 2.0
     r = (tags.distortion + [0.0] * 5)[:5]  # R1 R2 R3 T1 T2 = k1 k2 k3 p1 p2
-    params = [f, f, cx, cy, r[0], r[1], r[3], r[4]]
-    return f"1 OPENCV {tags.width} {tags.height} " + " ".join(f"{p:.9g}" for p in params)
+    model, params = "OPENCV", [fx, fy, cx, cy, r[0], r[1], r[3], r[4]]
+    if r[2] != 0.0:
+        model, params = "FULL_OPENCV", params + [r[2], 0.0, 0.0, 0.0]
+    return f"1 {model} {tags.width} {tags.height} " + " ".join(f"{p:.9g}" for p in params)
 
 
 # ------------------------------------------------------------------------ pairs
@@ -303,7 +315,8 @@ def _sift_worker_init() -> None:
 
 def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> int:
     """SIFT keypoints + descriptors of one image in COLMAP's feature import format:
-    ``N 128`` then per feature ``x y scale orientation d1 ... d128`` (0-255)."""
+    ``N 128`` then per feature ``x y scale orientation d1 ... d128`` (0-255), x and y
+    as COLMAP counts them (OpenCV's + 0.5: the first pixel's centre is 0.5, 0.5)."""
     import cv2
     import numpy as np
 
@@ -319,7 +332,7 @@ def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> i
         d = np.clip(np.round(d * 512.0), 0, 255).astype(np.uint8)
         for kp, row in zip(kps, d, strict=True):
             lines.append(
-                f"{kp.pt[0]:.3f} {kp.pt[1]:.3f} {kp.size / 2.0:.3f} "
+                f"{kp.pt[0] + 0.5:.3f} {kp.pt[1] + 0.5:.3f} {kp.size / 2.0:.3f} "
                 f"{math.radians(kp.angle):.5f} " + " ".join(str(int(v)) for v in row)
             )
     tmp = out_path + ".tmp"
@@ -340,8 +353,14 @@ def _write_atomic(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+Key = tuple[str, int]  # (flight, sequence): each run of the daemon counts from 0 again
+
+
 class VehicleDataset:
-    """One vehicle's dataset folder; thread-safe."""
+    """One vehicle's dataset folder; thread-safe. A vehicle whose daemon restarted
+    (its sequence numbers start again at 0) sends keyframes of several flights: they
+    are told apart by the flight id in their metadata. The first flight's images keep
+    their names, a later flight's are named FLIGHT_NNNNNN.jpg, so none is overwritten."""
 
     def __init__(self, root: Path, vehicle: str, sift: ProcessPoolExecutor | None) -> None:
         self.vehicle = vehicle
@@ -349,13 +368,15 @@ class VehicleDataset:
         self.images = self.dir / "images"
         self.images.mkdir(parents=True, exist_ok=True)
         self.lock = threading.Lock()
-        self.meta: dict[int, dict[str, Any]] = {}
+        self.meta: dict[Key, dict[str, Any]] = {}
+        self.flights: list[str] = []  # in the order first heard of
         self.duplicates = 0
         self.fetched = 0
         self.queries = 0  # gap-filling queries sent (one per gap)
-        self.announced = -1  # highest sequence the vehicle says it has written
-        self.missing_since: dict[int, float] = {}
-        self.done = False  # the vehicle said its flight ended
+        self.announced: dict[str, int] = {}  # highest sequence each flight says it wrote
+        self.missing_since: dict[Key, float] = {}
+        self.done = False  # the vehicle said its (latest) flight ended
+        self.done_flight = ""
         self.done_at = 0.0
         self.first_time = time.monotonic()
         self.sift = sift
@@ -372,22 +393,37 @@ class VehicleDataset:
                 try:
                     m = json.loads(line)
                     if (self.images / m["file"]).exists():
-                        self.meta[int(m["sequence"])] = m
+                        flight = str(m.get("flight") or "")
+                        self._flight(flight)
+                        self.meta[(flight, int(m["sequence"]))] = m
                 except (ValueError, KeyError):
                     continue
+
+    def _flight(self, flight: str) -> bool:
+        """Notes a flight (under the lock); True for the dataset's first."""
+        if flight not in self.flights:
+            self.flights.append(flight)
+        return self.flights[0] == flight
+
+    def note_flight(self, flight: str) -> None:
+        with self.lock:
+            self._flight(flight)
 
     def add(self, meta: dict[str, Any], jpeg: bytes, fetched: bool = False) -> bool:
         """Stores one keyframe; False when it was already there."""
         seq = int(meta["sequence"])
+        flight = os.path.basename(str(meta.get("flight") or ""))
         name = meta.get("file") or f"{int(meta.get('frame_index', seq)):06d}.jpg"
         name = os.path.basename(str(name))
-        meta = dict(meta, file=name)
         with self.lock:
-            if seq in self.meta:
+            if (flight, seq) in self.meta:
                 self.duplicates += 1
                 return False
+            if not self._flight(flight):
+                name = f"{flight}_{name}"
+            meta = dict(meta, file=name)
             _write_atomic(self.images / name, jpeg)
-            self.meta[seq] = meta
+            self.meta[(flight, seq)] = meta
             if fetched:
                 self.fetched += 1
             with open(self.dir / "keyframes.jsonl", "a") as f:
@@ -397,12 +433,16 @@ class VehicleDataset:
             self.sift_jobs.append(self.sift.submit(sift_to_colmap, str(self.images / name), out))
         return True
 
-    def missing(self) -> list[int]:
+    def missing(self) -> list[Key]:
         with self.lock:
-            top = max([self.announced, *self.meta.keys()], default=-1)
-            return [s for s in range(top + 1) if s not in self.meta]
+            out: list[Key] = []
+            for flight in self.flights:
+                seqs = [s for f, s in self.meta if f == flight]
+                top = max([self.announced.get(flight, -1), *seqs], default=-1)
+                out += [(flight, s) for s in range(top + 1) if (flight, s) not in self.meta]
+            return out
 
-    def overdue(self, grace: float) -> list[int]:
+    def overdue(self, grace: float) -> list[Key]:
         """Missing keyframes noticed more than ``grace`` seconds ago: a status or a
         later keyframe can overtake a large keyframe still in flight, so a gap is
         only queried once it has lasted a moment."""
@@ -421,7 +461,8 @@ class VehicleDataset:
         for job in self.sift_jobs:
             job.result()
         with self.lock:
-            metas = [self.meta[s] for s in sorted(self.meta)]
+            order = {f: i for i, f in enumerate(self.flights)}
+            metas = [self.meta[k] for k in sorted(self.meta, key=lambda k: (order[k[0]], k[1]))]
         lines = "".join(json.dumps(m, sort_keys=True) + "\n" for m in metas)
         _write_atomic(self.dir / "keyframes.jsonl", lines.encode())
         names = [m["file"] for m in metas]
@@ -449,7 +490,10 @@ class VehicleDataset:
             "fetched_by_query": self.fetched,
             "gap_queries": self.queries,
             "duplicates_ignored": self.duplicates,
-            "missing": self.missing(),
+            # sequence numbers; "FLIGHT:N" for another flight than the first
+            "missing": [
+                s if f == (self.flights or [""])[0] else f"{f}:{s}" for f, s in self.missing()
+            ],
             "pairs": len(pairs),
             "camera": camera,
         }
@@ -512,14 +556,20 @@ class GroundStation:
         try:
             status = json.loads(sample.payload.to_bytes())
             ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
+            flight = os.path.basename(str(status.get("flight") or ""))
+            ds.note_flight(flight)
             if status.get("state") in FINAL_STATES and not ds.done:
                 ds.done = True
+                ds.done_flight = flight
                 ds.done_at = time.monotonic()
                 self.wake.set()
+            elif status.get("state") == "running" and ds.done and flight != ds.done_flight:
+                ds.done = False  # the daemon started again: a new flight
             n = status.get("keyframes", status.get("kept"))
             if n is None:
                 return
-            ds.announced = max(ds.announced, int(n) - 1)
+            with ds.lock:
+                ds.announced[flight] = max(ds.announced.get(flight, -1), int(n) - 1)
             if ds.missing():
                 self.wake.set()
         except Exception as err:
@@ -530,22 +580,27 @@ class GroundStation:
         ``grace`` seconds; returns how many arrived."""
         got = 0
         for ds in list(self.datasets.values()):
-            for first, last in runs(ds.overdue(grace)):
-                # One query per gap; each keyframe is one reply, keyed .../keyframes/<seq>.
-                ds.queries += 1
-                replies = self.session.get(range_selector(ds.vehicle, first, last), timeout=timeout)
-                for reply in replies:
-                    if reply.ok is None:
-                        continue
-                    s = reply.ok
-                    meta = json.loads(s.attachment.to_bytes()) if s.attachment else {}
-                    if "sequence" not in meta:
-                        meta["sequence"] = int(str(s.key_expr).rsplit("/", 1)[-1])
-                    if not first <= int(meta["sequence"]) <= last:
-                        continue
-                    if ds.add(meta, s.payload.to_bytes(), fetched=True):
-                        got += 1
-                        self.last_arrival = time.monotonic()
+            overdue = ds.overdue(grace)
+            for flight in dict.fromkeys(f for f, _ in overdue):
+                seqs = [s for f, s in overdue if f == flight]
+                for first, last in runs(seqs):
+                    # One query per gap; each keyframe is one reply, keyed .../keyframes/<seq>.
+                    ds.queries += 1
+                    selector = range_selector(ds.vehicle, first, last, flight)
+                    for reply in self.session.get(selector, timeout=timeout):
+                        if reply.ok is None:
+                            continue
+                        s = reply.ok
+                        meta = json.loads(s.attachment.to_bytes()) if s.attachment else {}
+                        if "sequence" not in meta:
+                            meta["sequence"] = int(str(s.key_expr).rsplit("/", 1)[-1])
+                        if not first <= int(meta["sequence"]) <= last:
+                            continue
+                        if str(meta.get("flight") or "") != flight:
+                            continue  # a daemon that does not know flights: not this one
+                        if ds.add(meta, s.payload.to_bytes(), fetched=True):
+                            got += 1
+                            self.last_arrival = time.monotonic()
         return got
 
     def progress(self) -> str:
@@ -556,7 +611,7 @@ class GroundStation:
             last = ""
             with ds.lock:
                 if ds.meta:
-                    m = ds.meta[max(ds.meta)]
+                    m = list(ds.meta.values())[-1]
                     if m.get("lat") not in (None, ""):
                         last = f" at {float(m['lat']):.6f},{float(m['lon']):.6f}"
             parts.append(f"{ds.vehicle}: {n} keyframes, {rate * 60:.0f}/min{last}")

@@ -462,10 +462,15 @@ def _value_noise(rng: np.random.Generator, h: int, w: int, cell: float) -> F32:
     return out
 
 
-def _load_photo(name: str) -> U8 | None:
+def _load_photo(name: str) -> U8:
     img = cv2.imread(str(_PHOTO_DIR / name), cv2.IMREAD_COLOR)
     if img is None:
-        return None
+        # Without them the flight would quietly be another one (procedural ground
+        # only), its results not comparable with anyone else's.
+        raise FileNotFoundError(
+            f"cannot read {_PHOTO_DIR / name}: the sample flights are made from OpenCV's "
+            "sample photographs (Debian package opencv-doc; tools/setup.sh installs it)"
+        )
     if name == "aero3.jpg":
         img = img[95:]  # drop the featureless sea and sky
     if name in _AERIAL:  # undo the haze of these high-altitude oblique shots
@@ -581,14 +586,12 @@ def _build_mosaic(seed: int = WORLD_SEED) -> _Mosaic:
     del coarse, labels, xx, yy, phase, stripes, low
 
     # ---- photographs: aero1/aero3 as large tiles on a jittered grid, others as patches
-    aer = [p for p in (_load_photo(nm) for nm in _AERIAL) if p is not None]
-    others = [p for p in (_load_photo(nm) for nm in _PATCHES) if p is not None]
+    aer = [_load_photo(nm) for nm in _AERIAL]
+    others = [_load_photo(nm) for nm in _PATCHES]
     grid_n = 4
     step = 2 * half / grid_n
     order = rng.permutation(grid_n * grid_n)
     for cell in order:
-        if not aer:
-            break
         gi, gj = divmod(int(cell), grid_n)
         centre = np.array([-half + (gj + 0.5) * step, -half + (gi + 0.5) * step])
         centre += rng.uniform(-0.2, 0.2, 2) * step
