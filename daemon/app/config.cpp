@@ -989,6 +989,38 @@ std::string toToml(const DaemonConfig& config) {
   return out;
 }
 
+std::string selectionOverrides(const SelectorConfig& selection) {
+  DaemonConfig c;
+  c.selection = selection;
+  std::string out;
+  for (const Field& f : schema()) {
+    if (f.section != "selection") continue;
+    out.append("selection.").append(f.key).append("=").append(f.write(c)).append("\n");
+  }
+  return out;
+}
+
+ConfigLoadResult loadSelectionOverrides(const std::string& lines) {
+  std::vector<std::string> overrides;
+  std::size_t start = 0;
+  while (start < lines.size()) {
+    std::size_t end = lines.find('\n', start);
+    if (end == std::string::npos) end = lines.size();
+    std::string line = lines.substr(start, end - start);
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (!line.empty()) {
+      if (!line.starts_with("selection.")) {
+        ConfigLoadResult r;
+        r.errors.push_back("not a selection setting: '" + line + "'");
+        return r;
+      }
+      overrides.push_back(std::move(line));
+    }
+    start = end + 1;
+  }
+  return loadOverrides(overrides);
+}
+
 std::optional<PixelFormat> filePixelFormat(const std::string& name) {
   const std::string up = upper(name);
   if (up == "AUTO") return PixelFormat::BGR24;

@@ -126,6 +126,12 @@ std::string takeConfigArgs(std::vector<std::string>& args, ConfigSources& source
 // gives the same configuration.
 std::string toToml(const DaemonConfig& config);
 
+// The [selection] settings as `selection.KEY=VALUE` lines (TOML values), what a
+// flight record keeps so that a replay selects as the flight did; and back, through
+// the same validation as --set (errors name the key).
+std::string selectionOverrides(const SelectorConfig& selection);
+ConfigLoadResult loadSelectionOverrides(const std::string& lines);
+
 // What a video file is delivered as for camera.pixel_format (any case): "auto" BGR24,
 // as decoded; YUV420 (YU12, I420) or NV12, converted as a camera would deliver them.
 // nullopt for the formats only a camera has.

@@ -113,6 +113,7 @@ recording and streaming:
 
 ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptions& o) {
   ParseResult r;
+  o.args = args;
   auto fail = [&r](std::string msg) {
     r.error = std::move(msg);
     return r;

@@ -47,6 +47,10 @@ struct SelectOptions {
   std::string mcap;             // --mcap FILE: MCAP flight record
   std::string zenohConfig;      // --zenoh-config FILE: publish keyframes on Zenoh
   std::string vehicle = "uav";  // --vehicle NAME: keyframed/<NAME>/... keys
+
+  // The command line as parsed, so that a replay can apply its selection options on
+  // top of the settings a flight record was made with.
+  std::vector<std::string> args;
 };
 
 struct ParseResult {

@@ -328,6 +328,7 @@ void Daemon::reload() {
     std::lock_guard lock(reloadMutex_);
     pendingSelection_ = r.config.selection;
     config_.selection = r.config.selection;
+    outputs_.settings(monotonicNowNs(), selectionOverrides(config_.selection));
     logging::configure(r.config.log);
   }
   notifier_.ready();
@@ -518,6 +519,7 @@ int Daemon::run() {
     return 1;
   }
   logToRecord_ = std::make_unique<LogToRecord>(outputs_);
+  outputs_.settings(monotonicNowNs(), selectionOverrides(config_.selection));
 
   if (telemetry_) {
     // The link opens once the flight record listens: every packet from the first is

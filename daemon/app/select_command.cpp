@@ -98,8 +98,9 @@ extern "C" void onSignal(int) {
 
 }  // namespace
 
-SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress,
+SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progress,
                            const std::atomic<bool>* stop) {
+  SelectOptions opts = given;
   SelectSummary s;
   cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
   std::string error;
@@ -125,6 +126,27 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
   if (!source) {
     s.error = error;
     return s;
+  }
+  if (replay != nullptr && !replay->selectionSettings().empty()) {
+    // Select as the flight did: its settings, with the selection options given here on
+    // top of them.
+    const ConfigLoadResult r = loadSelectionOverrides(replay->selectionSettings());
+    SelectOptions recorded;
+    recorded.selector = r.config.selection;
+    if (!r.ok()) {
+      std::fprintf(stderr,
+                   "keyframed select: warning: the record's selection settings do not load "
+                   "(%s): replaying with the defaults and the options given\n",
+                   r.errors.front().c_str());
+    } else if (!opts.args.empty() && parseSelectOptions(opts.args, recorded).ok) {
+      opts.selector = recorded.selector;
+      if (replay->settingsChanges() > 0) {
+        std::fprintf(stderr,
+                     "keyframed select: warning: the selection settings changed %d time(s) "
+                     "during the flight (reloads): replaying with those it started with\n",
+                     replay->settingsChanges());
+      }
+    }
   }
   if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs)) {
     s.error =
@@ -268,6 +290,8 @@ SelectSummary runSelection(const SelectOptions& opts, const ProgressFn& progress
     return s;
   }
   const LogToRecord logToRecord(outputs);
+  outputs.settings(opts.realtime ? monotonicNowNs() : fo.startNs,
+                   selectionOverrides(opts.selector));
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs,
                         telemetrySettings.link.decoder.store);

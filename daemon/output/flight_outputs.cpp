@@ -297,6 +297,23 @@ void FlightOutputs::vehicleAttitude(std::int64_t timeNs, const Quaternion& q) {
                             proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
 }
 
+void FlightOutputs::settings(std::int64_t timeNs, const std::string& selectionLines) {
+  if (!impl_->recorder) return;
+  std::string json = "{\"selection\":\"";
+  for (const char c : selectionLines) {
+    if (c == '"' || c == '\\') {
+      json += '\\';
+      json += c;
+    } else if (c == '\n') {
+      json += "\\n";
+    } else if (static_cast<unsigned char>(c) >= 0x20) {
+      json += c;
+    }
+  }
+  json += "\"}";
+  impl_->recorder->recordText(McapTopic::Settings, timeNs, json);
+}
+
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
                             const char* format) {
   if (impl_->recorder)
@@ -503,6 +520,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
 void FlightOutputs::decision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
 void FlightOutputs::preview(std::int64_t, std::span<const std::uint8_t>, const char*) {}
+void FlightOutputs::settings(std::int64_t, const std::string&) {}
 void FlightOutputs::telemetry(const std::string&) {}
 bool FlightOutputs::publishing() const {
   return false;

@@ -71,6 +71,9 @@ class FlightOutputs {
   void vehicleAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
   // One frame of the preview stream (a JPEG), for replay.
   void preview(std::int64_t timeNs, std::span<const std::uint8_t> image, const char* format);
+  // The selection settings in force from timeNs (selection.KEY=VALUE lines), for a
+  // replay of the record to select as the flight did. Main thread.
+  void settings(std::int64_t timeNs, const std::string& selectionLines);
   // The vehicle's pose (JSON) on Zenoh's .../telemetry key.
   void telemetry(const std::string& json);
   [[nodiscard]] bool publishing() const;  // a Zenoh session is open

@@ -69,6 +69,16 @@ constexpr const char* kKeyframeMetaSchema = R"json({
   }
 })json";
 
+constexpr const char* kSettingsSchema = R"json({
+  "title": "keyframed.Settings",
+  "description": "The selection settings in force from this message on (start, SIGHUP reload)",
+  "type": "object",
+  "properties": {
+    "selection": {"type": "string",
+                  "description": "one selection.KEY=VALUE per line, TOML values"}
+  }
+})json";
+
 struct TopicSpec {
   const char* topic;
   const char* schema;
@@ -88,13 +98,16 @@ constexpr TopicSpec kTopics[] = {
     {"/camera/preview", "foxglove.CompressedImage", "protobuf", "protobuf"},
     {"/vehicle/location", "foxglove.LocationFix", "protobuf", "protobuf"},
     {"/vehicle/pose", "foxglove.PoseInFrame", "protobuf", "protobuf"},
+    {"/keyframed/settings", "keyframed.Settings", "jsonschema", "json"},
 };
 static_assert(std::size(kTopics) == static_cast<std::size_t>(McapTopic::Count));
 
 std::span<const std::uint8_t> schemaData(const TopicSpec& t) {
   if (std::string(t.schemaEncoding) == "protobuf") return proto::descriptorSet(t.schema);
-  const char* text =
-      std::string(t.schema) == "keyframed.Decision" ? kDecisionSchema : kKeyframeMetaSchema;
+  const std::string name = t.schema;
+  const char* text = name == "keyframed.Decision"   ? kDecisionSchema
+                     : name == "keyframed.Settings" ? kSettingsSchema
+                                                    : kKeyframeMetaSchema;
   return {reinterpret_cast<const std::uint8_t*>(text), std::char_traits<char>::length(text)};
 }
 

@@ -29,6 +29,7 @@ enum class McapTopic : std::uint8_t {
   Preview,          // /camera/preview           foxglove.CompressedImage (every frame, JPEG)
   VehicleLocation,  // /vehicle/location     foxglove.LocationFix (GLOBAL_POSITION_INT)
   VehiclePose,      // /vehicle/pose         foxglove.PoseInFrame (ATTITUDE[_QUATERNION])
+  Settings,         // /keyframed/settings   JSON: the selection settings, at start and reload
   Count
 };
 

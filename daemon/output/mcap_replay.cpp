@@ -6,6 +6,8 @@
 #include <fstream>
 #include <optional>
 #include <span>
+#include <string>
+#include <unordered_map>
 
 #include <opencv2/core/mat.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -160,11 +162,47 @@ bool isMcapFile(const std::string& path) {
   return f && std::memcmp(magic, "\x89MCAP0\r\n", 8) == 0;
 }
 
+namespace {
+
+// {"index":N,"timestamp_ns":T,...}: a decision row's frame index and time.
+bool decisionIndex(std::span<const std::uint8_t> json, std::int64_t& index, std::int64_t& time) {
+  const std::string head(reinterpret_cast<const char*>(json.data()),
+                         std::min<std::size_t>(json.size(), 96));
+  long long i = 0, t = 0;
+  if (std::sscanf(head.c_str(), "{\"index\":%lld,\"timestamp_ns\":%lld", &i, &t) != 2) return false;
+  index = i;
+  time = t;
+  return true;
+}
+
+// The "selection" string of a /keyframed/settings message, unescaped.
+std::optional<std::string> settingsText(std::span<const std::uint8_t> json) {
+  const std::string s(reinterpret_cast<const char*>(json.data()), json.size());
+  const std::string key = "\"selection\":\"";
+  const auto at = s.find(key);
+  if (at == std::string::npos) return std::nullopt;
+  std::string out;
+  for (std::size_t i = at + key.size(); i < s.size(); ++i) {
+    const char c = s[i];
+    if (c == '"') return out;
+    if (c != '\\') {
+      out += c;
+      continue;
+    }
+    if (++i >= s.size()) break;
+    out += s[i] == 'n' ? '\n' : s[i];
+  }
+  return std::nullopt;  // unterminated
+}
+
+}  // namespace
+
 struct McapReplaySource::Impl {
 #ifdef KEYFRAMED_HAVE_IO
   std::unique_ptr<McapReader> images;  // the preview stream, read as frames are asked for
 #endif
-  std::int64_t frames = 0;  // preview frames the first pass found
+  std::unordered_map<std::int64_t, std::int64_t> indexAt;  // frame time -> live frame index
+  std::int64_t frames = 0;                                 // preview frames the first pass found
   std::vector<std::uint8_t> jpeg;
   cv::Mat bgr;
 };
@@ -183,8 +221,8 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   // second streams the frames. Memory does not grow with the file. Times are the
   // messages' own (the run's clock, which the MAVLink link's TIMESYNC used too); the
   // log time of the first frame gives the record's offset to unix time.
-  const std::vector<std::string> topics = {"/camera/preview", "/mavlink/raw",
-                                           "/camera/calibration"};
+  const std::vector<std::string> topics = {"/camera/preview", "/mavlink/raw", "/camera/calibration",
+                                           "/keyframed/decision", "/keyframed/settings"};
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
   s->parts_ = mcapParts(path);
@@ -201,6 +239,20 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
       const std::uint64_t time = m.logTimeNs;
       if (topic == 2) {
         if (!s->calibration_) s->calibration_ = calibrationOf(msg);
+        continue;
+      }
+      if (topic == 3) {
+        std::int64_t index = 0, t = 0;
+        if (decisionIndex(msg, index, t)) impl.indexAt.emplace(t, index);
+        continue;
+      }
+      if (topic == 4) {
+        if (const auto text = settingsText(msg)) {
+          if (s->selection_.empty())
+            s->selection_ = *text;
+          else if (*text != s->selection_)
+            ++s->settingsChanges_;
+        }
         continue;
       }
       const auto field = bytesField(msg, topic == 0 ? 2 : 5);
@@ -287,7 +339,11 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       return ReadStatus::Error;
     }
     const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
-    frame = Frame::ofBgr(impl.bgr, index_++, t);
+    // The live run's index for this frame (the frames it dropped leave the same gaps),
+    // else the position in the stream.
+    const auto live = impl.indexAt.find(t);
+    frame = Frame::ofBgr(impl.bgr, live != impl.indexAt.end() ? live->second : index_, t);
+    ++index_;
     impl.jpeg.assign(field->begin(), field->end());
     const auto format = bytesField(msg, 4);
     format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");

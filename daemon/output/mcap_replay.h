@@ -15,7 +15,9 @@ namespace keyframed {
 
 // A flight record (MCAP written by `keyframed run`) as a frame source: the preview
 // stream (/camera/preview, JPEG) decoded frame by frame with the live capture
-// timestamps (the messages' own timestamp fields, on the run's clock), and the raw
+// timestamps (the messages' own timestamp fields, on the run's clock) and the live
+// frame indices (from /keyframed/decision: frames the live run dropped leave the same
+// gaps; by position in the stream for records without decisions), and the raw
 // MAVLink packets (/mavlink/raw) for the telemetry. open() reads the record once for
 // the MAVLink packets; frames are then streamed, one chunk in memory at a time. A
 // file cut short replays up to the cut. A record rotated into parts (flight.mcap,
@@ -42,6 +44,11 @@ class McapReplaySource final : public FrameSource {
   // The record's camera calibration (/camera/calibration: K and D at the video's
   // resolution), when it has one.
   [[nodiscard]] const std::optional<CameraModel>& calibration() const { return calibration_; }
+  // The selection settings the flight started with (/keyframed/settings:
+  // selection.KEY=VALUE lines; empty for records without them), and how many times
+  // they changed during it (SIGHUP reloads).
+  [[nodiscard]] const std::string& selectionSettings() const { return selection_; }
+  [[nodiscard]] int settingsChanges() const { return settingsChanges_; }
 
  private:
   McapReplaySource() = default;
@@ -57,6 +64,8 @@ class McapReplaySource final : public FrameSource {
   std::int64_t firstTimeNs_ = 0;
   std::string format_;
   std::optional<CameraModel> calibration_;
+  std::string selection_;
+  int settingsChanges_ = 0;
 };
 
 // The parts of a rotated flight record, given its first: path itself, then

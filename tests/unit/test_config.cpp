@@ -89,6 +89,23 @@ TEST(Config, DefaultsAreValidAndEmptyDirectoryGivesThem) {
   EXPECT_EQ(r.layers, std::vector<std::string>{"built-in defaults"});
 }
 
+TEST(Config, SelectionSettingsRoundTripAsOverrides) {
+  DaemonConfig c;
+  c.selection.target = 0.78;
+  c.selection.bandHigh = 0.9;
+  c.selection.overlap.mode = OverlapMode::Paper;
+  const std::string lines = selectionOverrides(c.selection);
+  EXPECT_NE(lines.find("selection.target=0.78\n"), std::string::npos) << lines;
+  const ConfigLoadResult r = loadSelectionOverrides(lines);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(toToml(r.config), toToml(c));
+  // What does not load is an error naming it, not a crash or a silent default.
+  EXPECT_FALSE(loadSelectionOverrides("camera.source=file\n").ok());
+  const ConfigLoadResult bad = loadSelectionOverrides("selection.target=7\n");
+  ASSERT_FALSE(bad.ok());
+  EXPECT_NE(joined(bad.errors).find("selection.target"), std::string::npos) << joined(bad.errors);
+}
+
 TEST(Config, ShippedFileIsExactlyTheDefaultsAndListsEveryKey) {
   ConfigSources s;
   s.files = {kSource + "/config/keyframed.toml"};

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
 
 #include "output/flight_outputs.h"
 #include "output/foxglove_proto.h"
@@ -20,6 +21,7 @@
 #include "output/io_ffi.h"
 #include "output/keyframe_publisher.h"
 #include "output/mcap_recorder.h"
+#include "output/mcap_replay.h"
 
 namespace keyframed {
 namespace {
@@ -463,6 +465,42 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   ASSERT_EQ(warnings.size(), 2U);
   EXPECT_NE(warnings[1].find("3 keyframes left to the queryable"), std::string::npos)
       << warnings[1];
+}
+
+TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
+  const std::string path = tempPath("replay-index.mcap");
+  const std::int64_t start = 1'000'000'000;
+  {
+    FlightOutputOptions o;
+    o.mcapPath = path;
+    o.startNs = start;
+    FlightOutputs outputs;
+    std::string error;
+    ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
+    outputs.settings(start, "selection.target=0.75\nselection.mode=\"paper\"\n");
+    std::vector<std::uint8_t> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    for (const std::int64_t index : {0, 5, 9}) {  // the live run dropped 1-4 and 6-8
+      const std::int64_t t = start + index * 33'333'333;
+      Decision d;
+      d.index = index;
+      d.timestampNs = t;
+      outputs.decision(d, "{\"index\":" + std::to_string(index) +
+                              ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
+      outputs.preview(t, jpeg, "jpeg");
+    }
+    outputs.settings(start + 400'000'000, "selection.target=0.8\n");  // a SIGHUP reload
+    ASSERT_TRUE(outputs.close("done", error)) << error;
+  }
+  std::string error;
+  const auto replay = McapReplaySource::open(path, error);
+  ASSERT_TRUE(replay) << error;
+  EXPECT_EQ(replay->selectionSettings(), "selection.target=0.75\nselection.mode=\"paper\"\n");
+  EXPECT_EQ(replay->settingsChanges(), 1);
+  std::vector<std::int64_t> indices;
+  Frame f;
+  while (replay->next(f, error) == ReadStatus::Frame) indices.push_back(f.index);
+  EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9})) << error;
 }
 
 std::int64_t unixNowNs() {
