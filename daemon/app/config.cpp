@@ -804,6 +804,16 @@ class Loader {
             {"camera.source", "camera.pixel_format"},
             "source \"file\" delivers \"auto\" (BGR, as decoded), YUV420 or NV12 (got " +
                 quote(c.camera.pixelFormat) + ")");
+    {
+      const std::string pf = upper(c.camera.pixelFormat);
+      const bool libcameraFormat = pf == "AUTO" || pf == "NV12" || pf == "YUV420" || pf == "YU12" ||
+                                   pf == "I420" || pf == "YUYV" || pf == "YUY2";
+      require(c.camera.source != Source::Libcamera || libcameraFormat ||
+                  !checkPixelFormat(c.camera.pixelFormat).empty(),
+              {"camera.source", "camera.pixel_format"},
+              "source \"libcamera\" delivers \"auto\", NV12, YUV420 or YUYV (got " +
+                  quote(c.camera.pixelFormat) + ")");
+    }
     std::string e;
     const std::string& url = c.telemetry.link.url;
     const bool tlog = (url.starts_with("tlog:") ||
@@ -901,6 +911,10 @@ ConfigLoadResult loadConfig(const ConfigSources& sources) {
     std::vector<std::string> dropIns;
     for (const auto& e : fs::directory_iterator(dir / "conf.d", ec)) {
       if (isTomlFile(e)) dropIns.push_back(e.path().string());
+    }
+    // Missing is fine; there but unreadable would silently drop its settings.
+    if (ec && ec != std::errc::no_such_file_or_directory) {
+      result.errors.push_back((dir / "conf.d").string() + ": cannot read: " + ec.message());
     }
     std::sort(dropIns.begin(), dropIns.end());
     for (const std::string& f : dropIns) loader.file(f);

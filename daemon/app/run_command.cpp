@@ -214,6 +214,7 @@ class Daemon {
   ConfigSources sources_;
   Notifier notifier_;
   std::string flightDir_;
+  bool ready_ = false;  // READY=1 sent (the first frame arrived); main thread
   std::unique_ptr<FrameSource> source_;
   std::unique_ptr<FramePool> pool_;
   std::unique_ptr<FrameQueue> queue_;
@@ -319,7 +320,7 @@ void Daemon::publishPose() {
 }
 
 void Daemon::reload() {
-  notifier_.reloading();
+  if (ready_) notifier_.reloading();
   ConfigLoadResult r = loadConfig(sources_);
   if (!r.ok()) {
     for (const auto& e : r.errors) KF_LOG(App, Error) << "reload: " << e;
@@ -331,7 +332,9 @@ void Daemon::reload() {
     outputs_.settings(monotonicNowNs(), selectionOverrides(config_.selection));
     logging::configure(r.config.log);
   }
-  notifier_.ready();
+  // READY again only once it was ready: a reload before the first frame must not say
+  // the start-up is over.
+  if (ready_) notifier_.ready();
 }
 
 bool Daemon::writeSummary(double seconds, const std::string& state, std::string& error) {
@@ -552,6 +555,10 @@ int Daemon::run() {
     // a moment (telemetry.start_wait_ms) to deliver a first pose. Signals still work.
     KF_LOG(Telemetry, Notice) << "waiting up to " << config_.telemetry.startWaitMs
                               << " ms for telemetry on " << config_.telemetry.link.url;
+    // READY comes with the first frame, after this wait: systemd's start timeout
+    // (90 s by default) must not run out first.
+    notifier_.extendTimeout(std::chrono::milliseconds(config_.telemetry.startWaitMs + 30'000));
+    notifier_.status("waiting for telemetry on " + config_.telemetry.link.url);
     const std::int64_t deadline = monotonicNowNs() + config_.telemetry.startWaitMs * 1'000'000LL;
     while (!telemetry_->decoder().hasPose() && monotonicNowNs() < deadline) {
       timespec wait{0, 20'000'000};
@@ -562,6 +569,7 @@ int Daemon::run() {
         stopNow = true;
         break;
       }
+      if (sig == SIGHUP) reload();  // taken now, not lost
     }
     if (!stopNow && !telemetry_->decoder().hasPose()) {
       KF_LOG(Telemetry, Warning) << "no attitude and position yet from "
@@ -579,7 +587,6 @@ int Daemon::run() {
     capture_->start();
   }
 
-  bool ready = false;
   auto lastStatus = std::chrono::steady_clock::now();
   std::int64_t lastAnalysed = 0;
   const auto ping =
@@ -598,8 +605,8 @@ int Daemon::run() {
     if (sig == SIGHUP) reload();
     const std::int64_t last = stats_.lastFrameNs.load();
     const bool framesArrive = last > 0 && monotonicNowNs() - last < 2'000'000'000LL;
-    if (!ready && last > 0) {
-      ready = true;  // the camera has delivered its first frame
+    if (!ready_ && last > 0) {
+      ready_ = true;  // the camera has delivered its first frame
       notifier_.ready("first frame received");
       KF_LOG(App, Notice) << "ready: first frame received";
     }
@@ -616,7 +623,7 @@ int Daemon::run() {
                     static_cast<double>(analysed - lastAnalysed) / el,
                     static_cast<long long>(stats_.written.load()),
                     static_cast<unsigned long long>(queue_->dropped() + capture_->stats().noBuffer),
-                    framesArrive || !ready ? "" : ", no frames");
+                    framesArrive || !ready_ ? "" : ", no frames");
       notifier_.status(buf);
       lastStatus = now;
       if (telemetry_) publishPose();

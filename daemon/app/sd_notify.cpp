@@ -45,6 +45,10 @@ bool Notifier::watchdog() {
   return send("WATCHDOG=1");
 }
 
+bool Notifier::extendTimeout(std::chrono::microseconds more) {
+  return send("EXTEND_TIMEOUT_USEC=" + std::to_string(more.count()));
+}
+
 bool Notifier::reloading() {
   // systemd >= 253 (Type=notify-reload) wants the time the reload began; older
   // managers ignore the field.
@@ -70,6 +74,7 @@ int notifySelftestMain() {
   ok = n.reloading() && ok;
   ok = n.ready() && ok;
   ok = n.stopping("bye") && ok;
+  ok = n.extendTimeout(std::chrono::seconds(40)) && ok;
   return ok ? 0 : 1;
 }
 

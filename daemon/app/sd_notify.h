@@ -27,6 +27,9 @@ class Notifier {
   bool watchdog();                              // WATCHDOG=1: call only while frames really arrive
   bool reloading();                             // RELOADING=1 + MONOTONIC_USEC=; ready() when done
   bool stopping(std::string_view status = {});  // STOPPING=1 [+ STATUS=]
+  // EXTEND_TIMEOUT_USEC=: a start-up that may outlast TimeoutStartSec (a long wait
+  // for the autopilot) asks for this much more from now.
+  bool extendTimeout(std::chrono::microseconds more);
 
  private:
   bool send(const std::string& state) const;

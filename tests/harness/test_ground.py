@@ -115,11 +115,10 @@ class Vehicle:
                 attachment=json.dumps(self.meta(row) | {"flight": flight or None}).encode(),
             )
 
-    def publish(self, seq: int) -> None:
+    def publish(self, seq: int, payload: bytes | None = None) -> None:
         row = self.rows[seq]
-        self.pub.put(
-            (self.folder / row["file"]).read_bytes(), attachment=json.dumps(self.meta(row)).encode()
-        )
+        data = (self.folder / row["file"]).read_bytes() if payload is None else payload
+        self.pub.put(data, attachment=json.dumps(self.meta(row)).encode())
 
     def status(self) -> None:
         """Like the daemon: status over and over (it says how many keyframes exist)."""
@@ -301,6 +300,33 @@ def test_a_restarted_vehicle_keeps_both_flights_apart(tagged: Path, tmp_path: Pa
         source = tagged / m["file"].removeprefix("20261202T102000Z_")
         assert (ds / "images" / m["file"]).read_bytes() == source.read_bytes()
     assert len((ds / "geo.txt").read_text().splitlines()) == 2 * n + 1
+
+
+def test_a_keyframe_that_is_no_image_costs_only_itself(tagged: Path, tmp_path: Path) -> None:
+    """Bytes that are no JPEG arrive for one keyframe: stored as received, their SIFT
+    fails and is counted, and the dataset's files are still written for the rest."""
+    port = free_port()
+    vehicle = Vehicle("uav4", tagged, port)
+    out = tmp_path / "dataset"
+    proc = ground(out, port, "--sift")
+    n = len(vehicle.rows)
+    try:
+        wait_connected(vehicle)
+        for seq in range(n):
+            vehicle.publish(seq, b"garbage, not a JPEG" if seq == 1 else None)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    assert "SIFT failed" in stderr and "Traceback" not in stderr, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n and summary["sift_failed"] == 1, summary
+    ds = out / "uav4"
+    assert (ds / "cameras.txt").read_text().splitlines()[-1].split()[1] == "OPENCV"
+    assert len((ds / "geo.txt").read_text().splitlines()) == n  # header + n - 1 geotagged
+    assert len(list((ds / "features").glob("*.txt"))) == n - 1
 
 
 def test_bad_command_lines(tmp_path: Path) -> None:

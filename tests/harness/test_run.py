@@ -404,6 +404,51 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
     assert max(after) <= 0.8 and max(after) > 0.75, after
 
 
+def test_waiting_for_the_autopilot_extends_the_start_timeout_and_keeps_a_reload(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """No autopilot yet: the daemon waits telemetry.start_wait_ms for it before the
+    camera starts, and asks systemd for that much more start time (READY comes only
+    with the first frame). A SIGHUP in that wait is taken, not lost, and does not say
+    READY early."""
+    ns = NotifySocket(tmp_path / "notify.sock")
+    port = free_port(socket.SOCK_DGRAM)
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{port}",
+        "telemetry.start_wait_ms=4000",
+        config="[selection]\ntarget = 0.7\n",
+        env={"NOTIFY_SOCKET": str(ns.path)},
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while not ns.has("STATUS=waiting for telemetry"):
+            assert time.monotonic() < deadline and proc.poll() is None, ns.messages
+            time.sleep(0.05)
+        (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 0.8\n")
+        proc.send_signal(signal.SIGHUP)
+        while not ns.has("READY=1"):
+            assert time.monotonic() < deadline and proc.poll() is None, ns.messages
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        time.sleep(0.2)
+        ns.close()
+    assert proc.returncode == 0, stderr
+    msgs = [m for _, m in ns.messages]
+    extend = [i for i, m in enumerate(msgs) if m == "EXTEND_TIMEOUT_USEC=34000000"]
+    ready = [i for i, m in enumerate(msgs) if m.startswith("READY=1")]
+    assert extend and ready and extend[0] < ready[0], msgs
+    assert "first frame" in msgs[ready[0]], msgs  # the reload did not say READY
+    assert not [m for m in msgs[: ready[0]] if m.startswith("RELOADING=1")], msgs
+    assert "selection settings reloaded" in stderr, stderr
+
+
 def test_watchdog_fed_only_while_frames_arrive(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:

@@ -143,20 +143,21 @@ def test_notifier_sends_the_exact_datagrams(kf_bin: Path, tmp_path: Path):
     assert "notify_socket=yes" in p.stdout
     assert "watchdog_usec=4000000" in p.stdout
     assert "ping_usec=2000000" in p.stdout
-    assert len(datagrams) == 6, datagrams
+    assert len(datagrams) == 7, datagrams
     assert datagrams[0] == "STATUS=starting"
     assert datagrams[1] == "READY=1\nSTATUS=selecting keyframes"  # newline flattened
     assert datagrams[2] == "WATCHDOG=1"
     assert re.fullmatch(r"RELOADING=1\nMONOTONIC_USEC=\d+", datagrams[3]), datagrams[3]
     assert datagrams[4] == "READY=1"
     assert datagrams[5] == "STOPPING=1\nSTATUS=bye"
+    assert datagrams[6] == "EXTEND_TIMEOUT_USEC=40000000"
 
 
 def test_watchdog_meant_for_another_process_is_ignored(kf_bin: Path, tmp_path: Path):
     p, datagrams = run_selftest(kf_bin, tmp_path, WATCHDOG_USEC="4000000", WATCHDOG_PID="1")
     assert p.returncode == 0, p.stderr
     assert "watchdog_usec=0" in p.stdout
-    assert len(datagrams) == 6
+    assert len(datagrams) == 7
 
 
 def test_without_notify_socket_nothing_is_sent(kf_bin: Path):

@@ -196,6 +196,16 @@ TEST(Config, DropInsSortByNameAndOnlyTomlFilesCount) {
   EXPECT_EQ(r.layers.size(), 3u);
 }
 
+TEST(Config, AConfDThatCannotBeReadIsAnErrorNotDefaults) {
+  TempDir dir;
+  dir.write("keyframed.toml", "[zenoh]\nvehicle = \"main\"\n");
+  dir.write("conf.d", "a file where the drop-in directory should be\n");
+  const ConfigLoadResult r = loadDir(dir);
+  ASSERT_FALSE(r.ok());
+  EXPECT_NE(joined(r.errors).find(dir.path() + "/conf.d: cannot read"), std::string::npos)
+      << joined(r.errors);
+}
+
 TEST(Config, DirectoryFromTheEnvironmentAndMissingDirectories) {
   TempDir dir;
   dir.write("keyframed.toml", "[camera]\nwidth = 800\n");
@@ -317,6 +327,11 @@ TEST(Config, OutOfRangeAndBadValues) {
                        "[camera]\nsource = \"file\"\npath = \"/v.avi\"\n"
                        "pixel_format = \"i420\"\n")
                   .ok());
+  // libcamera gives YUV only (what the camera offers is checked again when it opens).
+  expectOneError(dir, "[camera]\nsource = \"libcamera\"\npixel_format = \"MJPEG\"\n",
+                 "3: camera.pixel_format: source \"libcamera\" delivers \"auto\", NV12, YUV420 or "
+                 "YUYV (got \"MJPEG\")");
+  EXPECT_TRUE(loadText(dir, "[camera]\nsource = \"libcamera\"\npixel_format = \"yuyv\"\n").ok());
   EXPECT_EQ(filePixelFormat("i420"), PixelFormat::YUV420);
   EXPECT_EQ(filePixelFormat("NV12"), PixelFormat::NV12);
   EXPECT_EQ(filePixelFormat("auto"), PixelFormat::BGR24);

@@ -108,7 +108,17 @@ def _xmp_value(xmp: str, name: str) -> str | None:
 
 
 def read_tags(jpeg: bytes) -> ImageTags:
-    """EXIF (Pillow) and the Pix4D XMP fields of a keyframe JPEG."""
+    """EXIF (Pillow) and the Pix4D XMP fields of a keyframe JPEG; nothing (width 0)
+    for bytes that are no image."""
+    from PIL import UnidentifiedImageError
+
+    try:
+        return _read_tags(jpeg)
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return ImageTags()
+
+
+def _read_tags(jpeg: bytes) -> ImageTags:
     from PIL import Image
 
     tags = ImageTags()
@@ -458,8 +468,13 @@ class VehicleDataset:
 
     def finish(self) -> dict[str, Any]:
         """Rewrites keyframes.jsonl in sequence order and writes the COLMAP/ODM files."""
+        sift_failed = 0
         for job in self.sift_jobs:
-            job.result()
+            try:
+                job.result()
+            except Exception as err:  # one bad image must not cost the dataset's files
+                sift_failed += 1
+                print(f"keyframed-ground: {self.vehicle}: SIFT failed: {err}", file=sys.stderr)
         with self.lock:
             order = {f: i for i, f in enumerate(self.flights)}
             metas = [self.meta[k] for k in sorted(self.meta, key=lambda k: (order[k[0]], k[1]))]
@@ -490,6 +505,7 @@ class VehicleDataset:
             "fetched_by_query": self.fetched,
             "gap_queries": self.queries,
             "duplicates_ignored": self.duplicates,
+            "sift_failed": sift_failed,
             # sequence numbers; "FLIGHT:N" for another flight than the first
             "missing": [
                 s if f == (self.flights or [""])[0] else f"{f}:{s}" for f, s in self.missing()
