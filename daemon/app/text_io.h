@@ -18,12 +18,16 @@ inline std::string formatFixed(double v, int decimals) {
   return buf;
 }
 
-// s for the inside of a JSON string: quotes and backslashes escaped, control
-// characters dropped.
+// s for the inside of a JSON string: quotes and backslashes escaped, newlines as
+// \n, other control characters dropped.
 inline std::string jsonEscape(std::string_view s) {
   std::string out;
   out.reserve(s.size());
   for (char ch : s) {
+    if (ch == '\n') {
+      out += "\\n";
+      continue;
+    }
     if (static_cast<unsigned char>(ch) < 0x20) continue;
     if (ch == '"' || ch == '\\') out += '\\';
     out += ch;

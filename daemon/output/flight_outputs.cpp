@@ -6,6 +6,7 @@
 #include <string_view>
 
 #include "app/log_throttle.h"
+#include "app/text_io.h"
 #include "tagging/camera_mount.h"
 #include "telemetry/pose.h"
 
@@ -299,19 +300,8 @@ void FlightOutputs::vehicleAttitude(std::int64_t timeNs, const Quaternion& q) {
 
 void FlightOutputs::settings(std::int64_t timeNs, const std::string& selectionLines) {
   if (!impl_->recorder) return;
-  std::string json = "{\"selection\":\"";
-  for (const char c : selectionLines) {
-    if (c == '"' || c == '\\') {
-      json += '\\';
-      json += c;
-    } else if (c == '\n') {
-      json += "\\n";
-    } else if (static_cast<unsigned char>(c) >= 0x20) {
-      json += c;
-    }
-  }
-  json += "\"}";
-  impl_->recorder->recordText(McapTopic::Settings, timeNs, json);
+  impl_->recorder->recordText(McapTopic::Settings, timeNs,
+                              "{\"selection\":\"" + jsonEscape(selectionLines) + "\"}");
 }
 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,

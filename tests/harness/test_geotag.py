@@ -172,6 +172,31 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
     assert summary["telemetry"]["truncated"] is False
 
 
+def tag_errors_with_tlog(kf_bin: Path, fl: Path, tlog: Path, out: Path) -> np.ndarray:
+    """`select` on the flight's video with `tlog` as telemetry: every keyframe tagged
+    (at least five); their tag errors against the ground truth (horizontal m,
+    vertical m, attitude deg), one row each."""
+    r = run_select(
+        kf_bin,
+        fl,
+        out,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        str(synth.EPOCH_UNIX_S),
+        "--calibration",
+        str(fl / "intrinsics.json"),
+    )
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5
+    assert all(k["geotag"] == "ok" for k in kfs), kfs
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(fl)
+    fps = json.loads((fl / "intrinsics.json").read_text())["fps"]
+    return np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
+
+
 @needs_exiftool
 def test_noisy_tlog_errors_stay_at_the_noise_level(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
@@ -183,25 +208,7 @@ def test_noisy_tlog_errors_stay_at_the_noise_level(
     tlog = tmp_path / "noisy.tlog"
     write_tlog(tlog, with_noise(read_tlog(short_nadir / "flight.tlog"), noise, seed=4))
     out = tmp_path / "out"
-    r = run_select(
-        kf_bin,
-        short_nadir,
-        out,
-        "--telemetry",
-        str(tlog),
-        "--video-start",
-        str(synth.EPOCH_UNIX_S),
-        "--calibration",
-        str(short_nadir / "intrinsics.json"),
-    )
-    assert r.returncode == 0, r.stderr
-    kfs = keyframes(out)
-    assert len(kfs) >= 5
-    assert all(k["geotag"] == "ok" for k in kfs), kfs
-    tags = exif([out / k["file"] for k in kfs])
-    truth = Truth(short_nadir)
-    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
-    errs = np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
+    errs = tag_errors_with_tlog(kf_bin, short_nadir, tlog, out)
     assert_at_noise_level(errs, noise, "noisy tlog")
 
 
@@ -244,28 +251,11 @@ def test_a_tlog_far_longer_than_the_video_tags_every_keyframe(
     tlog = tmp_path / "long.tlog"
     write_tlog(tlog, long)
     out = tmp_path / "out"
-    r = run_select(
-        kf_bin,
-        short_nadir,
-        out,
-        "--telemetry",
-        str(tlog),
-        "--video-start",
-        str(synth.EPOCH_UNIX_S),
-        "--calibration",
-        str(short_nadir / "intrinsics.json"),
-    )
-    assert r.returncode == 0, r.stderr
-    kfs = keyframes(out)
-    assert len(kfs) >= 5
-    assert all(k["geotag"] == "ok" for k in kfs), kfs
-    tags = exif([out / k["file"] for k in kfs])
-    truth = Truth(short_nadir)
-    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
-    errs = np.array([tag_errors(tags[k["file"]], truth.at(int(k["index"]) / fps)) for k in kfs])
+    errs = tag_errors_with_tlog(kf_bin, short_nadir, tlog, out)
     worst = errs.max(axis=0)
     assert worst[0] < 0.1 and worst[1] < 0.1 and worst[2] < 0.2, worst
     summary = json.loads((out / "summary.json").read_text())
+    kfs = keyframes(out)
     # The whole log was read and counted, the reboot seen.
     assert summary["telemetry"]["messages"] == len(long), summary["telemetry"]
     assert summary["telemetry"]["geotagged"] == len(kfs)
