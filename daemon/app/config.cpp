@@ -375,6 +375,9 @@ std::vector<Field> makeSchema() {
       sel, "motion_window", [](auto& c) -> auto& { return c.selection.motionWindow; },
       L::kMotionWindow));
   f.push_back(integer(
+      sel, "capture_wait_ms", [](auto& c) -> auto& { return c.selection.captureWaitMs; },
+      L::kCaptureWaitMs));
+  f.push_back(integer(
       sel, "analysis_width", [](auto& c) -> auto& { return c.selection.analysisWidth; },
       L::kAnalysisWidth));
   f.push_back(integer(

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -45,6 +46,8 @@ class KeyframeStage {
   // New settings (SIGHUP). The pending candidate is kept first, as at the end of a
   // stream, so changing settings never opens a coverage gap.
   void reconfigure(const SelectorConfig& config);
+  // A capture asked for (MAVLink): see KeyframeSelector::requestCapture().
+  bool requestCapture() { return selector_.requestCapture(); }
 
   [[nodiscard]] const StageCounts& counts() const { return counts_; }
   [[nodiscard]] const SelectorConfig& config() const { return selector_.config(); }
@@ -60,6 +63,30 @@ class KeyframeStage {
   FrameBuffer candidate_;  // the fallback candidate's pixels (storage reused)
   std::int64_t candidateIndex_ = -1;
   bool candidateBlur_ = false;  // the candidate was counted as rejected for blur
+};
+
+// Captures asked for over MAVLink (MAV_CMD_IMAGE_START_CAPTURE), on the telemetry
+// thread, on their way to the stage on the analysis thread.
+class CaptureRequests {
+ public:
+  // One more; false when as many wait as the selector would take.
+  bool add() {
+    int n = n_.load();
+    do {
+      if (n >= KeyframeSelector::kMaxCaptureRequests) return false;
+    } while (!n_.compare_exchange_weak(n, n + 1));
+    return true;
+  }
+  // Hands the waiting ones to the stage, before its next frame; returns how many it
+  // refused (as many already waited there).
+  int drainInto(KeyframeStage& stage) {
+    int refused = 0;
+    for (int n = n_.exchange(0); n > 0; --n) refused += stage.requestCapture() ? 0 : 1;
+    return refused;
+  }
+
+ private:
+  std::atomic<int> n_{0};
 };
 
 }  // namespace keyframed

@@ -50,6 +50,8 @@ selection:
                              recent lower quartile is motion-blurred, 0 = off (default 4)
   --motion-min-fraction F    ... and more than F of the image width (default 0.01)
   --motion-window N          recent frames for that quartile (default 150)
+  --capture-wait-ms MS       a capture asked for over MAVLink waits this long for a
+                             sharp frame, then takes one at the floor (default 1000)
   --analysis-width PX        overlap analysis width, 0 = full (default 640)
   --orb-features N           paper mode: ORB features (default 2500)
   --paper-threshold T        paper mode: mean Hamming distance to keep (default 50)
@@ -214,6 +216,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       {"--motion-ratio", number(c.motionRatio, limits::kMotionRatio)},
       {"--motion-min-fraction", number(c.motionMinFraction, limits::kMotionMinFraction)},
       {"--motion-window", integer(c.motionWindow, limits::kMotionWindow)},
+      {"--capture-wait-ms", integer(c.captureWaitMs, limits::kCaptureWaitMs)},
       {"--orb-features", integer(c.overlap.orbFeatures, limits::kOrbFeatures)},
       {"--paper-threshold", number(c.overlap.paperThreshold, limits::kPaperThreshold)},
       {"--paper-min-matches", integer(c.overlap.paperMinMatches, limits::kPaperMinMatches)},
@@ -291,29 +294,32 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          return {};
        }},
       {"--mount",
-       [&](const std::string& v) -> std::string {
-         if (v == "gimbal") {
-           o.mountGimbal = true;
-           return {};
-         }
-         o.mountGimbal = false;
-         double a[3];
-         std::size_t start = 0;
-         for (int k = 0; k < 3; ++k) {
-           const auto comma = v.find(',', start);
-           if ((k < 2) != (comma != std::string::npos))
-             return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
-           const std::string part =
-               v.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
-           if (!parseDouble(part, a[k]) || !limits::kMountAngleDeg.contains(a[k]))
-             return "bad angle '" + part + "'";
-           start = comma + 1;
-         }
-         o.mountRollDeg = a[0];
-         o.mountPitchDeg = a[1];
-         o.mountYawDeg = a[2];
-         return {};
-       }},
+       [&](const std::string& v) -> std::
+                                     string {
+                                       if (v == "gimbal") {
+                                         o.mountGimbal = true;
+                                         return {};
+                                       }
+                                       o.mountGimbal = false;
+                                       double a[3];
+                                       std::size_t start = 0;
+                                       for (int k = 0; k < 3; ++k) {
+                                         const auto comma = v.find(',', start);
+                                         if ((k < 2) != (comma != std::string::npos))
+                                           return "expected ROLL,PITCH,YAW in degrees or 'gimbal'";
+                                         const std::string part = v.substr(
+                                             start, comma == std::string::npos ? std::string::npos
+                                                                               : comma - start);
+                                         if (!parseDouble(part, a[k]) ||
+                                             !limits::kMountAngleDeg.contains(a[k]))
+                                           return "bad angle '" + part + "'";
+                                         start = comma + 1;
+                                       }
+                                       o.mountRollDeg = a[0];
+                                       o.mountPitchDeg = a[1];
+                                       o.mountYawDeg = a[2];
+                                       return {};
+                                     }},
       {"--telemetry-wait", integer(o.telemetryWaitMs, limits::kTelemetryWaitMs)},
       {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, limits::kTelemetryStartWaitMs)},
       {"--autopilot",

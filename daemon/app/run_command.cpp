@@ -234,6 +234,7 @@ class Daemon {
   std::atomic<bool> stopAnalysis_{false};
   std::mutex reloadMutex_;
   std::optional<SelectorConfig> pendingSelection_;
+  CaptureRequests captureRequests_;  // MAVLink (telemetry thread) -> analysis
   StageCounts finalCounts_;
   PreviewEncoder preview_{static_cast<int>(config_.output.previewWidth)};
   std::vector<std::uint8_t> previewJpeg_;
@@ -250,6 +251,10 @@ void Daemon::analysisLoop() {
       }
     }
     if (stopAnalysis_.load()) break;
+    if (const int refused = captureRequests_.drainInto(*stage_); refused > 0) {
+      KF_LOG(Select, Warning) << refused << " requested capture(s) refused: "
+                              << KeyframeSelector::kMaxCaptureRequests << " already wait";
+    }
     std::optional<FramePtr> item = queue_->pop(std::chrono::milliseconds(200));
     if (!item) {
       if (queue_->closed() && queue_->size() == 0) break;
@@ -351,7 +356,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
                   "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
                   "\"captures_pending\": %llu, "
-                  "\"captures_dropped\": %llu, \"captures_resent\": %llu, \"link_errors\": %llu, "
+                  "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
+                  "\"captures_requested\": %llu, \"link_errors\": %llu, "
                   "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"autopilot_reboots\": %llu}",
                   config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
                   toString(telemetry_->decoder().clockSource()),
@@ -364,6 +370,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   static_cast<unsigned long long>(ts.capturesPending),
                   static_cast<unsigned long long>(ts.capturesDropped),
                   static_cast<unsigned long long>(ts.capturesResent),
+                  static_cast<unsigned long long>(ts.captureRequests),
                   static_cast<unsigned long long>(ts.linkErrors),
                   static_cast<unsigned long long>(ts.reconnects),
                   static_cast<unsigned long long>(ts.decoder.gimbal),
@@ -463,6 +470,8 @@ int Daemon::run() {
     }
     telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
     logTelemetryEvents(*telemetry_);
+    // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
+    telemetry_->setCaptureRequestSink([this] { return captureRequests_.add(); });
   }
   if (!log_.open(flightDir_ + "/decisions.csv", DecisionFormat::Csv, error)) {
     KF_LOG(Output, Error) << error;

@@ -44,6 +44,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"gimbal_messages\": %llu,\n    \"autopilot_reboots\": %llu,\n"
                   "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
                   "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
+                  "    \"captures_requested\": %llu,\n"
                   "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
                   "    \"truncated\": %s\n  }",
                   jsonEscape(s.telemetry.source).c_str(),
@@ -60,6 +61,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.capturesPending),
                   static_cast<unsigned long long>(s.telemetry.capturesDropped),
                   static_cast<unsigned long long>(s.telemetry.capturesResent),
+                  static_cast<unsigned long long>(s.telemetry.capturesRequested),
                   static_cast<unsigned long long>(s.telemetry.linkErrors),
                   static_cast<unsigned long long>(s.telemetry.reconnects),
                   s.telemetry.truncated ? "true" : "false");
@@ -188,6 +190,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   const DaemonConfig::Telemetry telemetrySettings =
       loadOverrides(opts.telemetrySets).config.telemetry;
   std::unique_ptr<TelemetryService> telemetry;
+  CaptureRequests captureRequests;  // MAVLink (telemetry thread) -> this loop
   if (replay != nullptr && opts.telemetry.empty() && !replay->mavlink().empty()) {
     // The flight record's own MAVLink stream, with its arrival times: the frames'
     // timestamps are on the same clock.
@@ -216,6 +219,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     }
     telemetry = std::make_unique<TelemetryService>(tc, cd);
     logTelemetryEvents(*telemetry);
+    // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
+    telemetry->setCaptureRequestSink([&captureRequests] { return captureRequests.add(); });
     if (!telemetry->start(error)) {
       s.error = error;
       return s;
@@ -342,6 +347,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     rerecordMavlink(frame.timestampNs);
     if (replay != nullptr && outputs.recording())
       outputs.preview(frame.timestampNs, replay->encoded(), replay->format().c_str());
+    if (const int refused = captureRequests.drainInto(stage); refused > 0)
+      std::fprintf(stderr, "%d requested capture(s) refused: %d already wait\n", refused,
+                   KeyframeSelector::kMaxCaptureRequests);
     stage.process(frame);
     s.framesRead = stage.counts().framesRead;
     s.kept = stage.counts().kept;
@@ -396,6 +404,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.telemetry.capturesPending = ts.capturesPending;
     s.telemetry.capturesDropped = ts.capturesDropped;
     s.telemetry.capturesResent = ts.capturesResent;
+    s.telemetry.capturesRequested = ts.captureRequests;
     s.telemetry.linkErrors = ts.linkErrors;
     s.telemetry.reconnects = ts.reconnects;
     s.telemetry.truncated = ts.truncated;

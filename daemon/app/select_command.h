@@ -34,9 +34,10 @@ struct SelectSummary {
     std::uint64_t gimbal = 0;   // gimbal attitude messages used
     std::uint64_t reboots = 0;  // the autopilot's clock went back: it restarted
     std::uint64_t capturesSent = 0;
-    std::uint64_t capturesPending = 0;  // never sent: the link did not take them by the end
-    std::uint64_t capturesDropped = 0;  // pushed out of the full queue while the link was down
-    std::uint64_t capturesResent = 0;   // sent again on MAV_CMD_REQUEST_MESSAGE
+    std::uint64_t capturesPending = 0;    // never sent: the link did not take them by the end
+    std::uint64_t capturesDropped = 0;    // pushed out of the full queue while the link was down
+    std::uint64_t capturesResent = 0;     // sent again on MAV_CMD_REQUEST_MESSAGE
+    std::uint64_t capturesRequested = 0;  // MAV_CMD_IMAGE_START_CAPTURE images asked for
     std::uint64_t linkErrors = 0;
     std::uint64_t reconnects = 0;
     bool truncated = false;

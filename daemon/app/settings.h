@@ -35,6 +35,7 @@ inline constexpr SettingRange<double> kMinOverlap{0.01, 0.99};
 inline constexpr SettingRange<double> kMotionRatio{0.0, 100.0};
 inline constexpr SettingRange<double> kMotionMinFraction{0.0, 0.99};
 inline constexpr SettingRange<std::int64_t> kMotionWindow{5, 10000};
+inline constexpr SettingRange<std::int64_t> kCaptureWaitMs{0, 60000};
 inline constexpr SettingRange<std::int64_t> kAnalysisWidth{0, 16384};
 inline constexpr SettingRange<std::int64_t> kOrbFeatures{50, 50000};
 inline constexpr SettingRange<double> kPaperThreshold{1.0, 256.0};

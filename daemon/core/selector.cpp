@@ -15,6 +15,7 @@ const char* toString(Reason reason) {
     case Reason::Redundant: return "redundant";
     case Reason::Lost: return "lost";
     case Reason::Featureless: return "featureless";
+    case Reason::Commanded: return "commanded";
   }
   return "unknown";
 }
@@ -33,6 +34,7 @@ std::string SelectorConfig::validate() const {
     return "minimum overlap must be in (0, band low]";
   if (analysisWidth < 0 || (analysisWidth > 0 && analysisWidth < 64))
     return "analysis width must be 0 (full) or >= 64";
+  if (captureWaitMs < 0 || captureWaitMs > 60000) return "capture wait must be 0..60000 ms";
   return {};
 }
 
@@ -62,6 +64,12 @@ void KeyframeSelector::reconfigure(const SelectorConfig& config) {
   overlap_ = OverlapEstimator::create(config.overlap);
   haveKeyframe_ = false;
   clearCandidate();
+}
+
+bool KeyframeSelector::requestCapture() {
+  if (captureRequests_ >= kMaxCaptureRequests) return false;
+  ++captureRequests_;
+  return true;
 }
 
 void KeyframeSelector::clearCandidate() {
@@ -100,6 +108,20 @@ std::int64_t KeyframeSelector::finish() {
   haveKeyframe_ = false;
   overlap_->reset();
   return d.promotedIndex;
+}
+
+void KeyframeSelector::serveCaptureRequest(Decision& d) {
+  if (captureWaitFromNs_ < 0) captureWaitFromNs_ = d.timestampNs;
+  const bool waited =
+      d.timestampNs - captureWaitFromNs_ >= std::int64_t{config_.captureWaitMs} * 1'000'000;
+  if (!d.kept && (d.sharp || (waited && d.sharpness >= config_.blur.floor))) {
+    // Whatever state the decision above left (a new chain, a promoted candidate, a
+    // featureless scene), this frame becomes the reference, as any keyframe does.
+    keepCurrent(d, Reason::Commanded);
+  }
+  if (!d.kept) return;
+  --captureRequests_;
+  captureWaitFromNs_ = -1;
 }
 
 Decision KeyframeSelector::process(const Frame& frame) {
@@ -215,6 +237,8 @@ Decision KeyframeSelector::process(const Frame& frame) {
       }
     }
   }
+
+  if (captureRequests_ > 0) serveCaptureRequest(d);
 
   const std::int64_t t4 = now();
   d.times.lumaNs = t1 - t0;

@@ -31,6 +31,9 @@ enum class Reason {
   Featureless,    // dropped: the last keyframe had too little texture to track (water,
                   //   sky, a uniform field), and so has this frame: no overlap to
                   //   measure, and no reason to keep it over the keyframe
+  Commanded,      // kept: a capture was requested (MAVLink MAV_CMD_IMAGE_START_CAPTURE)
+                  //   and this is the first sharp frame since (or, after
+                  //   captureWaitMs, the first at the blur floor)
 };
 
 const char* toString(Reason reason);
@@ -90,6 +93,9 @@ struct SelectorConfig {
   double motionMinFraction = 0.01;
   int motionWindow = 150;   // recent frames whose lower-quartile motion is the reference
   int analysisWidth = 640;  // overlap analysis width in pixels (0: full resolution)
+  // A requested capture waits this long (frame time, ms) for a sharp frame, then
+  // takes the next frame at the blur floor: a photograph asked for is never refused.
+  int captureWaitMs = 1000;
 
   [[nodiscard]] std::string validate() const;
 };
@@ -107,7 +113,16 @@ class KeyframeSelector {
   std::int64_t finish();
 
   // Apply new settings (SIGHUP); selection restarts at the next sharp frame.
+  // Requested captures still pending stay so.
   void reconfigure(const SelectorConfig& config);
+
+  // A capture was asked for (e.g. by the autopilot or a ground station): the next
+  // sharp frame is a keyframe whatever its overlap (Reason::Commanded), unless a
+  // keyframe comes anyway. Each request gives one keyframe; at most
+  // kMaxCaptureRequests wait at a time (more are refused: returns false).
+  bool requestCapture();
+  static constexpr int kMaxCaptureRequests = 16;
+  [[nodiscard]] int pendingCaptures() const { return captureRequests_; }
 
   [[nodiscard]] const SelectorConfig& config() const { return config_; }
   [[nodiscard]] std::int64_t keyframes() const { return keyframes_; }
@@ -118,6 +133,7 @@ class KeyframeSelector {
   void keepCurrent(Decision& d, Reason reason);
   bool promoteCandidate(Decision& d);
   void clearCandidate();
+  void serveCaptureRequest(Decision& d);
   bool motionTooFast(double motionPx, int analysisWidth);
   // Fewer features than this in a reference and overlap cannot be measured against it.
   [[nodiscard]] int minTrackable() const;
@@ -135,6 +151,8 @@ class KeyframeSelector {
   double candidateSharpness_ = 0.0;
   bool candidateSharp_ = false;
   RunningQuantile motion_;  // recent frame motions (analysis px)
+  int captureRequests_ = 0;
+  std::int64_t captureWaitFromNs_ = -1;  // first frame seen with a request pending
 };
 
 }  // namespace keyframed

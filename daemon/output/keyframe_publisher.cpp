@@ -1,6 +1,8 @@
 #include "output/keyframe_publisher.h"
 
+#include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -190,12 +192,57 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
         error);
     if (!p->queryable_) return nullptr;
   }
+  if (!p->flight_.empty() && !p->flightsDir_.empty()) {
+    const std::string dir = p->flightsDir_, current = p->flight_;
+    p->flightsQueryable_ = ZenohQueryable::declare(
+        *p->session_, p->prefix_ + "/flights",
+        [dir, current](const std::string&, const std::string&, ZenohReply& reply) {
+          const std::string json = flightCatalogue(dir, current);
+          std::string ignored;
+          reply.ok({}, {reinterpret_cast<const std::uint8_t*>(json.data()), json.size()}, {},
+                   ignored);
+        },
+        error);
+    if (!p->flightsQueryable_) return nullptr;
+  }
   return p;
+}
+
+std::string flightCatalogue(const std::string& flightsDir, const std::string& current) {
+  namespace fs = std::filesystem;
+  std::vector<std::string> names;
+  std::error_code ec;
+  for (fs::directory_iterator it(flightsDir, ec), end; !ec && it != end; it.increment(ec)) {
+    std::error_code e2;
+    if (it->is_directory(e2) && fs::is_regular_file(it->path() / "keyframes" / "keyframes.csv", e2))
+      names.push_back(it->path().filename().string());
+  }
+  std::sort(names.begin(), names.end());
+  const auto now = fs::file_time_type::clock::now();
+  std::string json = "{\"flights\":[";
+  bool firstItem = true;
+  for (const std::string& name : names) {
+    const std::string dir = flightsDir + "/" + name + "/keyframes";
+    std::vector<StoredKeyframe> rows;
+    std::string error;
+    if (!readKeyframeIndex(dir, "", name, rows, error)) continue;
+    std::error_code e2;
+    const auto changed = fs::last_write_time(dir + "/keyframes.csv", e2);
+    const double age =
+        e2 ? 0.0 : std::max(0.0, std::chrono::duration<double>(now - changed).count());
+    char item[96];
+    std::snprintf(item, sizeof item, ",\"keyframes\":%zu,\"age_s\":%.1f,\"current\":%s}",
+                  rows.size(), age, name == current ? "true" : "false");
+    json += (firstItem ? "{\"flight\":" : ",{\"flight\":") + jsonString(name) + item;
+    firstItem = false;
+  }
+  return json + "]}";
 }
 
 KeyframePublisher::~KeyframePublisher() {
   // The queryable's thread may be inside answer(): stop it before the rest goes.
   queryable_.reset();
+  flightsQueryable_.reset();
   // Every publisher is undeclared before the session closes: one left for after
   // keeps the session's runtime alive (LeakSanitizer reports it).
   keyframes_.reset();

@@ -29,7 +29,9 @@ struct KeyframePublisherOptions {
 // Publishes keyframes and status under keyframed/<vehicle>/ and answers queries for
 // any keyframe already on disk (keyframed/<vehicle>/keyframes/<seq>, or a range:
 // keyframes/*?range=A..B; an earlier flight's with flight=ID), so a ground station
-// that missed some fetches them again, across restarts of the daemon.
+// that missed some fetches them again, across restarts of the daemon; and, with a
+// flight id, for the flights on disk (keyframed/<vehicle>/flights: flightCatalogue),
+// so that one that was down for a whole flight learns of it.
 class KeyframePublisher {
  public:
   static std::unique_ptr<KeyframePublisher> open(const KeyframePublisherOptions& options,
@@ -72,6 +74,7 @@ class KeyframePublisher {
   std::unique_ptr<ZenohPublisher> preview_;
   std::unique_ptr<ZenohPublisher> telemetry_;
   std::unique_ptr<ZenohQueryable> queryable_;
+  std::unique_ptr<ZenohQueryable> flightsQueryable_;
   std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)
   std::map<std::int64_t, std::string> published_;  // sequence -> metadata JSON
 };
@@ -111,5 +114,12 @@ bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
                        std::string& error);
 // The flight=ID query parameter ("" when absent).
 std::string keyframeQueryFlight(const std::string& parameters);
+
+// The answer to keyframed/<vehicle>/flights: every flight directory under flightsDir
+// with a keyframe index, by name (the UTC time it started), as JSON:
+// {"flights":[{"flight":ID,"keyframes":N,"age_s":S,"current":B},...]}: N keyframes
+// in its keyframes.csv, S seconds since that file last changed (its last keyframe),
+// current for the running flight.
+std::string flightCatalogue(const std::string& flightsDir, const std::string& current);
 
 }  // namespace keyframed

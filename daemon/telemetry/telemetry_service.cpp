@@ -131,6 +131,7 @@ void TelemetryService::reportCapture(const CaptureReport& report) {
     ++stats_.capturesDropped;
   }
   stats_.capturesPending = queue_.size();
+  ++stats_.capturesReported;
 }
 
 TelemetryServiceStats TelemetryService::stats() const {
@@ -197,7 +198,7 @@ void TelemetryService::sendCameraInformation() {
             systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, bootMs(), vendor,
             model, 0, camera_.focalLengthMm, camera_.sensorWidthMm, camera_.sensorHeightMm,
             static_cast<std::uint16_t>(camera_.width), static_cast<std::uint16_t>(camera_.height),
-            0, CAMERA_CAP_FLAGS_CAPTURE_IMAGE, 0, uri, 0, 0);
+            0, captureSink_ ? CAMERA_CAP_FLAGS_CAPTURE_IMAGE : 0, 0, uri, 0, 0);
       }));
   std::lock_guard lock(mutex_);
   ++stats_.infoSent;
@@ -315,6 +316,85 @@ void TelemetryService::resendCaptures(const mavlink_command_long_t& c,
   stats_.capturesResent += sent;
 }
 
+bool TelemetryService::requestCapture() {
+  const bool taken = captureSink_ && captureSink_();
+  std::lock_guard lock(mutex_);
+  ++(taken ? stats_.captureRequests : stats_.captureRefused);
+  return taken;
+}
+
+void TelemetryService::startCapture(const mavlink_command_long_t& c, const mavlink_message_t& msg) {
+  // param2: interval in s; param3: number of images, 0 until IMAGE_STOP_CAPTURE;
+  // param4: for a single image, a sequence number that a retransmitted command
+  // repeats (so that it is not taken twice).
+  if (!captureSink_) {
+    sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
+    return;
+  }
+  const double interval = c.param2, count = c.param3;
+  if (!std::isfinite(interval) || !std::isfinite(count) || interval < 0 || count < 0 ||
+      count > 1e6 || interval > 86400 || (count != 1 && interval <= 0)) {
+    sendCommandAck(c.command, MAV_RESULT_DENIED, msg.sysid, msg.compid);
+    return;
+  }
+  const std::int64_t images = std::llround(count);
+  const std::string who =
+      "system " + std::to_string(msg.sysid) + " component " + std::to_string(msg.compid);
+  if (images == 1) {
+    const int sequence = std::isfinite(c.param4) ? static_cast<int>(std::lround(c.param4)) : 0;
+    if (sequence > 0 && sequence == lastCaptureSequence_) {
+      // The same command again (our acknowledgement was lost): already taken.
+      sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
+      return;
+    }
+    const bool taken = requestCapture();
+    if (taken && sequence > 0) lastCaptureSequence_ = sequence;
+    sendCommandAck(c.command, taken ? MAV_RESULT_ACCEPTED : MAV_RESULT_TEMPORARILY_REJECTED,
+                   msg.sysid, msg.compid);
+    log(TelemetryLogLevel::Notice,
+        std::string(taken ? "capture requested by " : "capture refused (too many waiting) for ") +
+            who);
+    return;
+  }
+  captureIntervalNs_ = static_cast<std::int64_t>(interval * 1e9);
+  capturesLeft_ = images;
+  nextCaptureNs_ = monotonicNowNs();  // the first at once
+  sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
+  char text[160];
+  std::snprintf(text, sizeof text, "interval capture requested by %s: every %.3f s, %s",
+                who.c_str(), interval,
+                images == 0 ? "until stopped" : (std::to_string(images) + " images").c_str());
+  log(TelemetryLogLevel::Notice, text);
+  runCaptureInterval(nextCaptureNs_);
+}
+
+void TelemetryService::runCaptureInterval(std::int64_t nowNs) {
+  if (captureIntervalNs_ <= 0 || nowNs < nextCaptureNs_) return;
+  requestCapture();  // one refused (too many waiting) is skipped, as a busy camera would
+  // The schedule does not drift, and a long stall does not make a burst.
+  nextCaptureNs_ = std::max(nextCaptureNs_ + captureIntervalNs_, nowNs);
+  if (capturesLeft_ > 0 && --capturesLeft_ == 0) captureIntervalNs_ = 0;
+}
+
+void TelemetryService::sendCaptureStatus() {
+  // image_status: 0 idle, 3 an interval capture running (MAVLink's CAMERA_CAPTURE_STATUS).
+  const bool interval = captureIntervalNs_ > 0;
+  std::int32_t images = 0;
+  {
+    std::lock_guard lock(mutex_);
+    images = static_cast<std::int32_t>(
+        std::min<std::uint64_t>(stats_.capturesReported, std::numeric_limits<std::int32_t>::max()));
+  }
+  send(
+      encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_camera_capture_status_pack_status(
+            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, bootMs(),
+            interval ? 3 : 0, 0,
+            interval ? static_cast<float>(static_cast<double>(captureIntervalNs_) / 1e9) : 0.0F, 0,
+            NAN, images, 0);
+      }));
+}
+
 void TelemetryService::onTimesync(const mavlink_message_t& msg, std::int64_t timeNs) {
   mavlink_timesync_t ts;
   mavlink_msg_timesync_decode(&msg, &ts);
@@ -358,6 +438,18 @@ void TelemetryService::onCommand(const mavlink_message_t& msg) {
     sendCameraInformation();
   } else if (requested == MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED) {
     resendCaptures(c, msg);
+  } else if (requested == MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS ||
+             c.command == MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS) {
+    sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
+    sendCaptureStatus();
+  } else if (c.command == MAV_CMD_IMAGE_START_CAPTURE) {
+    startCapture(c, msg);
+  } else if (c.command == MAV_CMD_IMAGE_STOP_CAPTURE) {
+    const bool running = captureIntervalNs_ > 0;
+    captureIntervalNs_ = 0;
+    sendCommandAck(c.command, captureSink_ ? MAV_RESULT_ACCEPTED : MAV_RESULT_UNSUPPORTED,
+                   msg.sysid, msg.compid);
+    if (running) log(TelemetryLogLevel::Notice, "interval capture stopped");
   } else if (c.target_component == config_.componentId) {
     sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
   }
@@ -460,6 +552,7 @@ void TelemetryService::run() {
       lastTimesync = now;
       sendTimesync(now);
     }
+    runCaptureInterval(now);
     sendPendingCaptures(now);
     logClock(now);
     if (!silent && now - lastData > kSilenceNs) {

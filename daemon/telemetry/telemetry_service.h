@@ -72,6 +72,9 @@ struct TelemetryServiceStats {
   std::uint64_t capturesResent = 0;    // sent again on MAV_CMD_REQUEST_MESSAGE
   std::uint64_t timesyncRejected = 0;  // replies not from the autopilot, or to no request of ours
   std::uint64_t infoSent = 0;
+  std::uint64_t capturesReported = 0;  // keyframes reported (reportCapture): image_count
+  std::uint64_t captureRequests = 0;   // captures asked of the selector (IMAGE_START_CAPTURE)
+  std::uint64_t captureRefused = 0;    // ... that it could not take (too many waiting)
   bool replayDone = false;
   bool truncated = false;
 };
@@ -113,6 +116,13 @@ class TelemetryService {
   // (up to maxPendingCaptures, oldest dropped first) while the link cannot take it.
   // Thread-safe.
   void reportCapture(const CaptureReport& report);
+  // Where a capture asked for over MAVLink goes (MAV_CMD_IMAGE_START_CAPTURE: one
+  // image, or one every interval until a count or MAV_CMD_IMAGE_STOP_CAPTURE): the
+  // selector's requestCapture(); false when it cannot take one more. Without a sink
+  // the camera does not advertise CAMERA_CAP_FLAGS_CAPTURE_IMAGE and refuses the
+  // command. Set before start(); called on the telemetry thread.
+  using CaptureRequestSink = std::function<bool()>;
+  void setCaptureRequestSink(CaptureRequestSink sink) { captureSink_ = std::move(sink); }
   // Every MAVLink message received on a live link, with its arrival time (e.g. for
   // the flight record). Called on the telemetry thread; set or clear at any time.
   using RawSink = std::function<void(const mavlink_message_t& msg, std::int64_t timeNs)>;
@@ -136,6 +146,10 @@ class TelemetryService {
   void onTimesync(const mavlink_message_t& msg, std::int64_t timeNs);
   void onCommand(const mavlink_message_t& msg);
   void resendCaptures(const mavlink_command_long_t& c, const mavlink_message_t& msg);
+  void startCapture(const mavlink_command_long_t& c, const mavlink_message_t& msg);
+  bool requestCapture();
+  void runCaptureInterval(std::int64_t nowNs);
+  void sendCaptureStatus();
   void sendPendingCaptures(std::int64_t nowNs);
   void log(TelemetryLogLevel level, const std::string& message);
   void logClock(std::int64_t nowNs);
@@ -172,6 +186,11 @@ class TelemetryService {
   int loggedAutopilot_ = 0;
   std::uint64_t loggedReboots_ = 0;
   std::int64_t lastCaptureWarningNs_ = 0;
+  CaptureRequestSink captureSink_;
+  int lastCaptureSequence_ = 0;         // param4 of the last single capture (repeats ignored)
+  std::int64_t captureIntervalNs_ = 0;  // > 0: interval capture running
+  std::int64_t nextCaptureNs_ = 0;
+  std::int64_t capturesLeft_ = 0;  // of the interval capture; 0: until stopped
 
   mutable std::mutex mutex_;           // guards queue_, history_ and stats_
   std::deque<CaptureReport> queue_;    // to send

@@ -561,6 +561,24 @@ class FakeAutopilot:
             self._sendto(buf)
         return True
 
+    def command(
+        self,
+        command: int,
+        *params: float,
+        target_system: int | None = None,
+        target_component: int | None = None,
+    ) -> bool:
+        """Send COMMAND_LONG ``command`` with up to seven ``params`` to the given ids;
+        by default to the system/component last heard from, or broadcast (0/0) when
+        none yet."""
+        if len(params) > 7:
+            raise ValueError("at most 7 params")
+        ids = self._peer_ids or (0, 0)
+        tsys = ids[0] if target_system is None else target_system
+        tcomp = ids[1] if target_component is None else target_component
+        p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        return self.send(self._mav.command_long_encode(tsys, tcomp, command, 0, *p))
+
     def request_message(
         self,
         msg_id: int,
@@ -569,18 +587,16 @@ class FakeAutopilot:
         target_component: int | None = None,
     ) -> bool:
         """Send COMMAND_LONG MAV_CMD_REQUEST_MESSAGE (param1 = ``msg_id``, then up to six
-        more ``params``) to the given ids; by default to the system/component last
-        heard from, or broadcast (0/0) when none yet."""
+        more ``params``), addressed as ``command`` does."""
         if len(params) > 6:
             raise ValueError("at most 6 extra params")
-        ids = self._peer_ids or (0, 0)
-        tsys = ids[0] if target_system is None else target_system
-        tcomp = ids[1] if target_component is None else target_component
-        p = [float(v) for v in params] + [0.0] * (6 - len(params))
-        msg = self._mav.command_long_encode(
-            tsys, tcomp, MAV_CMD_REQUEST_MESSAGE, 0, float(msg_id), *p
+        return self.command(
+            MAV_CMD_REQUEST_MESSAGE,
+            float(msg_id),
+            *params,
+            target_system=target_system,
+            target_component=target_component,
         )
-        return self.send(msg)
 
     def sent(self, msg_type: str | None = None) -> list[SentRecord]:
         """Everything actually sent, replayed or not, in order."""

@@ -650,6 +650,8 @@ def test_live_udp_autopilot_with_clock_offset(
     assert info.focal_length == pytest.approx(intr["focal_length_mm"], rel=1e-5)
     assert info.sensor_size_h == pytest.approx(intr["sensor_width_mm"], rel=1e-5)
     assert info.resolution_h == 480
+    # it takes photographs on request (MAV_CMD_IMAGE_START_CAPTURE)
+    assert info.flags & mav2.CAMERA_CAP_FLAGS_CAPTURE_IMAGE
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == 512]
     # CAMERA_INFORMATION and the resent capture accepted, the unknown one failed
     assert [a.result for a in acks] == [
@@ -674,7 +676,16 @@ def test_live_udp_autopilot_without_timesync(
     ap = fake_autopilot(
         short_nadir / "flight.tlog", boot_offset_ms=1_234_567, answer_timesync=False
     )
-    out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
+
+    def during(ap: FakeAutopilot, proc: Any) -> None:
+        # The ground station asks for three photographs 0.3 s apart (interval capture),
+        # then how many images the camera has taken.
+        ap.wait_for("CAMERA_IMAGE_CAPTURED", 1, timeout=10)
+        ap.command(mav2.MAV_CMD_IMAGE_START_CAPTURE, 0, 0.3, 3, 0)
+        ap.wait_for("CAMERA_IMAGE_CAPTURED", 4, timeout=10)
+        ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS)
+
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
     errs = check_live_tags(short_nadir, out, ap)
     assert max(e[0] for e in errs) < LIVE_HORIZONTAL_M, errs
     assert max(e[1] for e in errs) < 0.1, errs
@@ -689,6 +700,26 @@ def test_live_udp_autopilot_without_timesync(
     assert "autopilot clock: arrival, offset" in log, log
     assert "autopilot clock: timesync" not in log, log
     check_captures(short_nadir, out, ap)
+
+    # The interval capture: accepted, three images asked of the selector, each served
+    # by the next sharp frame (a keyframe due anyway serves one too): at least one
+    # more keyframe than the flight gives on its own, within a second of the last.
+    acks = [m for m in ap.received("COMMAND_ACK") if m.command == mav2.MAV_CMD_IMAGE_START_CAPTURE]
+    assert [a.result for a in acks] == [mav2.MAV_RESULT_ACCEPTED]
+    assert tel["captures_requested"] == 3, tel
+    (status,) = ap.wait_for("CAMERA_CAPTURE_STATUS", timeout=5)
+    assert status.image_count >= 4 and status.image_status in (0, 3), status
+    asked_ns = [
+        r.monotonic_ns
+        for r in ap.sent("COMMAND_LONG")
+        if r.msg.command == mav2.MAV_CMD_IMAGE_START_CAPTURE
+    ][0]
+    rows = decisions(out)
+    commanded = [k for k in keyframes(out) if rows[int(k["index"])]["reason"] == "commanded"]
+    assert commanded, "no keyframe was taken for the requests"
+    for k in commanded:
+        assert asked_ns - 100e6 <= int(k["time_ns"]) <= asked_ns + 0.6e9 + 1.2e9, k
+    assert "interval capture requested by system 1 component 1" in log, log
 
 
 @needs_exiftool

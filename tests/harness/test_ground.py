@@ -342,6 +342,8 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     assert r.returncode == 2 and "no such file" in r.stderr
     r = run("--out", str(tmp_path), "--vehicle", "a/b")
     assert r.returncode == 2 and "bad vehicle" in r.stderr
+    r = run("--out", str(tmp_path), "--earlier-flights", "-1")
+    assert r.returncode == 2 and "--earlier-flights" in r.stderr
     bad = tmp_path / "bad.json5"
     bad.write_text("{ mode: 12 ")
     r = run("--out", str(tmp_path / "d"), "--zenoh-config", str(bad))

@@ -160,14 +160,16 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
     kf_bin: Path, tmp_path: Path, fake_autopilot: Any
 ) -> None:
     """The daemon runs twice on one state directory (a restart mid-survey): the second
-    run serves the first run's keyframes when a query names its flight, and one ground
-    station, up throughout, keeps both flights: every keyframe once, byte for byte,
-    none overwritten by the second run's same file names."""
+    run serves the first run's keyframes when a query names its flight. A ground
+    station that was down for the whole first flight and comes up in the second asks
+    the vehicle for its flights and ends with both: every keyframe once, byte for
+    byte, none overwritten by the second run's same file names; a flight of last year
+    on the same vehicle is left alone."""
     fl = flight("nadir", width=480, height=270, seconds=8.0)
     zport = free_port()
     zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
     out = tmp_path / "dataset"
-    station = ground(out, zport, "--duration", "150")
+    station = None
     conf = zenoh.Config()
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -175,6 +177,13 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
     flights: list[Path] = []
     try:
         for run in range(2):
+            if run == 1:
+                old = tmp_path / "state" / "flights" / "20251101T090000Z" / "keyframes"
+                old.mkdir(parents=True)
+                (old / "keyframes.csv").write_text("sequence,index,file,time_ns\n0,0,0.jpg,0\n")
+                (old / "0.jpg").write_bytes(b"an old keyframe")
+                year_ago = time.time() - 365 * 86400
+                os.utime(old / "keyframes.csv", (year_ago, year_ago))
             mport = free_port(socket.SOCK_DGRAM)
             proc = start_run(
                 kf_bin,
@@ -193,22 +202,33 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
                     # flight's keyframes (its own sequence numbers), named by its id.
                     if watcher is None:
                         watcher = zenoh.open(conf)
-                    old = flights[0].name
+                    old_id = flights[0].name
                     first_file = written_in(flights[0])[0]["file"]
                     deadline = time.monotonic() + 60
                     replies: list[Any] = []
                     while not [r for r in replies if r.ok is not None]:
                         assert time.monotonic() < deadline and proc.poll() is None
                         replies = list(
-                            watcher.get(f"keyframed/uav8/keyframes/0?flight={old}", timeout=5.0)
+                            watcher.get(f"keyframed/uav8/keyframes/0?flight={old_id}", timeout=5.0)
                         )
                     (ok,) = [r.ok for r in replies if r.ok is not None]
                     meta = json.loads(ok.attachment.to_bytes())
-                    assert meta["flight"] == old and meta["sequence"] == 0, meta
+                    assert meta["flight"] == old_id and meta["sequence"] == 0, meta
                     payload = ok.payload.to_bytes()
                     assert payload == (flights[0] / "keyframes" / first_file).read_bytes()
                     _, errors = query(watcher, "keyframed/uav8/keyframes/0?flight=19700101T000000Z")
                     assert errors and "no flight" in errors[0], errors
+                    # and lists its flights: last year's, the first run's, its own
+                    (ok,) = [r.ok for r in watcher.get("keyframed/uav8/flights", timeout=10.0)]
+                    listed = json.loads(ok.payload.to_bytes())["flights"]
+                    assert [(f["flight"], f["keyframes"], f["current"]) for f in listed] == [
+                        ("20251101T090000Z", 1, False),
+                        (old_id, len(written_in(flights[0])), False),
+                        (listed[2]["flight"], 0, True),
+                    ], listed
+                    assert listed[0]["age_s"] > 3e7 and listed[1]["age_s"] < 300, listed
+                    # The ground station comes up now, the first flight long over.
+                    station = ground(out, zport, "--duration", "150")
                 ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))
                 ap.start()
                 _, stderr = proc.communicate(timeout=120)
@@ -223,10 +243,11 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
         total = sum(len(r) for r in rows)
         images = out / "uav8" / "images"
         wait_for(lambda: len(list(images.glob("*.jpg"))) >= total, 30)
+        assert station is not None
         station.send_signal(signal.SIGINT)
         g_out, g_err = station.communicate(timeout=60)
     finally:
-        if station.poll() is None:
+        if station is not None and station.poll() is None:
             station.kill()
         if watcher is not None:
             watcher.close()
@@ -234,14 +255,19 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
     result = json.loads(g_out.strip().splitlines()[-1])
     assert result["keyframes"] == total and not result["missing"], result
     assert result["duplicates_ignored"] == 0, result
+    assert result["earlier_flights_skipped"] == ["20251101T090000Z"], result
+    assert result["fetched_by_query"] >= len(rows[0]), result
     metas = [json.loads(line) for line in (out / "uav8" / "keyframes.jsonl").open()]
     assert [(m["flight"], m["sequence"]) for m in metas] == [
         (f.name, s) for f, r in zip(flights, rows, strict=True) for s in range(len(r))
     ]
+    names = set()
     for m in metas:
         fd = flights[0] if m["flight"] == flights[0].name else flights[1]
-        source = fd / "keyframes" / m["file"].removeprefix(f"{flights[1].name}_")
+        source = fd / "keyframes" / m["file"].removeprefix(f"{fd.name}_")
         assert (images / m["file"]).read_bytes() == source.read_bytes(), m["file"]
+        names.add(m["file"])
+    assert len(names) == total
     print(f"restart: {len(rows[0])} + {len(rows[1])} keyframes, both flights kept apart")
 
 

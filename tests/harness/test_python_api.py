@@ -54,6 +54,21 @@ def test_selector_on_a_pan_keeps_frames_near_the_target():
     assert np.all(1 - gaps >= 0.6) and np.all(1 - gaps <= 0.75), kept
 
 
+def test_a_requested_capture_keeps_the_next_sharp_frame_while_hovering():
+    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    sel = keyframed.KeyframeSelector()
+    view = np.ascontiguousarray(strip[100:370, 200:680])
+    reasons = []
+    for i in range(30):
+        if i == 10:
+            assert sel.request_capture() and sel.pending_captures == 1
+        frame = cv2.GaussianBlur(view, (0, 0), 2) if i in (10, 11) else view
+        reasons.append(sel.process(frame, i)["reason"])
+    assert reasons[0] == "first" and reasons[12] == "commanded", reasons
+    assert reasons[10:12] == ["blurry", "blurry"]
+    assert sel.keyframes == 2 and sel.pending_captures == 0
+
+
 def test_decisions_carry_per_stage_times():
     # Core reads no clock; the binding lends it one, as the daemon does.
     sel = keyframed.KeyframeSelector()

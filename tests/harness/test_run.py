@@ -22,6 +22,7 @@ import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
 from ports import free_port, zenoh_listener_config
+from pymavlink.dialects.v20 import common as mav2
 
 fake_autopilot = autopilot_fixture()
 
@@ -720,7 +721,12 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         ap.start()
         # Stopped by SIGTERM near the end of the flight, as a pilot's shutdown would.
         wait_ready(ns, proc)
-        time.sleep(6.5)  # about 195 of the video's 240 frames
+        time.sleep(2.0)
+        # The pilot asks for two photographs of a spot (the second command sent twice:
+        # its acknowledgement was lost; the same sequence number takes no third).
+        for sequence in (1, 2, 2):
+            ap.command(mav2.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, sequence)
+        time.sleep(4.5)  # about 195 of the video's 240 frames
         stderr, took = sigterm(proc)
         g_out, g_err = ground.communicate(timeout=60)
     finally:
@@ -748,6 +754,12 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     ok = [k for k in kfs if k["geotag"] == "ok"]
     assert len(ok) >= len(kfs) - 1, [k["geotag"] for k in kfs]
     assert summary["telemetry"]["captures_sent"] == len(kfs)
+    acks = [m for m in ap.received("COMMAND_ACK") if m.command == mav2.MAV_CMD_IMAGE_START_CAPTURE]
+    assert [a.result for a in acks] == [mav2.MAV_RESULT_ACCEPTED] * 3
+    assert summary["telemetry"]["captures_requested"] == 2, summary["telemetry"]
+    reasons = {int(r["index"]): r["reason"] for r in rows(fd / "decisions.csv")}
+    commanded = [i for i, r in reasons.items() if r == "commanded"]
+    assert 1 <= len(commanded) <= 2 and all(45 <= i <= 120 for i in commanded), commanded
     # The daemon's tags against the flight's truth (exiftool's reading of them), and
     # one CAMERA_IMAGE_CAPTURED per keyframe with its index, file and position.
     from test_geotag import Truth, exif, tag_errors

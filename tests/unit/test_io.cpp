@@ -286,6 +286,37 @@ TEST(KeyframeIndex, ReadsKeyframesCsvAsJson) {
   EXPECT_NE(rows[0].metadataJson.find("\"flight\":null"), std::string::npos);
 }
 
+TEST(KeyframeIndex, FlightCatalogueListsTheFlightsOnDiskByName) {
+  namespace fs = std::filesystem;
+  const std::string root = tempPath("flights");
+  const auto flight = [&](const std::string& name, int keyframes) {
+    fs::create_directories(root + "/" + name + "/keyframes");
+    std::ofstream f(root + "/" + name + "/keyframes/keyframes.csv");
+    f << "sequence,index,file,time_ns\n";
+    for (int i = 0; i < keyframes; ++i) f << i << "," << i * 10 << "," << i << ".jpg,0\n";
+  };
+  flight("20261202T102000Z", 3);
+  flight("20261202T101500Z", 2);
+  flight("20261202T101500Z-1", 0);                 // started, no keyframe yet
+  fs::create_directories(root + "/not-a-flight");  // no keyframe index: left out
+  std::ofstream(root + "/stray.txt") << "x";
+  fs::last_write_time(root + "/20261202T101500Z/keyframes/keyframes.csv",
+                      fs::file_time_type::clock::now() - std::chrono::minutes(5));
+  const std::string json = flightCatalogue(root, "20261202T102000Z");
+  const auto a = json.find("{\"flight\":\"20261202T101500Z\",\"keyframes\":2,\"age_s\":300.");
+  const auto b = json.find("{\"flight\":\"20261202T101500Z-1\",\"keyframes\":0,");
+  const auto c = json.find("{\"flight\":\"20261202T102000Z\",\"keyframes\":3,");
+  ASSERT_NE(a, std::string::npos) << json;
+  ASSERT_NE(b, std::string::npos) << json;
+  ASSERT_NE(c, std::string::npos) << json;
+  EXPECT_TRUE(a < b && b < c) << json;
+  EXPECT_EQ(json.find("not-a-flight"), std::string::npos);
+  EXPECT_EQ(json.rfind("\"current\":true"), json.find("\"current\":true"));
+  EXPECT_NE(json.find("\"current\":true", c), std::string::npos);
+  EXPECT_EQ(json.substr(0, 12), "{\"flights\":[");
+  EXPECT_EQ(flightCatalogue(root + "/missing", ""), "{\"flights\":[]}");
+}
+
 TEST(KeyframeIndex, QueryParameters) {
   EXPECT_EQ(keyframeQueryFlight(""), "");
   EXPECT_EQ(keyframeQueryFlight("range=3..5"), "");

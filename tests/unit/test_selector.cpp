@@ -17,8 +17,9 @@ struct PanRun {
 
 // Pans a camera along the photo strip with the given per-frame positions; frames
 // listed in `blurred` get a Gaussian blur.
+// `requests`: capture requests made just before that frame (how many).
 PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred = {},
-           SelectorConfig cfg = {}) {
+           SelectorConfig cfg = {}, const std::map<int, int>& requests = {}) {
   const cv::Mat strip = test::photoStrip();
   cfg.analysisWidth = 0;
   KeyframeSelector sel(cfg);
@@ -31,6 +32,9 @@ PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred =
     cv::add(v, noise, v);
     if (auto it = blurred.find(static_cast<int>(i)); it != blurred.end())
       cv::GaussianBlur(v, v, cv::Size(), it->second);
+    if (auto it = requests.find(static_cast<int>(i)); it != requests.end()) {
+      for (int k = 0; k < it->second; ++k) EXPECT_TRUE(sel.requestCapture());
+    }
     Decision d = sel.process(
         Frame::ofGray(v, static_cast<std::int64_t>(i), static_cast<std::int64_t>(i) * 33333333));
     if (d.promotedIndex >= 0) run.keyframes.push_back(d.promotedIndex);
@@ -73,6 +77,62 @@ TEST(Selector, HoveringAddsNoKeyframes) {
       std::count_if(r.keyframes.begin(), r.keyframes.end(), [](std::int64_t k) { return k < 30; });
   EXPECT_EQ(static_cast<std::int64_t>(r.keyframes.size()), kfBefore)
       << "keyframes added while hovering";
+}
+
+std::vector<double> hover(int n, double x) {
+  std::vector<double> xs;
+  for (int i = 0; i < n; ++i) xs.push_back(x + (i % 2 ? 0.3 : -0.3));
+  return xs;
+}
+
+TEST(Selector, ARequestedCaptureKeepsTheNextSharpFrameWhileHovering) {
+  // Hovering: no keyframe but the first, except the two asked for; the second
+  // request comes on blurred frames and waits for a sharp one.
+  // (blurred enough to fail the blur gate, not so much that tracking is lost)
+  const std::map<int, double> blurred{{60, 2.0}, {61, 2.0}, {62, 2.0}};
+  const PanRun r = pan(hover(100, 100), blurred, {}, {{20, 1}, {60, 1}});
+  ASSERT_EQ(r.keyframes, (std::vector<std::int64_t>{0, 20, 63}));
+  EXPECT_EQ(r.decisions[20].reason, Reason::Commanded);
+  EXPECT_EQ(r.decisions[63].reason, Reason::Commanded);
+  EXPECT_EQ(r.decisions[61].reason, Reason::Blurry);
+  EXPECT_TRUE(r.decisions[61].tracking);
+  // Selection goes on from the commanded keyframe: overlap is measured against it.
+  EXPECT_GT(r.decisions[64].overlap, 0.95);
+  EXPECT_EQ(r.decisions[64].reason, Reason::Redundant);
+}
+
+TEST(Selector, RequestsAreCountedAndAKeyframeDueAnywayServesOne) {
+  // Two requests at once: two keyframes in a row. The first frame (a keyframe
+  // anyway) serves a request made before it.
+  const PanRun r = pan(hover(40, 100), {}, {}, {{0, 1}, {10, 2}});
+  ASSERT_EQ(r.keyframes, (std::vector<std::int64_t>{0, 10, 11}));
+  EXPECT_EQ(r.decisions[0].reason, Reason::First);
+  EXPECT_EQ(r.decisions[11].reason, Reason::Commanded);
+}
+
+TEST(Selector, ARequestedCaptureTakesABlurredFrameAfterWaitingASecond) {
+  // Every frame blurred from 10 on (yet above the floor): the request made at frame
+  // 10 is served at the first frame a second later (frame 41: 30 frame intervals of
+  // 33333333 ns fall just short of it).
+  std::map<int, double> blurred;
+  for (int i = 10; i < 80; ++i) blurred[i] = 2.5;
+  SelectorConfig cfg;
+  cfg.blur.mode = BlurMode::Absolute;
+  const PanRun sharpRun = pan(hover(12, 100), {}, cfg);
+  cfg.blur.absoluteThreshold = sharpRun.decisions[5].sharpness * 0.8;
+  cfg.blur.floor = 1.0;
+  const PanRun r = pan(hover(80, 100), blurred, cfg, {{10, 1}});
+  ASSERT_EQ(r.keyframes, (std::vector<std::int64_t>{0, 41}));
+  EXPECT_FALSE(r.decisions[41].sharp);
+  EXPECT_EQ(r.decisions[41].reason, Reason::Commanded);
+  EXPECT_EQ(r.decisions[40].reason, Reason::Blurry);
+}
+
+TEST(Selector, AtMostSixteenRequestsWait) {
+  KeyframeSelector sel;
+  for (int i = 0; i < KeyframeSelector::kMaxCaptureRequests; ++i) EXPECT_TRUE(sel.requestCapture());
+  EXPECT_FALSE(sel.requestCapture());
+  EXPECT_EQ(sel.pendingCaptures(), KeyframeSelector::kMaxCaptureRequests);
 }
 
 TEST(Selector, BlurryFramesAreNeverKept) {

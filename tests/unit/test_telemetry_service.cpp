@@ -8,6 +8,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <climits>
 #include <cmath>
@@ -18,6 +19,7 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "tagging/camera_mount.h"
@@ -251,6 +253,7 @@ TEST(TelemetryService, CameraInformationSaysNaNForWhatItDoesNotKnow) {
   cam.width = 1920;
   cam.height = 1080;
   TelemetryService svc(serviceConfig(), cam);
+  svc.setCaptureRequestSink([] { return true; });
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1);
@@ -469,6 +472,108 @@ TEST(TelemetryService, RequestMessageResendsCapturesByImageIndex) {
   EXPECT_EQ(peer.written(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED).size(), 10U);
   EXPECT_EQ(svc.stats().capturesResent, 5U);
   EXPECT_EQ(svc.stats().capturesSent, 5U);
+}
+
+std::vector<std::uint8_t> command(MavlinkEncoder& enc, std::uint16_t cmd, float p1, float p2,
+                                  float p3, float p4) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_command_long_pack_status(s, c, st, m, 1, 100, cmd, 0, p1, p2, p3, p4, 0, 0, 0);
+      });
+}
+
+std::vector<std::pair<int, int>> acks(Peer& peer) {
+  std::vector<std::pair<int, int>> r;
+  for (const auto& m : peer.written(MAVLINK_MSG_ID_COMMAND_ACK)) {
+    mavlink_command_ack_t a;
+    mavlink_msg_command_ack_decode(&m, &a);
+    r.emplace_back(a.command, a.result);
+  }
+  return r;
+}
+
+TEST(TelemetryService, ImageStartCaptureAsksTheSelectorOnceOrAtAnInterval) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::atomic<int> requests{0};
+  std::atomic<bool> full{false};
+  svc.setCaptureRequestSink([&] {
+    if (full) return false;
+    ++requests;
+    return true;
+  });
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder gcs(255, 190);
+  constexpr int kStart = MAV_CMD_IMAGE_START_CAPTURE;
+  // One image, sequence 1; the same command again (a retransmission) takes none.
+  peer.push(command(gcs, kStart, 0, 0, 1, 1));
+  peer.push(command(gcs, kStart, 0, 0, 1, 1));
+  ASSERT_TRUE(eventually([&] { return acks(peer).size() == 2; }));
+  EXPECT_EQ(requests.load(), 1);
+  // Sequence 2 is a new one; while the selector is full it is refused, to be retried.
+  full = true;
+  peer.push(command(gcs, kStart, 0, 0, 1, 2));
+  ASSERT_TRUE(eventually([&] { return acks(peer).size() == 3; }));
+  EXPECT_EQ(acks(peer)[2].second, MAV_RESULT_TEMPORARILY_REJECTED);
+  full = false;
+  peer.push(command(gcs, kStart, 0, 0, 1, 2));
+  ASSERT_TRUE(eventually([&] { return requests.load() == 2; }));
+  // Nonsense: no interval for several images, a negative count.
+  peer.push(command(gcs, kStart, 0, 0, 5, 0));
+  peer.push(command(gcs, kStart, 0, 1, -1, 0));
+  ASSERT_TRUE(eventually([&] { return acks(peer).size() == 6; }));
+  EXPECT_EQ(acks(peer)[4].second, MAV_RESULT_DENIED);
+  EXPECT_EQ(acks(peer)[5].second, MAV_RESULT_DENIED);
+  EXPECT_EQ(requests.load(), 2);
+  // Three images 0.1 s apart, the first at once.
+  const auto t0 = std::chrono::steady_clock::now();
+  peer.push(command(gcs, kStart, 0, 0.1F, 3, 0));
+  ASSERT_TRUE(eventually([&] { return requests.load() == 5; }));
+  EXPECT_GE(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(180));
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  EXPECT_EQ(requests.load(), 5);  // and no more
+  // Until stopped; the status says so while it runs.
+  peer.push(command(gcs, kStart, 0, 0.05F, 0, 0));
+  ASSERT_TRUE(eventually([&] { return requests.load() >= 8; }));
+  svc.reportCapture(capture(0));
+  svc.reportCapture(capture(1));
+  peer.push(requestMessage(gcs, 1, 100, MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS, 0));
+  const auto status = peer.waitFor(MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS);
+  ASSERT_EQ(status.size(), 1U);
+  mavlink_camera_capture_status_t cs;
+  mavlink_msg_camera_capture_status_decode(&status[0], &cs);
+  EXPECT_EQ(cs.image_status, 3);
+  EXPECT_NEAR(cs.image_interval, 0.05, 1e-6);
+  EXPECT_EQ(cs.image_count, 2);
+  peer.push(command(gcs, MAV_CMD_IMAGE_STOP_CAPTURE, 0, 0, 0, 0));
+  ASSERT_TRUE(eventually([&] { return acks(peer).back().first == MAV_CMD_IMAGE_STOP_CAPTURE; }));
+  const int stopped = requests.load();
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  svc.stop();
+  EXPECT_LE(requests.load(), stopped + 1);  // one may have been due as the stop came
+  EXPECT_EQ(acks(peer).back().second, MAV_RESULT_ACCEPTED);
+  EXPECT_EQ(svc.stats().captureRequests, static_cast<std::uint64_t>(requests.load()));
+  EXPECT_EQ(svc.stats().captureRefused, 1U);
+}
+
+TEST(TelemetryService, WithoutASelectorTheCameraRefusesToCapture) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder gcs(255, 190);
+  peer.push(command(gcs, MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, 1));
+  peer.push(requestMessage(gcs, 1, 100, MAVLINK_MSG_ID_CAMERA_INFORMATION, 0));
+  const auto infos = peer.waitFor(MAVLINK_MSG_ID_CAMERA_INFORMATION);
+  svc.stop();
+  ASSERT_EQ(infos.size(), 1U);
+  mavlink_camera_information_t info;
+  mavlink_msg_camera_information_decode(&infos[0], &info);
+  EXPECT_EQ(info.flags & CAMERA_CAP_FLAGS_CAPTURE_IMAGE, 0U);
+  ASSERT_FALSE(acks(peer).empty());
+  EXPECT_EQ(acks(peer)[0], std::make_pair(static_cast<int>(MAV_CMD_IMAGE_START_CAPTURE),
+                                          static_cast<int>(MAV_RESULT_UNSUPPORTED)));
 }
 
 TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {

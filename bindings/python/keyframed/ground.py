@@ -10,11 +10,18 @@ is filled by one query per gap, ``keyframed/<vehicle>/keyframes/*?range=A..B``, 
 the vehicle answers from its on-disk store. Nothing is written twice; every file is written to a
 temporary name and renamed.
 
+When it first hears of a vehicle, the station asks it which flights it holds
+(``keyframed/<vehicle>/flights``: each run of the daemon is one flight) and fetches
+the keyframes of any earlier flight it lacks, e.g. one flown while the station was
+down before the daemon restarted; those older than ``--earlier-flights`` seconds
+(default an hour) are left alone and listed in the summary.
+
 ``DATASET/<vehicle>/`` holds:
 
 - ``images/NNNNNN.jpg``: the keyframes, byte for byte as the vehicle wrote them
   (EXIF GPS and XMP Pix4D tags: ODM, OpenSfM and Pix4D read these directly);
-- ``keyframes.jsonl``: the metadata of each, in sequence order;
+- ``keyframes.jsonl``: the metadata of each, by flight (the time it started) and
+  sequence number;
 - ``cameras.txt``: the camera in COLMAP's text format (OPENCV model, from the
   intrinsics in the JPEG's tags);
 - ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``, the
@@ -59,6 +66,10 @@ def status_key(vehicle: str) -> str:
 
 def store_key(vehicle: str, seq: int | str) -> str:
     return f"{KEY_PREFIX}/{vehicle}/keyframes/{seq}"
+
+
+def flights_key(vehicle: str) -> str:
+    return f"{KEY_PREFIX}/{vehicle}/flights"
 
 
 def range_selector(vehicle: str, first: int, last: int, flight: str = "") -> str:
@@ -389,6 +400,12 @@ class VehicleDataset:
         self.done_flight = ""
         self.done_at = 0.0
         self.first_time = time.monotonic()
+        # the vehicle's list of flights: asked for once it is heard (a daemon of a
+        # version without it does not answer: asked again a few times)
+        self.catalogue_tries = 0
+        self.catalogue_next = 0.0
+        self.catalogue_done = False
+        self.skipped_flights: list[str] = []  # earlier flights too old to fetch
         self.sift = sift
         self.sift_jobs: list[Future[int]] = []
         if sift is not None:
@@ -418,6 +435,30 @@ class VehicleDataset:
     def note_flight(self, flight: str) -> None:
         with self.lock:
             self._flight(flight)
+
+    def note_catalogue(self, flights: list[dict[str, Any]], max_age_s: float) -> None:
+        """The vehicle's flights (keyframed/<vehicle>/flights): each one it is running,
+        or we know of already, or that ended at most ``max_age_s`` ago is noted with
+        its keyframe count, so that what we lack of it is fetched by query."""
+        with self.lock:
+            wanted = []
+            for f in flights:
+                flight = os.path.basename(str(f.get("flight") or ""))
+                if not flight:
+                    continue
+                if f.get("current") or flight in self.flights or float(f["age_s"]) <= max_age_s:
+                    wanted.append(flight)
+                    n = int(f["keyframes"])
+                    self.announced[flight] = max(self.announced.get(flight, -1), n - 1)
+                elif flight not in self.skipped_flights:
+                    self.skipped_flights.append(flight)
+            if not self.meta:
+                # nothing stored yet, so no name given: the vehicle's order (the time
+                # each flight started) decides which flight keeps plain file names
+                self.flights = wanted + [f for f in self.flights if f not in wanted]
+            else:
+                for flight in wanted:
+                    self._flight(flight)
 
     def add(self, meta: dict[str, Any], jpeg: bytes, fetched: bool = False) -> bool:
         """Stores one keyframe; False when it was already there."""
@@ -476,8 +517,8 @@ class VehicleDataset:
                 sift_failed += 1
                 print(f"keyframed-ground: {self.vehicle}: SIFT failed: {err}", file=sys.stderr)
         with self.lock:
-            order = {f: i for i, f in enumerate(self.flights)}
-            metas = [self.meta[k] for k in sorted(self.meta, key=lambda k: (order[k[0]], k[1]))]
+            # flights by id, the UTC time each started: in the order they were flown
+            metas = [self.meta[k] for k in sorted(self.meta)]
         lines = "".join(json.dumps(m, sort_keys=True) + "\n" for m in metas)
         _write_atomic(self.dir / "keyframes.jsonl", lines.encode())
         names = [m["file"] for m in metas]
@@ -506,6 +547,7 @@ class VehicleDataset:
             "gap_queries": self.queries,
             "duplicates_ignored": self.duplicates,
             "sift_failed": sift_failed,
+            "earlier_flights_skipped": self.skipped_flights,
             # sequence numbers; "FLIGHT:N" for another flight than the first
             "missing": [
                 s if f == (self.flights or [""])[0] else f"{f}:{s}" for f, s in self.missing()
@@ -526,8 +568,17 @@ def _float_or_none(v: Any) -> float | None:
 
 
 class GroundStation:
-    def __init__(self, session: Any, out: Path, vehicle: str, sift: bool, quiet: bool) -> None:
+    def __init__(
+        self,
+        session: Any,
+        out: Path,
+        vehicle: str,
+        sift: bool,
+        quiet: bool,
+        earlier_flights_s: float = 3600.0,
+    ) -> None:
         self.session = session
+        self.earlier_flights_s = earlier_flights_s
         self.out = out
         self.vehicle = vehicle
         self.quiet = quiet
@@ -591,6 +642,29 @@ class GroundStation:
         except Exception as err:
             print(f"keyframed-ground: bad status message: {err}", file=sys.stderr)
 
+    def read_catalogues(self, timeout: float = 5.0) -> None:
+        """Asks each vehicle heard of, once, which flights it holds."""
+        now = time.monotonic()
+        for ds in list(self.datasets.values()):
+            if ds.catalogue_done or ds.catalogue_tries >= 3 or now < ds.catalogue_next:
+                continue
+            ds.catalogue_tries += 1
+            ds.catalogue_next = now + 5.0
+            for reply in self.session.get(flights_key(ds.vehicle), timeout=timeout):
+                if reply.ok is None:
+                    continue
+                try:
+                    flights = json.loads(reply.ok.payload.to_bytes())["flights"]
+                    ds.note_catalogue(list(flights), self.earlier_flights_s)
+                    ds.catalogue_done = True
+                except (ValueError, KeyError, TypeError) as err:
+                    print(
+                        f"keyframed-ground: {ds.vehicle}: bad list of flights: {err}",
+                        file=sys.stderr,
+                    )
+            if ds.missing():
+                self.wake.set()
+
     def fill_gaps(self, grace: float = GAP_GRACE_S, timeout: float = 5.0) -> int:
         """Queries every vehicle's store for the keyframes we have lacked for
         ``grace`` seconds; returns how many arrived."""
@@ -645,6 +719,7 @@ class GroundStation:
         while not stop.is_set():
             self.wake.wait(0.5)
             self.wake.clear()
+            self.read_catalogues()
             self.fill_gaps()
             now = time.monotonic()
             if not self.quiet and now - last_print > 1.0:
@@ -713,10 +788,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--until-done", action="store_true", help="stop once every vehicle's flight has ended"
     )
+    p.add_argument(
+        "--earlier-flights",
+        type=float,
+        default=3600.0,
+        metavar="SECONDS",
+        help="fetch the keyframes of a vehicle's earlier flights (runs of its daemon before"
+        " a restart) that ended at most this long ago (default 3600; 0: none)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress line")
     args = p.parse_args(argv)
     if args.zenoh_config and not args.zenoh_config.is_file():
         print(f"keyframed-ground: no such file: {args.zenoh_config}", file=sys.stderr)
+        return 2
+    if not args.earlier_flights >= 0:
+        print("keyframed-ground: --earlier-flights must be 0 or more seconds", file=sys.stderr)
         return 2
     if "/" in args.vehicle or not args.vehicle:
         print(f"keyframed-ground: bad vehicle name {args.vehicle!r}", file=sys.stderr)
@@ -734,7 +820,9 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    station = GroundStation(session, args.out, args.vehicle, args.sift, args.quiet)
+    station = GroundStation(
+        session, args.out, args.vehicle, args.sift, args.quiet, args.earlier_flights
+    )
     try:
         station.run(args.duration, args.until_idle, stop, args.until_done)
     finally:

@@ -144,6 +144,7 @@ NB_MODULE(_core, m) {
       .def_rw("motion_ratio", &SelectorConfig::motionRatio)
       .def_rw("motion_min_fraction", &SelectorConfig::motionMinFraction)
       .def_rw("motion_window", &SelectorConfig::motionWindow)
+      .def_rw("capture_wait_ms", &SelectorConfig::captureWaitMs)
       .def_rw("analysis_width", &SelectorConfig::analysisWidth)
       .def_prop_rw(
           "blur_mode",
@@ -252,6 +253,10 @@ NB_MODULE(_core, m) {
             return i >= 0 ? nb::object(nb::int_(i)) : nb::none();
           },
           "End of stream: the index of the pending candidate, now a keyframe, or None.")
+      .def("request_capture", &KeyframeSelector::requestCapture,
+           "Ask for a keyframe (as MAV_CMD_IMAGE_START_CAPTURE does): the next sharp frame is "
+           "kept whatever its overlap. False when too many requests wait already.")
+      .def_prop_ro("pending_captures", &KeyframeSelector::pendingCaptures)
       .def_prop_ro("keyframes", &KeyframeSelector::keyframes);
 
   m.def(
