@@ -48,6 +48,7 @@ class KeyframeStage {
   void reconfigure(const SelectorConfig& config);
   // A capture asked for (MAVLink): see KeyframeSelector::requestCapture().
   bool requestCapture() { return selector_.requestCapture(); }
+  [[nodiscard]] int pendingCaptures() const { return selector_.pendingCaptures(); }
 
   [[nodiscard]] const StageCounts& counts() const { return counts_; }
   [[nodiscard]] const SelectorConfig& config() const { return selector_.config(); }
@@ -66,27 +67,37 @@ class KeyframeStage {
 };
 
 // Captures asked for over MAVLink (MAV_CMD_IMAGE_START_CAPTURE), on the telemetry
-// thread, on their way to the stage on the analysis thread.
+// thread, on their way to the stage on the analysis thread. One limit holds for
+// those on their way and those waiting in the selector, so that a request is refused
+// (TEMPORARILY_REJECTED) rather than acknowledged and then dropped.
 class CaptureRequests {
  public:
-  // One more; false when as many wait as the selector would take.
-  bool add() {
+  // One more; false when KeyframeSelector::kMaxCaptureRequests wait already or, with
+  // onlyIfIdle (an interval capture's tick), when any waits: a source that yields no
+  // usable frame for a while must not make a burst of near-identical ones after.
+  bool add(bool onlyIfIdle = false) {
     int n = n_.load();
     do {
-      if (n >= KeyframeSelector::kMaxCaptureRequests) return false;
+      const int waiting = n + staged_.load();
+      if (waiting >= KeyframeSelector::kMaxCaptureRequests || (onlyIfIdle && waiting > 0))
+        return false;
     } while (!n_.compare_exchange_weak(n, n + 1));
     return true;
   }
   // Hands the waiting ones to the stage, before its next frame; returns how many it
-  // refused (as many already waited there).
+  // refused (only in the moment between the two counts; logged by the caller).
   int drainInto(KeyframeStage& stage) {
     int refused = 0;
     for (int n = n_.exchange(0); n > 0; --n) refused += stage.requestCapture() ? 0 : 1;
+    noteServed(stage);
     return refused;
   }
+  // After each frame: how many still wait in the selector.
+  void noteServed(const KeyframeStage& stage) { staged_.store(stage.pendingCaptures()); }
 
  private:
-  std::atomic<int> n_{0};
+  std::atomic<int> n_{0};       // asked for, not yet handed to the stage
+  std::atomic<int> staged_{0};  // waiting in the selector
 };
 
 }  // namespace keyframed

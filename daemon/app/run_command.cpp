@@ -262,6 +262,7 @@ void Daemon::analysisLoop() {
     }
     stats_.lastFrameNs.store(monotonicNowNs());
     stage_->process((*item)->frame);
+    captureRequests_.noteServed(*stage_);
     if ((outputs_.recording() || outputs_.publishing()) &&
         preview_.encode((*item)->frame, previewJpeg_)) {
       outputs_.preview((*item)->frame.timestampNs, previewJpeg_, preview_.format());
@@ -357,7 +358,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
                   "\"captures_pending\": %llu, "
                   "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
-                  "\"captures_requested\": %llu, \"link_errors\": %llu, "
+                  "\"captures_requested\": %llu, \"captures_refused\": %llu, "
+                  "\"link_errors\": %llu, "
                   "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"autopilot_reboots\": %llu}",
                   config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
                   toString(telemetry_->decoder().clockSource()),
@@ -371,6 +373,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   static_cast<unsigned long long>(ts.capturesDropped),
                   static_cast<unsigned long long>(ts.capturesResent),
                   static_cast<unsigned long long>(ts.captureRequests),
+                  static_cast<unsigned long long>(ts.captureRefused),
                   static_cast<unsigned long long>(ts.linkErrors),
                   static_cast<unsigned long long>(ts.reconnects),
                   static_cast<unsigned long long>(ts.decoder.gimbal),
@@ -471,7 +474,8 @@ int Daemon::run() {
     telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
     logTelemetryEvents(*telemetry_);
     // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
-    telemetry_->setCaptureRequestSink([this] { return captureRequests_.add(); });
+    telemetry_->setCaptureRequestSink(
+        [this](bool intervalTick) { return captureRequests_.add(intervalTick); });
   }
   if (!log_.open(flightDir_ + "/decisions.csv", DecisionFormat::Csv, error)) {
     KF_LOG(Output, Error) << error;

@@ -44,7 +44,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"gimbal_messages\": %llu,\n    \"autopilot_reboots\": %llu,\n"
                   "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
                   "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
-                  "    \"captures_requested\": %llu,\n"
+                  "    \"captures_requested\": %llu,\n    \"captures_refused\": %llu,\n"
                   "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
                   "    \"truncated\": %s\n  }",
                   jsonEscape(s.telemetry.source).c_str(),
@@ -62,6 +62,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.capturesDropped),
                   static_cast<unsigned long long>(s.telemetry.capturesResent),
                   static_cast<unsigned long long>(s.telemetry.capturesRequested),
+                  static_cast<unsigned long long>(s.telemetry.capturesRefused),
                   static_cast<unsigned long long>(s.telemetry.linkErrors),
                   static_cast<unsigned long long>(s.telemetry.reconnects),
                   s.telemetry.truncated ? "true" : "false");
@@ -220,7 +221,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     telemetry = std::make_unique<TelemetryService>(tc, cd);
     logTelemetryEvents(*telemetry);
     // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
-    telemetry->setCaptureRequestSink([&captureRequests] { return captureRequests.add(); });
+    telemetry->setCaptureRequestSink(
+        [&captureRequests](bool intervalTick) { return captureRequests.add(intervalTick); });
     if (!telemetry->start(error)) {
       s.error = error;
       return s;
@@ -351,6 +353,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       std::fprintf(stderr, "%d requested capture(s) refused: %d already wait\n", refused,
                    KeyframeSelector::kMaxCaptureRequests);
     stage.process(frame);
+    captureRequests.noteServed(stage);
     s.framesRead = stage.counts().framesRead;
     s.kept = stage.counts().kept;
     if (outputFailed) break;
@@ -405,6 +408,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.telemetry.capturesDropped = ts.capturesDropped;
     s.telemetry.capturesResent = ts.capturesResent;
     s.telemetry.capturesRequested = ts.captureRequests;
+    s.telemetry.capturesRefused = ts.captureRefused;
     s.telemetry.linkErrors = ts.linkErrors;
     s.telemetry.reconnects = ts.reconnects;
     s.telemetry.truncated = ts.truncated;

@@ -38,6 +38,7 @@ struct SelectSummary {
     std::uint64_t capturesDropped = 0;    // pushed out of the full queue while the link was down
     std::uint64_t capturesResent = 0;     // sent again on MAV_CMD_REQUEST_MESSAGE
     std::uint64_t capturesRequested = 0;  // MAV_CMD_IMAGE_START_CAPTURE images asked for
+    std::uint64_t capturesRefused = 0;    // ... refused, or interval ticks skipped
     std::uint64_t linkErrors = 0;
     std::uint64_t reconnects = 0;
     bool truncated = false;

@@ -67,8 +67,10 @@ void KeyframeSelector::reconfigure(const SelectorConfig& config) {
 }
 
 bool KeyframeSelector::requestCapture() {
-  if (captureRequests_ >= kMaxCaptureRequests) return false;
-  ++captureRequests_;
+  int n = captureRequests_.load();
+  do {
+    if (n >= kMaxCaptureRequests) return false;
+  } while (!captureRequests_.compare_exchange_weak(n, n + 1));
   return true;
 }
 
@@ -238,7 +240,7 @@ Decision KeyframeSelector::process(const Frame& frame) {
     }
   }
 
-  if (captureRequests_ > 0) serveCaptureRequest(d);
+  if (captureRequests_.load() > 0) serveCaptureRequest(d);
 
   const std::int64_t t4 = now();
   d.times.lumaNs = t1 - t0;

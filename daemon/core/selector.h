@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <limits>
 #include <memory>
@@ -120,9 +121,10 @@ class KeyframeSelector {
   // sharp frame is a keyframe whatever its overlap (Reason::Commanded), unless a
   // keyframe comes anyway. Each request gives one keyframe; at most
   // kMaxCaptureRequests wait at a time (more are refused: returns false).
+  // Thread-safe (the rest of the selector is not).
   bool requestCapture();
   static constexpr int kMaxCaptureRequests = 16;
-  [[nodiscard]] int pendingCaptures() const { return captureRequests_; }
+  [[nodiscard]] int pendingCaptures() const { return captureRequests_.load(); }
 
   [[nodiscard]] const SelectorConfig& config() const { return config_; }
   [[nodiscard]] std::int64_t keyframes() const { return keyframes_; }
@@ -150,8 +152,8 @@ class KeyframeSelector {
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;
   bool candidateSharp_ = false;
-  RunningQuantile motion_;  // recent frame motions (analysis px)
-  int captureRequests_ = 0;
+  RunningQuantile motion_;               // recent frame motions (analysis px)
+  std::atomic<int> captureRequests_{0};  // requestCapture() may come from another thread
   std::int64_t captureWaitFromNs_ = -1;  // first frame seen with a request pending
 };
 

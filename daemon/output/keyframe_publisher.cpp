@@ -222,17 +222,27 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
   std::string json = "{\"flights\":[";
   bool firstItem = true;
   for (const std::string& name : names) {
-    const std::string dir = flightsDir + "/" + name + "/keyframes";
-    std::vector<StoredKeyframe> rows;
-    std::string error;
-    if (!readKeyframeIndex(dir, "", name, rows, error)) continue;
+    const std::string index = flightsDir + "/" + name + "/keyframes/keyframes.csv";
+    // Rows counted, not parsed (a state directory may hold many long flights): the
+    // complete lines after the header, one per keyframe, sequence numbers from 0.
+    std::ifstream f(index, std::ios::binary);
+    if (!f) continue;
+    std::size_t lines = 0;
+    char buf[16384];
+    while (f.read(buf, sizeof buf) || f.gcount() > 0) {
+      lines += static_cast<std::size_t>(std::count(buf, buf + f.gcount(), '\n'));
+      if (!f) break;
+    }
     std::error_code e2;
-    const auto changed = fs::last_write_time(dir + "/keyframes.csv", e2);
-    const double age =
-        e2 ? 0.0 : std::max(0.0, std::chrono::duration<double>(now - changed).count());
-    char item[96];
-    std::snprintf(item, sizeof item, ",\"keyframes\":%zu,\"age_s\":%.1f,\"current\":%s}",
-                  rows.size(), age, name == current ? "true" : "false");
+    const auto changed = fs::last_write_time(index, e2);
+    char age[32] = "null";  // unknown: never taken for a recent flight
+    if (!e2) {
+      std::snprintf(age, sizeof age, "%.1f",
+                    std::max(0.0, std::chrono::duration<double>(now - changed).count()));
+    }
+    char item[112];
+    std::snprintf(item, sizeof item, ",\"keyframes\":%zu,\"age_s\":%s,\"current\":%s}",
+                  lines > 0 ? lines - 1 : 0, age, name == current ? "true" : "false");
     json += (firstItem ? "{\"flight\":" : ",{\"flight\":") + jsonString(name) + item;
     firstItem = false;
   }

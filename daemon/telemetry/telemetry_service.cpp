@@ -18,6 +18,9 @@ constexpr std::int64_t kClockLogIntervalNs = 10 * kSecond;
 constexpr std::int64_t kClockLogChangeNs = 5'000'000;
 constexpr std::int64_t kSilenceNs = 3 * kSecond;  // no bytes this long: the link is down
 constexpr std::int64_t kCaptureWarningIntervalNs = 10 * kSecond;
+// A single-capture command repeating the last one's sender and sequence number within
+// this time is a retransmission (its acknowledgement was lost), not a new request.
+constexpr std::int64_t kCaptureRepeatNs = 10 * kSecond;
 
 std::string formatMs(double ms, int decimals = 3) {
   char buf[64];
@@ -316,11 +319,22 @@ void TelemetryService::resendCaptures(const mavlink_command_long_t& c,
   stats_.capturesResent += sent;
 }
 
-bool TelemetryService::requestCapture() {
-  const bool taken = captureSink_ && captureSink_();
+bool TelemetryService::requestCapture(bool intervalTick) {
+  const bool taken = captureSink_ && captureSink_(intervalTick);
   std::lock_guard lock(mutex_);
   ++(taken ? stats_.captureRequests : stats_.captureRefused);
   return taken;
+}
+
+bool TelemetryService::forOurCamera(const mavlink_command_long_t& c, const mavlink_message_t& msg) {
+  // param1: the target camera, 0 (or NaN) for all; 1-6 are cameras attached to the
+  // autopilot, 7-255 a MAVLink camera's component id.
+  const bool all = !std::isfinite(c.param1) || std::lround(c.param1) == 0;
+  if (all || std::lround(c.param1) == config_.componentId) return true;
+  // Addressed to us, for another camera: say no; a broadcast is for the others.
+  if (c.target_component == config_.componentId)
+    sendCommandAck(c.command, MAV_RESULT_DENIED, msg.sysid, msg.compid);
+  return false;
 }
 
 void TelemetryService::startCapture(const mavlink_command_long_t& c, const mavlink_message_t& msg) {
@@ -328,12 +342,14 @@ void TelemetryService::startCapture(const mavlink_command_long_t& c, const mavli
   // param4: for a single image, a sequence number that a retransmitted command
   // repeats (so that it is not taken twice).
   if (!captureSink_) {
-    sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
+    if (c.target_component == config_.componentId)
+      sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
     return;
   }
+  if (!forOurCamera(c, msg)) return;
   const double interval = c.param2, count = c.param3;
   if (!std::isfinite(interval) || !std::isfinite(count) || interval < 0 || count < 0 ||
-      count > 1e6 || interval > 86400 || (count != 1 && interval <= 0)) {
+      count > 1e6 || interval > 86400 || (count != 1 && interval < kMinCaptureIntervalS)) {
     sendCommandAck(c.command, MAV_RESULT_DENIED, msg.sysid, msg.compid);
     return;
   }
@@ -342,13 +358,16 @@ void TelemetryService::startCapture(const mavlink_command_long_t& c, const mavli
       "system " + std::to_string(msg.sysid) + " component " + std::to_string(msg.compid);
   if (images == 1) {
     const int sequence = std::isfinite(c.param4) ? static_cast<int>(std::lround(c.param4)) : 0;
-    if (sequence > 0 && sequence == lastCaptureSequence_) {
+    const std::int64_t now = monotonicNowNs();
+    const int sender = msg.sysid << 8 | msg.compid;
+    if (sequence > 0 && sequence == lastCapture_.sequence && sender == lastCapture_.sender &&
+        now - lastCapture_.timeNs < kCaptureRepeatNs) {
       // The same command again (our acknowledgement was lost): already taken.
       sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
       return;
     }
-    const bool taken = requestCapture();
-    if (taken && sequence > 0) lastCaptureSequence_ = sequence;
+    const bool taken = requestCapture(false);
+    if (taken && sequence > 0) lastCapture_ = {sequence, sender, now};
     sendCommandAck(c.command, taken ? MAV_RESULT_ACCEPTED : MAV_RESULT_TEMPORARILY_REJECTED,
                    msg.sysid, msg.compid);
     log(TelemetryLogLevel::Notice,
@@ -370,9 +389,12 @@ void TelemetryService::startCapture(const mavlink_command_long_t& c, const mavli
 
 void TelemetryService::runCaptureInterval(std::int64_t nowNs) {
   if (captureIntervalNs_ <= 0 || nowNs < nextCaptureNs_) return;
-  requestCapture();  // one refused (too many waiting) is skipped, as a busy camera would
-  // The schedule does not drift, and a long stall does not make a burst.
-  nextCaptureNs_ = std::max(nextCaptureNs_ + captureIntervalNs_, nowNs);
+  // Skipped while an earlier one still waits for a usable frame, as a busy camera
+  // would: a stretch of blurred frames must not end in a burst of identical images.
+  requestCapture(true);
+  // On schedule without drift; after a stall, the next a whole interval later.
+  nextCaptureNs_ += captureIntervalNs_;
+  if (nextCaptureNs_ <= nowNs) nextCaptureNs_ = nowNs + captureIntervalNs_;
   if (capturesLeft_ > 0 && --capturesLeft_ == 0) captureIntervalNs_ = 0;
 }
 
@@ -445,10 +467,15 @@ void TelemetryService::onCommand(const mavlink_message_t& msg) {
   } else if (c.command == MAV_CMD_IMAGE_START_CAPTURE) {
     startCapture(c, msg);
   } else if (c.command == MAV_CMD_IMAGE_STOP_CAPTURE) {
+    if (!captureSink_) {
+      if (c.target_component == config_.componentId)
+        sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
+      return;
+    }
+    if (!forOurCamera(c, msg)) return;
     const bool running = captureIntervalNs_ > 0;
     captureIntervalNs_ = 0;
-    sendCommandAck(c.command, captureSink_ ? MAV_RESULT_ACCEPTED : MAV_RESULT_UNSUPPORTED,
-                   msg.sysid, msg.compid);
+    sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
     if (running) log(TelemetryLogLevel::Notice, "interval capture stopped");
   } else if (c.target_component == config_.componentId) {
     sendCommandAck(c.command, MAV_RESULT_UNSUPPORTED, msg.sysid, msg.compid);
@@ -524,6 +551,7 @@ void TelemetryService::run() {
   const std::string name = link_->describe();
   while (!stop_) {
     const std::int64_t now = monotonicNowNs();
+    runCaptureInterval(now);  // the camera goes on while the link is down
     if (broken) {
       if (now < nextReopen) {
         std::this_thread::sleep_for(std::chrono::milliseconds(50));
@@ -552,7 +580,6 @@ void TelemetryService::run() {
       lastTimesync = now;
       sendTimesync(now);
     }
-    runCaptureInterval(now);
     sendPendingCaptures(now);
     logClock(now);
     if (!silent && now - lastData > kSilenceNs) {

@@ -121,7 +121,9 @@ class TelemetryService {
   // selector's requestCapture(); false when it cannot take one more. Without a sink
   // the camera does not advertise CAMERA_CAP_FLAGS_CAPTURE_IMAGE and refuses the
   // command. Set before start(); called on the telemetry thread.
-  using CaptureRequestSink = std::function<bool()>;
+  // intervalTick: an interval capture's tick, to be skipped while any request waits.
+  using CaptureRequestSink = std::function<bool(bool intervalTick)>;
+  static constexpr double kMinCaptureIntervalS = 0.05;
   void setCaptureRequestSink(CaptureRequestSink sink) { captureSink_ = std::move(sink); }
   // Every MAVLink message received on a live link, with its arrival time (e.g. for
   // the flight record). Called on the telemetry thread; set or clear at any time.
@@ -147,7 +149,8 @@ class TelemetryService {
   void onCommand(const mavlink_message_t& msg);
   void resendCaptures(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   void startCapture(const mavlink_command_long_t& c, const mavlink_message_t& msg);
-  bool requestCapture();
+  bool requestCapture(bool intervalTick);
+  bool forOurCamera(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   void runCaptureInterval(std::int64_t nowNs);
   void sendCaptureStatus();
   void sendPendingCaptures(std::int64_t nowNs);
@@ -187,7 +190,11 @@ class TelemetryService {
   std::uint64_t loggedReboots_ = 0;
   std::int64_t lastCaptureWarningNs_ = 0;
   CaptureRequestSink captureSink_;
-  int lastCaptureSequence_ = 0;         // param4 of the last single capture (repeats ignored)
+  struct {
+    int sequence = 0;  // param4 of the last single capture taken (a repeat is ignored)
+    int sender = 0;    // its sysid << 8 | compid
+    std::int64_t timeNs = 0;
+  } lastCapture_;
   std::int64_t captureIntervalNs_ = 0;  // > 0: interval capture running
   std::int64_t nextCaptureNs_ = 0;
   std::int64_t capturesLeft_ = 0;  // of the interval capture; 0: until stopped

@@ -701,12 +701,13 @@ def test_live_udp_autopilot_without_timesync(
     assert "autopilot clock: timesync" not in log, log
     check_captures(short_nadir, out, ap)
 
-    # The interval capture: accepted, three images asked of the selector, each served
-    # by the next sharp frame (a keyframe due anyway serves one too): at least one
-    # more keyframe than the flight gives on its own, within a second of the last.
+    # The interval capture: accepted, three ticks, each an image asked of the selector
+    # and served by the next sharp frame (a keyframe due anyway serves one too), or
+    # skipped while the one before still waited for a sharp frame.
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == mav2.MAV_CMD_IMAGE_START_CAPTURE]
     assert [a.result for a in acks] == [mav2.MAV_RESULT_ACCEPTED]
-    assert tel["captures_requested"] == 3, tel
+    assert tel["captures_requested"] + tel["captures_refused"] == 3, tel
+    assert tel["captures_requested"] >= 2, tel
     (status,) = ap.wait_for("CAMERA_CAPTURE_STATUS", timeout=5)
     assert status.image_count >= 4 and status.image_status in (0, 3), status
     asked_ns = [
@@ -718,7 +719,8 @@ def test_live_udp_autopilot_without_timesync(
     commanded = [k for k in keyframes(out) if rows[int(k["index"])]["reason"] == "commanded"]
     assert commanded, "no keyframe was taken for the requests"
     for k in commanded:
-        assert asked_ns - 100e6 <= int(k["time_ns"]) <= asked_ns + 0.6e9 + 1.2e9, k
+        # (a frame read just before the request may serve it)
+        assert asked_ns - 0.5e9 <= int(k["time_ns"]) <= asked_ns + 0.6e9 + 1.2e9, k
     assert "interval capture requested by system 1 component 1" in log, log
 
 

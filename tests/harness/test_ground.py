@@ -302,6 +302,44 @@ def test_a_restarted_vehicle_keeps_both_flights_apart(tagged: Path, tmp_path: Pa
     assert len((ds / "geo.txt").read_text().splitlines()) == 2 * n + 1
 
 
+def test_a_flight_list_decides_what_is_fetched_and_a_resumed_dataset_keeps_its_names(
+    tmp_path: Path,
+) -> None:
+    """What the station makes of a vehicle's list of flights (keyframed/<v>/flights):
+    the running flight, a recent earlier one and one it already holds are fetched, an
+    old one is not, and entries that are no flight are passed over. A dataset resumed
+    after its index was rewritten in flight-id order keeps giving plain names to the
+    flight that had them."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav9", None)
+    ds.add({"flight": "B", "sequence": 0, "file": "000000.jpg"}, b"b0")
+    ds.note_catalogue(
+        [
+            {"flight": "0-old", "keyframes": 4, "age_s": 90000.0, "current": False},
+            {"flight": "A", "keyframes": 2, "age_s": 600.0, "current": False},
+            {"flight": "B", "keyframes": 3, "age_s": 0.5, "current": True},
+            {"flight": "C", "keyframes": 1e400, "age_s": 1.0},
+            {"flight": "D", "keyframes": 10**9, "age_s": 1.0},
+            {"flight": "E", "keyframes": 1, "age_s": None},
+            "not a flight",
+            {"keyframes": 5},
+        ],
+        max_age_s=3600.0,
+    )
+    assert sorted(ds.missing()) == [("A", 0), ("A", 1), ("B", 1), ("B", 2)]
+    assert ds.skipped_flights == ["0-old", "E"]
+    ds.add({"flight": "A", "sequence": 0, "file": "000000.jpg"}, b"a0")
+    assert (ds.images / "A_000000.jpg").read_bytes() == b"a0"
+    ds.finish()  # the index now lists A before B
+    again = VehicleDataset(tmp_path, "uav9", None)
+    again.add({"flight": "B", "sequence": 1, "file": "000001.jpg"}, b"b1")
+    again.add({"flight": "A", "sequence": 1, "file": "000001.jpg"}, b"a1")
+    assert (again.images / "000001.jpg").read_bytes() == b"b1"
+    assert (again.images / "A_000001.jpg").read_bytes() == b"a1"
+    assert (again.images / "000000.jpg").read_bytes() == b"b0"
+
+
 def test_a_keyframe_that_is_no_image_costs_only_itself(tagged: Path, tmp_path: Path) -> None:
     """Bytes that are no JPEG arrive for one keyframe: stored as received, their SIFT
     fails and is counted, and the dataset's files are still written for the rest."""

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 #include <opencv2/imgproc.hpp>
 
+#include "app/keyframe_stage.h"
 #include "core/selector.h"
 #include "photos.h"
 
@@ -133,6 +134,31 @@ TEST(Selector, AtMostSixteenRequestsWait) {
   for (int i = 0; i < KeyframeSelector::kMaxCaptureRequests; ++i) EXPECT_TRUE(sel.requestCapture());
   EXPECT_FALSE(sel.requestCapture());
   EXPECT_EQ(sel.pendingCaptures(), KeyframeSelector::kMaxCaptureRequests);
+}
+
+TEST(CaptureRequests, OneLimitForThoseOnTheirWayAndThoseWaitingAndIntervalTicksWait) {
+  std::vector<std::int64_t> kept;
+  KeyframeStage stage({}, nullptr, [&](KeyframeEvent&& ev) {
+    if (ev.decision.kept) kept.push_back(ev.decision.index);
+  });
+  CaptureRequests requests;
+  EXPECT_TRUE(requests.add(/*onlyIfIdle=*/true));   // nothing waits: an interval tick goes
+  EXPECT_FALSE(requests.add(/*onlyIfIdle=*/true));  // one waits: the next tick is skipped
+  for (int i = 1; i < KeyframeSelector::kMaxCaptureRequests; ++i) EXPECT_TRUE(requests.add());
+  EXPECT_FALSE(requests.add());  // 16 on their way
+  EXPECT_EQ(requests.drainInto(stage), 0);
+  EXPECT_EQ(stage.pendingCaptures(), KeyframeSelector::kMaxCaptureRequests);
+  EXPECT_FALSE(requests.add());  // 16 waiting in the selector: still refused, not dropped
+  // Frames serve them, one a frame; the room comes back as they are served.
+  const cv::Mat view = test::viewAt(test::photoStrip(), 100);
+  for (int i = 0; i < 3; ++i) {
+    stage.process(Frame::ofGray(view, i, i * 33333333LL));
+    requests.noteServed(stage);
+  }
+  EXPECT_EQ(kept, (std::vector<std::int64_t>{0, 1, 2}));
+  EXPECT_EQ(stage.pendingCaptures(), KeyframeSelector::kMaxCaptureRequests - 3);
+  EXPECT_TRUE(requests.add());
+  EXPECT_FALSE(requests.add(/*onlyIfIdle=*/true));
 }
 
 TEST(Selector, BlurryFramesAreNeverKept) {

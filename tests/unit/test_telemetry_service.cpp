@@ -253,7 +253,7 @@ TEST(TelemetryService, CameraInformationSaysNaNForWhatItDoesNotKnow) {
   cam.width = 1920;
   cam.height = 1080;
   TelemetryService svc(serviceConfig(), cam);
-  svc.setCaptureRequestSink([] { return true; });
+  svc.setCaptureRequestSink([](bool) { return true; });
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1);
@@ -495,11 +495,12 @@ std::vector<std::pair<int, int>> acks(Peer& peer) {
 TEST(TelemetryService, ImageStartCaptureAsksTheSelectorOnceOrAtAnInterval) {
   Peer peer;
   TelemetryService svc(serviceConfig(), CameraDescription{});
-  std::atomic<int> requests{0};
+  std::atomic<int> requests{0}, ticks{0};
   std::atomic<bool> full{false};
-  svc.setCaptureRequestSink([&] {
+  svc.setCaptureRequestSink([&](bool intervalTick) {
     if (full) return false;
     ++requests;
+    ticks += intervalTick ? 1 : 0;
     return true;
   });
   std::string error;
@@ -519,23 +520,31 @@ TEST(TelemetryService, ImageStartCaptureAsksTheSelectorOnceOrAtAnInterval) {
   full = false;
   peer.push(command(gcs, kStart, 0, 0, 1, 2));
   ASSERT_TRUE(eventually([&] { return requests.load() == 2; }));
-  // Nonsense: no interval for several images, a negative count.
+  // Another ground station's sequence 2 is its own request.
+  MavlinkEncoder gcs2(254, 191);
+  peer.push(command(gcs2, kStart, 0, 0, 1, 2));
+  ASSERT_TRUE(eventually([&] { return requests.load() == 3; }));
+  // Nonsense: no interval (or under 0.05 s) for several images, a negative count; and a
+  // command for another camera (1: one attached to the autopilot).
   peer.push(command(gcs, kStart, 0, 0, 5, 0));
+  peer.push(command(gcs, kStart, 0, 0.01F, 5, 0));
   peer.push(command(gcs, kStart, 0, 1, -1, 0));
-  ASSERT_TRUE(eventually([&] { return acks(peer).size() == 6; }));
-  EXPECT_EQ(acks(peer)[4].second, MAV_RESULT_DENIED);
-  EXPECT_EQ(acks(peer)[5].second, MAV_RESULT_DENIED);
-  EXPECT_EQ(requests.load(), 2);
+  peer.push(command(gcs, kStart, 1, 0, 1, 7));
+  ASSERT_TRUE(eventually([&] { return acks(peer).size() == 9; }));
+  for (std::size_t i = 5; i < 9; ++i) EXPECT_EQ(acks(peer)[i].second, MAV_RESULT_DENIED) << i;
+  EXPECT_EQ(requests.load(), 3);
+  EXPECT_EQ(ticks.load(), 0);
   // Three images 0.1 s apart, the first at once.
   const auto t0 = std::chrono::steady_clock::now();
   peer.push(command(gcs, kStart, 0, 0.1F, 3, 0));
-  ASSERT_TRUE(eventually([&] { return requests.load() == 5; }));
+  ASSERT_TRUE(eventually([&] { return requests.load() == 6; }));
   EXPECT_GE(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(180));
   std::this_thread::sleep_for(std::chrono::milliseconds(300));
-  EXPECT_EQ(requests.load(), 5);  // and no more
+  EXPECT_EQ(requests.load(), 6);  // and no more
+  EXPECT_EQ(ticks.load(), 3);     // each said to be an interval's
   // Until stopped; the status says so while it runs.
   peer.push(command(gcs, kStart, 0, 0.05F, 0, 0));
-  ASSERT_TRUE(eventually([&] { return requests.load() >= 8; }));
+  ASSERT_TRUE(eventually([&] { return requests.load() >= 9; }));
   svc.reportCapture(capture(0));
   svc.reportCapture(capture(1));
   peer.push(requestMessage(gcs, 1, 100, MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS, 0));

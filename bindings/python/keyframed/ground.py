@@ -54,6 +54,7 @@ from typing import Any
 KEY_PREFIX = "keyframed"
 FINAL_STATES = ("done", "stopped", "failed", "interrupted", "capture_failed")
 GAP_GRACE_S = 1.0  # how long a gap may last before it is filled by query
+MAX_FLIGHT_KEYFRAMES = 1_000_000  # a flight list claiming more is not believed
 
 
 def keyframe_key(vehicle: str) -> str:
@@ -425,6 +426,12 @@ class VehicleDataset:
                         self.meta[(flight, int(m["sequence"]))] = m
                 except (ValueError, KeyError):
                     continue
+            # The flight whose images have plain names stays the one (the index is
+            # in flight-id order, which need not be the order they were stored in).
+            plain = [f for (f, _), m in self.meta.items() if not m["file"].startswith(f"{f}_")]
+            if plain:
+                self.flights.remove(plain[0])
+                self.flights.insert(0, plain[0])
 
     def _flight(self, flight: str) -> bool:
         """Notes a flight (under the lock); True for the dataset's first."""
@@ -443,12 +450,17 @@ class VehicleDataset:
         with self.lock:
             wanted = []
             for f in flights:
-                flight = os.path.basename(str(f.get("flight") or ""))
-                if not flight:
-                    continue
-                if f.get("current") or flight in self.flights or float(f["age_s"]) <= max_age_s:
-                    wanted.append(flight)
+                try:
+                    flight = os.path.basename(str(f.get("flight") or ""))
                     n = int(f["keyframes"])
+                    age = f.get("age_s")
+                    recent = age is not None and float(age) <= max_age_s
+                except (AttributeError, KeyError, TypeError, ValueError, OverflowError):
+                    continue  # not a flight entry: the others still count
+                if not flight or not 0 <= n <= MAX_FLIGHT_KEYFRAMES:
+                    continue
+                if f.get("current") or flight in self.flights or recent:
+                    wanted.append(flight)
                     self.announced[flight] = max(self.announced.get(flight, -1), n - 1)
                 elif flight not in self.skipped_flights:
                     self.skipped_flights.append(flight)
@@ -657,7 +669,7 @@ class GroundStation:
                     flights = json.loads(reply.ok.payload.to_bytes())["flights"]
                     ds.note_catalogue(list(flights), self.earlier_flights_s)
                     ds.catalogue_done = True
-                except (ValueError, KeyError, TypeError) as err:
+                except Exception as err:  # a bad reply must not stop the station
                     print(
                         f"keyframed-ground: {ds.vehicle}: bad list of flights: {err}",
                         file=sys.stderr,
