@@ -1,5 +1,8 @@
 #include "app/keyframe_writer.h"
 
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <cerrno>
 #include <cmath>
 #include <cstring>
@@ -39,11 +42,34 @@ bool KeyframeWriter::open(KeyframeWriterConfig config, std::string& error) {
   std::error_code ec;
   config_.dir = std::filesystem::absolute(config_.dir, ec).lexically_normal().string();
   indexPath_ = config_.dir + "/keyframes.csv";
-  index_ = std::fopen(indexPath_.c_str(), "w");
-  if (index_ == nullptr || std::fprintf(index_, "%s\n", indexHeader().c_str()) < 0) {
+  index_ = ::open(indexPath_.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  const std::string header = indexHeader() + "\n";
+  if (index_ < 0 || !writeAll(index_, header)) {
     error = "cannot create " + indexPath_ + ": " + std::strerror(errno);
     return false;
   }
+  indexGood_ = static_cast<off_t>(header.size());
+  syncDirectoryOf(indexPath_);
+  return true;
+}
+
+bool KeyframeWriter::appendIndexRows(std::string& error) {
+  while (!pendingRows_.empty()) {
+    const std::string& row = pendingRows_.front();
+    if (!writeAll(index_, row)) {
+      // A full disk can take part of a row: cut back to the last whole one, so that
+      // the row (kept) is written whole once there is room, and the next one after it.
+      error = "cannot write " + indexPath_ + ": " + std::strerror(errno);
+      if (::ftruncate(index_, indexGood_) != 0 || ::lseek(index_, indexGood_, SEEK_SET) < 0) {
+        error += "; cannot cut back a part-written row";
+      }
+      return false;
+    }
+    indexGood_ += static_cast<off_t>(row.size());
+    pendingRows_.erase(pendingRows_.begin());
+  }
+  // Like the keyframes themselves, the index survives a power cut as far as written.
+  ::fdatasync(index_);
   return true;
 }
 
@@ -113,19 +139,30 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     tags.utcUs = config_.utcFallback(timeNs);
     rec.pose.utcUs = tags.utcUs;
   }
-  if (!writeTags(jpeg_, tags, error)) return false;
+  // A keyframe whose tags cannot be written is still a keyframe: kept untagged (the
+  // JPEG is left as encoded), the reason in its geotag column, and reported.
+  std::string tagError;
+  if (!writeTags(jpeg_, tags, tagError)) {
+    std::string why = tagError;
+    for (char& c : why) {
+      if (c == '"' || c == '\n' || c == '\r') c = '\'';  // one CSV field
+    }
+    rec.geotag = "untagged (" + why + ")";  // the pose stays in the index
+  }
   rec.encoded = true;
   // The sequence number is taken whether or not the file can be saved: a receiver
   // sees one gap-free sequence, and what it missed is served from disk when it is there.
   ++count_;
-  if (rec.pose.position) ++geotagged_;
+  if (rec.pose.position && tagError.empty()) ++geotagged_;
   if (!writeFileAtomically(rec.file, jpeg_, error)) {
     rec.file.clear();
     ++unsaved_;
     return false;
   }
+  if (!tagError.empty())
+    error = "keyframe " + fileName(frameIndex) + " saved untagged: " + tagError;
 
-  if (index_ != nullptr) {
+  if (index_ >= 0) {
     const auto& p = rec.pose;
     std::string row = std::to_string(rec.sequence) + "," + std::to_string(frameIndex) + "," +
                       fileName(frameIndex) + "," + std::to_string(timeNs) + "," +
@@ -147,19 +184,20 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     }
     row += formatFixed(p.gps.hdop, 2) + "," +
            (pose != nullptr ? std::to_string(p.gps.fixType) : "") + ",\"" + rec.geotag + "\"";
-    if (std::fprintf(index_, "%s\n", row.c_str()) < 0 || std::fflush(index_) != 0) {
-      error = "cannot write " + indexPath_ + ": " + std::strerror(errno);
-      return false;
-    }
+    pendingRows_.push_back(row + "\n");
+    if (!appendIndexRows(error)) return false;
   }
-  return true;
+  return tagError.empty();
 }
 
 bool KeyframeWriter::close(std::string& error) {
-  if (index_ == nullptr) return true;
-  const bool ok = std::fclose(index_) == 0;
-  index_ = nullptr;
-  if (!ok) error = "cannot close " + indexPath_ + ": " + std::strerror(errno);
+  if (index_ < 0) return true;
+  bool ok = appendIndexRows(error);  // rows a full disk held back, if there is room now
+  if (::close(index_) != 0 && ok) {
+    error = "cannot close " + indexPath_ + ": " + std::strerror(errno);
+    ok = false;
+  }
+  index_ = -1;
   return ok;
 }
 

@@ -1,5 +1,7 @@
 #pragma once
 
+#include <sys/types.h>
+
 #include <cstdint>
 #include <cstdio>
 #include <functional>
@@ -89,8 +91,12 @@ class KeyframeWriter {
   JpegEncoder encoder_;
   std::vector<std::uint8_t> jpeg_;
   std::optional<CameraModel> scaled_;
-  std::FILE* index_ = nullptr;
+  bool appendIndexRows(std::string& error);
+
+  int index_ = -1;  // keyframes.csv
   std::string indexPath_;
+  off_t indexGood_ = 0;                   // its length up to the last whole row
+  std::vector<std::string> pendingRows_;  // rows not yet written (a full disk), in order
   std::int64_t count_ = 0;
   std::int64_t unsaved_ = 0;
   std::int64_t geotagged_ = 0;

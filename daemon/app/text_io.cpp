@@ -1,5 +1,8 @@
 #include "app/text_io.h"
 
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <cerrno>
 #include <cstring>
 
@@ -13,7 +16,11 @@ bool writeFileAtomically(const std::string& path, std::span<const std::uint8_t> 
     error = "cannot create " + tmp + ": " + std::strerror(errno);
     return false;
   }
-  const bool ok = std::fwrite(bytes.data(), 1, bytes.size(), f) == bytes.size();
+  // On the disk before the rename: after a power cut the file is whole or absent,
+  // never a name with no data (ext4 does not order a rename to a new name after the
+  // data it names).
+  const bool ok = std::fwrite(bytes.data(), 1, bytes.size(), f) == bytes.size() &&
+                  std::fflush(f) == 0 && (::fsync(fileno(f)) == 0 || errno == EINVAL);
   const int err = errno;
   if (std::fclose(f) != 0 || !ok) {
     error = "cannot write " + tmp + ": " + std::strerror(ok ? errno : err);
@@ -24,6 +31,34 @@ bool writeFileAtomically(const std::string& path, std::span<const std::uint8_t> 
     error = "cannot rename " + tmp + ": " + std::strerror(errno);
     std::remove(tmp.c_str());
     return false;
+  }
+  syncDirectoryOf(path);
+  return true;
+}
+
+void syncDirectoryOf(const std::string& path) {
+  const std::size_t slash = path.rfind('/');
+  const std::string dir = slash == std::string::npos ? std::string(".")
+                          : slash == 0               ? std::string("/")
+                                                     : path.substr(0, slash);
+  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) return;
+  ::fsync(fd);  // best effort: some file systems cannot sync a directory
+  ::close(fd);
+}
+
+bool writeAll(int fd, std::string_view bytes) {
+  while (!bytes.empty()) {
+    const ssize_t n = ::write(fd, bytes.data(), bytes.size());
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      return false;
+    }
+    if (n == 0) {
+      errno = ENOSPC;
+      return false;
+    }
+    bytes.remove_prefix(static_cast<std::size_t>(n));
   }
   return true;
 }

@@ -35,10 +35,15 @@ inline std::string jsonEscape(std::string_view s) {
   return out;
 }
 
-// Writes path.tmp and renames it to path, so a reader never sees a partial file.
-// False with a one-line error.
+// Writes path.tmp, syncs it to the disk and renames it to path (syncing the
+// directory too), so a reader never sees a partial file, nor a power cut an empty
+// one. False with a one-line error.
 bool writeFileAtomically(const std::string& path, std::span<const std::uint8_t> bytes,
                          std::string& error);
 bool writeFileAtomically(const std::string& path, std::string_view text, std::string& error);
+// fsync of the directory holding path (best effort).
+void syncDirectoryOf(const std::string& path);
+// write() until all of bytes is written; false with errno on an error (EINTR retried).
+bool writeAll(int fd, std::string_view bytes);
 
 }  // namespace keyframed

@@ -4,6 +4,19 @@
 
 namespace keyframed {
 
+namespace {
+// EOI (FF D9) among the last bytes: drivers may pad a frame after it, with zeros or
+// a few bytes of junk, but not by much.
+bool hasEndMarker(const std::uint8_t* data, std::size_t size) {
+  constexpr std::size_t kTail = 4096;
+  const std::size_t from = size > kTail ? size - kTail : 0;
+  for (std::size_t i = size; i-- > from + 1;) {
+    if (data[i - 1] == 0xFF && data[i] == 0xD9) return true;
+  }
+  return false;
+}
+}  // namespace
+
 MjpegDecoder::MjpegDecoder() : handle_(tjInitDecompress()) {}
 
 MjpegDecoder::~MjpegDecoder() {
@@ -39,9 +52,16 @@ bool MjpegDecoder::decode(const std::uint8_t* data, std::size_t size, std::strin
   const std::size_t bytes = static_cast<std::size_t>(w) * static_cast<std::size_t>(h) * 3;
   if (bgr_.size() < bytes) bgr_.resize(bytes);
   if (tjDecompress2(handle_, src, len, bgr_.data(), w, w * 3, h, TJPF_BGR, TJFLAG_FASTDCT) != 0) {
-    // Warnings (e.g. a truncated final scan) still produce a usable picture.
     if (tjGetErrorCode(handle_) != TJERR_WARNING) {
       error = std::string("MJPEG decode: ") + tjGetErrorStr2(handle_);
+      return false;
+    }
+    // A warning with the end marker in place (stray bytes in the data) leaves a
+    // usable picture. Without it the frame was cut short in the USB transfer (UVC
+    // flags short frames only for uncompressed formats): the rows after the cut are
+    // grey filler, and a sharp top half could pass the blur test as a keyframe.
+    if (!hasEndMarker(data, size)) {
+      error = std::string("MJPEG frame cut short (no end marker): ") + tjGetErrorStr2(handle_);
       return false;
     }
   }

@@ -137,6 +137,11 @@ std::string V4l2Source::pickDevice(const std::vector<V4l2DeviceInfo>& devices) {
   for (const V4l2DeviceInfo& d : devices) {
     if (d.capture) return d.path;
   }
+  // A node that could not be opened to look at (no permission, busy): open() then
+  // says why, rather than "no camera".
+  for (const V4l2DeviceInfo& d : devices) {
+    if (d.driver.empty()) return d.path;
+  }
   return {};
 }
 
@@ -545,17 +550,24 @@ bool V4l2Source::requeueHeld(std::string& error) {
 
 V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const std::uint8_t* data,
                                              std::size_t used, std::size_t length,
-                                             std::uint32_t flags, MjpegDecoder& mjpeg,
-                                             Frame& frame) {
-  if ((flags & V4L2_BUF_FLAG_ERROR) != 0 || data == nullptr) return BufferUse::Corrupt;
+                                             std::uint32_t flags, MjpegDecoder& mjpeg, Frame& frame,
+                                             std::string* why) {
+  const auto corrupt = [why](std::string reason) {
+    if (why != nullptr) *why = std::move(reason);
+    return BufferUse::Corrupt;
+  };
+  if ((flags & V4L2_BUF_FLAG_ERROR) != 0) return corrupt("the driver flagged the buffer ERROR");
+  if (data == nullptr) return corrupt("no buffer memory");
   frame = Frame{};
   frame.width = layout.width;
   frame.height = layout.height;
   if (layout.fourcc == V4L2_PIX_FMT_MJPEG) {
-    std::string why;
-    if (!mjpeg.decode(data, std::min(used, length), why, layout.width, layout.height) ||
-        mjpeg.width() != layout.width || mjpeg.height() != layout.height) {
-      return BufferUse::Corrupt;
+    std::string bad;
+    if (!mjpeg.decode(data, std::min(used, length), bad, layout.width, layout.height)) {
+      return corrupt(bad);
+    }
+    if (mjpeg.width() != layout.width || mjpeg.height() != layout.height) {
+      return corrupt("MJPEG frame of another size");
     }
     frame.format = PixelFormat::BGR24;
     frame.data = mjpeg.bgr();
@@ -565,7 +577,10 @@ V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const s
   std::size_t need = 0;
   for (std::size_t n : planeSizes(layout.format, layout.stride, layout.height)) need += n;
   // A short frame is skipped rather than read past the picture.
-  if (used < need || length < need) return BufferUse::Corrupt;
+  if (used < need || length < need) {
+    return corrupt("short frame: " + std::to_string(std::min(used, length)) + " of " +
+                   std::to_string(need) + " bytes");
+  }
   frame.format = layout.format;
   frame.data = data;
   frame.stride = layout.stride;
@@ -581,6 +596,8 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
 
   const auto deadline =
       std::chrono::steady_clock::now() + std::chrono::milliseconds(options_.timeoutMs);
+  std::uint64_t skipped = 0;  // frames that arrived unusable in this wait
+  std::string skipReason;
   for (;;) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
         deadline - std::chrono::steady_clock::now());
@@ -593,6 +610,20 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
     if (w.wake == Interrupter::Wake::Timeout) {
       error = "timeout: no frame from " + options_.device + " within " +
               std::to_string(options_.timeoutMs) + " ms";
+      if (skipped > 0) {
+        error = "timeout: no usable frame from " + options_.device + " within " +
+                std::to_string(options_.timeoutMs) + " ms: " + std::to_string(skipped) +
+                " arrived, all unusable (" + skipReason + ")";
+      }
+      // Open and streaming, but silent or sending only garbage (a UVC camera after a
+      // USB glitch): once is a hiccup, twice in a row the stream is started again.
+      if (options_.autoReopen && ++stalledWaits_ >= kStalledWaits) {
+        stalledWaits_ = 0;
+        std::string reason = error;
+        lose(ETIMEDOUT, "stalled: restarting the stream", error);
+        error = reason + "; " + error;
+        return ReadStatus::Error;
+      }
       return ReadStatus::Error;
     }
     if (w.wake == Interrupter::Wake::Failed) return lose(w.err, "poll", error);
@@ -631,8 +662,8 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
     const auto* data = static_cast<const std::uint8_t*>(buffers_[buf.index].start);
     const std::size_t used = buf.bytesused > 0 ? buf.bytesused : buffers_[buf.index].length;
     const StreamLayout layout{fourccCode_, pixelFormat_, info_.width, info_.height, stride_};
-    const BufferUse use =
-        readBuffer(layout, data, used, buffers_[buf.index].length, buf.flags, mjpeg_, frame);
+    const BufferUse use = readBuffer(layout, data, used, buffers_[buf.index].length, buf.flags,
+                                     mjpeg_, frame, &skipReason);
     // A decoded picture lives in the decoder and a corrupt one is skipped: either
     // way the driver can have its buffer back now.
     if (use == BufferUse::Corrupt || fourccCode_ == V4L2_PIX_FMT_MJPEG) {
@@ -640,8 +671,10 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
     }
     if (use == BufferUse::Corrupt) {
       ++corruptFrames_;
+      ++skipped;
       continue;
     }
+    stalledWaits_ = 0;
     frame.timestampNs = ts;
     frame.index = index_++;
     return ReadStatus::Frame;

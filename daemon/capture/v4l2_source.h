@@ -138,9 +138,10 @@ class V4l2Source final : public FrameSource {
   // the picture). Corrupt: flagged V4L2_BUF_FLAG_ERROR, shorter than the picture,
   // or a JPEG that fails to decode or has another size than negotiated. Pure but
   // for the decoder: the seam that tests drive with buffers made up in memory.
+  // `why`, when given, says what was wrong with a corrupt one.
   static BufferUse readBuffer(const StreamLayout& layout, const std::uint8_t* data,
                               std::size_t used, std::size_t length, std::uint32_t flags,
-                              MjpegDecoder& mjpeg, Frame& frame);
+                              MjpegDecoder& mjpeg, Frame& frame, std::string* why = nullptr);
 
  private:
   struct Buffer {
@@ -177,6 +178,10 @@ class V4l2Source final : public FrameSource {
   bool haveSequence_ = false;
   std::uint64_t sequenceGaps_ = 0;
   std::uint64_t corruptFrames_ = 0;
+  // Frame waits in a row that timed out: at kStalledWaits (autoReopen) the stream is
+  // restarted as if the device had been lost.
+  int stalledWaits_ = 0;
+  static constexpr int kStalledWaits = 2;
   std::uint64_t reopens_ = 0;
   int reopenAttempts_ = 0;
   std::string lostReason_;

@@ -406,7 +406,9 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
   }
   {
     std::lock_guard lock(impl_->putMutex);
-    if (impl_->puts.size() < Impl::kMaxQueuedPuts) {
+    // One that could not be saved (a full disk) is not on disk for the queryable: the
+    // link is its only way out, so it waits for the link whatever the queue holds.
+    if (impl_->puts.size() < Impl::kMaxQueuedPuts || rec.file.empty()) {
       impl_->puts.push_back({rec.sequence, {jpeg.begin(), jpeg.end()}, meta});
       impl_->putCv.notify_one();
       return;

@@ -1147,5 +1147,15 @@ def test_full_disk_loses_no_keyframe_on_the_link(
         for payload, meta in received:
             if meta["file"] in saved:
                 assert saved[meta["file"]] == payload
+        # The index holds whole rows only (one the full disk cut short was cut back),
+        # in sequence order, each for a keyframe that is on the disk.
+        (index,) = state.rglob("keyframes.csv")
+        text = index.read_text()
+        assert text.endswith("\n"), text[-200:]
+        table = list(csv.reader(text.splitlines()))
+        assert all(len(row) == len(table[0]) for row in table), text
+        indexed = [int(row[0]) for row in table[1:]]
+        assert indexed == sorted(indexed) and len(set(indexed)) == len(indexed), indexed
+        assert all(row[2] in saved for row in table[1:]), (table, sorted(saved))
     finally:
         subprocess.run(["umount", "-l", str(state)], check=False)

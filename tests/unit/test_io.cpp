@@ -467,10 +467,11 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
         return true;
       });
   const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
-  const auto keyframe = [&](std::int64_t i) {
+  const auto keyframe = [&](std::int64_t i, bool saved = true) {
     KeyframeRecord r;
     r.sequence = i;
     r.frameIndex = 10 * i;
+    if (saved) r.file = "/state/keyframes/" + std::to_string(10 * i) + ".jpg";
     outputs.keyframe(r, jpeg);
   };
   keyframe(0);
@@ -482,6 +483,8 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   // the queryable, and none of these calls waits.
   const auto start = std::chrono::steady_clock::now();
   for (std::int64_t i = 1; i <= 11; ++i) keyframe(i);
+  // One the disk could not take is on no disk for the queryable: it waits for the link.
+  keyframe(12, /*saved=*/false);
   EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(2));
   ASSERT_EQ(warnings.size(), 1U);
   EXPECT_NE(warnings[0].find("keyframe 9 left to the queryable"), std::string::npos) << warnings[0];
@@ -492,7 +495,7 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   cv.notify_all();
   // close() puts what is queued first.
   ASSERT_TRUE(outputs.close("done", error)) << error;
-  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8}));
+  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 12}));
   ASSERT_EQ(warnings.size(), 2U);
   EXPECT_NE(warnings[1].find("3 keyframes left to the queryable"), std::string::npos)
       << warnings[1];

@@ -173,11 +173,12 @@ class FakeDriver final : public V4l2Io {
 };
 
 std::unique_ptr<V4l2Source> openFake(const std::shared_ptr<FakeDriver>& driver,
-                                     bool autoReopen = false, int reopenIntervalMs = 10) {
+                                     bool autoReopen = false, int reopenIntervalMs = 10,
+                                     int timeoutMs = 2000) {
   V4l2Options o;
   o.device = "/dev/video-fake";
   o.io = driver;
-  o.timeoutMs = 2000;
+  o.timeoutMs = timeoutMs;
   o.autoReopen = autoReopen;
   o.reopenIntervalMs = reopenIntervalMs;
   std::string err;
@@ -262,6 +263,43 @@ TEST(V4l2FakeDriver, ALostDeviceIsReopenedAndIndicesContinue) {
   EXPECT_EQ(driver->opens, 2);
   EXPECT_EQ(f.index, 1);
   EXPECT_EQ(src->reopenCount(), 1u);
+}
+
+TEST(V4l2FakeDriver, AStreamThatStallsOrSendsOnlyGarbageIsRestartedAndSaysWhy) {
+  auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_MJPEG);
+  auto src = openFake(driver, /*autoReopen=*/true, /*reopenIntervalMs=*/10, /*timeoutMs=*/100);
+  ASSERT_NE(src, nullptr);
+  const auto jpeg = jpegOf(kWidth, kHeight, 90);
+  Frame f;
+  std::string err;
+  // Frames arrive, every one cut short: the timeout says so, with the reason.
+  // (the end of the scan and its end marker lost: a flat picture's scan is short)
+  const std::vector<std::uint8_t> cut(jpeg.begin(), jpeg.end() - 4);
+  ASSERT_TRUE(driver->deliver(cut));
+  ASSERT_TRUE(driver->deliver(cut));
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+  EXPECT_EQ(err.rfind("timeout: no usable frame from /dev/video-fake within 100 ms: 2 arrived, "
+                      "all unusable (MJPEG frame cut short",
+                      0),
+            0u)
+      << err;
+  EXPECT_FALSE(src->lost());  // once is a hiccup
+  // Twice in a row: the stream is started again, as after an unplug.
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+  EXPECT_EQ(err,
+            "timeout: no frame from /dev/video-fake within 100 ms; device lost: "
+            "/dev/video-fake: Connection timed out (stalled: restarting the stream)");
+  EXPECT_TRUE(src->lost());
+  driver->onStreamOn = jpeg;
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(driver->opens, 2);
+  EXPECT_EQ(src->reopenCount(), 1u);
+  // A good frame between two timeouts: no restart.
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+  ASSERT_TRUE(driver->deliver(jpeg));
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+  EXPECT_FALSE(src->lost());
 }
 
 TEST(V4l2FakeDriver, InterruptEndsAWaitForAFrameAndForTheDevice) {

@@ -107,6 +107,11 @@ TEST(V4l2Devices, TheFirstNodeWithAReadableFormatIsPicked) {
   EXPECT_EQ(V4l2Source::pickDevice({meta, bayer}), "/dev/video0");
   EXPECT_EQ(V4l2Source::pickDevice({meta}), "");
   EXPECT_EQ(V4l2Source::pickDevice({}), "");
+  // A node that could not be opened to look at (no permission): picked, so that its
+  // open() says why ("is the user in group 'video'?") instead of "no camera".
+  V4l2DeviceInfo locked{"/dev/video3", "", "", "", false, false, {}};
+  EXPECT_EQ(V4l2Source::pickDevice({meta, locked}), "/dev/video3");
+  EXPECT_EQ(V4l2Source::pickDevice({locked, usb}), "/dev/video2");
 }
 
 TEST(MjpegDecoder, DecodesToBgr) {
@@ -133,6 +138,32 @@ TEST(MjpegDecoder, RejectsGarbageWithOneLineError) {
   jpeg.resize(20);  // SOI and part of a header
   EXPECT_FALSE(dec.decode(jpeg.data(), jpeg.size(), err));
   EXPECT_EQ(err.find('\n'), std::string::npos);
+}
+
+TEST(MjpegDecoder, AFrameCutShortIsRefusedAndPaddingAfterTheEndIsNot) {
+  const auto jpeg = encodeJpeg(64, 48);
+  MjpegDecoder dec;
+  std::string err;
+  // Cut in the entropy-coded data (a USB transfer lost): libjpeg-turbo only warns
+  // and fills the rest with grey; without the end marker the frame is refused.
+  const std::vector<std::uint8_t> cut(jpeg.begin(), jpeg.begin() + jpeg.size() * 3 / 4);
+  EXPECT_FALSE(dec.decode(cut.data(), cut.size(), err, 64, 48));
+  EXPECT_NE(err.find("cut short"), std::string::npos) << err;
+  // Zeros after the end marker, as some drivers pad a frame: a good frame.
+  std::vector<std::uint8_t> padded(jpeg);
+  padded.resize(jpeg.size() + 1000, 0);
+  EXPECT_TRUE(dec.decode(padded.data(), padded.size(), err, 64, 48)) << err;
+  // And read through the buffer step, the reason is kept for the caller.
+  Frame f;
+  std::string why;
+  const V4l2Source::StreamLayout mjpeg{V4L2_PIX_FMT_MJPEG, PixelFormat::BGR24, 64, 48, 0};
+  EXPECT_EQ(V4l2Source::readBuffer(mjpeg, cut.data(), cut.size(), cut.size(), 0, dec, f, &why),
+            V4l2Source::BufferUse::Corrupt);
+  EXPECT_NE(why.find("cut short"), std::string::npos) << why;
+  EXPECT_EQ(V4l2Source::readBuffer(mjpeg, jpeg.data(), jpeg.size(), jpeg.size(),
+                                   V4L2_BUF_FLAG_ERROR, dec, f, &why),
+            V4l2Source::BufferUse::Corrupt);
+  EXPECT_EQ(why, "the driver flagged the buffer ERROR");
 }
 
 TEST(MjpegDecoder, AHeaderClaimingAHugePictureIsRefusedBeforeDecoding) {
