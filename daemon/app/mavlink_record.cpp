@@ -18,7 +18,8 @@ void MavlinkRecord::packet(const TimedPacket& p) {
 }
 
 void MavlinkRecord::vehicle(const mavlink_message_t& msg, std::int64_t timeNs) {
-  if (msg.sysid != decoder_.autopilotSystem() || msg.compid != decoder_.autopilotComponent())
+  if (msg.sysid != decoder_.autopilotSystem() || msg.compid != decoder_.autopilotComponent() ||
+      timeNs < decoder_.autopilotSinceNs())
     return;
   constexpr std::int64_t kQuaternionHoldNs = 2'000'000'000;
   switch (msg.msgid) {

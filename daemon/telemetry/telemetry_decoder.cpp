@@ -96,10 +96,12 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
     handleGimbal(msg, localNs);
     return;
   }
+  const bool known = system_ != 0 && component_ != 0;
   if (!accept(msg)) {
     ++stats_.otherSources;
     return;
   }
+  if (!known) autopilotSinceNs_ = localNs;
   ++stats_.accepted;
   switch (msg.msgid) {
     case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
@@ -253,6 +255,14 @@ bool TelemetryDecoder::clockSettled() const {
 double TelemetryDecoder::clockRoundTripMs() const {
   std::lock_guard lock(mutex_);
   return clock_.bestRoundTripMs();
+}
+
+std::int64_t TelemetryDecoder::autopilotSinceNs() const {
+  std::lock_guard lock(mutex_);
+  return system_ != 0 && component_ != 0 &&
+                 autopilotSinceNs_ == std::numeric_limits<std::int64_t>::max()
+             ? std::numeric_limits<std::int64_t>::min()  // configured
+             : autopilotSinceNs_;
 }
 
 int TelemetryDecoder::autopilotSystem() const {

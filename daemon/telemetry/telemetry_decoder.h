@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <mutex>
 #include <string>
 
@@ -64,6 +65,11 @@ class TelemetryDecoder {
   [[nodiscard]] double clockRoundTripMs() const;  // best TIMESYNC round trip; NaN without
   [[nodiscard]] int autopilotSystem() const;
   [[nodiscard]] int autopilotComponent() const;
+  // The local time of the HEARTBEAT that named the autopilot (INT64_MIN when both ids
+  // are configured; INT64_MAX while none is known): what came before it was not
+  // taken as the autopilot's, as it arrived. A replay, fed ahead of its frames, asks
+  // this to record the vehicle's track as the live run did.
+  [[nodiscard]] std::int64_t autopilotSinceNs() const;
 
  private:
   bool accept(const mavlink_message_t& msg);
@@ -77,6 +83,7 @@ class TelemetryDecoder {
   TelemetryStats stats_;
   int system_ = 0;
   int component_ = 0;
+  std::int64_t autopilotSinceNs_ = std::numeric_limits<std::int64_t>::max();
   int gimbalComponent_ = -1;  // the first gimbal heard (component, device id) is used
   int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;

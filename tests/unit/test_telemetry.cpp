@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 #include <vector>
 
@@ -412,7 +413,10 @@ TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
     parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
   };
   push(heartbeat(gcs, MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID));
+  EXPECT_EQ(dec.autopilotSinceNs(), std::numeric_limits<std::int64_t>::max());  // none yet
+  now += 7 * kMs;
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
+  EXPECT_EQ(dec.autopilotSinceNs(), 10'007 * kMs);  // named by this heartbeat
   push(heartbeat(other, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
   for (int i = 0; i <= 10; ++i) {
     now = (10'000 + i * 100) * kMs + 5 * kMs;
@@ -457,6 +461,8 @@ TEST(TelemetryDecoder, AChosenAutopilotThatIsNotTheFirstHeard) {
   }
   EXPECT_EQ(dec.autopilotSystem(), 2);
   EXPECT_EQ(dec.autopilotComponent(), 1);
+  // Both ids configured: its messages are its own from the first.
+  EXPECT_EQ(dec.autopilotSinceNs(), std::numeric_limits<std::int64_t>::min());
   const Pose p = dec.poseAt(10'000 * kMs + 500 * kMs);
   ASSERT_TRUE(p.position.has_value()) << p.staleReason;
   EXPECT_NEAR(p.position->latDeg, 10.0, 1e-9);
