@@ -110,14 +110,33 @@ struct Field {
 using Check = std::function<std::string(const std::string&)>;
 
 // `get` is a generic lambda giving a reference to the member, const or not.
+// A setting where 0 switches something off (or means "full"), and any other value must
+// be at least `min`: "must be 0 (what) or >= min (got v)"; empty when `v` is fine.
+struct ZeroOr {
+  double min = 0.0;
+  const char* what = "";
+
+  [[nodiscard]] std::string check(double v) const {
+    if (min <= 0.0 || v == 0.0 || v >= min) return {};
+    const auto number = [](double x) {
+      return x == std::trunc(x) && std::fabs(x) < 1e15
+                 ? std::to_string(static_cast<std::int64_t>(x))
+                 : realText(x);
+    };
+    return "must be 0 (" + std::string(what) + ") or >= " + number(min) + " (got " + number(v) +
+           ")";
+  }
+};
+
 template <typename Get>
 Field integer(std::string_view section, std::string_view key, Get get,
-              SettingRange<std::int64_t> range) {
+              SettingRange<std::int64_t> range, ZeroOr zeroOr = {}) {
   return {section, key, Kind::Integer,
-          [get, range](const toml::node& n, DaemonConfig& c) -> std::string {
+          [get, range, zeroOr](const toml::node& n, DaemonConfig& c) -> std::string {
             const auto* v = n.as_integer();
             if (v == nullptr) return typeError("an integer", n);
             if (!range.contains(v->get())) return rangeError(range, v->get());
+            if (std::string e = zeroOr.check(static_cast<double>(v->get())); !e.empty()) return e;
             auto& dst = get(c);
             dst = static_cast<std::remove_reference_t<decltype(dst)>>(v->get());
             return {};
@@ -141,9 +160,10 @@ Field duration(std::string_view section, std::string_view key, Get get,
 }
 
 template <typename Get>
-Field real(std::string_view section, std::string_view key, Get get, SettingRange<double> range) {
+Field real(std::string_view section, std::string_view key, Get get, SettingRange<double> range,
+           ZeroOr zeroOr = {}) {
   return {section, key, Kind::Real,
-          [get, range](const toml::node& n, DaemonConfig& c) -> std::string {
+          [get, range, zeroOr](const toml::node& n, DaemonConfig& c) -> std::string {
             double d = 0;
             if (const auto* f = n.as_floating_point())
               d = f->get();
@@ -152,6 +172,7 @@ Field real(std::string_view section, std::string_view key, Get get, SettingRange
             else
               return typeError("a number", n);
             if (!range.contains(d)) return rangeError(range, d);
+            if (std::string e = zeroOr.check(d); !e.empty()) return e;
             get(c) = d;
             return {};
           },
@@ -367,7 +388,7 @@ std::vector<Field> makeSchema() {
       sel, "min_overlap", [](auto& c) -> auto& { return c.selection.minOverlap; }, L::kMinOverlap));
   f.push_back(real(
       sel, "motion_ratio", [](auto& c) -> auto& { return c.selection.motionRatio; },
-      L::kMotionRatio));
+      L::kMotionRatio, ZeroOr{1.0, "off"}));
   f.push_back(real(
       sel, "motion_min_fraction", [](auto& c) -> auto& { return c.selection.motionMinFraction; },
       L::kMotionMinFraction));
@@ -379,7 +400,7 @@ std::vector<Field> makeSchema() {
       L::kCaptureWaitMs));
   f.push_back(integer(
       sel, "analysis_width", [](auto& c) -> auto& { return c.selection.analysisWidth; },
-      L::kAnalysisWidth));
+      L::kAnalysisWidth, ZeroOr{64, "full"}));
   f.push_back(integer(
       sel, "max_tracks", [](auto& c) -> auto& { return c.selection.overlap.maxTracks; },
       L::kMaxTracks));
@@ -438,7 +459,7 @@ std::vector<Field> makeSchema() {
       L::kBlurStep));
   f.push_back(integer(
       sel, "blur_width", [](auto& c) -> auto& { return c.selection.blur.analysisWidth; },
-      L::kBlurWidth));
+      L::kBlurWidth, ZeroOr{32, "full"}));
 
   // [telemetry]
   f.push_back(text(
@@ -452,6 +473,10 @@ std::vector<Field> makeSchema() {
       L::kMavlinkId));
   f.push_back(boolean(
       "telemetry", "timesync", [](auto& c) -> auto& { return c.telemetry.link.timesync; }));
+  f.push_back(real(
+      "telemetry", "message_rate_hz",
+      [](auto& c) -> auto& { return c.telemetry.link.messageRateHz; },
+      SettingRange<double>{0.0, 200.0}, ZeroOr{1.0, "off"}));
   f.push_back(boolean(
       "telemetry", "camera_component", [](auto& c) -> auto& { return c.telemetry.link.camera; }));
   f.push_back(boolean(
@@ -819,9 +844,7 @@ class Loader {
     }
     std::string e;
     const std::string& url = c.telemetry.link.url;
-    const bool tlog = (url.starts_with("tlog:") ||
-                       (url.ends_with(".tlog") && url.find(':') == std::string::npos));
-    require(!tlog || (c.camera.source == Source::File && !c.camera.startTime.empty()),
+    require(!isTlogUrl(url) || (c.camera.source == Source::File && !c.camera.startTime.empty()),
             {"telemetry.url", "camera.source", "camera.start_time"},
             "a tlog replays a recorded flight: it needs camera.source = \"file\" and "
             "camera.start_time");

@@ -440,6 +440,10 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
         (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
     if (replay && !o.videoStartUnixNs)
       return fail("--video-start TIME is needed to align the video with the tlog");
+    if (!replay && o.videoStartUnixNs)
+      return fail(
+          "--video-start aligns a video with a tlog; a live link's frames are "
+          "stamped as they arrive");
     if (!replay) o.realtime = true;  // a live link runs on the real clock
   }
   r.ok = true;

@@ -31,6 +31,7 @@ ReadStatus PacedSource::next(Frame& frame, std::string& error) {
   if (st != ReadStatus::Frame) return st;
   if (realtime_) {
     // The frame exists at its presentation time, counted from the first frame.
+    const std::int64_t containerNs = frame.timestampNs;
     if (startNs_ < 0) startNs_ = monotonicNowNs() - frame.timestampNs;
     const std::int64_t due = startNs_ + frame.timestampNs;
     const std::int64_t now = monotonicNowNs();
@@ -41,7 +42,8 @@ ReadStatus PacedSource::next(Frame& frame, std::string& error) {
       error = "interrupted: waiting for a frame's time";
       return ReadStatus::Error;
     }
-    frame.timestampNs = monotonicNowNs();
+    // A camera stamps on CLOCK_MONOTONIC; a recorded flight keeps its own clock.
+    frame.timestampNs = startUnixNs_ ? *startUnixNs_ + containerNs : monotonicNowNs();
   } else if (startUnixNs_) {
     frame.timestampNs += *startUnixNs_;
   }

@@ -20,8 +20,10 @@ class MonotonicClock final : public Clock {
 
 // A video file played as a camera would deliver it (`realtime`): at its own frame
 // rate, each frame stamped with CLOCK_MONOTONIC on arrival, the clock live
-// telemetry is mapped to. Otherwise as fast as it decodes, with container times
-// shifted by `startUnixNs` when given (to meet a tlog's unix times). Shared by
+// telemetry is mapped to, or, given `startUnixNs` (a recorded flight replayed with
+// its tlog), with its container time shifted by that: the tlog's unix times.
+// Otherwise as fast as it decodes, with container times shifted by `startUnixNs`
+// when given. Shared by
 // `select --realtime` and the daemon's file source. The decoding's CPU time is
 // counted apart: a camera delivers frames decoded.
 class PacedSource final : public FrameSource {

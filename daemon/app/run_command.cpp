@@ -20,6 +20,7 @@
 #include <ctime>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <mutex>
 #include <optional>
 #include <thread>
@@ -113,7 +114,10 @@ bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& e
   return true;
 }
 
-std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::string& error) {
+// `videoClock`: a file replayed with its tlog, its frames stamped on the recorded
+// flight's clock (camera.start_time + container time) even when paced in real time.
+std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, bool videoClock,
+                                        std::string& error) {
   switch (c.source) {
     case DaemonConfig::Source::File: {
       auto file = FileSource::open(c.path, error);
@@ -133,6 +137,7 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, std::stri
         }
         start = ns;
       }
+      if (c.realtime && !videoClock) start.reset();  // a camera's clock: CLOCK_MONOTONIC
       return std::make_unique<PacedSource>(std::move(file), c.realtime, start);
     }
     case DaemonConfig::Source::V4l2: {
@@ -215,6 +220,19 @@ class Daemon {
   Notifier notifier_;
   std::string flightDir_;
   bool ready_ = false;  // READY=1 sent (the first frame arrived); main thread
+  // Frames on a recorded flight's clock (a file with its tlog) instead of CLOCK_MONOTONIC:
+  // "now" on that clock is CLOCK_MONOTONIC + the offset found at the first frame.
+  bool videoClock_ = false;
+  std::atomic<std::int64_t> clockOffsetNs_{0};
+  bool clockOffsetFound_ = false;  // analysis thread
+  // A tlog's packets into the flight record as the frames reach their time (analysis
+  // thread), as a live link's are recorded on arrival.
+  std::optional<MavlinkRecord> replayRecord_;
+  std::size_t replayRecorded_ = 0;
+  void recordReplayUpTo(std::int64_t timeNs);
+  [[nodiscard]] std::int64_t frameClockNowNs() const {
+    return monotonicNowNs() + clockOffsetNs_.load();
+  }
   std::unique_ptr<FrameSource> source_;
   std::unique_ptr<FramePool> pool_;
   std::unique_ptr<FrameQueue> queue_;
@@ -261,7 +279,12 @@ void Daemon::analysisLoop() {
       continue;
     }
     stats_.lastFrameNs.store(monotonicNowNs());
+    if (videoClock_ && !clockOffsetFound_) {
+      clockOffsetNs_.store((*item)->frame.timestampNs - monotonicNowNs());
+      clockOffsetFound_ = true;
+    }
     stage_->process((*item)->frame);
+    recordReplayUpTo((*item)->frame.timestampNs);
     captureRequests_.noteServed(*stage_);
     if ((outputs_.recording() || outputs_.publishing()) &&
         preview_.encode((*item)->frame, previewJpeg_)) {
@@ -271,9 +294,20 @@ void Daemon::analysisLoop() {
     stats_.kept.store(stage_->counts().kept);
   }
   stage_->finish();  // the last stretch is covered too
+  recordReplayUpTo(std::numeric_limits<std::int64_t>::max());
   finalCounts_ = stage_->counts();
   stats_.kept.store(finalCounts_.kept);
   events_.close();
+}
+
+void Daemon::recordReplayUpTo(std::int64_t timeNs) {
+  if (!replayRecord_) return;
+  telemetry_->advanceReplay(timeNs);  // the autopilot it follows known as live
+  const auto& packets = telemetry_->replayPackets();
+  for (; replayRecorded_ < packets.size() && packets[replayRecorded_].timeNs <= timeNs;
+       ++replayRecorded_) {
+    replayRecord_->packet(packets[replayRecorded_]);
+  }
 }
 
 void Daemon::outputLoop() {
@@ -304,7 +338,7 @@ void Daemon::outputLoop() {
 // About once a second, keyframed/<vehicle>/telemetry: the pose a quarter second ago
 // (so that samples on both sides have arrived), or why there is none.
 void Daemon::publishPose() {
-  const std::int64_t t = monotonicNowNs() - 250'000'000;
+  const std::int64_t t = frameClockNowNs() - 250'000'000;
   const Pose p = telemetry_->decoder().poseAt(t);
   char buf[512];
   if (p.position && p.attitude) {
@@ -335,7 +369,7 @@ void Daemon::reload() {
     std::lock_guard lock(reloadMutex_);
     pendingSelection_ = r.config.selection;
     config_.selection = r.config.selection;
-    outputs_.settings(monotonicNowNs(), selectionOverrides(config_.selection));
+    outputs_.settings(frameClockNowNs(), selectionOverrides(config_.selection));
     logging::configure(r.config.log);
   }
   // READY again only once it was ready: a reload before the first frame must not say
@@ -433,7 +467,15 @@ int Daemon::run() {
     KF_LOG(Tagging, Warning)
         << "no tagging.calibration or [tagging.camera]: keyframes carry no intrinsics";
   }
-  source_ = openSource(config_.camera, error);
+  std::optional<std::int64_t> videoStartNs;
+  if (config_.camera.source == DaemonConfig::Source::File &&
+      isTlogUrl(config_.telemetry.link.url)) {
+    std::int64_t ns = 0;
+    if (parseUtcTime(config_.camera.startTime, ns)) videoStartNs = ns;  // checked at load
+  }
+  videoClock_ = videoStartNs.has_value();
+  if (videoStartNs) clockOffsetNs_.store(*videoStartNs - monotonicNowNs());  // until a frame
+  source_ = openSource(config_.camera, videoClock_, error);
   if (!source_) {
     KF_LOG(Capture, Error) << toString(config_.camera.source) << ": " << error;
     return 1;
@@ -452,6 +494,8 @@ int Daemon::run() {
   }
   if (camera_) {
     if (const std::string w = camera_->aspectMismatch(info.width, info.height); !w.empty())
+      KF_LOG(Tagging, Warning) << w;
+    if (const std::string w = camera_->physicalSizeWarning(); !w.empty())
       KF_LOG(Tagging, Warning) << w;
   }
   if (!makeFlightDir(config_.output.stateDir, flightDir_, error)) {
@@ -485,7 +529,11 @@ int Daemon::run() {
   wc.dir = flightDir_ + "/keyframes";
   wc.quality = config_.tagging.jpegQuality;
   wc.camera = camera_;
-  if (config_.tagging.systemClockUtc) {
+  if (config_.tagging.systemClockUtc && videoClock_) {
+    wc.utcFallback = [](std::int64_t unixNs) -> std::optional<std::int64_t> {
+      return unixNs / 1000;  // a recorded flight's frames are stamped in unix time
+    };
+  } else if (config_.tagging.systemClockUtc) {
     // Frames are stamped on CLOCK_MONOTONIC: the companion's UTC at that instant.
     wc.utcFallback = [](std::int64_t monoNs) -> std::optional<std::int64_t> {
       const std::int64_t unixNowNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
@@ -511,7 +559,8 @@ int Daemon::run() {
   fo.mcapCompression = config_.output.mcapCompression != "auto" ? config_.output.mcapCompression
                        : config_.output.previewWidth > 0        ? "none"
                                                                 : "zstd";
-  fo.liveClock = true;  // frames and MAVLink on CLOCK_MONOTONIC
+  fo.liveClock = !videoClock_;                   // frames and MAVLink on CLOCK_MONOTONIC
+  if (videoStartNs) fo.startNs = *videoStartNs;  // or a recorded flight's unix time
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
   fo.error = [](const std::string& m) { KF_LOG(Output, Error) << m; };
   fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
@@ -535,7 +584,7 @@ int Daemon::run() {
     return 1;
   }
   logToRecord_ = std::make_unique<LogToRecord>(outputs_);
-  outputs_.settings(monotonicNowNs(), selectionOverrides(config_.selection));
+  outputs_.settings(frameClockNowNs(), selectionOverrides(config_.selection));
 
   if (telemetry_) {
     // The link opens once the flight record listens: every packet from the first is
@@ -545,6 +594,8 @@ int Daemon::run() {
       KF_LOG(Telemetry, Error) << "telemetry.url: " << error;
       return 1;
     }
+    if (telemetry_->isReplay() && outputs_.recording())
+      replayRecord_.emplace(outputs_, telemetry_->decoder());
   }
   MonotonicClock clock;
   stage_ = std::make_unique<KeyframeStage>(

@@ -175,6 +175,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   if (camera) {
     const std::string w = camera->aspectMismatch(source->info().width, source->info().height);
     if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
+    const std::string size = camera->physicalSizeWarning();
+    if (!size.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
   }
   std::error_code ec;
   std::filesystem::create_directories(opts.outDir, ec);
@@ -273,16 +275,17 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   fo.vehicle = opts.vehicle;
   fo.keyframeDir = opts.outDir;
   fo.offline = !opts.realtime;
-  // The record's log times in unix time: frames paced in real time are on
-  // CLOCK_MONOTONIC; a replay keeps the original flight's times; --video-start
-  // times are unix already; plain container times count from the start of this run.
-  if (opts.realtime) {
+  // The record's log times in unix time: --video-start times (with a tlog, paced in
+  // real time or not) are unix already; frames paced in real time are on
+  // CLOCK_MONOTONIC; a replay keeps the original flight's times; plain container
+  // times count from the start of this run.
+  if (opts.videoStartUnixNs) {
+    fo.startNs = *opts.videoStartUnixNs;
+  } else if (opts.realtime) {
     fo.liveClock = true;
   } else if (replay != nullptr) {
     fo.unixOffsetNs = replay->unixOffsetNs();
     fo.startNs = replay->firstTimeNs();
-  } else if (opts.videoStartUnixNs) {
-    fo.startNs = *opts.videoStartUnixNs;
   } else {
     fo.unixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
                           std::chrono::system_clock::now().time_since_epoch())
@@ -297,8 +300,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     return s;
   }
   const LogToRecord logToRecord(outputs);
-  outputs.settings(opts.realtime ? monotonicNowNs() : fo.startNs,
-                   selectionOverrides(opts.selector));
+  outputs.settings(fo.liveClock ? monotonicNowNs() : fo.startNs, selectionOverrides(opts.selector));
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs,
                         telemetrySettings.link.decoder.store);

@@ -345,7 +345,7 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
     frame = Frame::ofBgr(impl.bgr, live != impl.indexAt.end() ? live->second : index_, t);
     ++index_;
     impl.jpeg.assign(field->begin(), field->end());
-    const auto format = bytesField(msg, 4);
+    const auto format = bytesField(msg, 3);  // CompressedImage.format (4 is frame_id)
     format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");
     return ReadStatus::Frame;
   }

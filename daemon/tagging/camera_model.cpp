@@ -60,6 +60,13 @@ std::string CameraModel::aspectMismatch(int w, int h) const {
   return buf;
 }
 
+std::string CameraModel::physicalSizeWarning() const {
+  if (!calibrated() || std::isfinite(sensorWidthMm)) return {};
+  return "the calibration gives no sensor_width_mm or focal_length_mm: the principal point, "
+         "distortion centre and focal length in mm are not tagged (Pix4D, COLMAP's and ODM's "
+         "exact focal need them); add either";
+}
+
 namespace {
 
 bool endsWith(const std::string& s, const std::string& suffix) {
@@ -96,6 +103,18 @@ bool finish(const std::string& path, CameraModel& m, std::string& error) {
   }
   if (std::isnan(m.focalLengthMm) && std::isfinite(m.fx) && std::isfinite(m.sensorWidthMm)) {
     m.focalLengthMm = m.fx * m.sensorWidthMm / m.width;
+  }
+  // The focal length in mm and in pixels give the pixel pitch, so the sensor size
+  // (OpenCV's calibrateCamera output has neither; a lens's focal length is known).
+  if (std::isnan(m.sensorWidthMm) && std::isfinite(m.focalLengthMm) && std::isfinite(m.fx) &&
+      std::isfinite(m.fy)) {
+    m.sensorWidthMm = m.focalLengthMm * m.width / m.fx;
+  }
+  // Pixels as tall as fx / fy times their width (one lens, one focal length): the tags'
+  // focal plane resolution then gives each axis its own focal length back.
+  if (std::isnan(m.sensorHeightMm) && std::isfinite(m.sensorWidthMm) && std::isfinite(m.fx) &&
+      std::isfinite(m.fy)) {
+    m.sensorHeightMm = m.sensorWidthMm * m.height / m.width * m.fx / m.fy;
   }
   return true;
 }

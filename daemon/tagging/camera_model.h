@@ -39,6 +39,9 @@ struct CameraModel {
   // 0.5 %, or no calibrated size), else a one-line warning: another aspect ratio is
   // a crop of the sensor (a 16:9 mode of a 4:3 sensor), which scaling gets wrong.
   [[nodiscard]] std::string aspectMismatch(int w, int h) const;
+  // "" unless the calibration is in pixels only (no sensor size, no focal length in
+  // mm): then the tags cannot carry the principal point and the focal length in mm.
+  [[nodiscard]] std::string physicalSizeWarning() const;
 };
 
 // Reads a camera model from:

@@ -45,6 +45,14 @@ bool splitHostPort(const std::string& s, std::string& host, int& port) {
   return port > 0 && port < 65536;
 }
 
+}  // namespace
+
+bool isTlogUrl(const std::string& url) {
+  return url.starts_with("tlog:") || (url.ends_with(".tlog") && url.find(':') == std::string::npos);
+}
+
+namespace {
+
 bool parseUrl(const std::string& url, Url& out, std::string& error) {
   auto bad = [&](const std::string& why) {
     error = "bad MAVLink link '" + url + "': " + why;

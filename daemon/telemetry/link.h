@@ -45,6 +45,9 @@ std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string
 // Validates a link URL without opening it (configuration checks).
 bool parseMavlinkUrl(const std::string& url, std::string& error);
 
+// True when the URL names a tlog (a recorded flight, replayed on its own clock).
+bool isTlogUrl(const std::string& url);
+
 std::int64_t monotonicNowNs();
 
 }  // namespace keyframed

@@ -27,6 +27,12 @@ std::string formatMs(double ms, int decimals = 3) {
   std::snprintf(buf, sizeof buf, "%.*f ms", decimals, ms);
   return buf;
 }
+
+std::string formatHz(double hz) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%g Hz", hz);
+  return buf;
+}
 }  // namespace
 
 Quaternion mavlinkCameraAttitude(const Quaternion& cameraToNed) {
@@ -205,6 +211,77 @@ void TelemetryService::sendCameraInformation() {
       }));
   std::lock_guard lock(mutex_);
   ++stats_.infoSent;
+}
+
+void TelemetryService::requestMessageRates(std::int64_t nowNs) {
+  if (!(config_.messageRateHz > 0.0)) return;
+  const int sys = decoder_.autopilotSystem();
+  if (sys == 0) return;
+  const int who = sys << 8 | decoder_.autopilotComponent();
+  const std::uint64_t reboots = decoder_.stats().reboots;
+  if (who != rates_.autopilot || reboots != rates_.reboots) {  // new, or rebooted
+    rates_ = {};
+    rates_.autopilot = who;
+    rates_.reboots = reboots;
+    rates_.nextNs = nowNs;
+  }
+  if (rates_.done || nowNs < rates_.nextNs) return;
+  constexpr int kRounds = 3;  // two seconds apart: a lost command, or one never answered
+  if (rates_.rounds >= kRounds) {
+    rates_.done = true;
+    log(TelemetryLogLevel::Warning,
+        "no answer to MAV_CMD_SET_MESSAGE_INTERVAL: the autopilot's own stream rates apply "
+        "(attitude samples further apart than telemetry.attitude_gap_ms are not used)");
+    return;
+  }
+  ++rates_.rounds;
+  rates_.nextNs = nowNs + 2 * kSecond;
+  const double hz = config_.messageRateHz;
+  const std::pair<std::uint32_t, double> wanted[] = {
+      {MAVLINK_MSG_ID_ATTITUDE, hz},
+      {MAVLINK_MSG_ID_GLOBAL_POSITION_INT, hz},
+      {MAVLINK_MSG_ID_GPS_RAW_INT, std::min(hz, 5.0)},
+      {MAVLINK_MSG_ID_SYSTEM_TIME, std::min(hz, 1.0)},
+  };
+  for (const auto& [id, rate] : wanted) {
+    const float intervalUs = static_cast<float>(std::round(1e6 / rate));
+    send(encoder_->encode(
+        [&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
+          mavlink_msg_command_long_pack_status(
+              systemId(), static_cast<std::uint8_t>(config_.componentId), st, m,
+              static_cast<std::uint8_t>(sys), static_cast<std::uint8_t>(who & 0xff),
+              MAV_CMD_SET_MESSAGE_INTERVAL, static_cast<std::uint8_t>(rates_.rounds - 1),
+              static_cast<float>(id), intervalUs, 0, 0, 0, 0, 0);
+        }));
+  }
+  std::lock_guard lock(mutex_);
+  stats_.rateRequests += std::size(wanted);
+}
+
+void TelemetryService::onCommandAck(const mavlink_message_t& msg) {
+  mavlink_command_ack_t a;
+  mavlink_msg_command_ack_decode(&msg, &a);
+  const int from = msg.sysid << 8 | msg.compid;
+  if (a.command != MAV_CMD_SET_MESSAGE_INTERVAL || rates_.autopilot == 0 ||
+      from != rates_.autopilot || a.result == MAV_RESULT_IN_PROGRESS) {
+    return;
+  }
+  const bool accepted = a.result == MAV_RESULT_ACCEPTED;
+  {
+    std::lock_guard lock(mutex_);
+    ++(accepted ? stats_.rateAccepted : stats_.rateRefused);
+  }
+  if (rates_.done) return;
+  rates_.done = true;  // one answer is enough to know it heard us
+  if (accepted) {
+    log(TelemetryLogLevel::Notice,
+        "asked the autopilot for attitude and position at " + formatHz(config_.messageRateHz));
+  } else {
+    log(TelemetryLogLevel::Warning,
+        "the autopilot refused MAV_CMD_SET_MESSAGE_INTERVAL (result " + std::to_string(a.result) +
+            "): set its stream rates for this link (ArduPilot: SRn_EXTRA1, SRn_POSITION) to " +
+            formatHz(config_.messageRateHz));
+  }
 }
 
 void TelemetryService::sendCommandAck(std::uint16_t command, std::uint8_t result,
@@ -491,6 +568,7 @@ void TelemetryService::onMessage(const mavlink_message_t& msg, std::int64_t time
     onCommand(msg);
     return;
   }
+  if (msg.msgid == MAVLINK_MSG_ID_COMMAND_ACK) onCommandAck(msg);
   decoder_.handle(msg, timeNs);
 }
 
@@ -580,6 +658,7 @@ void TelemetryService::run() {
       lastTimesync = now;
       sendTimesync(now);
     }
+    requestMessageRates(now);
     sendPendingCaptures(now);
     logClock(now);
     if (!silent && now - lastData > kSilenceNs) {

@@ -56,6 +56,10 @@ struct TelemetryServiceConfig {
   bool timesync = true;   // send TIMESYNC requests (1 Hz)
   bool camera = true;     // act as a MAVLink camera component
   bool mavlink1 = false;  // send MAVLink 1 frames (ids above 255 still go as MAVLink 2)
+  // Asks the autopilot (MAV_CMD_SET_MESSAGE_INTERVAL) for ATTITUDE and
+  // GLOBAL_POSITION_INT at this rate, GPS_RAW_INT at up to 5 Hz and SYSTEM_TIME at
+  // 1 Hz, once it is known and after it reboots; 0 leaves its stream rates alone.
+  double messageRateHz = 20.0;
   std::size_t maxPendingCaptures = 256;  // unsent CAMERA_IMAGE_CAPTURED kept for the link
   std::size_t captureHistory = 1024;     // sent ones kept for MAV_CMD_REQUEST_MESSAGE
   TelemetryConfig decoder;
@@ -75,6 +79,9 @@ struct TelemetryServiceStats {
   std::uint64_t capturesReported = 0;  // keyframes reported (reportCapture): image_count
   std::uint64_t captureRequests = 0;   // captures asked of the selector (IMAGE_START_CAPTURE)
   std::uint64_t captureRefused = 0;    // ... that it could not take (too many waiting)
+  std::uint64_t rateRequests = 0;      // MAV_CMD_SET_MESSAGE_INTERVAL sent to the autopilot
+  std::uint64_t rateAccepted = 0;      // ... acknowledged as accepted
+  std::uint64_t rateRefused = 0;       // ... acknowledged with any other result
   bool replayDone = false;
   bool truncated = false;
 };
@@ -147,6 +154,8 @@ class TelemetryService {
   void sendTimesync(std::int64_t nowNs);
   void onTimesync(const mavlink_message_t& msg, std::int64_t timeNs);
   void onCommand(const mavlink_message_t& msg);
+  void onCommandAck(const mavlink_message_t& msg);
+  void requestMessageRates(std::int64_t nowNs);
   void resendCaptures(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   void startCapture(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   bool requestCapture(bool intervalTick);
@@ -188,6 +197,14 @@ class TelemetryService {
   std::int64_t lastClockLogNs_ = 0;
   int loggedAutopilot_ = 0;
   std::uint64_t loggedReboots_ = 0;
+  struct {
+    int autopilot = 0;          // sysid << 8 | compid the requests went to
+    std::uint64_t reboots = 0;  // its reboots then: another asks again
+    int rounds = 0;             // sent so far (all four messages each)
+    int answered = 0;           // acknowledgements heard in this round
+    std::int64_t nextNs = 0;    // when to send the next round
+    bool done = false;          // answered, or given up (and said so)
+  } rates_;
   std::int64_t lastCaptureWarningNs_ = 0;
   CaptureRequestSink captureSink_;
   struct {

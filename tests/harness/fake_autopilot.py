@@ -298,6 +298,9 @@ class FakeAutopilot:
         self.answer_timesync = answer_timesync
         self.rogue_timesync = rogue_timesync
         self.rogue_answers = 0  # TIMESYNC answers the rogue ground station sent
+        # MAV_CMD_SET_MESSAGE_INTERVAL asked of it: message id -> interval in us
+        # (acknowledged as ArduPilot does; the replay's own rates stay).
+        self.message_intervals: dict[int, int] = {}
         self.target = target
         self.t0_unix_us = self.records[0].unix_us
         self.t_end_unix_us = self.records[-1].unix_us
@@ -649,6 +652,18 @@ class FakeAutopilot:
         with self._cond:
             self._received.append((now_ns, msg))
             self._cond.notify_all()
+        if (
+            msg.get_type() == "COMMAND_LONG"
+            and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+            and msg.target_system == self.system_id
+            and msg.target_component == self.component_id
+        ):
+            self.message_intervals[int(msg.param1)] = int(msg.param2)
+            self.send(
+                self._mav.command_ack_encode(
+                    msg.command, mavlink.MAV_RESULT_ACCEPTED, 0, 0, *self._peer_ids
+                )
+            )
         if msg.get_type() == "TIMESYNC" and msg.tc1 == 0:
             target = timesync_target(msg)
             if target is not None and target[0] not in (0, self.system_id):

@@ -138,6 +138,11 @@ def test_truncated_video_keeps_what_was_read_and_fails(any_bin: Path, pan_video:
         (["--analysis-width", "10"], "--analysis-width: must be 0 (full) or >= 64"),
         (["--min-overlap", "0.65"], "--min-overlap (0.65) must not exceed --band LO (0.6)"),
         (["--max-tracks", "20", "--min-tracks", "30"], "--min-tracks (30) must not exceed"),
+        # a live link's frames are stamped as they arrive, not from a given start
+        (
+            ["--telemetry", "udpin:127.0.0.1:9", "--video-start", "2026-06-01T10:00:00Z"],
+            "--video-start aligns a video with a tlog",
+        ),
     ],
 )
 def test_bad_options(any_bin: Path, pan_video: Path, tmp_path, args: list[str], needle: str):

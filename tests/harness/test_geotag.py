@@ -665,6 +665,16 @@ def test_live_udp_autopilot_with_clock_offset(
     hb = ap.received("HEARTBEAT")
     assert hb and hb[0].type == mav2.MAV_TYPE_CAMERA
     assert hb[0].get_srcComponent() == mav2.MAV_COMP_ID_CAMERA
+    # it asked the autopilot for its stream rates once (acknowledged: not again)
+    assert ap.message_intervals == {
+        mav2.MAVLINK_MSG_ID_ATTITUDE: 50_000,
+        mav2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 50_000,
+        mav2.MAVLINK_MSG_ID_GPS_RAW_INT: 200_000,
+        mav2.MAVLINK_MSG_ID_SYSTEM_TIME: 1_000_000,
+    }
+    rate_cmds = [m for m in ap.received("COMMAND_LONG") if m.command == 511]
+    assert len(rate_cmds) == 4, rate_cmds
+    assert "asked the autopilot for attitude and position at 20 Hz" in log, log
 
 
 @needs_exiftool

@@ -63,6 +63,7 @@ class Vehicle:
         self.flight_queries: list[tuple[str, int, int]] = []  # naming a flight
         self.stopped = threading.Event()
         self.unavailable: set[int] = set()
+        self.garbled: set[int] = set()  # answered with an attachment that is no JSON
         # The daemon's flight id (none: an offline run), and the earlier ones it serves
         # on request (flight=ID), as after a restart: the same folder here.
         self.flight = ""
@@ -109,10 +110,11 @@ class Vehicle:
                 query.reply_err(b"not in the store")
                 continue
             row = self.rows[seq]
+            meta = json.dumps(self.meta(row) | {"flight": flight or None}).encode()
             query.reply(
                 f"keyframed/{self.name}/keyframes/{seq}",
                 (self.folder / row["file"]).read_bytes(),
-                attachment=json.dumps(self.meta(row) | {"flight": flight or None}).encode(),
+                attachment=b"\xff{not json" if seq in self.garbled else meta,
             )
 
     def publish(self, seq: int, payload: bytes | None = None) -> None:
@@ -211,6 +213,32 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     # COLMAP's principal point: from the image corner, OpenCV's + 0.5
     assert cx == pytest.approx(intr["cx"] + 0.5, abs=0.01)
     assert cy == pytest.approx(intr["cy"] + 0.5, abs=0.01)
+
+    # cameras.json for OpenDroneMap: keyed as OpenSfM names the camera of these images
+    # (read here by exiftool), the same intrinsics normalised by the longer side
+    tags = json.loads(
+        subprocess.run(
+            ["exiftool", "-j", "-n", str(ds / "images" / vehicle.rows[0]["file"])],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    )[0]
+    make, model = str(tags["Make"]), str(tags["Model"]).replace(str(tags["Make"]), "")
+    size = (tags["ExifImageWidth"], tags["ExifImageHeight"])
+    ratio = str(tags["FocalLengthIn35mmFormat"] / 36.0)[:6]
+    camera_id = f"{make.strip()} {model.strip()} {size[0]} {size[1]} brown {ratio}".lower()
+    odm = json.loads((ds / "cameras.json").read_text())
+    assert list(odm) == [camera_id] and summary["odm_camera"] == camera_id
+    brown = odm[camera_id]
+    assert brown["projection_type"] == "brown" and (brown["width"], brown["height"]) == (480, 270)
+    assert brown["focal_x"] * 480 == pytest.approx(fx, rel=1e-9)
+    assert brown["focal_y"] * 480 == pytest.approx(fy, rel=1e-9)
+    assert 240 + brown["c_x"] * 480 == pytest.approx(cx, rel=1e-9)
+    assert 135 + brown["c_y"] * 480 == pytest.approx(cy, rel=1e-9)
+    assert [brown[k] for k in ("k1", "k2", "p1", "p2")] == pytest.approx(
+        [float(v) for v in cam[8:12]], abs=1e-12
+    )
 
     pairs = [tuple(line.split()) for line in (ds / "pairs.txt").read_text().splitlines()]
     files = [r["file"] for r in vehicle.rows]
@@ -391,15 +419,69 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     assert r.returncode == 1 and "cannot create" in r.stderr
 
 
+def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_path: Path) -> None:
+    """calibrateCamera's output (pixels only, fx != fy, k1 k2 p1 p2 k3) plus the lens's
+    focal length in mm: what the ground station makes of the keyframes' tags alone is
+    that calibration, in COLMAP's and OpenSfM's conventions."""
+    from keyframed.ground import colmap_camera, odm_cameras, read_tags
+
+    fl = flight("nadir", width=320, height=180, seconds=3.0)
+    calib = {"fx": 231.5, "fy": 232.25, "cx": 161.25, "cy": 88.75}
+    k = [-0.12, 0.034, 0.0011, -0.0007, 0.0052]
+    matrix = [calib["fx"], 0, calib["cx"], 0, calib["fy"], calib["cy"], 0, 0, 1]
+    (tmp_path / "calib.yaml").write_text(
+        "%YAML:1.0\n---\nimage_width: 320\nimage_height: 180\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: {matrix}\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+        f"   data: {k}\n"
+        'focal_length_mm: 4.4\nmake: "Acme"\nmodel: "Acme Cam 2"\n'
+    )
+    out = tmp_path / "tagged"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(fl / "video.avi"), "--out", str(out), "--quiet"]
+        + ["--calibration", str(tmp_path / "calib.yaml")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "sensor_width_mm" not in r.stderr  # the focal length in mm was enough
+    jpeg = next(out.glob("*.jpg")).read_bytes()
+    tags = read_tags(jpeg)
+    line = colmap_camera(tags)
+    assert line is not None
+    model, w, h, *params = line.split()[1:]
+    assert (model, w, h) == ("FULL_OPENCV", "320", "180")
+    expected = [calib["fx"], calib["fy"], calib["cx"] + 0.5, calib["cy"] + 0.5, k[0], k[1]]
+    expected += [k[2], k[3], k[4], 0.0, 0.0, 0.0]
+    assert [float(v) for v in params] == pytest.approx(expected, rel=1e-5, abs=1e-7)
+
+    odm = odm_cameras(tags)
+    assert odm is not None
+    ((camera_id, brown),) = odm.items()
+    # OpenSfM drops a make repeated in the model; f35 = round(fx * 36 / 320) = 26
+    assert camera_id == f"acme cam 2 320 180 brown {str(26 / 36)[:6]}"
+    assert brown["focal_x"] * 320 == pytest.approx(calib["fx"], rel=1e-5)
+    assert brown["focal_y"] * 320 == pytest.approx(calib["fy"], rel=1e-5)
+    assert 160 + brown["c_x"] * 320 == pytest.approx(calib["cx"] + 0.5, rel=1e-5)
+    assert 90 + brown["c_y"] * 320 == pytest.approx(calib["cy"] + 0.5, rel=1e-5)
+    got = [brown[n] for n in ("k1", "k2", "p1", "p2", "k3")]
+    assert got == pytest.approx(k, rel=1e-6)
+
+
 def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path) -> None:
+    """One keyframe the vehicle no longer has, one it answers with garbage: both are
+    reported missing, the rest is stored and the dataset's files are written."""
     port = free_port()
     vehicle = Vehicle("uav2", tagged, port)
     vehicle.unavailable = {1}
+    vehicle.garbled = {3}
     out = tmp_path / "dataset"
     proc = ground(out, port)
     try:
         wait_connected(vehicle)
-        for seq in (0, 2, 3):
+        for seq in (0, 2, 4):
             vehicle.publish(seq)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
@@ -407,10 +489,13 @@ def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path)
             proc.kill()
         vehicle.close()
     assert proc.returncode == 3, stderr
-    assert "still missing" in stderr
+    assert "still missing" in stderr and "bad reply" in stderr
+    assert "Traceback" not in stderr
     summary = json.loads(stdout.strip().splitlines()[-1])
-    assert summary["keyframes"] == 3 and summary["missing"] == [1]
-    assert (1, 1) in vehicle.queries
+    assert summary["keyframes"] == 3 and summary["missing"] == [1, 3]
+    assert (1, 1) in vehicle.queries and (3, 3) in vehicle.queries
+    for name in ("cameras.txt", "pairs.txt", "geo.txt", "keyframes.jsonl"):
+        assert (out / "uav2" / name).stat().st_size > 0, name
 
 
 def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:

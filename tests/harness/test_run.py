@@ -158,6 +158,55 @@ def test_system_clock_utc_dates_keyframes_without_telemetry(kf_bin: Path, tmp_pa
         assert abs((int(u1) - int(u0)) / 1e6 / (i1 - i0) - 1 / 30) < 0.01
 
 
+def test_run_replays_a_tlog_with_its_video_as_select_does(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """`keyframed run` on a recorded flight (file source at its own frame rate, tlog):
+    the frames are stamped on the flight's clock (camera.start_time + container time),
+    so every keyframe is tagged from the tlog as `select --telemetry` tags it, and the
+    flight record is in the flight's time."""
+    video, tlog = short_nadir / "video.avi", short_nadir / "flight.tlog"
+    start_time, calibration = "2026-06-01T10:00:00Z", short_nadir / "intrinsics.json"
+    sets = [
+        f"camera.path={video}",
+        f"camera.start_time={start_time}",
+        f"telemetry.url=tlog:{tlog}",
+        f"tagging.calibration={calibration}",
+    ]
+    proc = start(kf_bin, tmp_path, *sets)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["frames_read"] == 240 and summary["frames_dropped"] == 0
+    live = rows(fd / "keyframes" / "keyframes.csv")
+    offline = tmp_path / "offline"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(video), "--out", str(offline), "--quiet"]
+        + ["--telemetry", str(tlog), "--video-start", start_time]
+        + ["--calibration", str(calibration)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    off = rows(offline / "keyframes.csv")
+    assert len(live) == len(off) >= 5
+    for a, b in zip(live, off, strict=True):
+        assert a["geotag"] == "ok", a
+        assert (a["index"], a["utc_us"]) == (b["index"], b["utc_us"])
+        for k in ("lat", "lon", "alt_amsl", "yaw", "pitch", "roll"):
+            assert float(a[k]) == pytest.approx(float(b[k]), abs=1e-9), k
+    # the record: log times are the flight's, from the video's start on
+    from mcap.reader import make_reader
+
+    t0 = 1780308000 * 10**9  # 2026-06-01T10:00:00Z
+    with open(fd / "flight.mcap", "rb") as f:
+        times = {ch.topic: m.log_time for _, ch, m in make_reader(f).iter_messages()}
+    assert t0 <= times["/keyframed/keyframe"] <= t0 + 9 * 10**9, times
+    assert t0 - 60 * 10**9 <= times["/mavlink/raw"] <= t0 + 60 * 10**9, times
+
+
 def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:

@@ -65,8 +65,38 @@ TEST(CameraModel, ReadsOpenCvCalibrationYaml) {
   EXPECT_DOUBLE_EQ(m.cy, 360.25);
   ASSERT_EQ(m.distortion.size(), 5u);
   EXPECT_DOUBLE_EQ(m.distortion[3], -0.002);
-  EXPECT_NEAR(m.focalLengthMm, 1000 * 6.4 / 1280, 1e-12);  // derived
-  EXPECT_EQ(m.make, "keyframed");                          // default kept
+  EXPECT_NEAR(m.focalLengthMm, 1000 * 6.4 / 1280, 1e-12);                // derived
+  EXPECT_NEAR(m.sensorHeightMm, 6.4 * 720 / 1280 * 1000 / 1002, 1e-12);  // fy kept in it
+  EXPECT_EQ(m.make, "keyframed");                                        // default kept
+}
+
+TEST(CameraModel, CalibrateCameraOutputGetsItsSensorFromTheFocalLengthInMm) {
+  // calibrateCamera writes pixels only: a lens's focal length in mm gives the pixel
+  // pitch, so the sensor size (and each axis's own focal length survives in it).
+  const auto write = [](const fs::path& p, bool withFocal) {
+    cv::FileStorage out(p.string(), cv::FileStorage::WRITE);
+    out << "image_width" << 1280 << "image_height" << 720;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << 1000, 0, 640.5, 0, 1002, 360.25, 0, 0, 1);
+    out << "distortion_coefficients" << (cv::Mat_<double>(1, 5) << -0.1, 0.05, 0, 0, 0);
+    if (withFocal) out << "focal_length_mm" << 4.0;
+  };
+  CameraModel m;
+  std::string error;
+  const fs::path withFocal = tempDir() / "calib-focal.yaml";
+  write(withFocal, true);
+  ASSERT_TRUE(loadCameraModel(withFocal.string(), m, error)) << error;
+  EXPECT_NEAR(m.sensorWidthMm, 4.0 * 1280 / 1000, 1e-12);
+  EXPECT_NEAR(m.sensorHeightMm, 4.0 * 720 / 1002, 1e-12);
+  EXPECT_EQ(m.physicalSizeWarning(), "");
+
+  const fs::path pixelsOnly = tempDir() / "calib-pixels.yaml";
+  write(pixelsOnly, false);
+  CameraModel p;
+  ASSERT_TRUE(loadCameraModel(pixelsOnly.string(), p, error)) << error;
+  EXPECT_TRUE(std::isnan(p.sensorWidthMm));
+  const std::string w = p.physicalSizeWarning();
+  EXPECT_NE(w.find("sensor_width_mm or focal_length_mm"), std::string::npos) << w;
+  EXPECT_EQ(CameraModel{}.physicalSizeWarning(), "");  // no calibration: another warning
 }
 
 TEST(CameraModel, ReadsTheShippedExample) {

@@ -365,9 +365,25 @@ TEST(Config, CrossChecksNameTheLastKeySet) {
   expectOneError(dir, "[telemetry]\nurl = \"flight.tlog\"\n",
                  "2: telemetry.url: a tlog replays a recorded flight: it needs camera.source = "
                  "\"file\" and camera.start_time");
-  // The core's own rules still apply (analysis width 0 or >= 64).
-  expectOneError(dir, "[selection]\nanalysis_width = 32\n",
-                 "2: selection.analysis_width: analysis width must be 0 (full) or >= 64");
+}
+
+TEST(Config, ZeroOrAtLeastSettingsNameTheirOwnKeyAndLine) {
+  // 0 switches these off (or means full size); other values have a minimum. The key
+  // and line named are the bad one's, whatever is set after it.
+  TempDir dir;
+  expectOneError(dir, "[selection]\nanalysis_width = 32\ntarget = 0.7\n",
+                 "2: selection.analysis_width: must be 0 (full) or >= 64 (got 32)");
+  expectOneError(dir, "[selection]\nblur_width = 20\ntarget = 0.7\n",
+                 "2: selection.blur_width: must be 0 (full) or >= 32 (got 20)");
+  expectOneError(dir, "[selection]\nmotion_ratio = 0.5\ntarget = 0.7\n",
+                 "2: selection.motion_ratio: must be 0 (off) or >= 1 (got 0.5)");
+  TempDir ok;
+  for (const char* text :
+       {"[selection]\nanalysis_width = 0\nblur_width = 0\nmotion_ratio = 0\n",
+        "[selection]\nanalysis_width = 64\nblur_width = 32\nmotion_ratio = 1\n"}) {
+    const ConfigLoadResult r = loadText(ok, text);
+    EXPECT_TRUE(r.ok()) << text << joined(r.errors);
+  }
 }
 
 TEST(Config, SmallValuesLowerTheDefaultsThatDependOnThem) {

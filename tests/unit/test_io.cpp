@@ -533,7 +533,10 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
   EXPECT_EQ(replay->settingsChanges(), 1);
   std::vector<std::int64_t> indices;
   Frame f;
-  while (replay->next(f, error) == ReadStatus::Frame) indices.push_back(f.index);
+  while (replay->next(f, error) == ReadStatus::Frame) {
+    indices.push_back(f.index);
+    EXPECT_EQ(replay->format(), "jpeg");  // the image's format, not its frame_id
+  }
   EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9})) << error;
 }
 

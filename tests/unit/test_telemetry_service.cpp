@@ -633,6 +633,84 @@ TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
   EXPECT_EQ(count("autopilot clock"), 1);
 }
 
+std::vector<std::uint8_t> commandAck(MavlinkEncoder& enc, std::uint16_t command,
+                                     std::uint8_t result) {
+  return enc.encode(
+      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_command_ack_pack_status(s, c, st, m, command, result, 0, 0, 0, 0);
+      });
+}
+
+TEST(TelemetryService, AsksTheAutopilotForItsMessageRatesUntilItAnswers) {
+  Peer peer;
+  TelemetryServiceConfig cfg = serviceConfig();
+  cfg.messageRateHz = 20.0;
+  TelemetryService svc(cfg, CameraDescription{});
+  std::vector<std::string> logs;
+  std::mutex logMutex;
+  svc.setLogSink([&](TelemetryLogLevel, const std::string& m) {
+    std::lock_guard lock(logMutex);
+    logs.push_back(m);
+  });
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1), gimbal(1, 154);
+  peer.push(quadHeartbeat(ap));
+  const auto rates = [&] {
+    std::vector<mavlink_command_long_t> r;
+    for (const auto& m : peer.written(MAVLINK_MSG_ID_COMMAND_LONG)) {
+      mavlink_command_long_t c;
+      mavlink_msg_command_long_decode(&m, &c);
+      if (c.command == MAV_CMD_SET_MESSAGE_INTERVAL) r.push_back(c);
+    }
+    return r;
+  };
+  ASSERT_TRUE(eventually([&] { return rates().size() == 4; }));
+  // To the autopilot: attitude and position at 20 Hz, GPS at 5 Hz, its UTC at 1 Hz.
+  std::vector<std::pair<int, int>> asked;
+  for (const auto& c : rates()) {
+    EXPECT_EQ(c.target_system, 1);
+    EXPECT_EQ(c.target_component, 1);
+    EXPECT_EQ(c.confirmation, 0);
+    asked.emplace_back(static_cast<int>(c.param1), static_cast<int>(c.param2));
+  }
+  EXPECT_EQ(asked, (std::vector<std::pair<int, int>>{{MAVLINK_MSG_ID_ATTITUDE, 50'000},
+                                                     {MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 50'000},
+                                                     {MAVLINK_MSG_ID_GPS_RAW_INT, 200'000},
+                                                     {MAVLINK_MSG_ID_SYSTEM_TIME, 1'000'000}}));
+  // Unanswered: asked again 2 s later (confirmation 1).
+  ASSERT_TRUE(eventually([&] { return rates().size() == 8; }, 3500));
+  EXPECT_EQ(rates()[4].confirmation, 1);
+  // An acknowledgement from another component, or of another command, is not the answer.
+  peer.push(commandAck(gimbal, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED));
+  peer.push(commandAck(ap, MAV_CMD_REQUEST_MESSAGE, MAV_RESULT_ACCEPTED));
+  peer.push(commandAck(ap, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED));
+  ASSERT_TRUE(eventually([&] { return svc.stats().rateAccepted == 1; }));
+  std::this_thread::sleep_for(std::chrono::milliseconds(2300));
+  EXPECT_EQ(rates().size(), 8U) << "answered: not asked again";
+  EXPECT_EQ(svc.stats().rateRequests, 8U);
+  svc.stop();
+  std::lock_guard lock(logMutex);
+  int said = 0;
+  for (const auto& m : logs) said += m.find("attitude and position at 20 Hz") != std::string::npos;
+  EXPECT_EQ(said, 1);
+}
+
+TEST(TelemetryService, LeavesTheAutopilotsRatesAloneWhenToldTo) {
+  Peer peer;
+  TelemetryServiceConfig cfg = serviceConfig();
+  cfg.messageRateHz = 0.0;
+  TelemetryService svc(cfg, CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+  ASSERT_GE(peer.waitFor(MAVLINK_MSG_ID_TIMESYNC, 3).size(), 3U);  // the loop ran a while
+  svc.stop();
+  EXPECT_TRUE(peer.written(MAVLINK_MSG_ID_COMMAND_LONG).empty());
+  EXPECT_EQ(svc.stats().rateRequests, 0U);
+}
+
 TEST(TelemetryService, LinkSilenceIsLoggedOnceAndItsEnd) {
   Peer peer;
   TelemetryService svc(serviceConfig(), CameraDescription{});

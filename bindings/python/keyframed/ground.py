@@ -24,6 +24,8 @@ down before the daemon restarted; those older than ``--earlier-flights`` seconds
   sequence number;
 - ``cameras.txt``: the camera in COLMAP's text format (OPENCV model, from the
   intrinsics in the JPEG's tags);
+- ``cameras.json``: the same camera for OpenDroneMap (``--camera-lens brown --cameras
+  cameras.json``), keyed by the camera id OpenSfM derives from the tags;
 - ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``, the
   edges of the overlap graph: each keyframe with its neighbours along the flight and
   with those whose ground footprints (projected from position, camera attitude and
@@ -110,6 +112,10 @@ class ImageTags:
     pixels_per_mm_y: float | None = None  # from FocalPlaneYResolution (fy may differ)
     principal_mm: tuple[float, float] | None = None
     distortion: list[float] = field(default_factory=list)  # Pix4D R1,R2,R3,T1,T2
+    make: str = ""
+    model: str = ""
+    exif_size: tuple[int, int] | None = None  # PixelXDimension, PixelYDimension
+    focal_35mm: float | None = None  # FocalLengthIn35mmFilm
 
 
 def _xmp_value(xmp: str, name: str) -> str | None:
@@ -137,7 +143,13 @@ def _read_tags(jpeg: bytes) -> ImageTags:
     with Image.open(io.BytesIO(jpeg)) as im:
         tags.width, tags.height = im.size
         exif = im.getexif()
+        tags.make = str(exif.get(0x010F, "")).strip("\x00 ")
+        tags.model = str(exif.get(0x0110, "")).strip("\x00 ")
         sub = exif.get_ifd(0x8769)
+        if 0xA002 in sub and 0xA003 in sub:
+            tags.exif_size = (int(sub[0xA002]), int(sub[0xA003]))
+        if sub.get(0xA405):
+            tags.focal_35mm = float(sub[0xA405])
         if 0x920A in sub:
             tags.focal_mm = float(sub[0x920A])
         if 0xA20E in sub and 0xA210 in sub:
@@ -179,26 +191,104 @@ def _read_tags(jpeg: bytes) -> ImageTags:
     return tags
 
 
+@dataclass
+class Intrinsics:
+    """A calibrated camera in pixels, with the principal point measured from the image
+    corner (COLMAP's and OpenSfM's convention: the first pixel's centre is at 0.5)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    k: tuple[float, float, float]  # radial k1 k2 k3
+    p: tuple[float, float]  # tangential p1 p2 (OpenCV's)
+
+
+def intrinsics(tags: ImageTags) -> Intrinsics | None:
+    """The intrinsics the tags give in pixels, or None when they do not: the focal
+    length (mm) and the focal plane resolution (pixels per mm) at least."""
+    if not (tags.focal_mm and tags.pixels_per_mm and tags.width):
+        return None
+    per_mm_y = tags.pixels_per_mm_y or tags.pixels_per_mm
+    if tags.principal_mm:
+        cx, cy = tags.principal_mm[0] * tags.pixels_per_mm, tags.principal_mm[1] * per_mm_y
+    else:
+        cx, cy = tags.width / 2.0, tags.height / 2.0
+    r = (tags.distortion + [0.0] * 5)[:5]  # Pix4D R1 R2 R3 T1 T2 = k1 k2 k3 p1 p2
+    return Intrinsics(
+        tags.width,
+        tags.height,
+        tags.focal_mm * tags.pixels_per_mm,
+        tags.focal_mm * per_mm_y,
+        cx,
+        cy,
+        (r[0], r[1], r[2]),
+        (r[3], r[4]),
+    )
+
+
 def colmap_camera(tags: ImageTags) -> str | None:
     """One COLMAP camera line, or None when the tags do not give the intrinsics in
     pixels: OPENCV (fx fy cx cy k1 k2 p1 p2), or FULL_OPENCV (k3 to k6 after p2) when
     the calibration has a k3. COLMAP puts the image's top-left corner at (0, 0), the
     first pixel's centre at (0.5, 0.5): the principal point is the tags' distance from
     that corner (OpenCV's cx + 0.5), and the SIFT export counts the same way."""
-    if not (tags.focal_mm and tags.pixels_per_mm and tags.width):
+    cam = intrinsics(tags)
+    if cam is None:
         return None
-    fx = tags.focal_mm * tags.pixels_per_mm
-    fy = tags.focal_mm * (tags.pixels_per_mm_y or tags.pixels_per_mm)
-    if tags.principal_mm:
-        cx = tags.principal_mm[0] * tags.pixels_per_mm
-        cy = tags.principal_mm[1] * (tags.pixels_per_mm_y or tags.pixels_per_mm)
-    else:
-        cx, cy = tags.width / 2.0, tags.height / 2.0
-    r = (tags.distortion + [0.0] * 5)[:5]  # R1 R2 R3 T1 T2 = k1 k2 k3 p1 p2
-    model, params = "OPENCV", [fx, fy, cx, cy, r[0], r[1], r[3], r[4]]
-    if r[2] != 0.0:
-        model, params = "FULL_OPENCV", params + [r[2], 0.0, 0.0, 0.0]
-    return f"1 {model} {tags.width} {tags.height} " + " ".join(f"{p:.9g}" for p in params)
+    model, params = "OPENCV", [cam.fx, cam.fy, cam.cx, cam.cy, cam.k[0], cam.k[1], *cam.p]
+    if cam.k[2] != 0.0:
+        model, params = "FULL_OPENCV", params + [cam.k[2], 0.0, 0.0, 0.0]
+    return f"1 {model} {cam.width} {cam.height} " + " ".join(f"{p:.9g}" for p in params)
+
+
+def opensfm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
+    """The camera id OpenSfM (and so OpenDroneMap) gives images with these tags, ODM's
+    form (without OpenSfM's "v2 " prefix): make, model (less a repeated make), the
+    image size from PixelX/YDimension, the projection (ODM's --camera-lens) and the
+    focal ratio from FocalLengthIn35mmFilm / 36 as its first 6 characters, lowercase.
+    None without the 35 mm focal length, which OpenSfM would replace by a guess."""
+    if not tags.focal_35mm:
+        return None
+    make = tags.make or "unknown"
+    model = tags.model or "unknown"
+    if make != "unknown":
+        model = model.replace(make, "")
+    width, height = tags.exif_size or (tags.width, tags.height)
+    ratio = str(tags.focal_35mm / 36.0)[:6]
+    parts = [make.strip(), model.strip(), str(width), str(height), projection, ratio]
+    return " ".join(parts).lower()
+
+
+def odm_cameras(tags: ImageTags) -> dict[str, Any] | None:
+    """OpenDroneMap's cameras.json (``--camera-lens brown --cameras cameras.json``):
+    the calibration as OpenSfM's Brown-Conrady model, normalised by the image's longer
+    side with the principal point as an offset from the centre; the distortion
+    coefficients are OpenCV's (the same polynomial). None without the intrinsics or
+    the tags OpenSfM's camera id is made of."""
+    cam = intrinsics(tags)
+    camera_id = opensfm_camera_id(tags)
+    if cam is None or camera_id is None:
+        return None
+    size = float(max(cam.width, cam.height))
+    return {
+        camera_id: {
+            "projection_type": "brown",
+            "width": cam.width,
+            "height": cam.height,
+            "focal_x": cam.fx / size,
+            "focal_y": cam.fy / size,
+            "c_x": (cam.cx - cam.width / 2.0) / size,
+            "c_y": (cam.cy - cam.height / 2.0) / size,
+            "k1": cam.k[0],
+            "k2": cam.k[1],
+            "p1": cam.p[0],
+            "p2": cam.p[1],
+            "k3": cam.k[2],
+        }
+    }
 
 
 # ------------------------------------------------------------------------ pairs
@@ -539,6 +629,9 @@ class VehicleDataset:
         header = "# Camera list with one line of data per camera:\n"
         header += "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
         _write_atomic(self.dir / "cameras.txt", (header + (camera or "") + "\n").encode())
+        odm = next((c for c in (odm_cameras(t) for t in tags) if c), None)
+        if odm:
+            _write_atomic(self.dir / "cameras.json", (json.dumps(odm, indent=2) + "\n").encode())
         rel = [_float_or_none(m.get("alt_rel")) for m in metas]
         quats = [m.get("cam_q") if isinstance(m.get("cam_q"), list) else None for m in metas]
         pairs = image_pairs(names, tags, alt_above_ground=rel, cam_q=quats)
@@ -566,6 +659,7 @@ class VehicleDataset:
             ],
             "pairs": len(pairs),
             "camera": camera,
+            "odm_camera": next(iter(odm)) if odm else None,
         }
 
 
@@ -690,20 +784,35 @@ class GroundStation:
                     ds.queries += 1
                     selector = range_selector(ds.vehicle, first, last, flight)
                     for reply in self.session.get(selector, timeout=timeout):
-                        if reply.ok is None:
-                            continue
-                        s = reply.ok
-                        meta = json.loads(s.attachment.to_bytes()) if s.attachment else {}
-                        if "sequence" not in meta:
-                            meta["sequence"] = int(str(s.key_expr).rsplit("/", 1)[-1])
-                        if not first <= int(meta["sequence"]) <= last:
-                            continue
-                        if str(meta.get("flight") or "") != flight:
-                            continue  # a daemon that does not know flights: not this one
-                        if ds.add(meta, s.payload.to_bytes(), fetched=True):
-                            got += 1
-                            self.last_arrival = time.monotonic()
+                        try:
+                            got += self._take_reply(ds, reply, first, last, flight)
+                        except Exception as err:  # a bad reply must not stop the station
+                            print(
+                                f"keyframed-ground: {ds.vehicle}: bad reply to {selector}: {err}",
+                                file=sys.stderr,
+                            )
         return got
+
+    def _take_reply(
+        self, ds: VehicleDataset, reply: Any, first: int, last: int, flight: str
+    ) -> int:
+        """Stores one keyframe a gap query returned; 1 when it was new."""
+        if reply.ok is None:
+            return 0
+        s = reply.ok
+        meta = json.loads(s.attachment.to_bytes()) if s.attachment else {}
+        if not isinstance(meta, dict):
+            raise ValueError("the attachment is no JSON object")
+        if "sequence" not in meta:
+            meta["sequence"] = int(str(s.key_expr).rsplit("/", 1)[-1])
+        if not first <= int(meta["sequence"]) <= last:
+            return 0
+        if str(meta.get("flight") or "") != flight:
+            return 0  # a daemon that does not know flights: not this one
+        if not ds.add(meta, s.payload.to_bytes(), fetched=True):
+            return 0
+        self.last_arrival = time.monotonic()
+        return 1
 
     def progress(self) -> str:
         parts = []
