@@ -225,6 +225,8 @@ class Daemon {
   bool videoClock_ = false;
   std::atomic<std::int64_t> clockOffsetNs_{0};
   bool clockOffsetFound_ = false;  // analysis thread
+  std::atomic<bool> analysisFailed_{false};
+  void analyse();
   // A tlog's packets into the flight record as the frames reach their time (analysis
   // thread), as a live link's are recorded on arrival.
   std::optional<MavlinkRecord> replayRecord_;
@@ -259,6 +261,27 @@ class Daemon {
 };
 
 void Daemon::analysisLoop() {
+  // An exception (out of memory, OpenCV's) ends the analysis, not the process: the
+  // keyframes so far are flushed and the run ends as failed.
+  try {
+    analyse();
+  } catch (const std::exception& e) {
+    KF_LOG(Select, Error) << "analysis failed: " << e.what();
+    analysisFailed_.store(true);
+  }
+  try {
+    stage_->finish();  // the last stretch is covered too
+    recordReplayUpTo(std::numeric_limits<std::int64_t>::max());
+  } catch (const std::exception& e) {
+    KF_LOG(Select, Error) << "analysis failed at the end: " << e.what();
+    analysisFailed_.store(true);
+  }
+  finalCounts_ = stage_->counts();
+  stats_.kept.store(finalCounts_.kept);
+  events_.close();
+}
+
+void Daemon::analyse() {
   while (true) {
     {
       std::lock_guard lock(reloadMutex_);
@@ -293,11 +316,6 @@ void Daemon::analysisLoop() {
     stats_.analysed.store(stage_->counts().framesRead);
     stats_.kept.store(stage_->counts().kept);
   }
-  stage_->finish();  // the last stretch is covered too
-  recordReplayUpTo(std::numeric_limits<std::int64_t>::max());
-  finalCounts_ = stage_->counts();
-  stats_.kept.store(finalCounts_.kept);
-  events_.close();
 }
 
 void Daemon::recordReplayUpTo(std::int64_t timeNs) {
@@ -314,7 +332,13 @@ void Daemon::outputLoop() {
   std::string error;
   LogThrottle errorLog;  // once per kind, then every 10 s
   while (std::optional<KeyframeEvent> ev = events_.pop()) {
-    if (!output_->handle(*ev, error)) {
+    bool handled = false;
+    try {
+      handled = output_->handle(*ev, error);
+    } catch (const std::exception& e) {  // one keyframe's failure, not the rest's
+      error = std::string("keyframe output failed: ") + e.what();
+    }
+    if (!handled) {
       // Something could not be saved (disk full, ...): selection, recording and
       // publishing of what can be go on.
       stats_.writeErrors.fetch_add(1);
@@ -693,6 +717,10 @@ int Daemon::run() {
       if (telemetry_) publishPose();
       lastAnalysed = analysed;
     }
+    if (analysisFailed_.load()) {
+      state = "failed";
+      break;
+    }
     if (!capture_->running()) {
       if (!capture_->ended()) {
         KF_LOG(Capture, Error) << "capture stopped: " << capture_->lastError();
@@ -709,6 +737,7 @@ int Daemon::run() {
   if (state == "stopped") stopAnalysis_.store(true);
   analysis.join();
   output.join();
+  if (analysisFailed_.load()) state = "failed";  // it may have failed while flushing
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   bool ok = true;
@@ -741,7 +770,7 @@ int Daemon::run() {
   KF_LOG(App, Notice) << "stopped (" << state << "): " << cs.captured << " frames captured, "
                       << queue_->dropped() + cs.noBuffer << " dropped, " << writer_.count()
                       << " keyframes in " << flightDir_;
-  if (!ok || state == "capture_failed") return 1;
+  if (!ok || state == "capture_failed" || state == "failed") return 1;
   return 0;
 }
 

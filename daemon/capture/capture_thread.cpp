@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cctype>
 #include <cstdio>
+#include <exception>
+#include <string>
 
 #include "app/log.h"
 #include "app/log_throttle.h"
@@ -104,6 +106,19 @@ std::string CaptureThread::lastError() const {
 }
 
 void CaptureThread::run() {
+  // A source or a copy that throws (out of memory, a decoder's exception) ends the
+  // capture like a permanent error: the owner reports it and flushes, nothing aborts.
+  try {
+    loop();
+  } catch (const std::exception& e) {
+    std::lock_guard lock(mutex_);
+    lastError_ = std::string("capture failed: ") + e.what();
+  }
+  queue_.close();
+  running_ = false;
+}
+
+void CaptureThread::loop() {
   int consecutiveErrors = 0;
   std::chrono::nanoseconds backoff = kFirstBackoff;
   ErrorLog log;
@@ -147,8 +162,6 @@ void CaptureThread::run() {
     copyFrame(frame, *buffer);
     queue_.push(std::move(buffer));
   }
-  queue_.close();
-  running_ = false;
 }
 
 }  // namespace keyframed

@@ -56,6 +56,7 @@ class CaptureThread {
 
  private:
   void run();
+  void loop();
   // Waits up to `d` unless stop() is called; false when it was.
   bool pause(std::chrono::nanoseconds d);
 

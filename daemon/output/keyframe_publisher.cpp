@@ -147,6 +147,8 @@ bool readKeyframeIndex(const std::string& dir, const std::string& vehicle,
 
 std::string KeyframePublisher::checkVehicleName(const std::string& name) {
   if (name.empty()) return "vehicle name is empty";
+  if (name == "." || name == "..")
+    return "vehicle name '" + name + "' is no name (a ground station's folder for it)";
   for (char c : name) {
     if (c == '/' || c == '*' || c == '$' || c == '?' || c == '#' ||
         static_cast<unsigned char>(c) <= 0x20)

@@ -406,8 +406,9 @@ def test_bad_command_lines(tmp_path: Path) -> None:
 
     r = run("--out", str(tmp_path), "--zenoh-config", str(tmp_path / "nope.json5"))
     assert r.returncode == 2 and "no such file" in r.stderr
-    r = run("--out", str(tmp_path), "--vehicle", "a/b")
-    assert r.returncode == 2 and "bad vehicle" in r.stderr
+    for name in ("a/b", ".."):
+        r = run("--out", str(tmp_path), "--vehicle", name)
+        assert r.returncode == 2 and "bad vehicle" in r.stderr
     r = run("--out", str(tmp_path), "--earlier-flights", "-1")
     assert r.returncode == 2 and "--earlier-flights" in r.stderr
     bad = tmp_path / "bad.json5"
@@ -483,6 +484,13 @@ def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path)
         wait_connected(vehicle)
         for seq in (0, 2, 4):
             vehicle.publish(seq)
+        # a publisher whose vehicle name would put its folder outside --out
+        row = vehicle.rows[0]
+        vehicle.session.put(
+            "keyframed/../keyframe",
+            (tagged / row["file"]).read_bytes(),
+            attachment=json.dumps(vehicle.meta(row)).encode(),
+        )
         stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -496,6 +504,9 @@ def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path)
     assert (1, 1) in vehicle.queries and (3, 3) in vehicle.queries
     for name in ("cameras.txt", "pairs.txt", "geo.txt", "keyframes.jsonl"):
         assert (out / "uav2" / name).stat().st_size > 0, name
+    assert "bad vehicle name '..'" in stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dataset"]
+    assert sorted(p.name for p in out.iterdir()) == ["uav2"]
 
 
 def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:

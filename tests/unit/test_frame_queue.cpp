@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <stdexcept>
 #include <string>
 #include <string_view>
 #include <thread>
@@ -371,6 +372,34 @@ TEST(CaptureThread, StopsAtOnceOnAPermanentErrorAndLeavesItToTheOwner) {
   EXPECT_FALSE(capture.ended());
   EXPECT_EQ(capture.lastError(), "video ended early: test");
   EXPECT_TRUE(log.lines.empty());  // the owner reports why capture stopped, once
+}
+
+TEST(CaptureThread, ASourceThatThrowsEndsTheCaptureWithTheReason) {
+  class Throwing final : public FrameSource {
+   public:
+    const SourceInfo& info() const override { return info_; }
+    ReadStatus next(Frame& f, std::string&) override {
+      if (n_ == 3) throw std::runtime_error("decoder exploded");
+      pixels_.assign(16 * 8, 0);
+      f = Frame{PixelFormat::Gray8, pixels_.data(), 16, 8, 16, n_ * 1000LL, n_};
+      ++n_;
+      return ReadStatus::Frame;
+    }
+    SourceInfo info_{};
+    std::vector<std::uint8_t> pixels_;
+    int n_ = 0;
+  } src;
+  FramePool pool(8);
+  FrameQueue q(8);
+  CaptureThread capture(src, pool, q);
+  capture.start();
+  int frames = 0;
+  while (q.pop()) ++frames;  // closed by the thread, the frames before it delivered
+  capture.stop();
+  EXPECT_EQ(frames, 3);
+  EXPECT_FALSE(capture.running());
+  EXPECT_FALSE(capture.ended());
+  EXPECT_EQ(capture.lastError(), "capture failed: decoder exploded");
 }
 
 TEST(CaptureThread, LogsAnOutageOnceAndItsEnd) {

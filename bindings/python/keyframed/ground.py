@@ -42,6 +42,7 @@ import argparse
 import io
 import json
 import math
+import multiprocessing
 import os
 import re
 import signal
@@ -692,8 +693,16 @@ class GroundStation:
         self.lock = threading.Lock()
         self.last_arrival = 0.0
         self.wake = threading.Event()
+        # Not forked from this process: its Zenoh threads hold locks a fork would copy
+        # held (the first job is submitted from a subscriber callback).
         self.pool = (
-            ProcessPoolExecutor(max_workers=1, initializer=_sift_worker_init) if sift else None
+            ProcessPoolExecutor(
+                max_workers=1,
+                initializer=_sift_worker_init,
+                mp_context=multiprocessing.get_context("forkserver"),
+            )
+            if sift
+            else None
         )
         self.subs = [
             session.declare_subscriber(keyframe_key(vehicle), self._on_keyframe),
@@ -701,6 +710,8 @@ class GroundStation:
         ]
 
     def dataset(self, vehicle: str) -> VehicleDataset:
+        if vehicle in ("", ".", ".."):  # a folder of its own under --out, nowhere else
+            raise ValueError(f"bad vehicle name {vehicle!r}")
         with self.lock:
             if vehicle not in self.datasets:
                 self.datasets[vehicle] = VehicleDataset(self.out, vehicle, self.pool)
@@ -925,7 +936,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.earlier_flights >= 0:
         print("keyframed-ground: --earlier-flights must be 0 or more seconds", file=sys.stderr)
         return 2
-    if "/" in args.vehicle or not args.vehicle:
+    if "/" in args.vehicle or args.vehicle in ("", ".", ".."):
         print(f"keyframed-ground: bad vehicle name {args.vehicle!r}", file=sys.stderr)
         return 2
     try:
