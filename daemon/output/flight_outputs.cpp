@@ -400,6 +400,8 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     }
   }
   if (!impl_->publisher) return;
+  // Not on disk for the queryable (a full disk): it serves this one from memory.
+  if (rec.file.empty()) impl_->publisher->keepUnsaved(rec.sequence, jpeg, meta);
   if (impl_->options.offline) {
     impl_->put(rec.sequence, jpeg, meta);
     return;

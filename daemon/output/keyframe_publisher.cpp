@@ -8,6 +8,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <set>
 #include <sstream>
 
 namespace keyframed {
@@ -350,20 +351,33 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     dir = flightsDir_ + "/" + flight + "/keyframes";
   }
   std::vector<StoredKeyframe> rows;
-  if (!readKeyframeIndex(dir, prefix_.substr(prefix_.find('/') + 1), own ? flight_ : flight, rows,
-                         error)) {
-    std::string ignored;
-    reply.fail(error, ignored);
-    return;
-  }
+  // The ones a full disk kept in memory (this flight's only), by sequence.
+  std::map<std::int64_t, std::vector<std::uint8_t>> inMemory;
+  const bool indexRead = readKeyframeIndex(dir, prefix_.substr(prefix_.find('/') + 1),
+                                           own ? flight_ : flight, rows, error);
   if (own) {
-    // What was published live, where known (the CSV has no scores).
     std::lock_guard lock(publishedMutex_);
+    // What was published live, where known (the CSV has no scores).
     for (StoredKeyframe& r : rows) {
       if (const auto it = published_.find(r.sequence); it != published_.end()) {
         r.metadataJson = it->second;
       }
     }
+    std::set<std::int64_t> onDisk;
+    for (const StoredKeyframe& r : rows) onDisk.insert(r.sequence);
+    for (const auto& [seq, u] : unsaved_) {
+      if (seq < first || seq > final || (!all && seq != wanted) || onDisk.contains(seq)) continue;
+      rows.push_back(StoredKeyframe{seq, {}, u.metadataJson});
+      inMemory[seq] = u.jpeg;
+    }
+    std::sort(rows.begin(), rows.end(), [](const StoredKeyframe& a, const StoredKeyframe& b) {
+      return a.sequence < b.sequence;
+    });
+  }
+  if (!indexRead && inMemory.empty()) {
+    std::string ignored;
+    reply.fail(error, ignored);
+    return;
   }
   bool found = false;
   std::vector<std::uint8_t> jpeg;
@@ -371,7 +385,9 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     if (!all && r.sequence != wanted) continue;
     if (r.sequence < first || r.sequence > final) continue;
     found = true;
-    if (!readFile(dir + "/" + r.file, jpeg, error)) {
+    if (const auto m = inMemory.find(r.sequence); m != inMemory.end()) {
+      jpeg = m->second;
+    } else if (!readFile(dir + "/" + r.file, jpeg, error)) {
       std::string ignored;
       reply.fail(error, ignored);
       continue;
@@ -389,6 +405,26 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
 void KeyframePublisher::remember(std::int64_t sequence, const std::string& metadataJson) {
   std::lock_guard lock(publishedMutex_);
   published_[sequence] = metadataJson;
+}
+
+void KeyframePublisher::keepUnsaved(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
+                                    const std::string& metadataJson) {
+  std::lock_guard lock(publishedMutex_);
+  Unsaved& u = unsaved_[sequence];
+  unsavedBytes_ -= u.jpeg.size();
+  u.jpeg.assign(jpeg.begin(), jpeg.end());
+  u.metadataJson = metadataJson;
+  unsavedBytes_ += u.jpeg.size();
+  while (unsavedBytes_ > kUnsavedBytes && unsaved_.size() > 1) {
+    unsavedBytes_ -= unsaved_.begin()->second.jpeg.size();
+    unsaved_.erase(unsaved_.begin());
+    ++unsavedLetGo_;
+  }
+}
+
+std::int64_t KeyframePublisher::unsavedLetGo() const {
+  std::lock_guard lock(publishedMutex_);
+  return unsavedLetGo_;
 }
 
 bool KeyframePublisher::publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,

@@ -47,6 +47,13 @@ class KeyframePublisher {
                        const std::string& metadataJson, std::string& error);
   // The metadata of a keyframe left to the queryable (never put), for its replies.
   void remember(std::int64_t sequence, const std::string& metadataJson);
+  // A keyframe that could not be saved (a full disk): the queryable serves it from
+  // memory, so one put while no subscriber listened is not lost. Up to
+  // kUnsavedBytes are kept; past that the oldest are let go (and counted).
+  void keepUnsaved(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
+                   const std::string& metadataJson);
+  static constexpr std::size_t kUnsavedBytes = 64u << 20;
+  [[nodiscard]] std::int64_t unsavedLetGo() const;
   // Best effort.
   bool publishStatus(const std::string& json, std::string& error);
   // Best effort, dropped under congestion: a low-rate JPEG of the live view.
@@ -75,8 +82,15 @@ class KeyframePublisher {
   std::unique_ptr<ZenohPublisher> telemetry_;
   std::unique_ptr<ZenohQueryable> queryable_;
   std::unique_ptr<ZenohQueryable> flightsQueryable_;
-  std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)
+  mutable std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)
   std::map<std::int64_t, std::string> published_;  // sequence -> metadata JSON
+  struct Unsaved {
+    std::vector<std::uint8_t> jpeg;
+    std::string metadataJson;
+  };
+  std::map<std::int64_t, Unsaved> unsaved_;  // under publishedMutex_
+  std::size_t unsavedBytes_ = 0;
+  std::int64_t unsavedLetGo_ = 0;
 };
 
 // The metadata of one keyframe; numbers as text, empty = unknown (JSON null).

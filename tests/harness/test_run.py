@@ -11,6 +11,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -723,7 +724,6 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
 ) -> None:
     """The README's main job, checked: the daemon on a sample flight with a fake
     autopilot streaming MAVLink to it, publishing over Zenoh to the ground station."""
-    import sys
 
     zport, mport = free_port(), free_port(socket.SOCK_DGRAM)
     zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
@@ -870,7 +870,6 @@ def test_fleet_three_vehicles_one_router_one_ground_station(kf_bin: Path, tmp_pa
     router-mode eclipse-zenoh session here; zenohd in a deployment), and one ground
     station subscribed to every vehicle: each vehicle's keyframes arrive complete,
     in its own dataset."""
-    import sys
 
     import zenoh
 
@@ -1119,6 +1118,72 @@ def test_replay_bad_flight_records(any_bin: Path, tmp_path: Path) -> None:
     )
     assert r.returncode == 3 and "garbage.mcap" in r.stderr, r.stderr
     assert "Sanitizer" not in r.stderr and "runtime error" not in r.stderr
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0, reason="mounting a small tmpfs (the full disk) needs root; CI runs as root"
+)
+def test_full_disk_and_no_listener_yet_loses_no_keyframe(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The disk fills up while no ground station listens: the keyframes that could not
+    be saved are put to nobody, but the queryable serves them from memory, so a station
+    that comes later fetches every keyframe of the flight, byte for byte."""
+    state = tmp_path / "state"
+    state.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=150k", "tmpfs", str(state)], check=True)
+    try:
+        port = free_port()
+        zconf = tmp_path / "zenoh.json5"
+        zconf.write_text(
+            json.dumps(
+                {
+                    "mode": "peer",
+                    "scouting": {"multicast": {"enabled": False}},
+                    "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                }
+            )
+        )
+        proc = start(
+            kf_bin,
+            tmp_path,
+            f"camera.path={short_nadir / 'video.avi'}",
+            "zenoh.enabled=true",
+            f"zenoh.config={zconf}",
+            "zenoh.vehicle=late",
+            "output.mcap=false",
+        )
+        time.sleep(5.0)  # 8 s of flight, in real time: most keyframes are taken by now
+        assert proc.poll() is None, proc.communicate()
+        joined_ns = time.monotonic_ns()  # the daemon's decided_ns clock
+        out = tmp_path / "ground"
+        station = subprocess.run(
+            [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
+            + ["--connect", f"tcp/127.0.0.1:{port}", "--until-done", "--duration", "60"],
+            capture_output=True,
+            text=True,
+            timeout=90,
+        )
+        _, stderr = proc.communicate(timeout=60)
+        assert proc.returncode == 1, stderr  # incomplete outputs, no crash
+        assert "keyframes not saved" in stderr, stderr
+        assert station.returncode == 0, station.stderr
+        summary = json.loads(station.stdout.strip().splitlines()[-1])
+        saved = {p.name: p.read_bytes() for p in state.rglob("*.jpg")}
+        images = {p.name: p.read_bytes() for p in (out / "late" / "images").glob("*.jpg")}
+        metas = [json.loads(line) for line in (out / "late" / "keyframes.jsonl").open()]
+        print(f"late station: {len(images)} keyframes, {len(saved)} of them on the full disk")
+        assert summary["missing"] == []
+        assert [m["sequence"] for m in metas] == list(range(len(metas)))
+        assert 0 < len(saved) < len(images)
+        # taken before the station was there, and on no disk: served from memory
+        early = [m for m in metas if m["file"] not in saved and m["decided_ns"] < joined_ns]
+        assert early, metas
+        assert summary["fetched_by_query"] >= len(early)
+        for name, data in saved.items():
+            assert images[name] == data
+    finally:
+        subprocess.run(["umount", "-l", str(state)], check=False)
 
 
 @pytest.mark.skipif(
