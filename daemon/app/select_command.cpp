@@ -271,6 +271,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   FlightOutputs outputs;  // --mcap, --zenoh-config
   FlightOutputOptions fo;
   fo.mcapPath = opts.mcap;
+  // A replay's record carries the preview stream again: images, stored as they are
+  // (as `run` stores them); otherwise decisions, MAVLink and keyframes, zstd.
+  fo.mcapCompression = replay != nullptr ? "none" : "zstd";
   fo.zenohConfig = opts.zenohConfig;
   fo.vehicle = opts.vehicle;
   fo.keyframeDir = opts.outDir;
@@ -354,6 +357,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     if (const int refused = captureRequests.drainInto(stage); refused > 0)
       std::fprintf(stderr, "%d requested capture(s) refused: %d already wait\n", refused,
                    KeyframeSelector::kMaxCaptureRequests);
+    // A photograph the autopilot asked for in flight is asked for again at the frame
+    // that answered it (a request the live run waited on is served by that frame).
+    if (replay != nullptr && replay->commanded()) (void)stage.requestCapture();
     stage.process(frame);
     captureRequests.noteServed(stage);
     s.framesRead = stage.counts().framesRead;

@@ -7,7 +7,9 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <string_view>
 #include <unordered_map>
+#include <unordered_set>
 
 #include <opencv2/core/mat.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -202,6 +204,7 @@ struct McapReplaySource::Impl {
   std::unique_ptr<McapReader> images;  // the preview stream, read as frames are asked for
 #endif
   std::unordered_map<std::int64_t, std::int64_t> indexAt;  // frame time -> live frame index
+  std::unordered_set<std::int64_t> commandedAt;            // frame times kept live as "commanded"
   std::int64_t frames = 0;                                 // preview frames the first pass found
   std::vector<std::uint8_t> jpeg;
   cv::Mat bgr;
@@ -243,7 +246,12 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
       }
       if (topic == 3) {
         std::int64_t index = 0, t = 0;
-        if (decisionIndex(msg, index, t)) impl.indexAt.emplace(t, index);
+        if (decisionIndex(msg, index, t)) {
+          impl.indexAt.emplace(t, index);
+          const std::string_view row(reinterpret_cast<const char*>(msg.data()), msg.size());
+          if (row.find("\"reason\":\"commanded\"") != std::string_view::npos)
+            impl.commandedAt.insert(t);
+        }
         continue;
       }
       if (topic == 4) {
@@ -342,6 +350,7 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
     // The live run's index for this frame (the frames it dropped leave the same gaps),
     // else the position in the stream.
     const auto live = impl.indexAt.find(t);
+    commanded_ = impl.commandedAt.contains(t);
     frame = Frame::ofBgr(impl.bgr, live != impl.indexAt.end() ? live->second : index_, t);
     ++index_;
     impl.jpeg.assign(field->begin(), field->end());

@@ -41,6 +41,9 @@ class McapReplaySource final : public FrameSource {
   // replay's own record can carry the preview stream on.
   [[nodiscard]] std::span<const std::uint8_t> encoded() const;
   [[nodiscard]] const std::string& format() const { return format_; }
+  // The live run kept the last frame next() returned as a commanded capture
+  // (MAV_CMD_IMAGE_START_CAPTURE): a replay asks for one there too.
+  [[nodiscard]] bool commanded() const { return commanded_; }
   // The record's camera calibration (/camera/calibration: K and D at the video's
   // resolution), when it has one.
   [[nodiscard]] const std::optional<CameraModel>& calibration() const { return calibration_; }
@@ -63,6 +66,7 @@ class McapReplaySource final : public FrameSource {
   std::int64_t unixOffsetNs_ = 0;
   std::int64_t firstTimeNs_ = 0;
   std::string format_;
+  bool commanded_ = false;
   std::optional<CameraModel> calibration_;
   std::string selection_;
   int settingsChanges_ = 0;
