@@ -21,16 +21,43 @@ bool plausiblePosition(const mavlink_global_position_int_t& p) {
          p.lon >= -1'800'000'000 && p.lon <= 1'800'000'000;
 }
 
+namespace {
+
+// Components that say they run an autopilot but fly nothing: ArduPilot's antenna
+// tracker, and the peripherals a vehicle carries (a companion computer, ADS-B, a
+// gimbal, ...). The autopilot followed is the first of the others.
+bool peripheralType(std::uint8_t type) {
+  switch (type) {
+    case MAV_TYPE_ANTENNA_TRACKER:
+    case MAV_TYPE_GCS:
+    case MAV_TYPE_ONBOARD_CONTROLLER:
+    case MAV_TYPE_GIMBAL:
+    case MAV_TYPE_ADSB:
+    case MAV_TYPE_CAMERA:
+    case MAV_TYPE_CHARGING_STATION:
+    case MAV_TYPE_FLARM:
+    case MAV_TYPE_SERVO:
+    case MAV_TYPE_ODID:
+    case MAV_TYPE_BATTERY:
+    case MAV_TYPE_PARACHUTE:
+    case MAV_TYPE_LOG:
+    case MAV_TYPE_OSD:
+    case MAV_TYPE_IMU:
+    case MAV_TYPE_GPS:
+    case MAV_TYPE_WINCH: return true;
+    default: return false;
+  }
+}
+
+}  // namespace
+
 bool TelemetryDecoder::accept(const mavlink_message_t& msg) {
   if (system_ == 0 || component_ == 0) {
     // Lock onto the first autopilot that says so in its HEARTBEAT.
     if (msg.msgid != MAVLINK_MSG_ID_HEARTBEAT) return false;
     mavlink_heartbeat_t hb;
     mavlink_msg_heartbeat_decode(&msg, &hb);
-    if (hb.autopilot == MAV_AUTOPILOT_INVALID || hb.type == MAV_TYPE_GCS ||
-        hb.type == MAV_TYPE_CAMERA || hb.type == MAV_TYPE_GIMBAL) {
-      return false;
-    }
+    if (hb.autopilot == MAV_AUTOPILOT_INVALID || peripheralType(hb.type)) return false;
     if (system_ != 0 && msg.sysid != system_) return false;
     if (component_ != 0 && msg.compid != component_) return false;
     system_ = msg.sysid;

@@ -413,6 +413,11 @@ TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
     parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
   };
   push(heartbeat(gcs, MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID));
+  // ArduPilot's antenna tracker and a companion computer run "an autopilot" too, but
+  // fly nothing: not followed.
+  MavlinkEncoder tracker(3, 1), companion(1, 191);
+  push(heartbeat(tracker, MAV_TYPE_ANTENNA_TRACKER, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  push(heartbeat(companion, MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_ARDUPILOTMEGA));
   EXPECT_EQ(dec.autopilotSinceNs(), std::numeric_limits<std::int64_t>::max());  // none yet
   now += 7 * kMs;
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
