@@ -155,12 +155,16 @@ Pose PoseStore::at(std::int64_t timeNs) const {
   std::string why;
 
   std::int64_t gpsAgeNs = 0;
+  bool gpsKnown = false;
   if (!gps_.empty()) {
     auto it = std::upper_bound(gps_.begin(), gps_.end(), timeNs,
                                [](std::int64_t v, const auto& s) { return v < s.timeNs; });
     const auto& g = it == gps_.begin() ? gps_.front() : *std::prev(it);
     pose.gps = g.value;
     gpsAgeNs = timeNs - g.timeNs;
+    // Before the first report, that report speaks for the moment only when it came
+    // right after it (within the hold): the receiver may have had no fix earlier.
+    gpsKnown = gpsAgeNs >= -config_.maxHoldNs;
   }
 
   if (bracket(attitude_, timeNs, config_.maxAttitudeGapNs, config_.maxHoldNs, i0, i1, why,
@@ -175,8 +179,8 @@ Pose PoseStore::at(std::int64_t timeNs) const {
     reasons.push_back(why);
   }
 
-  if (gps_.empty() && config_.minFixType > 0) {
-    reasons.emplace_back("no GPS status");
+  if (!gpsKnown && config_.minFixType > 0) {
+    reasons.emplace_back(gps_.empty() ? "no GPS status" : "no GPS status yet");
   } else if (pose.gps.fixType < config_.minFixType) {
     reasons.push_back("no GPS fix (fix type " + std::to_string(pose.gps.fixType) + ")");
   } else if (config_.minFixType > 0 && gpsAgeNs > config_.maxGpsAgeNs) {

@@ -158,6 +158,23 @@ TEST(PoseStore, AFixNotReportedForLongGoesStale) {
   EXPECT_TRUE(p.position.has_value()) << p.staleReason;
 }
 
+TEST(PoseStore, BeforeTheFirstGpsReportOnlyAReportRightAfterCounts) {
+  PoseStore::Config cfg;
+  PoseStore store(cfg);
+  for (std::int64_t t = 0; t <= 2000 * kMs; t += 100 * kMs) {
+    store.addAttitude(t, Quaternion{});
+    store.addPosition(t, {1, 2, 3, 4});
+  }
+  GpsQuality fix;
+  fix.fixType = 3;
+  store.addGps(1000 * kMs, fix);  // the first report of a fix
+  Pose p = store.at(200 * kMs);   // long before it: the fix then is unknown
+  EXPECT_FALSE(p.position.has_value());
+  EXPECT_NE(p.staleReason.find("no GPS status yet"), std::string::npos) << p.staleReason;
+  p = store.at(1000 * kMs - cfg.maxHoldNs / 2);  // just before: it holds
+  EXPECT_TRUE(p.position.has_value()) << p.staleReason;
+}
+
 TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
