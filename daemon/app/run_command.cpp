@@ -390,11 +390,17 @@ void Daemon::reload() {
     for (const auto& e : r.errors) KF_LOG(App, Error) << "reload: " << e;
     KF_LOG(App, Error) << "reload: configuration invalid, keeping the running settings";
   } else {
-    std::lock_guard lock(reloadMutex_);
-    pendingSelection_ = r.config.selection;
-    config_.selection = r.config.selection;
-    outputs_.settings(frameClockNowNs(), selectionOverrides(config_.selection));
     logging::configure(r.config.log);
+    std::lock_guard lock(reloadMutex_);
+    const std::string settings = selectionOverrides(r.config.selection);
+    if (settings == selectionOverrides(config_.selection)) {
+      // A reload for [log], or none at all: the overlap chain goes on.
+      KF_LOG(Select, Notice) << "reload: selection settings unchanged";
+    } else {
+      pendingSelection_ = r.config.selection;
+      config_.selection = r.config.selection;
+      outputs_.settings(frameClockNowNs(), settings);
+    }
   }
   // READY again only once it was ready: a reload before the first frame must not say
   // the start-up is over.

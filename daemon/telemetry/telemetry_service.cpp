@@ -659,6 +659,14 @@ void TelemetryService::run() {
       sendTimesync(now);
     }
     requestMessageRates(now);
+    if (!config_.mavlink1 && !autopilotV2_ && !warnedV1_ && autopilotV1SinceNs_ != 0 &&
+        now - autopilotV1SinceNs_ > 3 * kSecond) {
+      warnedV1_ = true;
+      log(TelemetryLogLevel::Warning,
+          "the autopilot speaks MAVLink 1 only, and we MAVLink 2: if the ground station never "
+          "sees this camera, set telemetry.mavlink1 = true (or the autopilot's port to "
+          "MAVLink 2, ArduPilot: SERIALn_PROTOCOL = 2)");
+    }
     sendPendingCaptures(now);
     logClock(now);
     if (!silent && now - lastData > kSilenceNs) {
@@ -681,8 +689,11 @@ void TelemetryService::run() {
         bool fromAutopilot = false;
         parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) {
           onMessage(m, t);
-          fromAutopilot = fromAutopilot || (m.sysid == decoder_.autopilotSystem() &&
-                                            m.compid == decoder_.autopilotComponent());
+          const bool autopilot =
+              m.sysid == decoder_.autopilotSystem() && m.compid == decoder_.autopilotComponent();
+          fromAutopilot = fromAutopilot || autopilot;
+          if (autopilot && m.magic == MAVLINK_STX) autopilotV2_ = true;
+          if (autopilot && autopilotV1SinceNs_ == 0) autopilotV1SinceNs_ = t;
           std::lock_guard lock(sinkMutex_);
           if (sink_) sink_(m, t);
         });

@@ -415,7 +415,13 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
         time.sleep(0.5)
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 0.8\n")
         proc.send_signal(signal.SIGHUP)
-        time.sleep(3.5)
+        time.sleep(1.5)
+        # the same selection settings again (a reload for [log], say): the chain goes on
+        (tmp_path / "etc" / "keyframed.toml").write_text(
+            '[selection]\ntarget = 0.8\n[log]\nlevel = "info"\n'
+        )
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(2.0)
         proc.send_signal(signal.SIGTERM)
         _, stderr = proc.communicate(timeout=20)
     finally:
@@ -429,10 +435,11 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
     assert len(ns.has("WATCHDOG=1")) >= 4, "pinged every half second while frames arrive"
     status = ns.has("STATUS=")
     assert any("fps" in m and "keyframes" in m and "dropped" in m for m in status)
-    assert len(ns.has("RELOADING=1")) == 2
+    assert len(ns.has("RELOADING=1")) == 3
     assert ns.has("STOPPING=1")
     assert "reload:" in stderr and "keeping the running settings" in stderr
     assert stderr.count("selection settings reloaded") == 1, stderr
+    assert "selection settings unchanged" in stderr, stderr
 
     # The decisions follow the reloaded target: a keyframe is kept for its overlap
     # once that falls to the target (lower when the frames there were blurry), so

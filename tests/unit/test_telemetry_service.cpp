@@ -322,6 +322,39 @@ TEST(TelemetryService, Mavlink1ModeSendsTheCameraProtocolAsMavlink2) {
   }
 }
 
+TEST(TelemetryService, AnAutopilotSpeakingMavlink1OnlyIsSaidOnce) {
+  // Two links side by side: an autopilot on MAVLink 1, and one on MAVLink 2.
+  struct Side {
+    Peer peer;
+    std::unique_ptr<TelemetryService> svc;
+    std::mutex logMutex;
+    std::vector<std::string> logs;
+    MavlinkEncoder ap;
+    explicit Side(bool v1) : ap(1, 1, v1) {}
+  };
+  Side v1(true), v2(false);
+  for (Side* side : {&v1, &v2}) {
+    side->svc = std::make_unique<TelemetryService>(serviceConfig(), CameraDescription{});
+    side->svc->setLogSink([side](TelemetryLogLevel, const std::string& m) {
+      std::lock_guard lock(side->logMutex);
+      side->logs.push_back(m);
+    });
+    std::string error;
+    ASSERT_TRUE(side->svc->start(side->peer.link(), error)) << error;
+  }
+  for (int i = 0; i < 18; ++i) {  // 3.6 s of heartbeats
+    for (Side* side : {&v1, &v2}) side->peer.push(quadHeartbeat(side->ap));
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  }
+  for (Side* side : {&v1, &v2}) {
+    side->svc->stop();
+    std::lock_guard lock(side->logMutex);
+    int said = 0;
+    for (const auto& m : side->logs) said += m.find("speaks MAVLink 1 only") != std::string::npos;
+    EXPECT_EQ(said, side == &v1 ? 1 : 0) << (side == &v1 ? "MAVLink 1" : "MAVLink 2");
+  }
+}
+
 TEST(MavlinkCameraAttitude, IsInMavlinksCameraFrame) {
   const Quaternion level{1, 0, 0, 0};
   auto near = [](const Quaternion& a, const Quaternion& b) { return angleBetween(a, b) < 1e-9; };
