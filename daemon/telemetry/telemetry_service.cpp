@@ -243,8 +243,9 @@ void TelemetryService::requestMessageRates(std::int64_t nowNs) {
       {MAVLINK_MSG_ID_GPS_RAW_INT, std::min(hz, 5.0)},
       {MAVLINK_MSG_ID_SYSTEM_TIME, std::min(hz, 1.0)},
   };
-  for (const auto& [id, rate] : wanted) {
-    const float intervalUs = static_cast<float>(std::round(1e6 / rate));
+  for (const auto& w : wanted) {
+    const std::uint32_t id = w.first;  // not a structured binding: clang 14 lambdas
+    const float intervalUs = static_cast<float>(std::round(1e6 / w.second));
     send(encoder_->encode(
         [&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
           mavlink_msg_command_long_pack_status(
