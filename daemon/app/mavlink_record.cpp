@@ -2,7 +2,17 @@
 
 namespace keyframed {
 
+bool MavlinkRecord::fromKnownSender(const mavlink_message_t& msg) {
+  const int sender = msg.sysid << 8 | msg.compid;
+  if (mavlink_get_msg_entry(msg.msgid) != nullptr) {  // checked: its sender is real
+    if (senders_.size() < 1024) senders_.insert(sender);
+    return true;
+  }
+  return senders_.contains(sender);  // another dialect's, from a component heard
+}
+
 void MavlinkRecord::message(const mavlink_message_t& msg, std::int64_t timeNs) {
+  if (!fromKnownSender(msg)) return;  // line noise that looked like a frame
   std::uint8_t buf[MAVLINK_MAX_PACKET_LEN];
   const std::uint16_t n = mavlink_msg_to_send_buffer(buf, &msg);
   outputs_.mavlink(timeNs, msg.sysid, msg.compid, msg.msgid, std::span<const std::uint8_t>(buf, n));
@@ -11,10 +21,12 @@ void MavlinkRecord::message(const mavlink_message_t& msg, std::int64_t timeNs) {
 
 void MavlinkRecord::packet(const TimedPacket& p) {
   // Bytes that hold no whole, checked packet (a record cut short) are left out.
-  parser_.feed(p.bytes.data(), p.bytes.size(), [&](const mavlink_message_t& msg) {
+  const auto record = [&](const mavlink_message_t& msg) {
+    if (!fromKnownSender(msg)) return;
     outputs_.mavlink(p.timeNs, msg.sysid, msg.compid, msg.msgid, p.bytes);
     vehicle(msg, p.timeNs);
-  });
+  };
+  parser_.feed(p.bytes.data(), p.bytes.size(), record, record);
 }
 
 void MavlinkRecord::vehicle(const mavlink_message_t& msg, std::int64_t timeNs) {
@@ -52,6 +64,7 @@ void MavlinkRecord::vehicle(const mavlink_message_t& msg, std::int64_t timeNs) {
 void recordLiveMavlink(TelemetryService& telemetry, FlightOutputs& outputs) {
   if (telemetry.isReplay()) return;
   auto record = std::make_shared<MavlinkRecord>(outputs, telemetry.decoder());
+  // The sink runs on the telemetry thread only: the record needs no lock of its own.
   telemetry.setRawSink([record](const mavlink_message_t& msg, std::int64_t timeNs) {
     record->message(msg, timeNs);
   });

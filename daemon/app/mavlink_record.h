@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <set>
 #include <span>
 
 #include "output/flight_outputs.h"
@@ -26,11 +27,15 @@ class MavlinkRecord {
 
  private:
   void vehicle(const mavlink_message_t& msg, std::int64_t timeNs);
+  // A message of the dialect notes its sender; one of another dialect (unchecked) is
+  // taken only from a sender so noted.
+  bool fromKnownSender(const mavlink_message_t& msg);
 
   FlightOutputs& outputs_;
   const TelemetryDecoder& decoder_;
   MavlinkParser parser_;                // packet(): bytes to messages
   std::int64_t lastQuaternionNs_ = -1;  // ATTITUDE_QUATERNION seen: ATTITUDE is not recorded
+  std::set<int> senders_;               // sysid << 8 | compid of checked messages
 };
 
 // Records every message a live link receives (nothing for a replay: an offline run

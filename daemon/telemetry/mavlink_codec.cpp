@@ -4,7 +4,7 @@ namespace keyframed {
 
 MavlinkParser::MavlinkParser() = default;
 
-bool MavlinkParser::parseByte(std::uint8_t byte) {
+MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte) {
   ++stats_.bytes;
   const std::uint8_t stateBefore = status_.parse_state;
   const std::uint8_t result =
@@ -12,17 +12,19 @@ bool MavlinkParser::parseByte(std::uint8_t byte) {
   if (result == MAVLINK_FRAMING_OK) {
     ++stats_.messages;
     if (message_.magic == MAVLINK_STX_MAVLINK1) ++stats_.mavlink1;
-    return true;
+    return Frame::Good;
   }
   if (result == MAVLINK_FRAMING_BAD_CRC && mavlink_get_msg_entry(message_.msgid) == nullptr) {
     ++stats_.unknownIds;
-  } else if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE) {
+    return Frame::UnknownId;
+  }
+  if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE) {
     ++stats_.rejected;
   } else if (stateBefore == MAVLINK_PARSE_STATE_IDLE &&
              status_.parse_state == MAVLINK_PARSE_STATE_IDLE) {
     ++stats_.skippedBytes;  // not a start byte: noise between frames
   }
-  return false;
+  return Frame::None;
 }
 
 MavlinkEncoder::MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1)

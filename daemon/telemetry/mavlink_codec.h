@@ -2,6 +2,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <utility>
 #include <vector>
 
 // Generated at build time by mavgen (see daemon/CMakeLists.txt); never committed.
@@ -34,15 +35,28 @@ class MavlinkParser {
   // Feeds bytes; calls onMessage(const mavlink_message_t&) for each good frame.
   template <typename Fn>
   void feed(const std::uint8_t* data, std::size_t size, Fn&& onMessage) {
+    feed(data, size, std::forward<Fn>(onMessage), [](const mavlink_message_t&) {});
+  }
+
+  // And onUnknown(const mavlink_message_t&) for each whole frame whose message id
+  // the dialect lacks, as received (its checksum cannot be checked: to be recorded,
+  // never decoded; line noise can look like one, so take it only from known senders).
+  template <typename Fn, typename Gn>
+  void feed(const std::uint8_t* data, std::size_t size, Fn&& onMessage, Gn&& onUnknown) {
     for (std::size_t i = 0; i < size; ++i) {
-      if (parseByte(data[i])) onMessage(message_);
+      switch (parseByte(data[i])) {
+        case Frame::Good: onMessage(message_); break;
+        case Frame::UnknownId: onUnknown(message_); break;
+        case Frame::None: break;
+      }
     }
   }
 
   [[nodiscard]] const ParserStats& stats() const { return stats_; }
 
  private:
-  bool parseByte(std::uint8_t byte);
+  enum class Frame : std::uint8_t { None, Good, UnknownId };
+  Frame parseByte(std::uint8_t byte);
 
   mavlink_message_t rx_{};
   mavlink_status_t status_{};

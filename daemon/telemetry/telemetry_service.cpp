@@ -688,16 +688,23 @@ void TelemetryService::run() {
         }
         lastData = t;
         bool fromAutopilot = false;
-        parser_.feed(buf.data(), n, [&](const mavlink_message_t& m) {
-          onMessage(m, t);
-          const bool autopilot =
-              m.sysid == decoder_.autopilotSystem() && m.compid == decoder_.autopilotComponent();
-          fromAutopilot = fromAutopilot || autopilot;
-          if (autopilot && m.magic == MAVLINK_STX) autopilotV2_ = true;
-          if (autopilot && autopilotV1SinceNs_ == 0) autopilotV1SinceNs_ = t;
-          std::lock_guard lock(sinkMutex_);
-          if (sink_) sink_(m, t);
-        });
+        parser_.feed(
+            buf.data(), n,
+            [&](const mavlink_message_t& m) {
+              onMessage(m, t);
+              const bool autopilot = m.sysid == decoder_.autopilotSystem() &&
+                                     m.compid == decoder_.autopilotComponent();
+              fromAutopilot = fromAutopilot || autopilot;
+              if (autopilot && m.magic == MAVLINK_STX) autopilotV2_ = true;
+              if (autopilot && autopilotV1SinceNs_ == 0) autopilotV1SinceNs_ = t;
+              std::lock_guard lock(sinkMutex_);
+              if (sink_) sink_(m, t);
+            },
+            [&](const mavlink_message_t& m) {
+              // Another dialect's message (ArduPilot's, PX4's): recorded, not decoded.
+              std::lock_guard lock(sinkMutex_);
+              if (sink_) sink_(m, t);
+            });
         // udpin: answer the autopilot, not whoever else sends to the port.
         if (fromAutopilot) link_->pinPeerToLastSender();
         std::lock_guard lock(mutex_);

@@ -133,7 +133,9 @@ class TelemetryService {
   static constexpr double kMinCaptureIntervalS = 0.05;
   void setCaptureRequestSink(CaptureRequestSink sink) { captureSink_ = std::move(sink); }
   // Every MAVLink message received on a live link, with its arrival time (e.g. for
-  // the flight record). Called on the telemetry thread; set or clear at any time.
+  // the flight record), those of other dialects too (unchecked: their message id is
+  // not in the common dialect). Called on the telemetry thread; set or clear at any
+  // time.
   using RawSink = std::function<void(const mavlink_message_t& msg, std::int64_t timeNs)>;
   void setRawSink(RawSink sink);
   // Where the telemetry thread reports the clock estimate (when first known and when

@@ -8,6 +8,7 @@ import json
 import math
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -413,6 +414,20 @@ def test_offline_record_carries_the_tlog_and_the_chosen_autopilot_only(
     tlog = tmp_path / "two.tlog"
     own, other = two_vehicle_tlog(short_nadir / "flight.tlog", tlog)
     packets = sorted(bytes(r.msg.get_msgbuf()) for r in read_tlog(tlog))
+    # ArduPilot's own messages ride along too (another dialect: unchecked, but from a
+    # component heard), not a frame of an unknown id from a sender never heard (noise).
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    last = read_tlog(tlog)[-1].unix_us
+    ekf = ardupilotmega.MAVLink(None, srcSystem=1, srcComponent=1).ekf_status_report_encode(
+        0x1FF, 0.1, 0.2, 0.3, 0.4, 0.5
+    )
+    ekf_bytes = bytes(ekf.pack(ardupilotmega.MAVLink(None, srcSystem=1, srcComponent=1)))
+    stranger = bytes(ekf.pack(ardupilotmega.MAVLink(None, srcSystem=77, srcComponent=1)))
+    with tlog.open("ab") as f:
+        f.write(struct.pack(">Q", last + 1) + ekf_bytes)
+        f.write(struct.pack(">Q", last + 2) + stranger)
+    packets = sorted(packets + [ekf_bytes])
 
     for system, lat0 in ((1, 51.89), (2, 52.89)):
         rec = tmp_path / f"sys{system}.mcap"

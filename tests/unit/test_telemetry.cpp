@@ -383,10 +383,20 @@ TEST(MavlinkParser, CountsEachKindOfBadInputExactly) {
   add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));  // good
   MavlinkParser parser;
   int heartbeats = 0;
-  parser.feed(s.data(), s.size(), [&](const mavlink_message_t& m) {
-    if (m.msgid == MAVLINK_MSG_ID_HEARTBEAT) ++heartbeats;
-  });
+  std::vector<std::vector<std::uint8_t>> unknown;
+  parser.feed(
+      s.data(), s.size(),
+      [&](const mavlink_message_t& m) {
+        if (m.msgid == MAVLINK_MSG_ID_HEARTBEAT) ++heartbeats;
+      },
+      [&](const mavlink_message_t& m) {
+        std::uint8_t buf[MAVLINK_MAX_PACKET_LEN];
+        unknown.emplace_back(buf, buf + mavlink_msg_to_send_buffer(buf, &m));
+      });
   EXPECT_EQ(heartbeats, 3);
+  // The other dialect's frame is handed on as it came, for the record.
+  ASSERT_EQ(unknown.size(), 1U);
+  EXPECT_EQ(unknown[0], other);
   const ParserStats st = parser.stats();
   EXPECT_EQ(st.messages, 3U);
   EXPECT_EQ(st.unknownIds, 1U);
