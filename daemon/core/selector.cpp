@@ -49,10 +49,12 @@ bool KeyframeSelector::motionTooFast(double motionPx, int analysisWidth) {
   if (std::isnan(motionPx)) return false;  // unknown (no tracking, paper mode)
   // The lower quartile, not the median: a long manoeuvre must not raise the
   // reference it is judged against.
+  const double floorPx = config_.motionMinFraction * analysisWidth;
   const bool fast = config_.motionRatio > 0.0 && motion_.size() >= 5 &&
-                    motionPx > config_.motionRatio * motion_.quantile(0.25) &&
-                    motionPx > config_.motionMinFraction * analysisWidth;
-  if (std::isfinite(motionPx)) motion_.push(motionPx);
+                    motionPx > config_.motionRatio * motion_.quantile(0.25) && motionPx > floorPx;
+  // Only frames that move count towards the reference: after a hover, the cruise
+  // that follows is judged against the cruise before it, not against standing still.
+  if (std::isfinite(motionPx) && motionPx >= 0.25 * floorPx) motion_.push(motionPx);
   return fast;
 }
 

@@ -87,8 +87,9 @@ struct SelectorConfig {
   double bandHigh = 0.85;    // frames above this are too redundant to be fallbacks
   double minOverlap = 0.50;  // hard floor: below this even a blurry fallback is kept
   // Motion gate (geometric mode): a frame that moved more than motionRatio times
-  // the lower quartile of recent frames' motion (robust to long manoeuvres), and
-  // more than motionMinFraction of the image width, is judged blurred by motion
+  // the lower quartile of recent moving frames' motion (robust to long manoeuvres;
+  // frames moving less than a quarter of the floor below, a hover, do not count),
+  // and more than motionMinFraction of the image width, is judged blurred by motion
   // whatever its Laplacian score says. 0 disables.
   double motionRatio = 4.0;
   double motionMinFraction = 0.01;

@@ -344,6 +344,33 @@ TEST(Selector, LostTrackingKeepsTheCandidateAndRestartsAtTheNextSharpFrame) {
   EXPECT_EQ(sel.keyframes(), 3);
 }
 
+TEST(Selector, MotionGateJudgesACruiseAfterAHoverByTheCruise) {
+  // Cruise at 8 px a frame (1.7 % of the view: above the gate's floor), hover for 2 s,
+  // cruise again; and a flight that starts in a hover. Standing still is no
+  // reference for moving: no cruising frame is judged blurred by motion.
+  for (const bool startHovering : {false, true}) {
+    std::vector<double> xs = startHovering ? hover(60, 100) : linear(40, 100, 8.0);
+    const auto cruise = [&xs](int n) {
+      for (int i = 0; i < n; ++i) xs.push_back(xs.back() + 8.0);
+    };
+    if (startHovering) {
+      cruise(60);
+    } else {
+      for (double x : hover(60, xs.back())) xs.push_back(x);
+      cruise(60);
+    }
+    const PanRun r = pan(xs);
+    int fast = 0;
+    for (const Decision& d : r.decisions) fast += d.fastMotion ? 1 : 0;
+    EXPECT_EQ(fast, 0) << (startHovering ? "starting in a hover" : "after a hover");
+    // and the cruise after the hover is covered at the target, not by fallbacks
+    int atTarget = 0;
+    for (std::size_t i = xs.size() - 60; i < xs.size(); ++i)
+      atTarget += r.decisions[i].reason == Reason::OverlapTarget ? 1 : 0;
+    EXPECT_GE(atTarget, 2);
+  }
+}
+
 TEST(Selector, MotionGateFlagsASuddenFastMove) {
   const cv::Mat strip = test::photoStrip();
   SelectorConfig cfg;
