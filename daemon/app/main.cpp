@@ -1,4 +1,5 @@
 #include <cstdio>
+#include <cstdlib>
 #include <exception>
 #include <string>
 #include <vector>
@@ -33,6 +34,9 @@ int main(int argc, char** argv) {
   }
   const std::string command = args[0];
   args.erase(args.begin());
+  // FFmpeg (under OpenCV's video reader) would add its own lines to a bad video's one
+  // error line ("moov atom not found"); ours say what failed. Set it to see FFmpeg's.
+  setenv("OPENCV_FFMPEG_LOGLEVEL", "-8", /*overwrite=*/0);
   try {
     if (command == "select") return keyframed::selectMain(args);
     if (command == "run") return keyframed::runMain(args);

@@ -107,6 +107,24 @@ def test_directory_instead_of_video(any_bin: Path, tmp_path):
     assert_clean_failure(run(any_bin, "select", tmp_path, "--out", tmp_path / "o"), "directory")
 
 
+def test_an_mp4_cut_before_its_index_is_one_clear_error(any_bin: Path, tmp_path):
+    """An MP4 whose recording was cut (its index, written last, is missing): one line
+    from keyframed, none from FFmpeg underneath."""
+    import cv2
+
+    mp4 = tmp_path / "whole.mp4"
+    w = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), 30, (160, 120))
+    assert w.isOpened()
+    for i in range(30):
+        w.write(np.full((120, 160, 3), i * 8, np.uint8))
+    w.release()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(mp4.read_bytes()[: mp4.stat().st_size // 2])
+    assert_clean_failure(
+        run(any_bin, "select", cut, "--out", tmp_path / "o"), "not a readable video"
+    )
+
+
 def test_truncated_video_keeps_what_was_read_and_fails(any_bin: Path, pan_video: Path, tmp_path):
     cut = tmp_path / "cut.avi"
     data = pan_video.read_bytes()

@@ -782,6 +782,12 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
         # its acknowledgement was lost; the same sequence number takes no third).
         for sequence in (1, 2, 2):
             ap.command(mav2.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, sequence)
+        # ArduPilot's own message (another dialect than the daemon's): recorded as sent
+        from pymavlink.dialects.v20 import ardupilotmega
+
+        ap.send(
+            ardupilotmega.MAVLink(None).ekf_status_report_encode(0x1FF, 0.1, 0.2, 0.3, 0.4, 0.5)
+        )
         time.sleep(4.5)  # about 195 of the video's 240 frames
         stderr, took = sigterm(proc)
         g_out, g_err = ground.communicate(timeout=60)
@@ -842,6 +848,17 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     topics = {c.id: c.topic for c in summ.channels.values()}
     counts = {topics[cid]: n for cid, n in summ.statistics.channel_message_counts.items()}
     assert counts.get("/mavlink/raw", 0) > 100, counts
+    from mcap_protobuf.decoder import DecoderFactory
+
+    with open(fd / "flight.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        ekf = [
+            p
+            for _, _, _, p in reader.iter_decoded_messages(topics=["/mavlink/raw"])
+            if p.message_id == 193  # EKF_STATUS_REPORT, ardupilotmega only
+        ]
+    sent = [bytes(r.msg.get_msgbuf()) for r in ap.sent("EKF_STATUS_REPORT")]
+    assert len(ekf) == 1 and bytes(ekf[0].packet) == sent[0], (ekf, sent)
     # the ground station holds every keyframe, byte for byte
     result = json.loads(g_out.strip().splitlines()[-1])
     assert result["vehicle"] == "uav7" and result["keyframes"] == len(kfs)
