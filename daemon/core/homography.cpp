@@ -147,11 +147,14 @@ HomographyFit RansacHomography::fit(const std::vector<cv::Point2f>& src,
       bestCount = count;
       bestHn = hn;
       std::swap(bestMask_, inlierMask);
+      // Samples needed for `confidence` at this inlier ratio. A poor first sample
+      // (a handful of inliers among hundreds) needs billions: compare as doubles,
+      // an int would overflow and end the search at once.
       const double w = static_cast<double>(count) / n;
       const double denom = std::log(std::max(1e-12, 1.0 - w * w * w * w));
       if (denom < 0.0) {
-        const double need = std::log(1.0 - confidence) / denom;
-        iterations = std::min(iterations, static_cast<int>(std::ceil(need)) + 1);
+        const double need = std::ceil(std::log(1.0 - confidence) / denom) + 1.0;
+        if (need < static_cast<double>(iterations)) iterations = static_cast<int>(need);
       }
     }
   }

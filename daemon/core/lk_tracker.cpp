@@ -209,6 +209,8 @@ bool LkTracker::trackPoint(const LkPyramid& prev, const LkPyramid& next, int lev
     Point2f q = guess - Point2f(half, half);
     Point2f prevDelta(0, 0);
     for (int it = 0; it < config_.maxIterations; ++it) {
+      // A step off any image (or not a number) fails before it is cast to int.
+      if (!(std::fabs(q.x) < 1e6f && std::fabs(q.y) < 1e6f)) return false;
       const int qx = static_cast<int>(std::floor(q.x));
       const int qy = static_cast<int>(std::floor(q.y));
       if (qx < -b || qy < -b || qx + ws > J.width - 1 + b || qy + win > J.height - 1 + b) {

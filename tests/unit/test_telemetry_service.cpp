@@ -96,6 +96,34 @@ bool eventually(const std::function<bool()>& pred, int timeoutMs = 3000) {
   return pred();
 }
 
+// What a service logged, collected from its thread.
+class LogCollector {
+ public:
+  void attach(TelemetryService& svc) {
+    svc.setLogSink([this](TelemetryLogLevel, const std::string& m) {
+      std::lock_guard lock(m_);
+      lines_.push_back(m);
+    });
+  }
+  // Lines that contain `text`.
+  int count(const std::string& text) const {
+    std::lock_guard lock(m_);
+    int n = 0;
+    for (const auto& l : lines_) n += l.find(text) != std::string::npos ? 1 : 0;
+    return n;
+  }
+  std::string all() const {
+    std::lock_guard lock(m_);
+    std::string out;
+    for (const auto& l : lines_) out += l + "\n";
+    return out;
+  }
+
+ private:
+  mutable std::mutex m_;
+  std::vector<std::string> lines_;
+};
+
 // The autopilot (and others) on the far side of a MemoryLink.
 class Peer {
  public:
@@ -327,18 +355,14 @@ TEST(TelemetryService, AnAutopilotSpeakingMavlink1OnlyIsSaidOnce) {
   struct Side {
     Peer peer;
     std::unique_ptr<TelemetryService> svc;
-    std::mutex logMutex;
-    std::vector<std::string> logs;
+    LogCollector logged;
     MavlinkEncoder ap;
     explicit Side(bool v1) : ap(1, 1, v1) {}
   };
   Side v1(true), v2(false);
   for (Side* side : {&v1, &v2}) {
     side->svc = std::make_unique<TelemetryService>(serviceConfig(), CameraDescription{});
-    side->svc->setLogSink([side](TelemetryLogLevel, const std::string& m) {
-      std::lock_guard lock(side->logMutex);
-      side->logs.push_back(m);
-    });
+    side->logged.attach(*side->svc);
     std::string error;
     ASSERT_TRUE(side->svc->start(side->peer.link(), error)) << error;
   }
@@ -348,10 +372,8 @@ TEST(TelemetryService, AnAutopilotSpeakingMavlink1OnlyIsSaidOnce) {
   }
   for (Side* side : {&v1, &v2}) {
     side->svc->stop();
-    std::lock_guard lock(side->logMutex);
-    int said = 0;
-    for (const auto& m : side->logs) said += m.find("speaks MAVLink 1 only") != std::string::npos;
-    EXPECT_EQ(said, side == &v1 ? 1 : 0) << (side == &v1 ? "MAVLink 1" : "MAVLink 2");
+    EXPECT_EQ(side->logged.count("speaks MAVLink 1 only"), side == &v1 ? 1 : 0)
+        << (side == &v1 ? "MAVLink 1" : "MAVLink 2");
   }
 }
 
@@ -427,12 +449,8 @@ TEST(TelemetryService, CapturesWaitForTheLinkAndAreCountedWhenReallySent) {
   auto cfg = serviceConfig();
   cfg.maxPendingCaptures = 4;
   TelemetryService svc(cfg, CameraDescription{});
-  std::vector<std::string> logs;
-  std::mutex logMutex;
-  svc.setLogSink([&](TelemetryLogLevel, const std::string& m) {
-    std::lock_guard lock(logMutex);
-    logs.push_back(m);
-  });
+  LogCollector logged;
+  logged.attach(svc);
   std::string error;
   peer.setWritable(false);  // no peer yet / the radio refuses
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
@@ -442,12 +460,7 @@ TEST(TelemetryService, CapturesWaitForTheLinkAndAreCountedWhenReallySent) {
   EXPECT_EQ(st.capturesSent, 0U);
   EXPECT_EQ(st.capturesPending, 4U);
   EXPECT_EQ(st.capturesDropped, 2U);  // bounded: the oldest two
-  {
-    std::lock_guard lock(logMutex);
-    bool warned = false;
-    for (const auto& m : logs) warned = warned || m.find("capture report") != std::string::npos;
-    EXPECT_TRUE(warned);
-  }
+  EXPECT_GE(logged.count("capture report"), 1);
   peer.setWritable(true);  // the link is back
   const auto caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 4);
   EXPECT_EQ(indices(caps), (std::vector<std::int32_t>{2, 3, 4, 5}));
@@ -621,18 +634,8 @@ TEST(TelemetryService, WithoutASelectorTheCameraRefusesToCapture) {
 TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
   Peer peer;
   TelemetryService svc(serviceConfig(), CameraDescription{});
-  std::vector<std::pair<TelemetryLogLevel, std::string>> logs;
-  std::mutex logMutex;
-  svc.setLogSink([&](TelemetryLogLevel l, const std::string& m) {
-    std::lock_guard lock(logMutex);
-    logs.emplace_back(l, m);
-  });
-  auto count = [&](const std::string& text) {
-    std::lock_guard lock(logMutex);
-    int n = 0;
-    for (const auto& [l, m] : logs) n += m.find(text) != std::string::npos ? 1 : 0;
-    return n;
-  };
+  LogCollector logged;
+  logged.attach(svc);
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1);
@@ -646,24 +649,19 @@ TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
     mavlink_msg_timesync_decode(&reqs[n - 1], &req);
     peer.push(timesync(ap, req.ts1 - behind, req.ts1));
   }
-  ASSERT_TRUE(eventually([&] { return count("autopilot clock: timesync, offset 50") == 1; }))
-      << [&] {
-           std::lock_guard lock(logMutex);
-           std::string all;
-           for (const auto& [l, m] : logs) all += m + "\n";
-           return all;
-         }();
-  EXPECT_EQ(count("following the autopilot at system 1 component 1"), 1);
-  EXPECT_EQ(count("best round trip"), 1);
+  ASSERT_TRUE(eventually([&] { return logged.count("autopilot clock: timesync, offset 50") == 1; }))
+      << logged.all();
+  EXPECT_EQ(logged.count("following the autopilot at system 1 component 1"), 1);
+  EXPECT_EQ(logged.count("best round trip"), 1);
   {
     std::lock_guard lock(peer.state->m);
     peer.state->failNextRead = true;
   }
-  ASSERT_TRUE(eventually([&] { return count("reopened") == 1; }));
-  EXPECT_EQ(count("memory: unplugged; reopening"), 1);
+  ASSERT_TRUE(eventually([&] { return logged.count("reopened") == 1; }));
+  EXPECT_EQ(logged.count("memory: unplugged; reopening"), 1);
   EXPECT_EQ(svc.stats().reconnects, 1U);
   svc.stop();
-  EXPECT_EQ(count("autopilot clock"), 1);
+  EXPECT_EQ(logged.count("autopilot clock"), 1);
 }
 
 std::vector<std::uint8_t> commandAck(MavlinkEncoder& enc, std::uint16_t command,
@@ -679,12 +677,8 @@ TEST(TelemetryService, AsksTheAutopilotForItsMessageRatesUntilItAnswers) {
   TelemetryServiceConfig cfg = serviceConfig();
   cfg.messageRateHz = 20.0;
   TelemetryService svc(cfg, CameraDescription{});
-  std::vector<std::string> logs;
-  std::mutex logMutex;
-  svc.setLogSink([&](TelemetryLogLevel, const std::string& m) {
-    std::lock_guard lock(logMutex);
-    logs.push_back(m);
-  });
+  LogCollector logged;
+  logged.attach(svc);
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1), gimbal(1, 154);
@@ -723,10 +717,7 @@ TEST(TelemetryService, AsksTheAutopilotForItsMessageRatesUntilItAnswers) {
   EXPECT_EQ(rates().size(), 8U) << "answered: not asked again";
   EXPECT_EQ(svc.stats().rateRequests, 8U);
   svc.stop();
-  std::lock_guard lock(logMutex);
-  int said = 0;
-  for (const auto& m : logs) said += m.find("attitude and position at 20 Hz") != std::string::npos;
-  EXPECT_EQ(said, 1);
+  EXPECT_EQ(logged.count("attitude and position at 20 Hz"), 1);
 }
 
 TEST(TelemetryService, LeavesTheAutopilotsRatesAloneWhenToldTo) {
@@ -747,25 +738,16 @@ TEST(TelemetryService, LeavesTheAutopilotsRatesAloneWhenToldTo) {
 TEST(TelemetryService, LinkSilenceIsLoggedOnceAndItsEnd) {
   Peer peer;
   TelemetryService svc(serviceConfig(), CameraDescription{});
-  std::vector<std::string> logs;
-  std::mutex logMutex;
-  svc.setLogSink([&](TelemetryLogLevel, const std::string& m) {
-    std::lock_guard lock(logMutex);
-    logs.push_back(m);
-  });
-  auto count = [&](const std::string& text) {
-    std::lock_guard lock(logMutex);
-    int n = 0;
-    for (const auto& m : logs) n += m.find(text) != std::string::npos ? 1 : 0;
-    return n;
-  };
+  LogCollector logged;
+  logged.attach(svc);
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1);
-  ASSERT_TRUE(eventually([&] { return count("no MAVLink data on memory for 3 s") == 1; }, 5000));
+  ASSERT_TRUE(
+      eventually([&] { return logged.count("no MAVLink data on memory for 3 s") == 1; }, 5000));
   peer.push(quadHeartbeat(ap));
-  ASSERT_TRUE(eventually([&] { return count("MAVLink data on memory again") == 1; }));
-  EXPECT_EQ(count("no MAVLink data"), 1);
+  ASSERT_TRUE(eventually([&] { return logged.count("MAVLink data on memory again") == 1; }));
+  EXPECT_EQ(logged.count("no MAVLink data"), 1);
   svc.stop();
 }
 
