@@ -588,6 +588,8 @@ std::vector<Field> makeSchema() {
       "zenoh", "config", [](auto& c) -> auto& { return c.zenoh.config; }));
   f.push_back(text(
       "zenoh", "vehicle", [](auto& c) -> auto& { return c.zenoh.vehicle; }, checkVehicle));
+  f.push_back(integer(
+      "zenoh", "open_retry_s", [](auto& c) -> auto& { return c.zenoh.openRetryS; }, R{0, 3600}));
 
   // [log]
   f.push_back(choice(

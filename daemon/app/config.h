@@ -78,9 +78,10 @@ struct DaemonConfig {
   };
 
   struct Zenoh {
-    bool enabled = true;  // zenoh.enabled
-    std::string config;   // zenoh.config (JSON5 file; "": peer mode, Zenoh's defaults)
-    std::string vehicle;  // zenoh.vehicle (keyframed/<vehicle>/...; "": host name)
+    bool enabled = true;          // zenoh.enabled
+    std::string config;           // zenoh.config (JSON5 file; "": peer mode, Zenoh's defaults)
+    std::string vehicle;          // zenoh.vehicle (keyframed/<vehicle>/...; "": host name)
+    std::int64_t openRetryS = 5;  // zenoh.open_retry_s (0: exit when no session opens)
   };
 
   Camera camera;

@@ -597,6 +597,7 @@ int Daemon::run() {
   fo.zenoh = config_.zenoh.enabled;
   fo.zenohConfig = config_.zenoh.config;
   fo.zenohSetting = "zenoh.config";
+  fo.zenohRetryMs = static_cast<int>(config_.zenoh.openRetryS * 1000);
   fo.vehicle = config_.zenoh.vehicle;
   if (fo.vehicle.empty()) {
     char host[256] = {};

@@ -243,11 +243,21 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     po.keyframeDir = o.keyframeDir;
     po.flight = o.flight;
     po.flightsDir = o.flightsDir;
+    po.retryMs = o.zenohRetryMs;
+    po.onLate = [impl = impl_.get()](const std::string& message) { impl->note(message); };
     impl_->publisher = KeyframePublisher::open(po, error);
     if (!impl_->publisher) {
       error = o.zenohSetting + ": " + error;
       impl_->recorder.reset();
       return false;
+    }
+    if (!impl_->publisher->live()) {
+      // Recording and keyframes go on; the ground station fetches what it missed.
+      const int ms = o.zenohRetryMs;
+      impl_->warn(o.zenohSetting + ": " + error + "; trying again every " +
+                  (ms % 1000 == 0 ? std::to_string(ms / 1000) + " s" : std::to_string(ms) + " ms") +
+                  ", publishing nothing until then");
+      error.clear();
     }
     std::string ignored;
     impl_->publisher->publishStatus(

@@ -26,8 +26,9 @@ struct FlightOutputOptions {
   std::uint64_t mcapRotateBytes = 0;   // a new MCAP part after this many bytes (0: never)
   std::int64_t mcapRotateSeconds = 0;  // ... or seconds (0: never)
   std::string zenohSetting = "--zenoh-config";  // how the user named the Zenoh config
-  bool mcapFsync = false;                       // output.mcap_fsync: fsync at each timed flush
-  std::string mcapCompression = "zstd";         // zstd | lz4 | none
+  int zenohRetryMs = 0;    // a session that cannot open: 0 fails open(), else tried again
+  bool mcapFsync = false;  // output.mcap_fsync: fsync at each timed flush
+  std::string mcapCompression = "zstd";  // zstd | lz4 | none
   // The clock of the times given to decision(), keyframe(), ...: liveClock means
   // CLOCK_MONOTONIC (a live run), mapped onto unix time with the offset measured at
   // open(); otherwise unixOffsetNs maps it, and startNs is its time at open().

@@ -10,6 +10,7 @@
 #include <fstream>
 #include <set>
 #include <sstream>
+#include <thread>
 
 namespace keyframed {
 namespace {
@@ -58,6 +59,8 @@ bool readFile(const std::string& path, std::vector<std::uint8_t>& out, std::stri
   if (!ok) error = "cannot read " + path;
   return ok;
 }
+
+constexpr const char* kNoSession = "no zenoh session yet (the queryable serves it later)";
 
 }  // namespace
 
@@ -165,6 +168,7 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
     return nullptr;
   }
   std::unique_ptr<KeyframePublisher> p(new KeyframePublisher());
+  p->options_ = o;
   p->prefix_ = "keyframed/" + o.vehicle;
   p->dir_ = o.keyframeDir;
   p->flight_ = o.flight;
@@ -172,33 +176,42 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   ZenohSession::Options so;
   so.configFile = o.configFile;
   so.overrides = o.overrides;
-  p->session_ = ZenohSession::open(so, error);
-  if (!p->session_) return nullptr;
+  std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
+  if (!session) {
+    // A configuration error stays an error; a link that is not there (yet) is tried
+    // again when asked to. `error` says why for the caller's warning.
+    if (o.retryMs <= 0 || error.rfind("cannot open zenoh session", 0) != 0) return nullptr;
+    p->retryThread_ = std::thread([self = p.get()] { self->retryLoop(); });
+    return p;
+  }
+  if (!p->attach(std::move(session), error)) return nullptr;
+  return p;
+}
+
+bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::string& error) {
+  session_ = std::move(session);
   using Kind = ZenohPublisher::Kind;
   const auto declare = [&](std::unique_ptr<ZenohPublisher>& to, const char* key, Kind kind) {
-    to = ZenohPublisher::declare(*p->session_, p->prefix_ + key, kind, error);
+    to = ZenohPublisher::declare(*session_, prefix_ + key, kind, error);
     return to != nullptr;
   };
-  if (!declare(p->keyframes_, "/keyframe", Kind::Reliable) ||
-      !declare(p->status_, "/status", Kind::BestEffort) ||
-      !declare(p->preview_, "/preview", Kind::BestEffort) ||
-      !declare(p->telemetry_, "/telemetry", Kind::BestEffort)) {
-    return nullptr;
-  }
-  if (!p->dir_.empty()) {
-    KeyframePublisher* self = p.get();
-    p->queryable_ = ZenohQueryable::declare(
-        *p->session_, p->prefix_ + "/keyframes/*",
-        [self](const std::string& key, const std::string& parameters, ZenohReply& reply) {
-          self->answer(key, parameters, reply);
+  bool ok = declare(keyframes_, "/keyframe", Kind::Reliable) &&
+            declare(status_, "/status", Kind::BestEffort) &&
+            declare(preview_, "/preview", Kind::BestEffort) &&
+            declare(telemetry_, "/telemetry", Kind::BestEffort);
+  if (ok && !dir_.empty()) {
+    queryable_ = ZenohQueryable::declare(
+        *session_, prefix_ + "/keyframes/*",
+        [this](const std::string& key, const std::string& parameters, ZenohReply& reply) {
+          answer(key, parameters, reply);
         },
         error);
-    if (!p->queryable_) return nullptr;
+    ok = queryable_ != nullptr;
   }
-  if (!p->flight_.empty() && !p->flightsDir_.empty()) {
-    const std::string dir = p->flightsDir_, current = p->flight_;
-    p->flightsQueryable_ = ZenohQueryable::declare(
-        *p->session_, p->prefix_ + "/flights",
+  if (ok && !flight_.empty() && !flightsDir_.empty()) {
+    const std::string dir = flightsDir_, current = flight_;
+    flightsQueryable_ = ZenohQueryable::declare(
+        *session_, prefix_ + "/flights",
         [dir, current](const std::string&, const std::string&, ZenohReply& reply) {
           const std::string json = flightCatalogue(dir, current);
           std::string ignored;
@@ -206,9 +219,36 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
                    ignored);
         },
         error);
-    if (!p->flightsQueryable_) return nullptr;
+    ok = flightsQueryable_ != nullptr;
   }
-  return p;
+  if (ok) live_.store(true, std::memory_order_release);
+  return ok;
+}
+
+void KeyframePublisher::retryLoop() {
+  int attempts = 1;
+  std::unique_lock lock(retryMutex_);
+  while (!retryCv_.wait_for(lock, std::chrono::milliseconds(options_.retryMs),
+                            [this] { return stopping_; })) {
+    lock.unlock();
+    ++attempts;
+    ZenohSession::Options so;
+    so.configFile = options_.configFile;
+    so.overrides = options_.overrides;
+    std::string error;
+    std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
+    if (session) {
+      if (attach(std::move(session), error)) {
+        if (options_.onLate)
+          options_.onLate("zenoh session open at attempt " + std::to_string(attempts) +
+                          ": publishing; the ground station fetches the keyframes before");
+      } else if (options_.onLate) {
+        options_.onLate("zenoh session open but not usable: " + error);
+      }
+      return;  // one try at declaring: a failure there is no link problem
+    }
+    lock.lock();
+  }
 }
 
 std::string flightCatalogue(const std::string& flightsDir, const std::string& current) {
@@ -253,6 +293,12 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
 }
 
 KeyframePublisher::~KeyframePublisher() {
+  {
+    std::lock_guard lock(retryMutex_);
+    stopping_ = true;
+  }
+  retryCv_.notify_all();
+  if (retryThread_.joinable()) retryThread_.join();
   // The queryable's thread may be inside answer(): stop it before the rest goes.
   queryable_.reset();
   flightsQueryable_.reset();
@@ -430,20 +476,36 @@ std::int64_t KeyframePublisher::unsavedLetGo() const {
 bool KeyframePublisher::publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
                                         const std::string& metadataJson, std::string& error) {
   remember(sequence, metadataJson);
+  if (!live()) {
+    error = kNoSession;
+    return false;
+  }
   const auto* att = reinterpret_cast<const std::uint8_t*>(metadataJson.data());
   return keyframes_->put(jpeg, {att, metadataJson.size()}, error);
 }
 
 bool KeyframePublisher::publishPreview(std::span<const std::uint8_t> jpeg, std::string& error) {
+  if (!live()) {
+    error = kNoSession;
+    return false;
+  }
   return preview_->put(jpeg, {}, error);
 }
 
 bool KeyframePublisher::publishTelemetry(const std::string& json, std::string& error) {
+  if (!live()) {
+    error = kNoSession;
+    return false;
+  }
   const auto* p = reinterpret_cast<const std::uint8_t*>(json.data());
   return telemetry_->put({p, json.size()}, {}, error);
 }
 
 bool KeyframePublisher::publishStatus(const std::string& json, std::string& error) {
+  if (!live()) {
+    error = kNoSession;
+    return false;
+  }
   const auto* p = reinterpret_cast<const std::uint8_t*>(json.data());
   return status_->put({p, json.size()}, {}, error);
 }

@@ -1,11 +1,15 @@
 #pragma once
 
+#include <atomic>
+#include <condition_variable>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <span>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -24,6 +28,14 @@ struct KeyframePublisherOptions {
   // flightsDir/ID/keyframes. Empty: no flight id (an offline run), only this run's.
   std::string flight;
   std::string flightsDir;
+  // A session that cannot open (a client whose router is not up yet, a refused
+  // password): 0 fails open(); > 0 opens the publisher without a session and tries
+  // again every retryMs on a thread of its own, so that the flight is recorded
+  // whatever the link does. Until the session opens nothing is put; keyframes are
+  // remembered for the queryable, which serves them once it is declared.
+  int retryMs = 0;
+  // Told when a session opens on a retry (any thread).
+  std::function<void(const std::string&)> onLate;
 };
 
 // Publishes keyframes and status under keyframed/<vehicle>/ and answers queries for
@@ -62,13 +74,19 @@ class KeyframePublisher {
   bool publishTelemetry(const std::string& json, std::string& error);
 
   [[nodiscard]] const std::string& prefix() const { return prefix_; }
-  [[nodiscard]] std::string zid() const { return session_ ? session_->zid() : std::string(); }
+  // Whether the session is open (always, unless options.retryMs let open() go on
+  // without one).
+  [[nodiscard]] bool live() const { return live_.load(std::memory_order_acquire); }
+  [[nodiscard]] std::string zid() const { return live() ? session_->zid() : std::string(); }
 
   // "" when `name` can be a vehicle name (one key chunk), else why not.
   static std::string checkVehicleName(const std::string& name);
 
  private:
   KeyframePublisher() = default;
+  // Declares the publishers and queryables on `session` and goes live.
+  bool attach(std::unique_ptr<ZenohSession> session, std::string& error);
+  void retryLoop();
   void answer(const std::string& key, const std::string& parameters, ZenohReply& reply);
 
   std::string prefix_;  // keyframed/<vehicle>
@@ -82,6 +100,13 @@ class KeyframePublisher {
   std::unique_ptr<ZenohPublisher> telemetry_;
   std::unique_ptr<ZenohQueryable> queryable_;
   std::unique_ptr<ZenohQueryable> flightsQueryable_;
+  // Set once everything above is declared; none of it changes after.
+  std::atomic<bool> live_{false};
+  KeyframePublisherOptions options_;
+  std::mutex retryMutex_;
+  std::condition_variable retryCv_;
+  bool stopping_ = false;  // under retryMutex_
+  std::thread retryThread_;
   mutable std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)
   std::map<std::int64_t, std::string> published_;  // sequence -> metadata JSON
   struct Unsaved {

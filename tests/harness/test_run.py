@@ -1173,6 +1173,64 @@ def small_disk(path: Path, size: str) -> Iterator[Path]:
         subprocess.run(["umount", "-l", str(path)], check=False)
 
 
+def test_a_client_whose_router_comes_late_loses_no_keyframe(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """docs/deploy.md's vehicle, a Zenoh client of the ground station, started before
+    the ground side is up: the daemon records anyway, says why once, tries again every
+    zenoh.open_retry_s, and once the session opens the ground station ends with every
+    keyframe of the flight (the ones before by query), byte for byte."""
+    port = free_port()
+    zconf = tmp_path / "zenoh.json5"
+    zconf.write_text(
+        json.dumps(
+            {
+                "mode": "client",
+                "scouting": {"multicast": {"enabled": False}},
+                "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+            }
+        )
+    )
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        "zenoh.enabled=true",
+        f"zenoh.config={zconf}",
+        "zenoh.vehicle=client1",
+        "zenoh.open_retry_s=1",
+        "output.mcap=false",
+    )
+    try:
+        time.sleep(3.0)  # of 8 s of flight in real time: keyframes taken with no link
+        assert proc.poll() is None, proc.communicate()
+        out = tmp_path / "ground"
+        station = subprocess.run(
+            [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
+            + ["--listen", f"tcp/127.0.0.1:{port}", "--until-done", "--duration", "60"],
+            capture_output=True,
+            text=True,
+            timeout=90,
+        )
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, stderr
+    assert stderr.count("cannot open zenoh session") == 1, stderr
+    assert "trying again every 1 s" in stderr, stderr
+    assert "zenoh session open at attempt" in stderr, stderr
+    assert station.returncode == 0, station.stderr
+    summary = json.loads(station.stdout.strip().splitlines()[-1])
+    saved = {p.name: p.read_bytes() for p in (flight_dir(tmp_path) / "keyframes").glob("*.jpg")}
+    images = {p.name: p.read_bytes() for p in (out / "client1" / "images").glob("*.jpg")}
+    print(f"late router: {len(images)} keyframes, {summary['fetched_by_query']} by query")
+    assert summary["missing"] == []
+    assert len(saved) >= 5 and images == saved
+    assert summary["fetched_by_query"] >= 1  # the ones taken before the link was up
+
+
 @mounts_tmpfs
 def test_full_disk_and_no_listener_yet_loses_no_keyframe(
     kf_bin: Path, short_nadir: Path, tmp_path: Path

@@ -19,6 +19,7 @@ import csv
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -105,7 +106,12 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
 
 
 def start_daemon(
-    kf_bin: Path, tmp_path: Path, fl: Path, zenoh_config: dict[str, Any], mport: int
+    kf_bin: Path,
+    tmp_path: Path,
+    fl: Path,
+    zenoh_config: dict[str, Any],
+    mport: int,
+    *extra: str,
 ) -> subprocess.Popen[str]:
     """`keyframed run` on the flight's video; it opens Zenoh, then waits (up to 30 s)
     for the fake autopilot's first pose before it reads a frame."""
@@ -124,6 +130,7 @@ def start_daemon(
         "zenoh.enabled=true",
         f"zenoh.config={zconf}",
         f"zenoh.vehicle={VEHICLE}",
+        *extra,
     ]
     args = [str(kf_bin), "run", "--config-dir", str(etc)]
     for s in sets:
@@ -379,9 +386,11 @@ def test_client_of_a_tls_router_with_usrpwd(
             del conf["connect"]["timeout_ms"], conf["connect"]["exit_on_failure"]
             return conf
 
+        # Told not to go on without a session (zenoh.open_retry_s = 0): it stops.
         bad = tmp_path / "bad"
+        mport = free_port(socket.SOCK_DGRAM)
         proc = start_daemon(
-            kf_bin, bad, short_flight, client("wrong"), free_port(socket.SOCK_DGRAM)
+            kf_bin, bad, short_flight, client("wrong"), mport, "zenoh.open_retry_s=0"
         )
         try:
             _, stderr = proc.communicate(timeout=30)
@@ -393,6 +402,24 @@ def test_client_of_a_tls_router_with_usrpwd(
         assert "cannot open zenoh session" in stderr, stderr
         assert "zenoh.config:" in stderr, stderr  # the setting's name in a daemon's terms
         assert "panic" not in stderr, stderr
+        # By default it goes on (records, waits for its autopilot), says why, and
+        # keeps trying: still refused, nothing reaches the router.
+        bad2 = tmp_path / "bad2"
+        proc = start_daemon(kf_bin, bad2, short_flight, client("wrong"), mport)
+        try:
+            time.sleep(2.0)
+            assert proc.poll() is None
+            proc.send_signal(signal.SIGTERM)
+            _, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode == 0, stderr
+        assert "cannot open zenoh session" in stderr, stderr
+        assert "trying again every 5 s" in stderr, stderr
+        assert "zenoh session open" not in stderr, stderr
+        assert not got.keyframes and not got.status
 
         good = tmp_path / "good"
         mport = free_port(socket.SOCK_DGRAM)

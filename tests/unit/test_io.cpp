@@ -1,4 +1,7 @@
 // The Rust I/O crate through its C++ wrappers: MCAP writing and Zenoh in-process.
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -376,6 +379,95 @@ TEST(Zenoh, PublisherAndQueryableDeclareAndUndeclare) {
   pub.reset();
   session.reset();
   EXPECT_EQ(calls.load(), 0);  // an isolated session: nobody asked
+}
+
+// A TCP port nothing listens on (yet).
+int freeTcpPort() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t len = sizeof a;
+  int port = 0;
+  if (::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0 &&
+      ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len) == 0)
+    port = ntohs(a.sin_port);
+  ::close(fd);
+  return port;
+}
+
+TEST(KeyframePublisher, AClientWithoutItsRouterGoesOnAndPublishesOnceItIsUp) {
+  const int port = freeTcpPort();
+  ASSERT_GT(port, 0);
+  const std::string endpoint = "tcp/127.0.0.1:" + std::to_string(port);
+  const std::string client = tempPath("client.json5");
+  std::ofstream(client) << R"({mode: "client", scouting: {multicast: {enabled: false}},
+                              connect: {endpoints: [")" +
+                               endpoint + R"("]}})";
+  KeyframePublisherOptions o;
+  o.configFile = client;
+  o.vehicle = "late";
+  std::string error;
+  // Told not to retry: no router, no publisher.
+  EXPECT_FALSE(KeyframePublisher::open(o, error));
+  EXPECT_EQ(error.rfind("cannot open zenoh session", 0), 0U) << error;
+
+  std::mutex m;
+  std::condition_variable cv;
+  std::vector<std::string> late;
+  o.retryMs = 200;
+  o.onLate = [&](const std::string& message) {
+    std::lock_guard lock(m);
+    late.push_back(message);
+    cv.notify_all();
+  };
+  error.clear();
+  auto publisher = KeyframePublisher::open(o, error);
+  ASSERT_TRUE(publisher) << error;
+  EXPECT_FALSE(publisher->live());
+  EXPECT_EQ(error.rfind("cannot open zenoh session", 0), 0U) << error;  // why, for a warning
+  const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
+  EXPECT_FALSE(publisher->publishKeyframe(0, jpeg, "{}", error));
+  EXPECT_NE(error.find("no zenoh session yet"), std::string::npos) << error;
+  EXPECT_FALSE(publisher->publishStatus("{}", error));
+  std::this_thread::sleep_for(std::chrono::milliseconds(700));  // a few tries in vain
+  EXPECT_FALSE(publisher->live());
+
+  ZenohSession::Options r;
+  r.configJson5 = R"({mode: "router", scouting: {multicast: {enabled: false}},
+                      listen: {endpoints: [")" +
+                  endpoint + R"("]}})";
+  auto router = ZenohSession::open(r, error);
+  ASSERT_TRUE(router) << error;
+  {
+    std::unique_lock lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, std::chrono::seconds(10), [&] { return !late.empty(); }));
+    EXPECT_NE(late.front().find("zenoh session open at attempt"), std::string::npos)
+        << late.front();
+  }
+  EXPECT_TRUE(publisher->live());
+  EXPECT_FALSE(publisher->zid().empty());
+  EXPECT_TRUE(publisher->publishKeyframe(1, jpeg, "{}", error)) << error;
+  EXPECT_TRUE(publisher->publishStatus("{}", error)) << error;
+  publisher.reset();
+  router.reset();
+}
+
+TEST(KeyframePublisher, StopsRetryingWhenClosed) {
+  const int port = freeTcpPort();
+  const std::string client = tempPath("client-closed.json5");
+  std::ofstream(client) << R"({mode: "client", scouting: {multicast: {enabled: false}},
+                              connect: {endpoints: ["tcp/127.0.0.1:)" +
+                               std::to_string(port) + R"("]}})";
+  KeyframePublisherOptions o;
+  o.configFile = client;
+  o.retryMs = 60'000;  // the first retry is a minute away: closing must not wait for it
+  std::string error;
+  const auto start = std::chrono::steady_clock::now();
+  auto publisher = KeyframePublisher::open(o, error);
+  ASSERT_TRUE(publisher) << error;
+  publisher.reset();
+  EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(5));
 }
 
 TEST(KeyframeRange, QueryParameterForms) {
