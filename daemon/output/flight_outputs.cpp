@@ -470,7 +470,12 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
                 " keyframes left to the queryable in this flight (the link was too slow)");
     impl_->putsSkipped = 0;
   }
-  if (impl_->publishFailureLog.heldBack() > 0) {
+  if (impl_->publisher && !impl_->publisher->live()) {
+    impl_->warn("zenoh: no session opened in this flight: its " + std::to_string(impl_->kept) +
+                " keyframes were not published (they are on disk; a later run's queryable "
+                "serves them with flight=ID)");
+    impl_->publishFailureLog.reset();
+  } else if (impl_->publishFailureLog.heldBack() > 0) {
     impl_->warn("zenoh: " + std::to_string(impl_->publishFailures) +
                 " keyframe puts failed in this flight (the queryable serves them)");
     impl_->publishFailureLog.reset();

@@ -419,6 +419,7 @@ def test_client_of_a_tls_router_with_usrpwd(
         assert "cannot open zenoh session" in stderr, stderr
         assert "trying again every 5 s" in stderr, stderr
         assert "zenoh session open" not in stderr, stderr
+        assert "no session opened in this flight" in stderr, stderr
         assert not got.keyframes and not got.status
 
         good = tmp_path / "good"
