@@ -1173,6 +1173,18 @@ def small_disk(path: Path, size: str) -> Iterator[Path]:
         subprocess.run(["umount", "-l", str(path)], check=False)
 
 
+def ground_station(out: Path, *link: str) -> subprocess.CompletedProcess[str]:
+    """keyframed-ground into OUT over LINK (--listen or --connect ENDPOINT) until the
+    flight is done (at most 60 s); its summary is the last line of its stdout."""
+    return subprocess.run(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet", *link]
+        + ["--until-done", "--duration", "60"],
+        capture_output=True,
+        text=True,
+        timeout=90,
+    )
+
+
 def test_a_client_whose_router_comes_late_loses_no_keyframe(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
@@ -1205,13 +1217,7 @@ def test_a_client_whose_router_comes_late_loses_no_keyframe(
         time.sleep(3.0)  # of 8 s of flight in real time: keyframes taken with no link
         assert proc.poll() is None, proc.communicate()
         out = tmp_path / "ground"
-        station = subprocess.run(
-            [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
-            + ["--listen", f"tcp/127.0.0.1:{port}", "--until-done", "--duration", "60"],
-            capture_output=True,
-            text=True,
-            timeout=90,
-        )
+        station = ground_station(out, "--listen", f"tcp/127.0.0.1:{port}")
         _, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -1254,13 +1260,7 @@ def test_full_disk_and_no_listener_yet_loses_no_keyframe(
         assert proc.poll() is None, proc.communicate()
         joined_ns = time.monotonic_ns()  # the daemon's decided_ns clock
         out = tmp_path / "ground"
-        station = subprocess.run(
-            [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
-            + ["--connect", f"tcp/127.0.0.1:{port}", "--until-done", "--duration", "60"],
-            capture_output=True,
-            text=True,
-            timeout=90,
-        )
+        station = ground_station(out, "--connect", f"tcp/127.0.0.1:{port}")
         _, stderr = proc.communicate(timeout=60)
         assert proc.returncode == 1, stderr  # incomplete outputs, no crash
         assert "keyframes not saved" in stderr, stderr
