@@ -60,7 +60,9 @@ bool readFile(const std::string& path, std::vector<std::uint8_t>& out, std::stri
   return ok;
 }
 
-constexpr const char* kNoSession = "no zenoh session yet (the queryable serves it later)";
+std::span<const std::uint8_t> asBytes(const std::string& s) {
+  return {reinterpret_cast<const std::uint8_t*>(s.data()), s.size()};
+}
 
 }  // namespace
 
@@ -168,15 +170,15 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
     return nullptr;
   }
   std::unique_ptr<KeyframePublisher> p(new KeyframePublisher());
-  p->options_ = o;
   p->prefix_ = "keyframed/" + o.vehicle;
   p->dir_ = o.keyframeDir;
   p->flight_ = o.flight;
   p->flightsDir_ = o.flightsDir;
-  ZenohSession::Options so;
-  so.configFile = o.configFile;
-  so.overrides = o.overrides;
-  std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
+  p->sessionOptions_.configFile = o.configFile;
+  p->sessionOptions_.overrides = o.overrides;
+  p->retryMs_ = o.retryMs;
+  p->onLate_ = o.onLate;
+  std::unique_ptr<ZenohSession> session = ZenohSession::open(p->sessionOptions_, error);
   if (!session) {
     // A configuration error stays an error; a link that is not there (yet) is tried
     // again when asked to. `error` says why for the caller's warning.
@@ -215,8 +217,7 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
         [dir, current](const std::string&, const std::string&, ZenohReply& reply) {
           const std::string json = flightCatalogue(dir, current);
           std::string ignored;
-          reply.ok({}, {reinterpret_cast<const std::uint8_t*>(json.data()), json.size()}, {},
-                   ignored);
+          reply.ok({}, asBytes(json), {}, ignored);
         },
         error);
     ok = flightsQueryable_ != nullptr;
@@ -228,22 +229,19 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
 void KeyframePublisher::retryLoop() {
   int attempts = 1;
   std::unique_lock lock(retryMutex_);
-  while (!retryCv_.wait_for(lock, std::chrono::milliseconds(options_.retryMs),
-                            [this] { return stopping_; })) {
+  while (
+      !retryCv_.wait_for(lock, std::chrono::milliseconds(retryMs_), [this] { return stopping_; })) {
     lock.unlock();
     ++attempts;
-    ZenohSession::Options so;
-    so.configFile = options_.configFile;
-    so.overrides = options_.overrides;
     std::string error;
-    std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
+    std::unique_ptr<ZenohSession> session = ZenohSession::open(sessionOptions_, error);
     if (session) {
       if (attach(std::move(session), error)) {
-        if (options_.onLate)
-          options_.onLate("zenoh session open at attempt " + std::to_string(attempts) +
-                          ": publishing; the ground station fetches the keyframes before");
-      } else if (options_.onLate) {
-        options_.onLate("zenoh session open but not usable: " + error);
+        if (onLate_)
+          onLate_("zenoh session open at attempt " + std::to_string(attempts) +
+                  ": publishing; the ground station fetches the keyframes before");
+      } else if (onLate_) {
+        onLate_("zenoh session open but not usable: " + error);
       }
       return;  // one try at declaring: a failure there is no link problem
     }
@@ -439,8 +437,7 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
       continue;
     }
     const std::string replyKey = prefix_ + "/keyframes/" + std::to_string(r.sequence);
-    const auto* att = reinterpret_cast<const std::uint8_t*>(r.metadataJson.data());
-    if (!reply.ok(replyKey, jpeg, {att, r.metadataJson.size()}, error)) return;
+    if (!reply.ok(replyKey, jpeg, asBytes(r.metadataJson), error)) return;
   }
   if (!found && !all) {
     std::string ignored;
@@ -473,41 +470,32 @@ std::int64_t KeyframePublisher::unsavedLetGo() const {
   return unsavedLetGo_;
 }
 
+bool KeyframePublisher::put(const std::unique_ptr<ZenohPublisher>& to,
+                            std::span<const std::uint8_t> payload,
+                            std::span<const std::uint8_t> attachment, std::string& error) {
+  if (!live()) {
+    error = "no zenoh session yet (the queryable serves keyframes later)";
+    return false;
+  }
+  return to->put(payload, attachment, error);
+}
+
 bool KeyframePublisher::publishKeyframe(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
                                         const std::string& metadataJson, std::string& error) {
   remember(sequence, metadataJson);
-  if (!live()) {
-    error = kNoSession;
-    return false;
-  }
-  const auto* att = reinterpret_cast<const std::uint8_t*>(metadataJson.data());
-  return keyframes_->put(jpeg, {att, metadataJson.size()}, error);
+  return put(keyframes_, jpeg, asBytes(metadataJson), error);
 }
 
 bool KeyframePublisher::publishPreview(std::span<const std::uint8_t> jpeg, std::string& error) {
-  if (!live()) {
-    error = kNoSession;
-    return false;
-  }
-  return preview_->put(jpeg, {}, error);
+  return put(preview_, jpeg, {}, error);
 }
 
 bool KeyframePublisher::publishTelemetry(const std::string& json, std::string& error) {
-  if (!live()) {
-    error = kNoSession;
-    return false;
-  }
-  const auto* p = reinterpret_cast<const std::uint8_t*>(json.data());
-  return telemetry_->put({p, json.size()}, {}, error);
+  return put(telemetry_, asBytes(json), {}, error);
 }
 
 bool KeyframePublisher::publishStatus(const std::string& json, std::string& error) {
-  if (!live()) {
-    error = kNoSession;
-    return false;
-  }
-  const auto* p = reinterpret_cast<const std::uint8_t*>(json.data());
-  return status_->put({p, json.size()}, {}, error);
+  return put(status_, asBytes(json), {}, error);
 }
 
 }  // namespace keyframed

@@ -87,6 +87,9 @@ class KeyframePublisher {
   // Declares the publishers and queryables on `session` and goes live.
   bool attach(std::unique_ptr<ZenohSession> session, std::string& error);
   void retryLoop();
+  // to->put() once the session is open; false with an error before.
+  bool put(const std::unique_ptr<ZenohPublisher>& to, std::span<const std::uint8_t> payload,
+           std::span<const std::uint8_t> attachment, std::string& error);
   void answer(const std::string& key, const std::string& parameters, ZenohReply& reply);
 
   std::string prefix_;  // keyframed/<vehicle>
@@ -102,7 +105,9 @@ class KeyframePublisher {
   std::unique_ptr<ZenohQueryable> flightsQueryable_;
   // Set once everything above is declared; none of it changes after.
   std::atomic<bool> live_{false};
-  KeyframePublisherOptions options_;
+  ZenohSession::Options sessionOptions_;  // kept for the retries
+  int retryMs_ = 0;
+  std::function<void(const std::string&)> onLate_;
   std::mutex retryMutex_;
   std::condition_variable retryCv_;
   bool stopping_ = false;  // under retryMutex_

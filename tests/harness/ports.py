@@ -24,3 +24,15 @@ def zenoh_listener_config(path: Path, port: int) -> Path:
     }
     path.write_text(json.dumps(conf))
     return path
+
+
+def zenoh_connect_config(path: Path, port: int, mode: str = "peer") -> Path:
+    """A Zenoh configuration (JSON5) in MODE (peer or client) dialling
+    tcp/127.0.0.1:PORT, no scouting: the daemon's side when the other side listens."""
+    conf = {
+        "mode": mode,
+        "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    path.write_text(json.dumps(conf))
+    return path

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
-from ports import free_port, zenoh_listener_config
+from ports import free_port, zenoh_connect_config, zenoh_listener_config
 from pymavlink.dialects.v20 import common as mav2
 
 fake_autopilot = autopilot_fixture()
@@ -907,16 +907,7 @@ def test_fleet_three_vehicles_one_router_one_ground_station(kf_bin: Path, tmp_pa
     rconf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     rconf.insert_json5("scouting/multicast/enabled", "false")
     router = zenoh.open(rconf)
-    client = tmp_path / "client.json5"
-    client.write_text(
-        json.dumps(
-            {
-                "mode": "client",
-                "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
-                "scouting": {"multicast": {"enabled": False}},
-            }
-        )
-    )
+    client = zenoh_connect_config(tmp_path / "client.json5", port, mode="client")
     flights = {
         "uav-a": flight("nadir", width=480, height=270, seconds=6.0),
         "uav-b": flight("orbit", width=480, height=270, seconds=6.0),
@@ -1193,16 +1184,7 @@ def test_a_client_whose_router_comes_late_loses_no_keyframe(
     zenoh.open_retry_s, and once the session opens the ground station ends with every
     keyframe of the flight (the ones before by query), byte for byte."""
     port = free_port()
-    zconf = tmp_path / "zenoh.json5"
-    zconf.write_text(
-        json.dumps(
-            {
-                "mode": "client",
-                "scouting": {"multicast": {"enabled": False}},
-                "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
-            }
-        )
-    )
+    zconf = zenoh_connect_config(tmp_path / "zenoh.json5", port, mode="client")
     proc = start(
         kf_bin,
         tmp_path,
@@ -1291,13 +1273,11 @@ def test_full_disk_loses_no_keyframe_on_the_link(
     zenoh = pytest.importorskip("zenoh")
     with small_disk(tmp_path / "state", "400k") as state:
         port = free_port()
-        zconf = tmp_path / "zenoh.json5"
-        conf = {"mode": "peer", "scouting": {"multicast": {"enabled": False}}}
-        zconf.write_text(json.dumps({**conf, "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]}}))
+        zconf = zenoh_connect_config(tmp_path / "zenoh.json5", port)
         received: list[tuple[bytes, dict[str, Any]]] = []
         status: list[dict[str, Any]] = []
-        listen = {**conf, "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]}}
-        session = zenoh.open(zenoh.Config.from_json5(json.dumps(listen)))
+        listener = zenoh_listener_config(tmp_path / "listener.json5", port)
+        session = zenoh.open(zenoh.Config.from_file(str(listener)))
         try:
             session.declare_subscriber(
                 "keyframed/full/keyframe",
