@@ -10,7 +10,7 @@ mkdir -p "$STAMP_DIR"
 APT_PACKAGES=(
   build-essential cmake ninja-build pkg-config git
   python3 python3-dev python3-venv
-  libopencv-dev opencv-doc
+  libopencv-dev opencv-doc libavcodec-dev
   libcamera-dev libv4l-dev libexiv2-dev libturbojpeg0-dev libsystemd-dev
   libtomlplusplus-dev libgtest-dev libbenchmark-dev
   libimage-exiftool-perl clang-format

@@ -18,19 +18,42 @@ for tool in exiftool systemd-analyze strace openssl; do
   command -v "$tool" > /dev/null || { echo "missing $tool (tools/setup.sh installs it)" >&2; exit 1; }
 done
 
-step "build (release, warnings as errors) and Python package"
+# The sanitizer build's objects compile beside the release build, at the lowest
+# priority: the release build's critical path is cargo's cold build of the Rust crate
+# (minutes, one or two crates at a time at its end), and these fill the idle core
+# without slowing it. Objects only: the links need the Rust crate, which the release
+# build makes (the trees share its cargo target dir).
+asan_configure() {
+  if [ ! -f build/asan/build.ninja ]; then
+    cmake -S . -B build/asan -G Ninja -DCMAKE_BUILD_TYPE=Debug -DKEYFRAMED_SANITIZE=ON \
+      -DKEYFRAMED_BUILD_BENCHMARKS=OFF -DKEYFRAMED_WERROR=ON \
+      -DKEYFRAMED_CARGO_TARGET_DIR="$ROOT/build/release/io-rs"
+  fi
+}
+ASAN_TARGETS=(tests/keyframed_unit daemon/keyframed tests/fuzz/fuzz_mavlink_standalone)
+mkdir -p build
+(
+  asan_configure
+  mapfile -t objects < <(ninja -C build/asan -t inputs "${ASAN_TARGETS[@]}" | grep -E '\.(o|gch)$')
+  nice -n 19 ninja -C build/asan -j"$JOBS" "${objects[@]}"
+) > build/asan-objects.log 2>&1 &
+ASAN_OBJECTS_PID=$!
+# A failed step ends the suite: the background build with it.
+trap 'kill "$ASAN_OBJECTS_PID" 2>/dev/null || true' EXIT
+
+step "build (release, warnings as errors) and Python package; sanitizer objects beside it"
 tools/build.sh
 
 step "C++ unit tests (release)"
 ctest --test-dir build/release --output-on-failure --no-tests=error -j"$JOBS"
 
 step "C++ unit tests (AddressSanitizer + UBSan)"
-if [ ! -f build/asan/build.ninja ]; then
-  cmake -S . -B build/asan -G Ninja -DCMAKE_BUILD_TYPE=Debug -DKEYFRAMED_SANITIZE=ON \
-    -DKEYFRAMED_BUILD_BENCHMARKS=OFF -DKEYFRAMED_WERROR=ON \
-    -DKEYFRAMED_CARGO_TARGET_DIR="$ROOT/build/release/io-rs"
+if ! wait "$ASAN_OBJECTS_PID"; then
+  cat build/asan-objects.log
+  echo "the sanitizer build's objects failed to compile (above)" >&2
+  exit 1
 fi
-ninja -C build/asan -j"$JOBS" keyframed_unit keyframed fuzz_mavlink_standalone
+ninja -C build/asan -j"$JOBS" "${ASAN_TARGETS[@]}"
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 # A gtest binary with no tests passes; this one must have them.
 asan_tests=$(build/asan/tests/keyframed_unit --gtest_list_tests | grep -c '^  ' || true)

@@ -580,6 +580,11 @@ std::vector<Field> makeSchema() {
   f.push_back(integer(
       "output", "preview_width", [](auto& c) -> auto& { return c.output.previewWidth; },
       R{0, 16384}));
+  f.push_back(text(
+      "output", "preview_format", [](auto& c) -> auto& { return c.output.previewFormat; },
+      [](const std::string& s) -> std::string {
+        return s == "jpeg" || s == "h264" ? "" : "must be jpeg or h264 (got " + quote(s) + ")";
+      }));
 
   // [zenoh]
   f.push_back(boolean(

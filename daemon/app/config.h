@@ -75,6 +75,7 @@ struct DaemonConfig {
     bool mcapFsync = true;                        // output.mcap_fsync (timed flush + fsync)
     std::string mcapCompression = "auto";         // output.mcap_compression
     std::int64_t previewWidth = 640;              // output.preview_width (0: no preview)
+    std::string previewFormat = "jpeg";           // output.preview_format: jpeg | h264
   };
 
   struct Zenoh {

@@ -1,5 +1,7 @@
 #include "app/preview_encoder.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <string>
 #include <utility>
@@ -20,19 +22,38 @@ bool copyPlane(GrayView from, int cols, int rows, std::uint8_t* to) {
 }
 }  // namespace
 
+PreviewEncoder::PreviewEncoder(int width, Format format, double fps)
+    : width_(width),
+      mode_(format),
+      format_(format == Format::H264 ? "h264" : "jpeg"),
+      h264_({.keyframeInterval = std::max(1, static_cast<int>(std::lround(fps > 0 ? fps : 30))),
+             .crf = 23,
+             .fps = fps > 0 ? fps : 30}) {}
+
 cv::Size PreviewEncoder::sizeFor(int width, int height) const {
   if (width_ <= 0 || width <= 0) return {0, 0};
-  const int w = width_ & ~1;
+  const int w = std::min(width_, width) & ~1;
   const int h = static_cast<int>(static_cast<std::int64_t>(height) * w / width) & ~1;
   return {w, h > 0 ? h : 2};
 }
 
-bool PreviewEncoder::encodeYuv(const Frame& f, std::vector<std::uint8_t>& out) {
+Frame PreviewEncoder::planesFrame() const {
+  Frame small;
+  small.format = PixelFormat::YUV420;
+  small.data = planes_.data();
+  small.width = planesSize_.width;
+  small.height = planesSize_.height;
+  small.stride = planesSize_.width;
+  return small;
+}
+
+bool PreviewEncoder::scaleYuv(const Frame& f) {
   const cv::Size size = sizeFor(f.width, f.height);
   const int cw = size.width / 2, ch = size.height / 2;
   const std::size_t lumaBytes = static_cast<std::size_t>(size.area());
   const std::size_t chromaBytes = static_cast<std::size_t>(cw) * static_cast<std::size_t>(ch);
   planes_.resize(lumaBytes + 2 * chromaBytes);
+  planesSize_ = size;
   std::uint8_t* y = planes_.data();
 
   const std::size_t stride = static_cast<std::size_t>(f.stride);
@@ -53,53 +74,18 @@ bool PreviewEncoder::encodeYuv(const Frame& f, std::vector<std::uint8_t>& out) {
                  srcCw, srcCh, cstride};
   }
   const GrayView luma{f.data, f.width, f.height, f.stride};
-  if (!copyPlane(luma_.scale(luma, size.width, size.height), size.width, size.height, y) ||
-      !copyPlane(chromaU_.scale(u, cw, ch), cw, ch, y + lumaBytes) ||
-      !copyPlane(chromaV_.scale(v, cw, ch), cw, ch, y + lumaBytes + chromaBytes)) {
-    return false;
-  }
-  Frame small;
-  small.format = PixelFormat::YUV420;
-  small.data = y;
-  small.width = size.width;
-  small.height = size.height;
-  small.stride = size.width;
-  std::string error;
-  return encoder_.encode(small, kQuality, out, error);
+  return copyPlane(luma_.scale(luma, size.width, size.height), size.width, size.height, y) &&
+         copyPlane(chromaU_.scale(u, cw, ch), cw, ch, y + lumaBytes) &&
+         copyPlane(chromaV_.scale(v, cw, ch), cw, ch, y + lumaBytes + chromaBytes);
 }
 
-bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
-  if (width_ <= 0 || f.data == nullptr || f.width < 2 || f.height < 2) return false;
-  const bool full = width_ >= f.width;
-  format_ = full ? "png" : "jpeg";
-  if (!full && (f.format == PixelFormat::YUV420 || f.format == PixelFormat::NV12)) {
-    return encodeYuv(f, out);
-  }
-  auto* data = const_cast<std::uint8_t*>(f.data);
-  const auto stride = static_cast<std::size_t>(f.stride);
-  const int rows420 = f.height * 3 / 2;  // as OpenCV's 4:2:0 conversions take them
-  switch (f.format) {
-    case PixelFormat::BGR24: bgr_ = cv::Mat(f.height, f.width, CV_8UC3, data, stride); break;
-    case PixelFormat::Gray8:
-      cv::cvtColor(cv::Mat(f.height, f.width, CV_8UC1, data, stride), bgr_, cv::COLOR_GRAY2BGR);
-      break;
-    case PixelFormat::NV12:
-      cv::cvtColor(cv::Mat(rows420, f.width, CV_8UC1, data, stride), bgr_, cv::COLOR_YUV2BGR_NV12);
-      break;
-    case PixelFormat::YUV420:
-      cv::cvtColor(cv::Mat(rows420, f.width, CV_8UC1, data, stride), bgr_, cv::COLOR_YUV2BGR_I420);
-      break;
-    case PixelFormat::YUYV:
-      cv::cvtColor(cv::Mat(f.height, f.width, CV_8UC2, data, stride), bgr_, cv::COLOR_YUV2BGR_YUYV);
-      break;
-  }
-  if (full) {
-    // Lossless, so that a replay reproduces the live decisions exactly.
-    return cv::imencode(".png", bgr_, out, {cv::IMWRITE_PNG_COMPRESSION, 1});
+void PreviewEncoder::scaleBgr(cv::Size size) {
+  if (size == bgr_.size()) {
+    small_ = bgr_;
+    return;
   }
   // Halve with INTER_AREA while that stays above the target, then one bilinear step,
   // as DownScaler does for one plane.
-  const cv::Size size = sizeFor(f.width, f.height);
   const cv::Mat* from = &bgr_;
   while (from->cols / 2 >= size.width) {
     cv::resize(*from, half_, cv::Size(from->cols / 2, from->rows / 2), 0, 0, cv::INTER_AREA);
@@ -107,8 +93,74 @@ bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
     from = &halfSpare_;
   }
   cv::resize(*from, small_, size, 0, 0, cv::INTER_LINEAR);
-  std::string error;
-  return encoder_.encode(small_, kQuality, out, error);
+}
+
+namespace {
+// The whole frame in colour (BGR), a view where it already is.
+void toBgr(const Frame& f, cv::Mat& bgr) {
+  auto* data = const_cast<std::uint8_t*>(f.data);
+  const auto stride = static_cast<std::size_t>(f.stride);
+  const int rows420 = f.height * 3 / 2;  // as OpenCV's 4:2:0 conversions take them
+  switch (f.format) {
+    case PixelFormat::BGR24: bgr = cv::Mat(f.height, f.width, CV_8UC3, data, stride); break;
+    case PixelFormat::Gray8:
+      cv::cvtColor(cv::Mat(f.height, f.width, CV_8UC1, data, stride), bgr, cv::COLOR_GRAY2BGR);
+      break;
+    case PixelFormat::NV12:
+      cv::cvtColor(cv::Mat(rows420, f.width, CV_8UC1, data, stride), bgr, cv::COLOR_YUV2BGR_NV12);
+      break;
+    case PixelFormat::YUV420:
+      cv::cvtColor(cv::Mat(rows420, f.width, CV_8UC1, data, stride), bgr, cv::COLOR_YUV2BGR_I420);
+      break;
+    case PixelFormat::YUYV:
+      cv::cvtColor(cv::Mat(f.height, f.width, CV_8UC2, data, stride), bgr, cv::COLOR_YUV2BGR_YUYV);
+      break;
+  }
+}
+}  // namespace
+
+bool PreviewEncoder::scaleToI420(const Frame& f) {
+  if (f.format == PixelFormat::YUV420 || f.format == PixelFormat::NV12) return scaleYuv(f);
+  toBgr(f, bgr_);
+  const cv::Size size = sizeFor(f.width, f.height);
+  scaleBgr(size);
+  cv::cvtColor(small_, i420_, cv::COLOR_BGR2YUV_I420);
+  planes_.assign(i420_.datastart, i420_.dataend);
+  planesSize_ = size;
+  return true;
+}
+
+bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
+  error_.clear();
+  if (width_ <= 0 || f.data == nullptr || f.width < 2 || f.height < 2) return false;
+  if (mode_ == Format::H264) {
+    if (!scaleToI420(f)) {
+      error_ = "the frame cannot be scaled";
+      return false;
+    }
+    return h264_.encode({planes_.data(), planesSize_.width, planesSize_.height}, out, error_);
+  }
+  const bool full = width_ >= f.width;
+  format_ = full ? "png" : "jpeg";
+  if (!full && (f.format == PixelFormat::YUV420 || f.format == PixelFormat::NV12)) {
+    if (!scaleYuv(f)) {
+      error_ = "the frame cannot be scaled";
+      return false;
+    }
+    return encoder_.encode(planesFrame(), kQuality, out, error_);
+  }
+  toBgr(f, bgr_);
+  if (full) {
+    // Lossless, so that a replay reproduces the live decisions exactly.
+    return cv::imencode(".png", bgr_, out, {cv::IMWRITE_PNG_COMPRESSION, 1});
+  }
+  scaleBgr(sizeFor(f.width, f.height));
+  return encoder_.encode(small_, kQuality, out, error_);
+}
+
+bool PreviewEncoder::lastAsJpeg(std::vector<std::uint8_t>& out) {
+  if (mode_ != Format::H264 || planes_.empty()) return false;
+  return encoder_.encode(planesFrame(), kQuality, out, error_);
 }
 
 }  // namespace keyframed

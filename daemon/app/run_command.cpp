@@ -232,6 +232,8 @@ class Daemon {
   std::optional<MavlinkRecord> replayRecord_;
   std::size_t replayRecorded_ = 0;
   void recordReplayUpTo(std::int64_t timeNs);
+  // The frame into the record's preview stream (and Zenoh's preview key).
+  void preview(const Frame& frame);
   [[nodiscard]] std::int64_t frameClockNowNs() const {
     return monotonicNowNs() + clockOffsetNs_.load();
   }
@@ -256,8 +258,9 @@ class Daemon {
   std::optional<SelectorConfig> pendingSelection_;
   CaptureRequests captureRequests_;  // MAVLink (telemetry thread) -> analysis
   StageCounts finalCounts_;
-  PreviewEncoder preview_{static_cast<int>(config_.output.previewWidth)};
-  std::vector<std::uint8_t> previewJpeg_;
+  std::unique_ptr<PreviewEncoder> preview_;  // made once the source's frame rate is known
+  std::vector<std::uint8_t> previewData_, previewStill_;
+  bool previewFailed_ = false;  // said once
 };
 
 void Daemon::analysisLoop() {
@@ -309,12 +312,26 @@ void Daemon::analyse() {
     stage_->process((*item)->frame);
     recordReplayUpTo((*item)->frame.timestampNs);
     captureRequests_.noteServed(*stage_);
-    if ((outputs_.recording() || outputs_.publishing()) &&
-        preview_.encode((*item)->frame, previewJpeg_)) {
-      outputs_.preview((*item)->frame.timestampNs, previewJpeg_, preview_.format());
-    }
+    if (outputs_.recording() || outputs_.publishing()) preview((*item)->frame);
     stats_.analysed.store(stage_->counts().framesRead);
     stats_.kept.store(stage_->counts().kept);
+  }
+}
+
+void Daemon::preview(const Frame& frame) {
+  if (!preview_->encode(frame, previewData_)) {
+    if (!preview_->error().empty() && !previewFailed_) {
+      previewFailed_ = true;
+      KF_LOG(Output, Error) << "preview stream: " << preview_->error()
+                            << " (the record goes on without it)";
+    }
+    return;
+  }
+  outputs_.preview(frame.timestampNs, previewData_, preview_->format());
+  // H.264 pictures are not stills: Zenoh's preview gets the picture as a JPEG.
+  if (std::string_view(preview_->format()) == "h264" && outputs_.previewStillDue() &&
+      preview_->lastAsJpeg(previewStill_)) {
+    outputs_.previewStill(previewStill_);
   }
 }
 
@@ -513,6 +530,11 @@ int Daemon::run() {
   const SourceInfo& info = source_->info();
   KF_LOG(Capture, Notice) << "capturing from " << info.description << " (" << info.width << "x"
                           << info.height << " @ " << info.fps << " fps)";
+  preview_ = std::make_unique<PreviewEncoder>(static_cast<int>(config_.output.previewWidth),
+                                              config_.output.previewFormat == "h264"
+                                                  ? PreviewEncoder::Format::H264
+                                                  : PreviewEncoder::Format::Jpeg,
+                                              info.fps);
   // A camera that does not offer the configured size gives its nearest one: say so, the
   // keyframes and the calibration's scaling depend on it.
   if (config_.camera.source != DaemonConfig::Source::File &&
@@ -585,7 +607,7 @@ int Daemon::run() {
   fo.mcapRotateBytes = static_cast<std::uint64_t>(config_.output.mcapRotateMb) << 20;
   fo.mcapRotateSeconds = config_.output.mcapRotateS;
   fo.mcapFsync = config_.output.mcapFsync;
-  // Preview frames (JPEG, PNG) are most of the record and do not compress.
+  // Preview frames (JPEG, PNG, H.264) are most of the record and do not compress.
   fo.mcapCompression = config_.output.mcapCompression != "auto" ? config_.output.mcapCompression
                        : config_.output.previewWidth > 0        ? "none"
                                                                 : "zstd";

@@ -316,18 +316,28 @@ void FlightOutputs::settings(std::int64_t timeNs, const std::string& selectionLi
 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
                             const char* format) {
-  if (impl_->recorder)
-    impl_->recorder->record(McapTopic::Preview, timeNs,
-                            proto::compressedImage(timeNs, kCameraFrame, image, format));
-  // Zenoh gets a JPEG twice a second at most (a lossless full-size PNG stays local).
-  if (impl_->publisher && std::string_view(format) == "jpeg") {
-    const std::int64_t now = wallNs();
-    if (now - impl_->lastPreviewNs >= 500'000'000) {
-      impl_->lastPreviewNs = now;
-      std::string ignored;
-      impl_->publisher->publishPreview(image, ignored);
-    }
+  const std::string_view kind(format);
+  if (impl_->recorder) {
+    if (kind == "h264")
+      impl_->recorder->record(McapTopic::Video, timeNs,
+                              proto::compressedVideo(timeNs, kCameraFrame, image, format));
+    else
+      impl_->recorder->record(McapTopic::Preview, timeNs,
+                              proto::compressedImage(timeNs, kCameraFrame, image, format));
   }
+  // A lossless full-size PNG stays local; H.264 pictures reach Zenoh as previewStill().
+  if (kind == "jpeg") previewStill(image);
+}
+
+bool FlightOutputs::previewStillDue() const {
+  return impl_->publisher && wallNs() - impl_->lastPreviewNs >= 500'000'000;
+}
+
+void FlightOutputs::previewStill(std::span<const std::uint8_t> jpeg) {
+  if (!previewStillDue()) return;
+  impl_->lastPreviewNs = wallNs();
+  std::string ignored;
+  impl_->publisher->publishPreview(jpeg, ignored);
 }
 
 void FlightOutputs::telemetry(const std::string& json) {
@@ -529,6 +539,10 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
 void FlightOutputs::decision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
 void FlightOutputs::preview(std::int64_t, std::span<const std::uint8_t>, const char*) {}
+bool FlightOutputs::previewStillDue() const {
+  return false;
+}
+void FlightOutputs::previewStill(std::span<const std::uint8_t>) {}
 void FlightOutputs::settings(std::int64_t, const std::string&) {}
 void FlightOutputs::telemetry(const std::string&) {}
 bool FlightOutputs::publishing() const {

@@ -70,8 +70,14 @@ class FlightOutputs {
   // NED) as it reported them, for the record's /vehicle/location and /vehicle/pose.
   void vehicleLocation(std::int64_t timeNs, double latDeg, double lonDeg, double altAmslM);
   void vehicleAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
-  // One frame of the preview stream (a JPEG), for replay.
+  // One frame of the preview stream, for replay: format "jpeg" or "png" on
+  // /camera/preview, "h264" (one picture's packet) on /camera/video. JPEGs also go to
+  // Zenoh's preview key (previewStill()).
   void preview(std::int64_t timeNs, std::span<const std::uint8_t> image, const char* format);
+  // Zenoh's preview key gets a JPEG twice a second at most: whether one is due now, and
+  // the still itself (dropped when none is due).
+  [[nodiscard]] bool previewStillDue() const;
+  void previewStill(std::span<const std::uint8_t> jpeg);
   // The selection settings in force from timeNs (selection.KEY=VALUE lines), for a
   // replay of the record to select as the flight did. Main thread.
   void settings(std::int64_t timeNs, const std::string& selectionLines);

@@ -86,6 +86,18 @@ std::vector<std::uint8_t> compressedImage(std::int64_t timeNs, const std::string
   return w.take();
 }
 
+std::vector<std::uint8_t> compressedVideo(std::int64_t timeNs, const std::string& frameId,
+                                          std::span<const std::uint8_t> data,
+                                          const std::string& format) {
+  Writer w;
+  w.reserve(data.size() + 64 + frameId.size());
+  w.timestamp(1, timeNs);
+  w.string(2, frameId);
+  w.bytes(3, data);
+  w.string(4, format);
+  return w.take();
+}
+
 std::vector<std::uint8_t> locationFix(const LocationFixMsg& m) {
   Writer w;
   w.timestamp(6, m.timeNs);

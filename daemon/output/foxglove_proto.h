@@ -38,6 +38,11 @@ std::vector<std::uint8_t> compressedImage(std::int64_t timeNs, const std::string
                                           std::span<const std::uint8_t> data,
                                           const std::string& format);
 
+// foxglove.CompressedVideo: one picture of a video stream (h264: Annex B).
+std::vector<std::uint8_t> compressedVideo(std::int64_t timeNs, const std::string& frameId,
+                                          std::span<const std::uint8_t> data,
+                                          const std::string& format);
+
 struct LocationFixMsg {
   std::int64_t timeNs = 0;
   std::string frameId;

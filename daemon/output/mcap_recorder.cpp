@@ -103,6 +103,7 @@ constexpr TopicSpec kTopics[] = {
     {"/vehicle/location", "foxglove.LocationFix", "protobuf", "protobuf"},
     {"/vehicle/pose", "foxglove.PoseInFrame", "protobuf", "protobuf"},
     {"/keyframed/settings", "keyframed.Settings", "jsonschema", "json"},
+    {"/camera/video", "foxglove.CompressedVideo", "protobuf", "protobuf"},
 };
 static_assert(std::size(kTopics) == static_cast<std::size_t>(McapTopic::Count));
 

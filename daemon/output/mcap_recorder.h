@@ -30,6 +30,7 @@ enum class McapTopic : std::uint8_t {
   VehicleLocation,  // /vehicle/location     foxglove.LocationFix (GLOBAL_POSITION_INT)
   VehiclePose,      // /vehicle/pose         foxglove.PoseInFrame (ATTITUDE[_QUATERNION])
   Settings,         // /keyframed/settings   JSON: the selection settings, at start and reload
+  Video,            // /camera/video         foxglove.CompressedVideo (every frame, H.264)
   Count
 };
 

@@ -14,6 +14,7 @@
 #include <opencv2/core/mat.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "output/h264.h"
 #ifdef KEYFRAMED_HAVE_IO
 #include "output/io.h"
 #endif
@@ -206,8 +207,16 @@ struct McapReplaySource::Impl {
   std::unordered_map<std::int64_t, std::int64_t> indexAt;  // frame time -> live frame index
   std::unordered_set<std::int64_t> commandedAt;            // frame times kept live as "commanded"
   std::int64_t frames = 0;                                 // preview frames the first pass found
-  std::vector<std::uint8_t> jpeg;
+  std::vector<std::uint8_t> jpeg;  // the last frame as recorded (a JPEG, PNG or H.264 packet)
   cv::Mat bgr;
+  // An H.264 record (/camera/video): decoded from its first IDR picture on.
+  bool video = false;
+  bool started = false;
+  H264Decoder decoder;
+  std::vector<std::uint8_t> i420;
+  [[nodiscard]] const char* topic() const {
+    return video ? "/camera/video" : "/camera/preview";
+  }
 };
 
 McapReplaySource::~McapReplaySource() = default;
@@ -224,8 +233,9 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   // second streams the frames. Memory does not grow with the file. Times are the
   // messages' own (the run's clock, which the MAVLink link's TIMESYNC used too); the
   // log time of the first frame gives the record's offset to unix time.
-  const std::vector<std::string> topics = {"/camera/preview", "/mavlink/raw", "/camera/calibration",
-                                           "/keyframed/decision", "/keyframed/settings"};
+  const std::vector<std::string> topics = {"/camera/preview",     "/mavlink/raw",
+                                           "/camera/calibration", "/keyframed/decision",
+                                           "/keyframed/settings", "/camera/video"};
   std::unique_ptr<McapReplaySource> s(new McapReplaySource());
   s->impl_ = std::make_unique<Impl>();
   s->parts_ = mcapParts(path);
@@ -263,14 +273,21 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
         }
         continue;
       }
-      const auto field = bytesField(msg, topic == 0 ? 2 : 5);
+      // CompressedImage.data is field 2, CompressedVideo.data 3, MavlinkPacket's 5.
+      const auto field = bytesField(msg, topic == 0 ? 2 : topic == 5 ? 3 : 5);
       if (!field) continue;
       const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
-      if (topic == 0) {
+      if (topic == 0 || topic == 5) {
+        const bool video = topic == 5;
         if (impl.frames == 0) {
+          // A video starts at an IDR picture (a record part may open mid-way between two).
+          if (video && !h264HasIdr(*field)) continue;
+          impl.video = video;
           impl.jpeg.assign(field->begin(), field->end());
           firstNs = t;
           s->unixOffsetNs_ = static_cast<std::int64_t>(time) - t;
+        } else if (video != impl.video) {
+          continue;  // a record with both streams replays the one that starts first
         }
         lastNs = t;
         ++impl.frames;
@@ -298,15 +315,29 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   }
   if (impl.frames == 0) {
     error = path +
-            ": no preview stream (/camera/preview) to replay: record with output.preview_width > 0";
+            ": no preview stream (/camera/preview or /camera/video) to replay: record with "
+            "output.preview_width > 0";
     return nullptr;
   }
-  const cv::Mat first = cv::imdecode(impl.jpeg, cv::IMREAD_COLOR);
-  if (first.empty()) {
-    error = path + ": the first preview frame is not a JPEG";
-    return nullptr;
+  cv::Mat first;
+  if (impl.video) {
+    H264Decoder probe;
+    std::vector<std::uint8_t> picture;
+    int w = 0, h = 0;
+    std::string why;
+    if (!probe.decode(impl.jpeg, picture, w, h, why)) {
+      error = path + ": the first video frame does not decode (" + why + ")";
+      return nullptr;
+    }
+    first = cv::Mat(h, w, CV_8UC1);  // only its size is used
+  } else {
+    first = cv::imdecode(impl.jpeg, cv::IMREAD_COLOR);
+    if (first.empty()) {
+      error = path + ": the first preview frame is not a JPEG";
+      return nullptr;
+    }
   }
-  impl.images = McapReader::open(s->parts_[0], {topics[0]}, error);
+  impl.images = McapReader::open(s->parts_[0], {impl.topic()}, error);
   if (!impl.images) return nullptr;
   s->info_.width = first.cols;
   s->info_.height = first.rows;
@@ -331,31 +362,56 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       // The next part of a rotated record, if any.
       if (part_ + 1 >= parts_.size()) break;
       impl.images.reset();
-      impl.images = McapReader::open(parts_[++part_], {"/camera/preview"}, error);
+      impl.images = McapReader::open(parts_[++part_], {impl.topic()}, error);
       if (!impl.images) return ReadStatus::Error;
       continue;
     }
     const std::span<const std::uint8_t> msg = m.data;
     const std::uint64_t time = m.logTimeNs;
-    const auto field = bytesField(msg, 2);
+    const auto field = bytesField(msg, impl.video ? 3 : 2);
     if (!field) continue;  // skipped by the first pass too
-    impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
-                                    const_cast<std::uint8_t*>(field->data())),
-                            cv::IMREAD_COLOR);
-    if (impl.bgr.empty() || impl.bgr.cols != info_.width || impl.bgr.rows != info_.height) {
-      error = "preview frame " + std::to_string(index_) + " cannot be decoded";
-      return ReadStatus::Error;
-    }
     const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
-    // The live run's index for this frame (the frames it dropped leave the same gaps),
-    // else the position in the stream.
-    const auto live = impl.indexAt.find(t);
+    const std::int64_t index = [&] {
+      // The live run's index for this frame (the frames it dropped leave the same
+      // gaps), else the position in the stream.
+      const auto live = impl.indexAt.find(t);
+      return live != impl.indexAt.end() ? live->second : index_;
+    }();
+    if (impl.video) {
+      if (!impl.started && !h264HasIdr(*field)) continue;  // as the first pass did
+      impl.started = true;
+      int w = 0, h = 0;
+      std::string why;
+      if (!impl.decoder.decode(*field, impl.i420, w, h, why) || w != info_.width ||
+          h != info_.height) {
+        error = "video frame " + std::to_string(index_) + " cannot be decoded" +
+                (why.empty() ? std::string(" (another size)") : " (" + why + ")");
+        return ReadStatus::Error;
+      }
+      frame = Frame{};
+      frame.format = PixelFormat::YUV420;
+      frame.data = impl.i420.data();
+      frame.width = w;
+      frame.height = h;
+      frame.stride = w;
+      frame.timestampNs = t;
+      frame.index = index;
+      format_ = "h264";
+    } else {
+      impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
+                                      const_cast<std::uint8_t*>(field->data())),
+                              cv::IMREAD_COLOR);
+      if (impl.bgr.empty() || impl.bgr.cols != info_.width || impl.bgr.rows != info_.height) {
+        error = "preview frame " + std::to_string(index_) + " cannot be decoded";
+        return ReadStatus::Error;
+      }
+      frame = Frame::ofBgr(impl.bgr, index, t);
+      const auto format = bytesField(msg, 3);  // CompressedImage.format (4 is frame_id)
+      format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");
+    }
     commanded_ = impl.commandedAt.contains(t);
-    frame = Frame::ofBgr(impl.bgr, live != impl.indexAt.end() ? live->second : index_, t);
     ++index_;
     impl.jpeg.assign(field->begin(), field->end());
-    const auto format = bytesField(msg, 3);  // CompressedImage.format (4 is frame_id)
-    format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");
     return ReadStatus::Frame;
   }
   return ReadStatus::End;

@@ -14,7 +14,8 @@
 namespace keyframed {
 
 // A flight record (MCAP written by `keyframed run`) as a frame source: the preview
-// stream (/camera/preview, JPEG) decoded frame by frame with the live capture
+// stream (/camera/preview, JPEG or PNG; or /camera/video, H.264 from its first IDR
+// picture on) decoded frame by frame with the live capture
 // timestamps (the messages' own timestamp fields, on the run's clock) and the live
 // frame indices (from /keyframed/decision: frames the live run dropped leave the same
 // gaps; by position in the stream for records without decisions), and the raw
@@ -37,8 +38,8 @@ class McapReplaySource final : public FrameSource {
   // Run clock -> unix time, as the record's log times map it (0 for older records).
   [[nodiscard]] std::int64_t unixOffsetNs() const { return unixOffsetNs_; }
   [[nodiscard]] std::int64_t firstTimeNs() const { return firstTimeNs_; }
-  // The last frame next() returned as recorded (JPEG or PNG) and its format, so a
-  // replay's own record can carry the preview stream on.
+  // The last frame next() returned as recorded (JPEG, PNG or an H.264 packet) and its
+  // format ("jpeg", "png", "h264"), so a replay's own record can carry the stream on.
   [[nodiscard]] std::span<const std::uint8_t> encoded() const;
   [[nodiscard]] const std::string& format() const { return format_; }
   // The live run kept the last frame next() returned as a commanded capture

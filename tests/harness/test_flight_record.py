@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from fake_autopilot import autopilot_fixture, read_tlog, write_tlog
 from flights import flight
-from ports import free_port
+from ports import free_port, zenoh_listener_config
 
 mcap_reader = pytest.importorskip("mcap.reader")
 from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
@@ -286,6 +286,117 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert len(a) == len(b) == 240
     assert [[x[k] for k in keys] for x in a] == [[y[k] for k in keys] for y in b]
     assert (out2 / "keyframes.csv").read_text() == (out / "keyframes.csv").read_text()
+
+
+def nal_types(packet: bytes) -> list[int]:
+    """The NAL unit types of an Annex B H.264 packet, in order."""
+    types, i = [], packet.find(b"\x00\x00\x01")
+    while i >= 0 and i + 3 < len(packet):
+        types.append(packet[i + 3] & 0x1F)
+        i = packet.find(b"\x00\x00\x01", i + 3)
+    return types
+
+
+def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """output.preview_format = "h264": the record's stream is foxglove.CompressedVideo
+    as Foxglove wants it (Annex B, one picture a message, an IDR with its SPS every
+    second), an ordinary decoder plays it, Zenoh's preview key still gets JPEGs, and
+    the record replays to about the live decisions (the video is lossy)."""
+    import cv2
+    import zenoh
+
+    zport = free_port()
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    watcher = zenoh.open(conf)
+    stills: list[bytes] = []
+    sub = watcher.declare_subscriber(
+        "keyframed/uav9/preview", lambda s: stills.append(s.payload.to_bytes())
+    )
+    try:
+        run(
+            kf_bin,
+            tmp_path,
+            f"camera.path={short_nadir / 'video.avi'}",
+            "output.preview_format=h264",
+            "output.preview_width=480",  # the video's own width
+            "zenoh.enabled=true",
+            f"zenoh.config={zconf}",
+            "zenoh.vehicle=uav9",
+        )
+    finally:
+        sub.undeclare()
+        watcher.close()
+    mcap = (tmp_path / "state" / "latest" / "flight.mcap").resolve()
+    assert_doctor_clean(mcap)
+    msgs = messages(mcap)
+    video = [(m, c) for t, m, c in msgs if t == "/camera/video"]
+    decisions = [json.loads(m.data) for t, m, _ in msgs if t == "/keyframed/decision"]
+    assert len(decisions) == 240 and len(video) == 240, (len(decisions), len(video))
+    assert not [t for t, _, _ in msgs if t == "/camera/preview"]
+    channel = video[0][1]
+    assert channel.message_encoding == "protobuf"
+    with open(mcap, "rb") as f:
+        schemas = mcap_reader.make_reader(f).get_summary().schemas
+    assert schemas[channel.schema_id].name == "foxglove.CompressedVideo"
+    pictures = decoded(mcap, "/camera/video")
+    assert all(p.format == "h264" and p.frame_id == "camera" for p in pictures)
+    assert [p.timestamp.ToNanoseconds() for p in pictures] == [d["timestamp_ns"] for d in decisions]
+    idr = [i for i, p in enumerate(pictures) if 5 in nal_types(p.data)]
+    assert idr == list(range(0, 240, 30)), idr  # the video's 30 fps: one a second
+    assert all(7 in nal_types(pictures[i].data) for i in idr)  # each with its SPS
+    assert all(len(nal_types(p.data)) >= 1 for p in pictures)
+    video_bytes = sum(len(p.data) for p in pictures)
+    print(f"H.264 480x270: {video_bytes / 240 / 1000:.1f} kB a frame")
+
+    # An ordinary decoder (OpenCV's FFmpeg) plays the messages as one stream.
+    stream = tmp_path / "video.h264"
+    stream.write_bytes(b"".join(p.data for p in pictures))
+    cap = cv2.VideoCapture(str(stream))
+    played = 0
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        assert img.shape[:2] == (270, 480)
+        played += 1
+    assert played == 240
+
+    # Zenoh's live view: JPEG stills about twice a second.
+    assert len(stills) >= 5 and all(s[:2] == b"\xff\xd8" for s in stills), len(stills)
+
+    # Replayed: the same frames, decided again on the decoded video.
+    out = tmp_path / "replay"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet"]
+        + ["--mcap", str(tmp_path / "replay.mcap")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    live = rows(mcap.parent / "decisions.csv")
+    again = rows(out / "decisions.csv")
+    assert [x["index"] for x in again] == [x["index"] for x in live]
+    sharp_live = np.array([float(x["sharpness"]) for x in live])
+    sharp_again = np.array([float(x["sharpness"]) for x in again])
+    rel = np.abs(sharp_again - sharp_live) / sharp_live
+    kept_live = sum(x["kept"] == "1" for x in live)
+    kept_again = sum(x["kept"] == "1" for x in again)
+    print(
+        f"replay of H.264: sharpness within {np.median(rel):.1%} (median),"
+        f" {kept_again} keyframes against {kept_live} live"
+    )
+    assert np.median(rel) < 0.15, rel
+    assert abs(kept_again - kept_live) <= max(2, kept_live // 5), (kept_again, kept_live)
+    # its record carries the packets on, as they were
+    assert [p.data for p in decoded(tmp_path / "replay.mcap", "/camera/video")] == [
+        p.data for p in pictures
+    ]
 
 
 def test_sigkill_of_the_daemon_loses_about_the_last_second(

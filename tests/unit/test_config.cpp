@@ -308,6 +308,8 @@ TEST(Config, OutOfRangeAndBadValues) {
                  "them (got \"tab\\u0009here\")");
   expectOneError(dir, "[tagging]\nmount = \"gimbal2\"\n",
                  "2: tagging.mount: must be one of fixed, gimbal (got \"gimbal2\")");
+  expectOneError(dir, "[output]\npreview_format = \"vp9\"\n",
+                 "2: output.preview_format: must be jpeg or h264 (got \"vp9\")");
   expectOneError(dir, "[selection]\nmode = \"fast\"\n",
                  "2: selection.mode: must be one of geometric, paper (got \"fast\")");
   expectOneError(dir, "[camera]\nsource = \"usb\"\n",

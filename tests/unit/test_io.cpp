@@ -20,6 +20,7 @@
 
 #include "output/flight_outputs.h"
 #include "output/foxglove_proto.h"
+#include "output/h264.h"
 #include "output/io.h"
 #include "output/io_ffi.h"
 #include "output/keyframe_publisher.h"
@@ -633,6 +634,69 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
     EXPECT_EQ(replay->format(), "jpeg");  // the image's format, not its frame_id
   }
   EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9})) << error;
+}
+
+TEST(McapReplay, AnH264RecordReplaysFromItsFirstIdrPicture) {
+  const std::string path = tempPath("replay-h264.mcap");
+  const std::int64_t start = 2'000'000'000;
+  constexpr int w = 64, h = 48;
+  // Pictures 0-24 of a moving gradient, an IDR every 10; the record holds 3-24, as a
+  // part that opened between two IDR pictures does.
+  std::vector<std::vector<std::uint8_t>> pictures;
+  {
+    H264Encoder encoder({.keyframeInterval = 10, .crf = 18, .fps = 30});
+    FlightOutputOptions o;
+    o.mcapPath = path;
+    o.startNs = start;
+    FlightOutputs outputs;
+    std::string error;
+    ASSERT_TRUE(outputs.open(o, w, h, nullptr, error)) << error;
+    std::vector<std::uint8_t> packet;
+    for (int i = 0; i < 25; ++i) {
+      std::vector<std::uint8_t> picture(w * h * 3 / 2, 128);
+      for (int y = 0; y < h; ++y)
+        for (int x = 0; x < w; ++x) picture[y * w + x] = static_cast<std::uint8_t>(x + y + 2 * i);
+      ASSERT_TRUE(encoder.encode({picture.data(), w, h}, packet, error)) << error;
+      pictures.push_back(std::move(picture));
+      if (i < 3) continue;
+      const std::int64_t t = start + i * 33'333'333;
+      Decision d;
+      d.index = i;
+      d.timestampNs = t;
+      outputs.decision(d, "{\"index\":" + std::to_string(i) +
+                              ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
+      outputs.preview(t, packet, "h264");
+    }
+    ASSERT_TRUE(outputs.close("done", error)) << error;
+  }
+  ReadBack r = readMcap(path, {"/camera/video", "/camera/preview"});
+  ASSERT_EQ(r.error, "");
+  ASSERT_EQ(r.messages.size(), 22U);
+  for (const auto& m : r.messages) EXPECT_EQ(std::get<0>(m), 0U);  // /camera/video
+
+  std::string error;
+  const auto replay = McapReplaySource::open(path, error);
+  ASSERT_TRUE(replay) << error;
+  EXPECT_EQ(replay->info().frameCount, 15);  // 10-24
+  EXPECT_EQ(replay->info().width, w);
+  EXPECT_EQ(replay->info().height, h);
+  std::vector<std::int64_t> indices;
+  Frame f;
+  while (replay->next(f, error) == ReadStatus::Frame) {
+    indices.push_back(f.index);
+    EXPECT_EQ(replay->format(), "h264");
+    EXPECT_TRUE(replay->encoded().size() > 0);
+    ASSERT_EQ(f.format, PixelFormat::YUV420);
+    const auto& truth = pictures[static_cast<std::size_t>(f.index)];
+    double err = 0;
+    for (int i = 0; i < w * h; ++i)
+      err += std::abs(int(f.data[i]) - int(truth[static_cast<std::size_t>(i)]));
+    EXPECT_LT(err / (w * h), 2.0) << "picture " << f.index;  // the right picture, decoded
+  }
+  EXPECT_EQ(error, "");
+  std::vector<std::int64_t> expected;
+  for (std::int64_t i = 10; i < 25; ++i) expected.push_back(i);
+  EXPECT_EQ(indices, expected);
 }
 
 std::int64_t unixNowNs() {

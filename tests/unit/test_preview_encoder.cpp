@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "app/preview_encoder.h"
+#include "output/h264.h"
 #include "photos.h"
 
 namespace keyframed {
@@ -65,7 +66,9 @@ class PreviewEncoderTest : public testing::Test {
   }
   // The preview compared with the photo scaled the plain way.
   double psnr(const std::vector<std::uint8_t>& preview, cv::Size expected) {
-    const cv::Mat back = decode(preview);
+    return psnr(decode(preview), expected);
+  }
+  double psnr(const cv::Mat& back, cv::Size expected) {
     EXPECT_EQ(back.size(), expected);
     if (back.size() != expected) return 0.0;
     cv::Mat reference;
@@ -110,6 +113,53 @@ TEST_F(PreviewEncoderTest, FullWidthIsLosslessPng) {
   ASSERT_TRUE(preview.encode(cam.frame, out));
   EXPECT_STREQ(preview.format(), "png");
   EXPECT_EQ(decode(out).size(), bgr_.size());
+}
+
+// An H.264 picture decoded back to BGR.
+cv::Mat decodeH264(H264Decoder& decoder, const std::vector<std::uint8_t>& packet) {
+  std::vector<std::uint8_t> i420;
+  int w = 0, h = 0;
+  std::string error;
+  if (!decoder.decode(packet, i420, w, h, error)) {
+    ADD_FAILURE() << error;
+    return {};
+  }
+  cv::Mat bgr;
+  cv::cvtColor(cv::Mat(h * 3 / 2, w, CV_8UC1, i420.data()), bgr, cv::COLOR_YUV2BGR_I420);
+  return bgr;
+}
+
+TEST_F(PreviewEncoderTest, H264IsOneStreamOfTheSameScaledPictures) {
+  PreviewEncoder preview(160, PreviewEncoder::Format::H264, 30);
+  const cv::Size size = preview.sizeFor(bgr_.cols, bgr_.rows);
+  H264Decoder decoder;
+  std::vector<std::uint8_t> out;
+  ASSERT_TRUE(preview.encode(Frame::ofBgr(bgr_, 0, 0), out)) << preview.error();
+  EXPECT_STREQ(preview.format(), "h264");
+  EXPECT_TRUE(h264HasIdr(out));  // the stream opens with an IDR picture
+  const double fromBgr = psnr(decodeH264(decoder, out), size);
+  EXPECT_GT(fromBgr, 24.0);
+  // The JPEG still for Zenoh: the same picture.
+  std::vector<std::uint8_t> still;
+  ASSERT_TRUE(preview.lastAsJpeg(still));
+  EXPECT_GT(psnr(still, size), 24.0);
+  for (PixelFormat format : {PixelFormat::YUV420, PixelFormat::NV12}) {
+    SCOPED_TRACE(toString(format));
+    const CameraFrame cam = cameraFrame(bgr_, format, 532);
+    ASSERT_TRUE(preview.encode(cam.frame, out)) << preview.error();
+    EXPECT_FALSE(h264HasIdr(out));  // the same stream goes on
+    EXPECT_GT(psnr(decodeH264(decoder, out), size), fromBgr - 2.0);
+  }
+  // A JPEG preview has no still of its own to give.
+  EXPECT_FALSE(PreviewEncoder(160).lastAsJpeg(still));
+}
+
+TEST_F(PreviewEncoderTest, H264AtFullWidthKeepsTheFrameSize) {
+  PreviewEncoder preview(10000, PreviewEncoder::Format::H264, 30);
+  std::vector<std::uint8_t> out;
+  ASSERT_TRUE(preview.encode(Frame::ofBgr(bgr_, 0, 0), out)) << preview.error();
+  H264Decoder decoder;
+  EXPECT_GT(psnr(decodeH264(decoder, out), bgr_.size()), 30.0);
 }
 
 TEST(PreviewEncoder, OffOrEmptyEncodesNothing) {

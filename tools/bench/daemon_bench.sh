@@ -3,7 +3,8 @@
 # source paced at the video's own rate (as a camera), MCAP recording on. Prints the
 # summary's frame rate, drops, CPU (total, and without the video decoding a camera
 # would do in hardware) and peak RSS.
-#   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12]   (default 12 s)
+#   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12] [--set KEY=VALUE]...
+#   (default 12 s; --set as `keyframed run --set`, e.g. output.preview_format=h264)
 # Without --full: no telemetry or Zenoh peers (the selection, recording and preview
 # cost alone). With --full: the daemon as shipped, telemetry and Zenoh on, a fake
 # autopilot replaying the flight's tlog over UDP and a ground station (keyframed-ground)
@@ -17,10 +18,12 @@ cd "$ROOT"
 SECS=12
 FULL=0
 FORMAT=auto
+EXTRA=()
 while [ "$#" -gt 0 ]; do
   case "$1" in
     --full) FULL=1 ;;
     --format) FORMAT="$2"; shift ;;
+    --set) EXTRA+=(--set "$2"); shift ;;
     *) SECS="$1" ;;
   esac
   shift
@@ -53,7 +56,7 @@ if [ "$FULL" = 1 ]; then
 else
   ARGS+=(--set telemetry.url= --set zenoh.enabled=false)
 fi
-build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" 2>/dev/null
+build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" 2>/dev/null
 if [ "$FULL" = 1 ]; then wait "$GROUND_PID" || true; fi
 .venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" "$FORMAT" <<'PY'
 import json, sys
