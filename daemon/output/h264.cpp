@@ -37,19 +37,43 @@ void copyRows(std::uint8_t* to, int toStride, const std::uint8_t* from, int from
   }
 }
 
-}  // namespace
-
-struct H264Encoder::Impl {
+// A libavcodec context with one frame and one packet, freed together.
+struct AvCodec {
   AVCodecContext* ctx = nullptr;
   AVFrame* frame = nullptr;
   AVPacket* packet = nullptr;
-  std::int64_t pts = 0;
 
-  ~Impl() {
+  AvCodec() = default;
+  AvCodec(const AvCodec&) = delete;
+  AvCodec& operator=(const AvCodec&) = delete;
+  ~AvCodec() {
     avcodec_free_context(&ctx);
     av_frame_free(&frame);
     av_packet_free(&packet);
   }
+
+  // False with `error` when `codec` is missing (`what` names it) or memory is.
+  bool allocate(const AVCodec* codec, const char* what, std::string& error) {
+    quietLibav();
+    if (codec == nullptr) {
+      error = std::string("H.264: this libavcodec has no ") + what;
+      return false;
+    }
+    ctx = avcodec_alloc_context3(codec);
+    frame = av_frame_alloc();
+    packet = av_packet_alloc();
+    if (ctx == nullptr || frame == nullptr || packet == nullptr) {
+      error = "H.264: out of memory";
+      return false;
+    }
+    return true;
+  }
+};
+
+}  // namespace
+
+struct H264Encoder::Impl : AvCodec {
+  std::int64_t pts = 0;
 };
 
 H264Encoder::H264Encoder(Options options) : options_(options) {}
@@ -64,20 +88,9 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
     return false;
   }
   if (!impl_) {
-    quietLibav();
     const AVCodec* codec = avcodec_find_encoder_by_name("libx264");
-    if (codec == nullptr) {
-      error = "H.264: this libavcodec has no libx264 encoder";
-      return false;
-    }
     auto impl = std::make_unique<Impl>();
-    impl->ctx = avcodec_alloc_context3(codec);
-    impl->frame = av_frame_alloc();
-    impl->packet = av_packet_alloc();
-    if (impl->ctx == nullptr || impl->frame == nullptr || impl->packet == nullptr) {
-      error = "H.264: out of memory";
-      return false;
-    }
+    if (!impl->allocate(codec, "libx264 encoder", error)) return false;
     AVCodecContext* ctx = impl->ctx;
     ctx->width = picture.width;
     ctx->height = picture.height;
@@ -145,17 +158,8 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
   return true;
 }
 
-struct H264Decoder::Impl {
-  AVCodecContext* ctx = nullptr;
-  AVFrame* frame = nullptr;
-  AVPacket* packet = nullptr;
+struct H264Decoder::Impl : AvCodec {
   std::vector<std::uint8_t> padded;  // libavcodec reads past a packet's end
-
-  ~Impl() {
-    avcodec_free_context(&ctx);
-    av_frame_free(&frame);
-    av_packet_free(&packet);
-  }
 };
 
 H264Decoder::H264Decoder() = default;
@@ -164,20 +168,9 @@ H264Decoder::~H264Decoder() = default;
 bool H264Decoder::decode(std::span<const std::uint8_t> packet, std::vector<std::uint8_t>& i420,
                          int& width, int& height, std::string& error) {
   if (!impl_) {
-    quietLibav();
     const AVCodec* codec = avcodec_find_decoder(AV_CODEC_ID_H264);
-    if (codec == nullptr) {
-      error = "H.264: this libavcodec has no H.264 decoder";
-      return false;
-    }
     auto impl = std::make_unique<Impl>();
-    impl->ctx = avcodec_alloc_context3(codec);
-    impl->frame = av_frame_alloc();
-    impl->packet = av_packet_alloc();
-    if (impl->ctx == nullptr || impl->frame == nullptr || impl->packet == nullptr) {
-      error = "H.264: out of memory";
-      return false;
-    }
+    if (!impl->allocate(codec, "H.264 decoder", error)) return false;
     impl->ctx->thread_count = 1;
     impl->ctx->flags |= AV_CODEC_FLAG_LOW_DELAY;  // each packet's picture at once
     if (const int r = avcodec_open2(impl->ctx, codec, nullptr); r < 0) {

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 #include <mutex>
+#include <span>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -597,6 +598,17 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
       << warnings[1];
 }
 
+// A live run's frame in its record: its decision (index and time) and its picture.
+void recordFrame(FlightOutputs& outputs, std::int64_t index, std::int64_t t,
+                 std::span<const std::uint8_t> picture, const char* format) {
+  Decision d;
+  d.index = index;
+  d.timestampNs = t;
+  outputs.decision(d, "{\"index\":" + std::to_string(index) +
+                          ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
+  outputs.preview(t, picture, format);
+}
+
 TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
   const std::string path = tempPath("replay-index.mcap");
   const std::int64_t start = 1'000'000'000;
@@ -610,15 +622,8 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
     outputs.settings(start, "selection.target=0.75\nselection.mode=\"paper\"\n");
     std::vector<std::uint8_t> jpeg;
     ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
-    for (const std::int64_t index : {0, 5, 9}) {  // the live run dropped 1-4 and 6-8
-      const std::int64_t t = start + index * 33'333'333;
-      Decision d;
-      d.index = index;
-      d.timestampNs = t;
-      outputs.decision(d, "{\"index\":" + std::to_string(index) +
-                              ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
-      outputs.preview(t, jpeg, "jpeg");
-    }
+    for (const std::int64_t index : {0, 5, 9})  // the live run dropped 1-4 and 6-8
+      recordFrame(outputs, index, start + index * 33'333'333, jpeg, "jpeg");
     outputs.settings(start + 400'000'000, "selection.target=0.8\n");  // a SIGHUP reload
     ASSERT_TRUE(outputs.close("done", error)) << error;
   }
@@ -658,14 +663,7 @@ TEST(McapReplay, AnH264RecordReplaysFromItsFirstIdrPicture) {
         for (int x = 0; x < w; ++x) picture[y * w + x] = static_cast<std::uint8_t>(x + y + 2 * i);
       ASSERT_TRUE(encoder.encode({picture.data(), w, h}, packet, error)) << error;
       pictures.push_back(std::move(picture));
-      if (i < 3) continue;
-      const std::int64_t t = start + i * 33'333'333;
-      Decision d;
-      d.index = i;
-      d.timestampNs = t;
-      outputs.decision(d, "{\"index\":" + std::to_string(i) +
-                              ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
-      outputs.preview(t, packet, "h264");
+      if (i >= 3) recordFrame(outputs, i, start + i * 33'333'333, packet, "h264");
     }
     ASSERT_TRUE(outputs.close("done", error)) << error;
   }
