@@ -158,6 +158,16 @@ bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
   return encoder_.encode(small_, kQuality, out, error_);
 }
 
+bool PreviewEncoder::still(const Frame& f, std::vector<std::uint8_t>& out) {
+  error_.clear();
+  if (width_ <= 0 || f.data == nullptr || f.width < 2 || f.height < 2) return false;
+  if (!scaleToI420(f)) {
+    error_ = "the frame cannot be scaled";
+    return false;
+  }
+  return encoder_.encode(planesFrame(), kQuality, out, error_);
+}
+
 bool PreviewEncoder::lastAsJpeg(std::vector<std::uint8_t>& out) {
   if (mode_ != Format::H264 || planes_.empty()) return false;
   return encoder_.encode(planesFrame(), kQuality, out, error_);

@@ -39,6 +39,9 @@ class PreviewEncoder {
   // The picture the last H.264 encode() compressed, as a JPEG (a still for Zenoh's
   // preview key); false in the other formats.
   bool lastAsJpeg(std::vector<std::uint8_t>& out);
+  // The frame as a JPEG still of the preview's size, whatever the format (for Zenoh's
+  // preview key when nothing is recorded).
+  bool still(const Frame& frame, std::vector<std::uint8_t>& out);
   [[nodiscard]] const std::string& error() const { return error_; }
   // The preview's size for a frame of `width` x `height` (even, for 4:2:0 chroma).
   [[nodiscard]] cv::Size sizeFor(int width, int height) const;

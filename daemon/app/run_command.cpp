@@ -319,12 +319,25 @@ void Daemon::analyse() {
 }
 
 void Daemon::preview(const Frame& frame) {
-  if (!preview_->encode(frame, previewData_)) {
+  const auto failed = [this] {
     if (!preview_->error().empty() && !previewFailed_) {
       previewFailed_ = true;
-      KF_LOG(Output, Error) << "preview stream: " << preview_->error()
-                            << " (the record goes on without it)";
+      KF_LOG(Output, Error) << "preview: " << preview_->error()
+                            << " (the run goes on without a preview)";
     }
+  };
+  if (!outputs_.recording()) {
+    // No record (output.mcap off, or stopped by a full disk): only Zenoh's still,
+    // twice a second, wants a picture.
+    if (!outputs_.previewStillDue()) return;
+    if (preview_->still(frame, previewStill_))
+      outputs_.previewStill(previewStill_);
+    else
+      failed();
+    return;
+  }
+  if (!preview_->encode(frame, previewData_)) {
+    failed();
     return;
   }
   outputs_.preview(frame.timestampNs, previewData_, preview_->format());

@@ -907,6 +907,12 @@ def test_fleet_three_vehicles_one_router_one_ground_station(kf_bin: Path, tmp_pa
     rconf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     rconf.insert_json5("scouting/multicast/enabled", "false")
     router = zenoh.open(rconf)
+    # The live view of each vehicle (no record: a still made twice a second only).
+    stills: dict[str, list[bytes]] = {}
+    watch = router.declare_subscriber(
+        "keyframed/*/preview",
+        lambda s: stills.setdefault(str(s.key_expr).split("/")[1], []).append(s.payload.to_bytes()),
+    )
     client = zenoh_connect_config(tmp_path / "client.json5", port, mode="client")
     flights = {
         "uav-a": flight("nadir", width=480, height=270, seconds=6.0),
@@ -944,10 +950,19 @@ def test_fleet_three_vehicles_one_router_one_ground_station(kf_bin: Path, tmp_pa
         for p in [ground, *procs.values()]:
             if p.poll() is None:
                 p.kill()
+        watch.undeclare()
         router.close()
     assert ground.returncode == 0, g_err
     results = {r["vehicle"]: r for r in map(json.loads, g_out.strip().splitlines())}
     assert sorted(results) == sorted(flights)
+    import cv2
+
+    widths = {"uav-a": 480, "uav-b": 480, "uav-c": 320}  # under preview_width: whole
+    for name, width in widths.items():
+        got = stills.get(name, [])
+        assert 6 <= len(got) <= 16, (name, len(got))  # about 2 Hz over a 6 s flight
+        img = cv2.imdecode(np.frombuffer(got[-1], np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and img.shape[1] == width, name
     for name in flights:
         fd = flight_dir(tmp_path / name)
         kfs = rows(fd / "keyframes" / "keyframes.csv")

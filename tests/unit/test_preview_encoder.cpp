@@ -162,6 +162,24 @@ TEST_F(PreviewEncoderTest, H264AtFullWidthKeepsTheFrameSize) {
   EXPECT_GT(psnr(decodeH264(decoder, out), bgr_.size()), 30.0);
 }
 
+TEST_F(PreviewEncoderTest, AStillIsAJpegOfThePreviewSizeInEveryFormat) {
+  std::vector<std::uint8_t> still;
+  for (const auto format : {PreviewEncoder::Format::Jpeg, PreviewEncoder::Format::H264}) {
+    PreviewEncoder preview(160, format, 30);
+    const cv::Size size = preview.sizeFor(bgr_.cols, bgr_.rows);
+    ASSERT_TRUE(preview.still(Frame::ofBgr(bgr_, 0, 0), still)) << preview.error();
+    EXPECT_GT(psnr(still, size), 24.0);
+    const CameraFrame cam = cameraFrame(bgr_, PixelFormat::NV12, 532);
+    ASSERT_TRUE(preview.still(cam.frame, still)) << preview.error();
+    EXPECT_GT(psnr(still, size), 24.0);
+  }
+  // At full width (a lossless PNG stream), the still is a JPEG of the whole frame.
+  PreviewEncoder full(10000);
+  ASSERT_TRUE(full.still(Frame::ofBgr(bgr_, 0, 0), still)) << full.error();
+  EXPECT_GT(psnr(still, bgr_.size()), 30.0);
+  EXPECT_FALSE(PreviewEncoder(0).still(Frame::ofBgr(bgr_, 0, 0), still));
+}
+
 TEST(PreviewEncoder, OffOrEmptyEncodesNothing) {
   std::vector<std::uint8_t> out;
   const cv::Mat grey(48, 64, CV_8UC1, cv::Scalar(100));
