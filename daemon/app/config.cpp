@@ -16,6 +16,7 @@
 #include <toml++/toml.h>
 
 #include "app/settings.h"
+#include "output/h264.h"
 #include "tagging/camera_model.h"
 #include "tagging/camera_model_toml.h"
 #include "telemetry/link.h"
@@ -583,6 +584,9 @@ std::vector<Field> makeSchema() {
   f.push_back(text(
       "output", "preview_format", [](auto& c) -> auto& { return c.output.previewFormat; },
       [](const std::string& s) -> std::string {
+        if (s == "h264" && !h264EncoderAvailable())
+          return "h264 needs libavcodec with its libx264 encoder, which this one lacks (use "
+                 "\"jpeg\")";
         return s == "jpeg" || s == "h264" ? "" : "must be jpeg or h264 (got " + quote(s) + ")";
       }));
 

@@ -224,6 +224,10 @@ bool H264Decoder::decode(std::span<const std::uint8_t> packet, std::vector<std::
   return true;
 }
 
+bool h264EncoderAvailable() {
+  return avcodec_find_encoder_by_name("libx264") != nullptr;
+}
+
 bool h264HasIdr(std::span<const std::uint8_t> s) {
   // NAL units follow 00 00 01 (a 4-byte start code ends in the same three bytes).
   for (std::size_t i = 0; i + 3 < s.size(); ++i) {

@@ -69,6 +69,9 @@ class H264Decoder {
   std::unique_ptr<Impl> impl_;
 };
 
+// Whether this libavcodec has the H.264 encoder H264Encoder uses (libx264).
+bool h264EncoderAvailable();
+
 // True when an Annex B byte stream holds an IDR slice (NAL unit type 5): a decoder can
 // start at this packet.
 bool h264HasIdr(std::span<const std::uint8_t> annexB);
