@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "output/foxglove_proto.h"
+#include "output/h264.h"
 #include "output/keyframe_publisher.h"
 #include "output/mcap_recorder.h"
 #endif
@@ -320,7 +321,8 @@ void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> i
   if (impl_->recorder) {
     if (kind == "h264")
       impl_->recorder->record(McapTopic::Video, timeNs,
-                              proto::compressedVideo(timeNs, kCameraFrame, image, format));
+                              proto::compressedVideo(timeNs, kCameraFrame, image, format), 0,
+                              h264HasIdr(image));
     else
       impl_->recorder->record(McapTopic::Preview, timeNs,
                               proto::compressedImage(timeNs, kCameraFrame, image, format));

@@ -142,7 +142,16 @@ std::string McapRecorder::partPath(int part) const {
   return (p.parent_path() / (p.stem().string() + suffix + p.extension().string())).string();
 }
 
+bool McapRecorder::rotateBefore(const Item& next) const {
+  if (!rotationDue_) return false;
+  if (!videoInPart_ || (next.topic == McapTopic::Video && next.startsGroup)) return true;
+  return std::chrono::steady_clock::now() - *rotationDue_ >=
+         std::chrono::milliseconds(options_.videoRotationWaitMs);
+}
+
 bool McapRecorder::rotate(std::string& error) {
+  rotationDue_.reset();
+  videoInPart_ = false;
   if (!writer_->close(error)) return false;
   writer_.reset();
   ++part_;
@@ -193,8 +202,8 @@ bool McapRecorder::openFile(const std::string& path, std::string& error) {
 }
 
 void McapRecorder::record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
-                          std::uint32_t sequence) {
-  enqueue(topic, timeNs, std::move(message), sequence, options_.blockWhenFull);
+                          std::uint32_t sequence, bool startsGroup) {
+  enqueue(topic, timeNs, std::move(message), sequence, options_.blockWhenFull, startsGroup);
 }
 
 void McapRecorder::tryRecord(McapTopic topic, std::int64_t timeNs,
@@ -203,7 +212,7 @@ void McapRecorder::tryRecord(McapTopic topic, std::int64_t timeNs,
 }
 
 void McapRecorder::enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
-                           std::uint32_t sequence, bool mayWait) {
+                           std::uint32_t sequence, bool mayWait, bool startsGroup) {
   if (failed_.load() || !thread_.joinable()) return;
   std::unique_lock lock(mutex_);
   if (closing_) return;
@@ -220,7 +229,7 @@ void McapRecorder::enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std
     if (failed_.load() || closing_) return;
   }
   queuedBytes_ += n;
-  queue_.push_back(Item{topic, sequence, timeNs, std::move(message)});
+  queue_.push_back(Item{topic, sequence, timeNs, std::move(message), startsGroup});
   wake_.notify_one();
 }
 
@@ -266,6 +275,14 @@ void McapRecorder::run() {
     std::uint64_t written = 0, bytes = 0;
     for (Item& it : batch) {
       if (failed_.load()) break;
+      if (rotateBefore(it)) {
+        if (!rotate(error)) {
+          fail("rotating to " + partPath(part_) + ": " + error);
+          break;
+        }
+        dirty = false;
+        if (options_.onNewPart) options_.onNewPart(partPath(part_));
+      }
       const int t = static_cast<int>(it.topic);
       const std::uint32_t seq = it.sequence != 0 ? it.sequence : ++sequences_[t];
       const auto time =
@@ -279,18 +296,12 @@ void McapRecorder::run() {
       fileBytes_ += it.data.size();
       lastTimeNs_ = it.timeNs;
       if (it.topic == McapTopic::Calibration) latchedCalibration_ = it.data;
+      if (it.topic == McapTopic::Video) videoInPart_ = true;
       dirty = true;
       const bool full = options_.rotateBytes > 0 && fileBytes_ >= options_.rotateBytes;
       const bool old = options_.rotateSeconds > 0 &&
                        Clock::now() - fileStart_ >= std::chrono::seconds(options_.rotateSeconds);
-      if (full || old) {
-        if (!rotate(error)) {
-          fail("rotating to " + partPath(part_) + ": " + error);
-          break;
-        }
-        dirty = false;
-        if (options_.onNewPart) options_.onNewPart(partPath(part_));
-      }
+      if ((full || old) && !rotationDue_) rotationDue_ = Clock::now();
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;
     batch.clear();

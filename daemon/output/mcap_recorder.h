@@ -8,6 +8,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -54,6 +55,10 @@ struct McapRecorderOptions {
   // Called on the writer thread with each new part's path (not under any lock of the
   // recorder's: it may log).
   std::function<void(const std::string&)> onNewPart;
+  // A part that holds video (McapTopic::Video) ends just before the next picture a
+  // decoder can start at (record()'s `startsGroup`), so that each part plays on its
+  // own; at most this long after it was due, it ends anyway (a stream that stopped).
+  int videoRotationWaitMs = 3000;
   // Called once, on the thread that hit it, when a write error stops the recorder
   // (disk full, I/O error); not under any lock of the recorder's. Unset: one line on
   // stderr.
@@ -83,9 +88,10 @@ class McapRecorder {
   bool open(const McapRecorderOptions& options, std::string& error);
   // Queues one encoded message (see foxglove_proto.h); timeNs on the caller's clock
   // (the file's log and publish time: timeNs + options.timeOffsetNs).
-  // sequence 0: the channel's own counter.
+  // sequence 0: the channel's own counter. startsGroup: for McapTopic::Video, whether
+  // a decoder can start at this picture (an H.264 IDR); other topics ignore it.
   void record(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
-              std::uint32_t sequence = 0);
+              std::uint32_t sequence = 0, bool startsGroup = true);
   // As record(), but never waits for room (drops instead): for callers that hold a
   // lock the writer thread may need, such as the logger's.
   void tryRecord(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message);
@@ -105,9 +111,13 @@ class McapRecorder {
     std::uint32_t sequence;
     std::int64_t timeNs;
     std::vector<std::uint8_t> data;
+    bool startsGroup;
   };
   void enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
-               std::uint32_t sequence, bool mayWait);
+               std::uint32_t sequence, bool mayWait, bool startsGroup = true);
+  // Whether the part ends before `next`: rotation is due and, in a part with video,
+  // `next` opens a group of pictures (or the wait for one is over).
+  [[nodiscard]] bool rotateBefore(const Item& next) const;
   void run();
   void fail(const std::string& error);
   bool openFile(const std::string& path, std::string& error);
@@ -123,6 +133,8 @@ class McapRecorder {
   std::uint64_t fileBytes_ = 0;
   std::int64_t lastTimeNs_ = 0;
   std::chrono::steady_clock::time_point fileStart_;
+  bool videoInPart_ = false;  // the part holds a video picture
+  std::optional<std::chrono::steady_clock::time_point> rotationDue_;  // since when
   std::vector<std::uint8_t> latchedCalibration_;  // repeated at the start of each part
 
   mutable std::mutex mutex_;

@@ -302,8 +302,9 @@ def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
 ) -> None:
     """output.preview_format = "h264": the record's stream is foxglove.CompressedVideo
     as Foxglove wants it (Annex B, one picture a message, an IDR with its SPS every
-    second), an ordinary decoder plays it, Zenoh's preview key still gets JPEGs, and
-    the record replays to about the live decisions (the video is lossy)."""
+    second), an ordinary decoder plays it, each part of a rotated record on its own,
+    Zenoh's preview key still gets JPEGs, and the record replays to about the live
+    decisions (the video is lossy)."""
     import cv2
     import zenoh
 
@@ -324,6 +325,7 @@ def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
             f"camera.path={short_nadir / 'video.avi'}",
             "output.preview_format=h264",
             "output.preview_width=480",  # the video's own width
+            "output.mcap_rotate_mb=1",  # about 1.8 MB of video: two parts
             "zenoh.enabled=true",
             f"zenoh.config={zconf}",
             "zenoh.vehicle=uav9",
@@ -332,18 +334,35 @@ def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
         sub.undeclare()
         watcher.close()
     mcap = (tmp_path / "state" / "latest" / "flight.mcap").resolve()
-    assert_doctor_clean(mcap)
-    msgs = messages(mcap)
-    video = [(m, c) for t, m, c in msgs if t == "/camera/video"]
-    decisions = [json.loads(m.data) for t, m, _ in msgs if t == "/keyframed/decision"]
-    assert len(decisions) == 240 and len(video) == 240, (len(decisions), len(video))
-    assert not [t for t, _, _ in msgs if t == "/camera/preview"]
-    channel = video[0][1]
-    assert channel.message_encoding == "protobuf"
-    with open(mcap, "rb") as f:
-        schemas = mcap_reader.make_reader(f).get_summary().schemas
-    assert schemas[channel.schema_id].name == "foxglove.CompressedVideo"
-    pictures = decoded(mcap, "/camera/video")
+    parts = [mcap, *sorted(mcap.parent.glob("flight-*.mcap"))]
+    assert len(parts) >= 2, parts
+    pictures, decisions = [], []
+    for part in parts:
+        assert_doctor_clean(part)
+        msgs = messages(part)
+        assert not [t for t, _, _ in msgs if t == "/camera/preview"]
+        video = [(m, c) for t, m, c in msgs if t == "/camera/video"]
+        assert video[0][1].message_encoding == "protobuf"
+        with open(part, "rb") as f:
+            schemas = mcap_reader.make_reader(f).get_summary().schemas
+        assert schemas[video[0][1].schema_id].name == "foxglove.CompressedVideo"
+        decisions += [json.loads(m.data) for t, m, _ in msgs if t == "/keyframed/decision"]
+        in_part = decoded(part, "/camera/video")
+        # A part opens with an IDR picture: it plays on its own, from its first message.
+        assert 5 in nal_types(in_part[0].data), part
+        stream = tmp_path / f"{part.stem}.h264"
+        stream.write_bytes(b"".join(p.data for p in in_part))
+        cap = cv2.VideoCapture(str(stream))  # an ordinary decoder (OpenCV's FFmpeg)
+        played = 0
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            assert img.shape[:2] == (270, 480)
+            played += 1
+        assert played == len(in_part), (part, played, len(in_part))
+        pictures += in_part
+    assert len(decisions) == 240 and len(pictures) == 240, (len(decisions), len(pictures))
     assert all(p.format == "h264" and p.frame_id == "camera" for p in pictures)
     assert [p.timestamp.ToNanoseconds() for p in pictures] == [d["timestamp_ns"] for d in decisions]
     idr = [i for i, p in enumerate(pictures) if 5 in nal_types(p.data)]
@@ -351,20 +370,7 @@ def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
     assert all(7 in nal_types(pictures[i].data) for i in idr)  # each with its SPS
     assert all(len(nal_types(p.data)) >= 1 for p in pictures)
     video_bytes = sum(len(p.data) for p in pictures)
-    print(f"H.264 480x270: {video_bytes / 240 / 1000:.1f} kB a frame")
-
-    # An ordinary decoder (OpenCV's FFmpeg) plays the messages as one stream.
-    stream = tmp_path / "video.h264"
-    stream.write_bytes(b"".join(p.data for p in pictures))
-    cap = cv2.VideoCapture(str(stream))
-    played = 0
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        assert img.shape[:2] == (270, 480)
-        played += 1
-    assert played == 240
+    print(f"H.264 480x270: {video_bytes / 240 / 1000:.1f} kB a frame, {len(parts)} parts")
 
     # Zenoh's live view: JPEG stills about twice a second.
     assert len(stills) >= 5 and all(s[:2] == b"\xff\xd8" for s in stills), len(stills)

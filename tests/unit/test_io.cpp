@@ -7,6 +7,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
@@ -230,6 +231,68 @@ TEST(McapRecorder, RecordsEverythingQueued) {
   EXPECT_TRUE(hasMagic(readAll(path), true));
 }
 
+// Message `i` of a test stream: its number, then padding to `size` bytes.
+std::vector<std::uint8_t> numbered(int i, std::size_t size) {
+  std::vector<std::uint8_t> m(size, 0x5A);
+  std::memcpy(m.data(), &i, sizeof i);
+  return m;
+}
+
+int numberOf(const std::string& data) {
+  int i = -1;
+  if (data.size() >= sizeof i) std::memcpy(&i, data.data(), sizeof i);
+  return i;
+}
+
+TEST(McapRecorder, APartWithVideoEndsBeforeAPictureADecoderCanStartAt) {
+  const std::string path = tempPath("rotate-video.mcap");
+  McapRecorder rec;
+  std::string error;
+  McapRecorderOptions o;
+  o.path = path;
+  o.blockWhenFull = true;
+  o.rotateBytes = 4000;  // due after about ten pictures; a group is every 8th
+  ASSERT_TRUE(rec.open(o, error)) << error;
+  for (int i = 0; i < 60; ++i) {
+    rec.record(McapTopic::Video, i * 1'000'000LL, numbered(i, 400), 0, i % 8 == 0);
+    rec.recordText(McapTopic::Decision, i * 1'000'000LL, "{\"index\":" + std::to_string(i) + "}");
+  }
+  ASSERT_TRUE(rec.close(error)) << error;
+  const std::vector<std::string> parts = mcapParts(path);
+  ASSERT_GE(parts.size(), 3U);
+  std::vector<int> seen;
+  for (const std::string& part : parts) {
+    ReadBack r = readMcap(part, {"/camera/video"});
+    ASSERT_EQ(r.error, "") << part;
+    ASSERT_FALSE(r.messages.empty()) << part;
+    // Each part opens with a group's first picture: it plays on its own.
+    EXPECT_EQ(numberOf(std::get<2>(r.messages.front())) % 8, 0) << part;
+    for (const auto& m : r.messages) seen.push_back(numberOf(std::get<2>(m)));
+  }
+  std::vector<int> all(60);
+  for (int i = 0; i < 60; ++i) all[static_cast<std::size_t>(i)] = i;
+  EXPECT_EQ(seen, all);  // none lost or repeated
+  EXPECT_EQ(rec.stats().files, parts.size());
+}
+
+TEST(McapRecorder, AVideoThatStopsDoesNotHoldTheRotationBackForLong) {
+  const std::string path = tempPath("rotate-stalled.mcap");
+  McapRecorder rec;
+  std::string error;
+  McapRecorderOptions o;
+  o.path = path;
+  o.rotateBytes = 1000;
+  o.videoRotationWaitMs = 50;
+  ASSERT_TRUE(rec.open(o, error)) << error;
+  rec.record(McapTopic::Video, 0, numbered(0, 1200), 0, true);  // due at once
+  for (int i = 1; i <= 8; ++i) {                                // no picture to start at follows
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    rec.recordText(McapTopic::Decision, i * 1'000'000LL, "{\"index\":" + std::to_string(i) + "}");
+  }
+  ASSERT_TRUE(rec.close(error)) << error;
+  EXPECT_EQ(mcapParts(path).size(), 2U);  // rotated after the wait, not never
+}
+
 TEST(McapRecorder, OpenFailsOnUnwritablePath) {
   McapRecorder rec;
   std::string error;
@@ -242,8 +305,9 @@ TEST(McapRecorder, OpenFailsOnUnwritablePath) {
 
 TEST(FoxgloveProto, EveryRecordedSchemaHasADescriptorSet) {
   for (const char* name :
-       {"foxglove.CompressedImage", "foxglove.LocationFix", "foxglove.PoseInFrame",
-        "foxglove.CameraCalibration", "foxglove.Log", "keyframed.MavlinkPacket"}) {
+       {"foxglove.CompressedImage", "foxglove.CompressedVideo", "foxglove.LocationFix",
+        "foxglove.PoseInFrame", "foxglove.CameraCalibration", "foxglove.Log",
+        "keyframed.MavlinkPacket"}) {
     EXPECT_GT(proto::descriptorSet(name).size(), 100u) << name;
   }
   EXPECT_TRUE(proto::descriptorSet("foxglove.Nope").empty());
