@@ -34,11 +34,15 @@ ASAN_TARGETS=(tests/keyframed_unit daemon/keyframed tests/fuzz/fuzz_mavlink_stan
 mkdir -p build
 (
   asan_configure
-  mapfile -t objects < <(ninja -C build/asan -t inputs "${ASAN_TARGETS[@]}" | grep -E '\.(o|gch)$')
-  nice -n 19 ninja -C build/asan -j"$JOBS" "${objects[@]}"
+  listing="$(ninja -C build/asan -t inputs "${ASAN_TARGETS[@]}")"
+  mapfile -t objects < <(grep -E '\.(o|gch)$' <<< "$listing")
+  # None listed would make ninja build everything, cargo included: an error instead.
+  [ "${#objects[@]}" -gt 0 ] || { echo "no objects listed for the sanitizer build" >&2; exit 1; }
+  exec nice -n 19 ninja -C build/asan -j"$JOBS" "${objects[@]}"
 ) > build/asan-objects.log 2>&1 &
 ASAN_OBJECTS_PID=$!
-# A failed step ends the suite: the background build with it.
+# A failed step ends the suite: the background build with it (ninja stops its
+# compilers when it is terminated).
 trap 'kill "$ASAN_OBJECTS_PID" 2>/dev/null || true' EXIT
 
 step "build (release, warnings as errors) and Python package; sanitizer objects beside it"

@@ -28,7 +28,8 @@ PreviewEncoder::PreviewEncoder(int width, Format format, double fps)
       format_(format == Format::H264 ? "h264" : "jpeg"),
       h264_({.keyframeInterval = std::max(1, static_cast<int>(std::lround(fps > 0 ? fps : 30))),
              .crf = 23,
-             .fps = fps > 0 ? fps : 30}) {}
+             .fps = fps > 0 ? fps : 30}),
+      fps_(fps > 0 ? fps : 30) {}
 
 cv::Size PreviewEncoder::sizeFor(int width, int height) const {
   if (width_ <= 0 || width <= 0) return {0, 0};
@@ -138,7 +139,13 @@ bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
       error_ = "the frame cannot be scaled";
       return false;
     }
-    return h264_.encode({planes_.data(), planesSize_.width, planesSize_.height}, out, error_);
+    // Half a frame early, so that a stream at its own rate keeps an IDR every fps frames.
+    const auto second = static_cast<std::int64_t>(1e9 - 0.5e9 / fps_);
+    const bool idr = lastIdrNs_ && f.timestampNs - *lastIdrNs_ >= second;
+    if (!h264_.encode({planes_.data(), planesSize_.width, planesSize_.height}, out, error_, idr))
+      return false;
+    if (h264_.lastWasKeyframe()) lastIdrNs_ = f.timestampNs;
+    return true;
   }
   const bool full = width_ >= f.width;
   format_ = full ? "png" : "jpeg";

@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -67,6 +68,10 @@ class PreviewEncoder {
   cv::Mat i420_;                            // BGR path: small_ as I420
   JpegEncoder encoder_;
   H264Encoder h264_;
+  // H.264: an IDR picture once a second of frame time has passed since the last, also
+  // when the analysis skips frames (the frame-count interval alone would stretch).
+  double fps_;
+  std::optional<std::int64_t> lastIdrNs_;
 };
 
 }  // namespace keyframed

@@ -341,9 +341,12 @@ void Daemon::preview(const Frame& frame) {
     return;
   }
   outputs_.preview(frame.timestampNs, previewData_, preview_->format());
-  // H.264 pictures are not stills: Zenoh's preview gets the picture as a JPEG.
-  if (std::string_view(preview_->format()) == "h264" && outputs_.previewStillDue() &&
-      preview_->lastAsJpeg(previewStill_)) {
+  // JPEGs go to Zenoh as they are (FlightOutputs::preview); an H.264 picture or a
+  // full-size PNG as a JPEG still.
+  const std::string_view kind = preview_->format();
+  if (kind != "jpeg" && outputs_.previewStillDue() &&
+      (kind == "h264" ? preview_->lastAsJpeg(previewStill_)
+                      : preview_->still(frame, previewStill_))) {
     outputs_.previewStill(previewStill_);
   }
 }

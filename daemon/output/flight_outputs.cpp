@@ -190,7 +190,7 @@ bool FlightOutputs::active() const {
 }
 
 bool FlightOutputs::recording() const {
-  return impl_->recorder != nullptr;
+  return impl_->recorder != nullptr && !impl_->recorder->failed();
 }
 
 bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
@@ -327,7 +327,7 @@ void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> i
       impl_->recorder->record(McapTopic::Preview, timeNs,
                               proto::compressedImage(timeNs, kCameraFrame, image, format));
   }
-  // A lossless full-size PNG stays local; H.264 pictures reach Zenoh as previewStill().
+  // PNG (lossless, full size) and H.264 pictures reach Zenoh as a previewStill().
   if (kind == "jpeg") previewStill(image);
 }
 

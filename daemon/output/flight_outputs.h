@@ -57,7 +57,8 @@ class FlightOutputs {
   bool open(const FlightOutputOptions& options, int width, int height, const CameraModel* camera,
             std::string& error);
   [[nodiscard]] bool active() const;
-  [[nodiscard]] bool recording() const;  // an MCAP file is being written
+  // An MCAP file is being written (false once a write error, a full disk, stopped it).
+  [[nodiscard]] bool recording() const;
 
   // Every analysed frame; decisionJson as DecisionLog::jsonRow writes it.
   void decision(const Decision& d, const std::string& decisionJson);

@@ -1,7 +1,9 @@
 #include "output/h264.h"
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
+#include <mutex>
 #include <utility>
 
 extern "C" {
@@ -22,10 +24,11 @@ std::string avError(int code) {
   return text;
 }
 
-// libavcodec's own lines (x264's banner, a decoder's complaint about a missing
-// reference) would go to stderr; the callers report what failed once, in their words.
+// libavcodec's informational lines (x264's banner and statistics) would go to stderr;
+// its errors still do. Once, and never louder than whoever set it before (OpenCV).
 void quietLibav() {
-  av_log_set_level(AV_LOG_QUIET);
+  static std::once_flag once;
+  std::call_once(once, [] { av_log_set_level(std::min(av_log_get_level(), AV_LOG_ERROR)); });
 }
 
 // `rows` rows of `cols` bytes between a tight plane and one with `stride`.
@@ -80,7 +83,7 @@ H264Encoder::H264Encoder(Options options) : options_(options) {}
 H264Encoder::~H264Encoder() = default;
 
 bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out,
-                         std::string& error) {
+                         std::string& error, bool idr) {
   out.clear();
   if (picture.data == nullptr || picture.width < 2 || picture.height < 2 || picture.width % 2 ||
       picture.height % 2) {
@@ -104,6 +107,7 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
     av_opt_set(ctx->priv_data, "preset", "ultrafast", 0);
     av_opt_set(ctx->priv_data, "tune", "zerolatency", 0);
     av_opt_set(ctx->priv_data, "crf", std::to_string(options_.crf).c_str(), 0);
+    av_opt_set(ctx->priv_data, "forced-idr", "1", 0);  // a forced key picture is an IDR
     if (const int r = avcodec_open2(ctx, codec, nullptr); r < 0) {
       error = "H.264: cannot open the libx264 encoder: " + avError(r);
       return false;
@@ -135,6 +139,7 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
   copyRows(s.frame->data[1], s.frame->linesize[1], u, w / 2, w / 2, h / 2);
   copyRows(s.frame->data[2], s.frame->linesize[2], v, w / 2, w / 2, h / 2);
   s.frame->pts = s.pts++;
+  s.frame->pict_type = idr ? AV_PICTURE_TYPE_I : AV_PICTURE_TYPE_NONE;
   if (const int r = avcodec_send_frame(s.ctx, s.frame); r < 0) {
     error = "H.264: encoding failed: " + avError(r);
     return false;

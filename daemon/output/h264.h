@@ -35,10 +35,11 @@ class H264Encoder {
   H264Encoder(const H264Encoder&) = delete;
   H264Encoder& operator=(const H264Encoder&) = delete;
 
-  // Encodes one picture into `out` (replaced). The encoder opens at the first
-  // picture's size; another size later is an error. False with `error` when
-  // libavcodec has no H.264 encoder or fails.
-  bool encode(const I420View& picture, std::vector<std::uint8_t>& out, std::string& error);
+  // Encodes one picture into `out` (replaced); `idr`: as an IDR picture, whatever the
+  // interval. The encoder opens at the first picture's size; another size later is an
+  // error. False with `error` when libavcodec has no H.264 encoder or fails.
+  bool encode(const I420View& picture, std::vector<std::uint8_t>& out, std::string& error,
+              bool idr = false);
   // Whether the last packet encode() gave was an IDR picture.
   [[nodiscard]] bool lastWasKeyframe() const { return lastKey_; }
 

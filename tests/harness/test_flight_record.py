@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from fake_autopilot import autopilot_fixture, read_tlog, write_tlog
 from flights import flight
-from ports import free_port, zenoh_listener_config
+from ports import free_port, zenoh_connect_config
 
 mcap_reader = pytest.importorskip("mcap.reader")
 from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
@@ -308,10 +308,11 @@ def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
     import cv2
     import zenoh
 
+    # The watcher listens and the daemon dials it: no reconnection back-off to wait out.
     zport = free_port()
-    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
+    zconf = zenoh_connect_config(tmp_path / "zenoh.json5", zport)
     conf = zenoh.Config()
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     watcher = zenoh.open(conf)
     stills: list[bytes] = []

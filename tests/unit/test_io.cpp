@@ -285,7 +285,9 @@ TEST(McapRecorder, AVideoThatStopsDoesNotHoldTheRotationBackForLong) {
   o.videoRotationWaitMs = 50;
   ASSERT_TRUE(rec.open(o, error)) << error;
   rec.record(McapTopic::Video, 0, numbered(0, 1200), 0, true);  // due at once
-  for (int i = 1; i <= 8; ++i) {                                // no picture to start at follows
+  // No picture to start at follows: other messages, until a part begins (or 5 s).
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  for (int i = 1; rec.stats().files < 2 && std::chrono::steady_clock::now() < deadline; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
     rec.recordText(McapTopic::Decision, i * 1'000'000LL, "{\"index\":" + std::to_string(i) + "}");
   }

@@ -154,6 +154,22 @@ TEST_F(PreviewEncoderTest, H264IsOneStreamOfTheSameScaledPictures) {
   EXPECT_FALSE(PreviewEncoder(160).lastAsJpeg(still));
 }
 
+TEST_F(PreviewEncoderTest, H264OpensAGroupEverySecondOfFrameTime) {
+  // A 30 fps camera whose frames the analysis takes at 10 fps (it skips two in three),
+  // and one at its own rate: an IDR picture every second of frame time in both.
+  for (const auto& [stepNs, every] : {std::pair{100'000'000LL, 10}, {33'333'333LL, 30}}) {
+    SCOPED_TRACE(stepNs);
+    PreviewEncoder preview(64, PreviewEncoder::Format::H264, 30);
+    std::vector<std::uint8_t> out;
+    std::vector<int> idr;
+    for (int i = 0; i < 3 * every + 1; ++i) {
+      ASSERT_TRUE(preview.encode(Frame::ofBgr(bgr_, i, i * stepNs), out)) << preview.error();
+      if (h264HasIdr(out)) idr.push_back(i);
+    }
+    EXPECT_EQ(idr, (std::vector<int>{0, every, 2 * every, 3 * every}));
+  }
+}
+
 TEST_F(PreviewEncoderTest, H264AtFullWidthKeepsTheFrameSize) {
   PreviewEncoder preview(10000, PreviewEncoder::Format::H264, 30);
   std::vector<std::uint8_t> out;
