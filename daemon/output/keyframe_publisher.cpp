@@ -183,7 +183,7 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
     // A configuration error stays an error; a link that is not there (yet) is tried
     // again when asked to. `error` says why for the caller's warning.
     if (o.retryMs <= 0 || error.rfind("cannot open zenoh session", 0) != 0) return nullptr;
-    p->retryThread_ = std::thread([self = p.get()] { self->retryLoop(); });
+    p->retryThread_ = std::thread(retryLoop, p->retry_, p->sessionOptions_, p->retryMs_, p.get());
     return p;
   }
   if (!p->attach(std::move(session), error)) return nullptr;
@@ -226,26 +226,33 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
   return ok;
 }
 
-void KeyframePublisher::retryLoop() {
+void KeyframePublisher::retryLoop(const std::shared_ptr<Retry>& retry,
+                                  ZenohSession::Options options, int retryMs,
+                                  KeyframePublisher* self) {
   int attempts = 1;
-  std::unique_lock lock(retryMutex_);
-  while (
-      !retryCv_.wait_for(lock, std::chrono::milliseconds(retryMs_), [this] { return stopping_; })) {
+  std::unique_lock lock(retry->m);
+  while (!retry->cv.wait_for(lock, std::chrono::milliseconds(retryMs),
+                             [&] { return retry->stopping; })) {
+    retry->opening = true;
     lock.unlock();
     ++attempts;
     std::string error;
-    std::unique_ptr<ZenohSession> session = ZenohSession::open(sessionOptions_, error);
-    if (session) {
-      if (attach(std::move(session), error)) {
-        if (onLate_)
-          onLate_("zenoh session open at attempt " + std::to_string(attempts) +
-                  ": publishing; the ground station fetches the keyframes before");
-      } else if (onLate_) {
-        onLate_("zenoh session open but not usable: " + error);
-      }
-      return;  // one try at declaring: a failure there is no link problem
-    }
+    std::unique_ptr<ZenohSession> session = ZenohSession::open(options, error);
     lock.lock();
+    retry->opening = false;
+    if (retry->stopping) return;  // the publisher went meanwhile: the session closes here
+    if (!session) continue;
+    // One try at declaring: a failure there is no link problem.
+    const bool attached = self->attach(std::move(session), error);
+    lock.unlock();
+    // The publisher waits for this thread (it saw no attempt in progress) until here.
+    if (self->onLate_) {
+      self->onLate_(attached ? "zenoh session open at attempt " + std::to_string(attempts) +
+                                   ": publishing; the ground station fetches the keyframes "
+                                   "before"
+                             : "zenoh session open but not usable: " + error);
+    }
+    return;
   }
 }
 
@@ -291,12 +298,21 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
 }
 
 KeyframePublisher::~KeyframePublisher() {
+  bool opening = false;
   {
-    std::lock_guard lock(retryMutex_);
-    stopping_ = true;
+    std::lock_guard lock(retry_->m);
+    retry_->stopping = true;
+    opening = retry_->opening;
   }
-  retryCv_.notify_all();
-  if (retryThread_.joinable()) retryThread_.join();
+  retry_->cv.notify_all();
+  if (retryThread_.joinable()) {
+    // An attempt inside Zenoh's open may take its open_timeout: it ends on its own and
+    // touches nothing of this publisher's (the process may exit before it does).
+    if (opening)
+      retryThread_.detach();
+    else
+      retryThread_.join();
+  }
   // The queryable's thread may be inside answer(): stop it before the rest goes.
   queryable_.reset();
   flightsQueryable_.reset();

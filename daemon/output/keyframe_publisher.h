@@ -86,7 +86,19 @@ class KeyframePublisher {
   KeyframePublisher() = default;
   // Declares the publishers and queryables on `session` and goes live.
   bool attach(std::unique_ptr<ZenohSession> session, std::string& error);
-  void retryLoop();
+  // Shared by the publisher and its retry thread, which may outlive it: a stop while
+  // an attempt is inside ZenohSession::open (a router that accepts and never answers
+  // holds it for Zenoh's open_timeout, 10 s) leaves that attempt to end on its own.
+  struct Retry {
+    std::mutex m;
+    std::condition_variable cv;
+    bool stopping = false;  // the publisher is going: touch it no more
+    bool opening = false;   // an attempt is inside ZenohSession::open
+  };
+  // The retry thread: every `retryMs`, a session; `self` is touched only under
+  // retry->m while !retry->stopping.
+  static void retryLoop(const std::shared_ptr<Retry>& retry, ZenohSession::Options options,
+                        int retryMs, KeyframePublisher* self);
   // to->put() once the session is open; false with an error before.
   bool put(const std::unique_ptr<ZenohPublisher>& to, std::span<const std::uint8_t> payload,
            std::span<const std::uint8_t> attachment, std::string& error);
@@ -108,9 +120,7 @@ class KeyframePublisher {
   ZenohSession::Options sessionOptions_;  // kept for the retries
   int retryMs_ = 0;
   std::function<void(const std::string&)> onLate_;
-  std::mutex retryMutex_;
-  std::condition_variable retryCv_;
-  bool stopping_ = false;  // under retryMutex_
+  std::shared_ptr<Retry> retry_ = std::make_shared<Retry>();
   std::thread retryThread_;
   mutable std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)
   std::map<std::int64_t, std::string> published_;  // sequence -> metadata JSON

@@ -1234,6 +1234,66 @@ def test_a_client_whose_router_comes_late_loses_no_keyframe(
     assert summary["fetched_by_query"] >= 1  # the ones taken before the link was up
 
 
+def test_sigterm_while_a_silent_router_holds_a_zenoh_retry_stops_at_once(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """A client whose router accepts the connection and never answers (a hung zenohd,
+    a link that black-holes packets) holds each attempt to open a session for Zenoh's
+    open_timeout (10 s). SIGTERM during a retry stops the daemon within a second,
+    its keyframes written: the attempt in progress is left to end on its own."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    held: list[socket.socket] = []
+    stop = threading.Event()
+
+    def accept() -> None:
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                held.append(server.accept()[0])  # and never a byte back
+            except TimeoutError:
+                continue
+
+    acceptor = threading.Thread(target=accept, daemon=True)
+    acceptor.start()
+    zconf = zenoh_connect_config(tmp_path / "zenoh.json5", server.getsockname()[1], "client")
+    ns = NotifySocket(tmp_path / "notify.sock")
+    try:
+        proc = start(
+            kf_bin,
+            tmp_path,
+            f"camera.path={short_nadir / 'video.avi'}",
+            "zenoh.enabled=true",
+            f"zenoh.config={zconf}",
+            "zenoh.open_retry_s=1",
+            "output.mcap=false",
+            env={"NOTIFY_SOCKET": str(ns.path)},
+        )
+        try:
+            wait_ready(ns, proc, timeout=40)  # after the first attempt's 10 s
+            time.sleep(2.5)  # the second attempt, 1 s later, is hanging now
+            assert len(held) >= 2, len(held)
+            stderr, took = sigterm(proc)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    finally:
+        stop.set()
+        acceptor.join()
+        for c in held:
+            c.close()
+        server.close()
+        ns.close()
+    assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    summary = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+    assert summary["state"] == "stopped" and summary["kept"] >= 1, summary
+    kfs = rows(flight_dir(tmp_path) / "keyframes" / "keyframes.csv")
+    assert len(kfs) == summary["written"] == summary["kept"], (len(kfs), summary)
+
+
 @mounts_tmpfs
 def test_full_disk_and_no_listener_yet_loses_no_keyframe(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
