@@ -1,7 +1,6 @@
 #include "app/preview_encoder.h"
 
 #include <algorithm>
-#include <cmath>
 #include <cstring>
 #include <string>
 #include <utility>
@@ -26,10 +25,7 @@ PreviewEncoder::PreviewEncoder(int width, Format format, double fps)
     : width_(width),
       mode_(format),
       format_(format == Format::H264 ? "h264" : "jpeg"),
-      h264_({.keyframeInterval = std::max(1, static_cast<int>(std::lround(fps > 0 ? fps : 30))),
-             .crf = 23,
-             .fps = fps > 0 ? fps : 30}),
-      fps_(fps > 0 ? fps : 30) {}
+      h264_({.keyframeIntervalNs = 1'000'000'000, .crf = 23, .fps = fps > 0 ? fps : 30}) {}
 
 cv::Size PreviewEncoder::sizeFor(int width, int height) const {
   if (width_ <= 0 || width <= 0) return {0, 0};
@@ -41,7 +37,7 @@ cv::Size PreviewEncoder::sizeFor(int width, int height) const {
 Frame PreviewEncoder::planesFrame() const {
   Frame small;
   small.format = PixelFormat::YUV420;
-  small.data = planes_.data();
+  small.data = picture_;
   small.width = planesSize_.width;
   small.height = planesSize_.height;
   small.stride = planesSize_.width;
@@ -55,6 +51,7 @@ bool PreviewEncoder::scaleYuv(const Frame& f) {
   const std::size_t chromaBytes = static_cast<std::size_t>(cw) * static_cast<std::size_t>(ch);
   planes_.resize(lumaBytes + 2 * chromaBytes);
   planesSize_ = size;
+  picture_ = planes_.data();
   std::uint8_t* y = planes_.data();
 
   const std::size_t stride = static_cast<std::size_t>(f.stride);
@@ -126,7 +123,7 @@ bool PreviewEncoder::scaleToI420(const Frame& f) {
   const cv::Size size = sizeFor(f.width, f.height);
   scaleBgr(size);
   cv::cvtColor(small_, i420_, cv::COLOR_BGR2YUV_I420);
-  planes_.assign(i420_.datastart, i420_.dataend);
+  picture_ = i420_.data;  // continuous: cvtColor made it
   planesSize_ = size;
   return true;
 }
@@ -139,13 +136,8 @@ bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
       error_ = "the frame cannot be scaled";
       return false;
     }
-    // Half a frame early, so that a stream at its own rate keeps an IDR every fps frames.
-    const auto second = static_cast<std::int64_t>(1e9 - 0.5e9 / fps_);
-    const bool idr = lastIdrNs_ && f.timestampNs - *lastIdrNs_ >= second;
-    if (!h264_.encode({planes_.data(), planesSize_.width, planesSize_.height}, out, error_, idr))
-      return false;
-    if (h264_.lastWasKeyframe()) lastIdrNs_ = f.timestampNs;
-    return true;
+    return h264_.encode({picture_, planesSize_.width, planesSize_.height}, f.timestampNs, out,
+                        error_);
   }
   const bool full = width_ >= f.width;
   format_ = full ? "png" : "jpeg";
@@ -176,7 +168,7 @@ bool PreviewEncoder::still(const Frame& f, std::vector<std::uint8_t>& out) {
 }
 
 bool PreviewEncoder::lastAsJpeg(std::vector<std::uint8_t>& out) {
-  if (mode_ != Format::H264 || planes_.empty()) return false;
+  if (mode_ != Format::H264 || picture_ == nullptr) return false;
   return encoder_.encode(planesFrame(), kQuality, out, error_);
 }
 

@@ -1,8 +1,6 @@
 #pragma once
 
 #include <cstdint>
-#include <memory>
-#include <optional>
 #include <string>
 #include <vector>
 
@@ -29,7 +27,7 @@ class PreviewEncoder {
  public:
   enum class Format : std::uint8_t { Jpeg, H264 };
 
-  // `fps`: the source's rate, for H.264's IDR interval.
+  // `fps`: the source's nominal rate, for H.264's rate control.
   explicit PreviewEncoder(int width, Format format = Format::Jpeg, double fps = 30);
 
   // False when the preview is off or encoding failed (error() says why); `out` then
@@ -48,7 +46,8 @@ class PreviewEncoder {
   [[nodiscard]] cv::Size sizeFor(int width, int height) const;
 
  private:
-  // The frame scaled into planes_ (I420 at sizeFor()); BGR-like formats through bgr_.
+  // The frame scaled to I420 at sizeFor() (picture_): camera YUV into planes_, BGR-like
+  // formats through bgr_ into i420_.
   bool scaleToI420(const Frame& frame);
   bool scaleYuv(const Frame& frame);
   // bgr_ (the whole frame in colour) scaled to `size` into small_.
@@ -64,14 +63,11 @@ class PreviewEncoder {
   cv::Mat bgr_, small_, half_, halfSpare_;  // BGR path
   DownScaler luma_, chromaU_, chromaV_;     // YUV path: one per plane, sizes fixed
   cv::Mat chromaUFull_, chromaVFull_;       // NV12: its chroma de-interleaved
-  std::vector<std::uint8_t> planes_;        // the scaled picture, I420
+  std::vector<std::uint8_t> planes_;        // YUV path: the scaled picture, I420
   cv::Mat i420_;                            // BGR path: small_ as I420
+  const std::uint8_t* picture_ = nullptr;   // the last scaled picture: planes_ or i420_
   JpegEncoder encoder_;
   H264Encoder h264_;
-  // H.264: an IDR picture once a second of frame time has passed since the last, also
-  // when the analysis skips frames (the frame-count interval alone would stretch).
-  double fps_;
-  std::optional<std::int64_t> lastIdrNs_;
 };
 
 }  // namespace keyframed

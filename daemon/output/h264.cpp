@@ -82,8 +82,8 @@ struct H264Encoder::Impl : AvCodec {
 H264Encoder::H264Encoder(Options options) : options_(options) {}
 H264Encoder::~H264Encoder() = default;
 
-bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out,
-                         std::string& error, bool idr) {
+bool H264Encoder::encode(const I420View& picture, std::int64_t timeNs,
+                         std::vector<std::uint8_t>& out, std::string& error) {
   out.clear();
   if (picture.data == nullptr || picture.width < 2 || picture.height < 2 || picture.width % 2 ||
       picture.height % 2) {
@@ -98,10 +98,14 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
     ctx->width = picture.width;
     ctx->height = picture.height;
     ctx->pix_fmt = AV_PIX_FMT_YUV420P;
-    const AVRational rate = av_d2q(options_.fps > 0 ? options_.fps : 30.0, 1001000);
+    const double fps = options_.fps > 0 ? options_.fps : 30.0;
+    const AVRational rate = av_d2q(fps, 1001000);
     ctx->framerate = rate;
     ctx->time_base = av_inv_q(rate);
-    ctx->gop_size = options_.keyframeInterval > 0 ? options_.keyframeInterval : 30;
+    // IDR pictures are asked for by time (below); x264's own interval, twice that in
+    // pictures, only catches timestamps that do not advance.
+    ctx->gop_size = std::max(
+        2, static_cast<int>(2 * fps * static_cast<double>(options_.keyframeIntervalNs) / 1e9));
     ctx->max_b_frames = 0;
     ctx->thread_count = 1;
     av_opt_set(ctx->priv_data, "preset", "ultrafast", 0);
@@ -139,6 +143,10 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
   copyRows(s.frame->data[1], s.frame->linesize[1], u, w / 2, w / 2, h / 2);
   copyRows(s.frame->data[2], s.frame->linesize[2], v, w / 2, w / 2, h / 2);
   s.frame->pts = s.pts++;
+  // Half a picture early, so that a stream at its nominal rate keeps its rhythm.
+  const auto due = options_.keyframeIntervalNs -
+                   static_cast<std::int64_t>(0.5e9 / (options_.fps > 0 ? options_.fps : 30.0));
+  const bool idr = lastIdrNs_ && timeNs - *lastIdrNs_ >= due;
   s.frame->pict_type = idr ? AV_PICTURE_TYPE_I : AV_PICTURE_TYPE_NONE;
   if (const int r = avcodec_send_frame(s.ctx, s.frame); r < 0) {
     error = "H.264: encoding failed: " + avError(r);
@@ -160,6 +168,7 @@ bool H264Encoder::encode(const I420View& picture, std::vector<std::uint8_t>& out
     error = "H.264: the encoder held a picture back (it must not delay pictures)";
     return false;
   }
+  if (lastKey_) lastIdrNs_ = timeNs;
   return true;
 }
 

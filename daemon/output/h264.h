@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -19,15 +20,16 @@ struct I420View {
 // H.264 through libavcodec (its libx264 encoder), in the form Foxglove's
 // CompressedVideo asks for: Annex B, one packet per picture and none held back (no
 // B-frames, no lookahead: x264's zerolatency tuning), the SPS and PPS repeated in
-// front of every IDR picture. An IDR picture opens every `keyframeInterval` pictures,
+// front of every IDR picture. An IDR picture opens once `keyframeIntervalNs` of the
+// pictures' own time has passed since the last (also when the caller skips pictures),
 // so that a reader (or a record cut by a power loss) can start decoding there. One
 // thread: it runs on the caller's.
 class H264Encoder {
  public:
   struct Options {
-    int keyframeInterval = 30;  // pictures from one IDR to the next
-    int crf = 23;               // x264's constant rate factor (0 lossless .. 51)
-    double fps = 30;            // the stream's nominal rate (rate control only)
+    std::int64_t keyframeIntervalNs = 1'000'000'000;  // picture time between IDRs
+    int crf = 23;     // x264's constant rate factor (0 lossless .. 51)
+    double fps = 30;  // the stream's nominal rate (rate control, half-a-picture slack)
   };
 
   explicit H264Encoder(Options options);
@@ -35,11 +37,11 @@ class H264Encoder {
   H264Encoder(const H264Encoder&) = delete;
   H264Encoder& operator=(const H264Encoder&) = delete;
 
-  // Encodes one picture into `out` (replaced); `idr`: as an IDR picture, whatever the
-  // interval. The encoder opens at the first picture's size; another size later is an
-  // error. False with `error` when libavcodec has no H.264 encoder or fails.
-  bool encode(const I420View& picture, std::vector<std::uint8_t>& out, std::string& error,
-              bool idr = false);
+  // Encodes one picture taken at `timeNs` into `out` (replaced). The encoder opens at
+  // the first picture's size; another size later is an error. False with `error` when
+  // libavcodec has no H.264 encoder or fails.
+  bool encode(const I420View& picture, std::int64_t timeNs, std::vector<std::uint8_t>& out,
+              std::string& error);
   // Whether the last packet encode() gave was an IDR picture.
   [[nodiscard]] bool lastWasKeyframe() const { return lastKey_; }
 
@@ -48,6 +50,7 @@ class H264Encoder {
   std::unique_ptr<Impl> impl_;
   Options options_;
   bool lastKey_ = false;
+  std::optional<std::int64_t> lastIdrNs_;
 };
 
 // Decodes the packets H264Encoder wrote (any Annex B H.264 without B-frames, one

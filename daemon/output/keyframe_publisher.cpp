@@ -174,16 +174,15 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   p->dir_ = o.keyframeDir;
   p->flight_ = o.flight;
   p->flightsDir_ = o.flightsDir;
-  p->sessionOptions_.configFile = o.configFile;
-  p->sessionOptions_.overrides = o.overrides;
-  p->retryMs_ = o.retryMs;
-  p->onLate_ = o.onLate;
-  std::unique_ptr<ZenohSession> session = ZenohSession::open(p->sessionOptions_, error);
+  ZenohSession::Options so;
+  so.configFile = o.configFile;
+  so.overrides = o.overrides;
+  std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
   if (!session) {
     // A configuration error stays an error; a link that is not there (yet) is tried
     // again when asked to. `error` says why for the caller's warning.
     if (o.retryMs <= 0 || error.rfind("cannot open zenoh session", 0) != 0) return nullptr;
-    p->retryThread_ = std::thread(retryLoop, p->retry_, p->sessionOptions_, p->retryMs_, p.get());
+    p->retryThread_ = std::thread(retryLoop, p->retry_, so, o.retryMs, o.onLate, p.get());
     return p;
   }
   if (!p->attach(std::move(session), error)) return nullptr;
@@ -228,6 +227,7 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
 
 void KeyframePublisher::retryLoop(const std::shared_ptr<Retry>& retry,
                                   ZenohSession::Options options, int retryMs,
+                                  const std::function<void(const std::string&)>& onLate,
                                   KeyframePublisher* self) {
   int attempts = 1;
   std::unique_lock lock(retry->m);
@@ -245,12 +245,11 @@ void KeyframePublisher::retryLoop(const std::shared_ptr<Retry>& retry,
     // One try at declaring: a failure there is no link problem.
     const bool attached = self->attach(std::move(session), error);
     lock.unlock();
-    // The publisher waits for this thread (it saw no attempt in progress) until here.
-    if (self->onLate_) {
-      self->onLate_(attached ? "zenoh session open at attempt " + std::to_string(attempts) +
-                                   ": publishing; the ground station fetches the keyframes "
-                                   "before"
-                             : "zenoh session open but not usable: " + error);
+    if (onLate) {
+      onLate(attached ? "zenoh session open at attempt " + std::to_string(attempts) +
+                            ": publishing; the ground station fetches the keyframes "
+                            "before"
+                      : "zenoh session open but not usable: " + error);
     }
     return;
   }

@@ -95,10 +95,11 @@ class KeyframePublisher {
     bool stopping = false;  // the publisher is going: touch it no more
     bool opening = false;   // an attempt is inside ZenohSession::open
   };
-  // The retry thread: every `retryMs`, a session; `self` is touched only under
-  // retry->m while !retry->stopping.
+  // The retry thread: every `retryMs`, a session; `onLate` says how it went. `self` is
+  // touched only under retry->m while !retry->stopping.
   static void retryLoop(const std::shared_ptr<Retry>& retry, ZenohSession::Options options,
-                        int retryMs, KeyframePublisher* self);
+                        int retryMs, const std::function<void(const std::string&)>& onLate,
+                        KeyframePublisher* self);
   // to->put() once the session is open; false with an error before.
   bool put(const std::unique_ptr<ZenohPublisher>& to, std::span<const std::uint8_t> payload,
            std::span<const std::uint8_t> attachment, std::string& error);
@@ -117,9 +118,6 @@ class KeyframePublisher {
   std::unique_ptr<ZenohQueryable> flightsQueryable_;
   // Set once everything above is declared; none of it changes after.
   std::atomic<bool> live_{false};
-  ZenohSession::Options sessionOptions_;  // kept for the retries
-  int retryMs_ = 0;
-  std::function<void(const std::string&)> onLate_;
   std::shared_ptr<Retry> retry_ = std::make_shared<Retry>();
   std::thread retryThread_;
   mutable std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)

@@ -207,7 +207,7 @@ struct McapReplaySource::Impl {
   std::unordered_map<std::int64_t, std::int64_t> indexAt;  // frame time -> live frame index
   std::unordered_set<std::int64_t> commandedAt;            // frame times kept live as "commanded"
   std::int64_t frames = 0;                                 // preview frames the first pass found
-  std::vector<std::uint8_t> jpeg;  // the last frame as recorded (a JPEG, PNG or H.264 packet)
+  std::vector<std::uint8_t> encoded;  // the last frame as recorded (a JPEG, PNG or H.264 packet)
   cv::Mat bgr;
   // An H.264 record (/camera/video): decoded from its first IDR picture on.
   bool video = false;
@@ -222,7 +222,7 @@ struct McapReplaySource::Impl {
 McapReplaySource::~McapReplaySource() = default;
 
 std::span<const std::uint8_t> McapReplaySource::encoded() const {
-  return impl_->jpeg;
+  return impl_->encoded;
 }
 
 std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path,
@@ -283,7 +283,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
           // A video starts at an IDR picture (a record part may open mid-way between two).
           if (video && !h264HasIdr(*field)) continue;
           impl.video = video;
-          impl.jpeg.assign(field->begin(), field->end());
+          impl.encoded.assign(field->begin(), field->end());
           firstNs = t;
           s->unixOffsetNs_ = static_cast<std::int64_t>(time) - t;
         } else if (video != impl.video) {
@@ -325,13 +325,13 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
     std::vector<std::uint8_t> picture;
     int w = 0, h = 0;
     std::string why;
-    if (!probe.decode(impl.jpeg, picture, w, h, why)) {
+    if (!probe.decode(impl.encoded, picture, w, h, why)) {
       error = path + ": the first video frame does not decode (" + why + ")";
       return nullptr;
     }
     first = cv::Mat(h, w, CV_8UC1);  // only its size is used
   } else {
-    first = cv::imdecode(impl.jpeg, cv::IMREAD_COLOR);
+    first = cv::imdecode(impl.encoded, cv::IMREAD_COLOR);
     if (first.empty()) {
       error = path + ": the first preview frame is not a JPEG";
       return nullptr;
@@ -411,7 +411,7 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
     }
     commanded_ = impl.commandedAt.contains(t);
     ++index_;
-    impl.jpeg.assign(field->begin(), field->end());
+    impl.encoded.assign(field->begin(), field->end());
     return ReadStatus::Frame;
   }
   return ReadStatus::End;

@@ -27,6 +27,11 @@ std::vector<std::vector<std::uint8_t>> panning(int count, int w, int h) {
   return out;
 }
 
+// Picture i's time in a 30 fps stream.
+std::int64_t at(std::size_t i) {
+  return static_cast<std::int64_t>(i) * 1'000'000'000 / 30;
+}
+
 double psnr(const std::vector<std::uint8_t>& a, const std::vector<std::uint8_t>& b) {
   if (a.size() != b.size()) return 0.0;
   return cv::PSNR(
@@ -38,14 +43,14 @@ TEST(H264, EveryPictureIsOnePacketAndDecodesBackWithAnIdrEverySecond) {
   constexpr int w = 192, h = 108;
   const auto pictures = panning(65, w, h);
   ASSERT_EQ(pictures.size(), 65U);
-  H264Encoder encoder({.keyframeInterval = 30, .crf = 23, .fps = 30});
+  H264Encoder encoder({.keyframeIntervalNs = 1'000'000'000, .crf = 23, .fps = 30});
   H264Decoder decoder;
   std::vector<std::uint8_t> packet, back;
   std::string error;
   double worst = 100.0;
   for (std::size_t i = 0; i < pictures.size(); ++i) {
     SCOPED_TRACE("picture " + std::to_string(i));
-    ASSERT_TRUE(encoder.encode({pictures[i].data(), w, h}, packet, error)) << error;
+    ASSERT_TRUE(encoder.encode({pictures[i].data(), w, h}, at(i), packet, error)) << error;
     ASSERT_FALSE(packet.empty());
     // Annex B, an IDR (with its SPS) exactly at 0, 30, 60: a reader can start there.
     EXPECT_EQ(packet[0] == 0 && packet[1] == 0 && (packet[2] == 1 || packet[3] == 1), true);
@@ -66,11 +71,11 @@ TEST(H264, ADecoderStartsOnlyAtAnIdrPicture) {
   constexpr int w = 64, h = 48;
   const auto pictures = panning(32, w, h);
   ASSERT_EQ(pictures.size(), 32U);
-  H264Encoder encoder({.keyframeInterval = 30, .crf = 23, .fps = 30});
+  H264Encoder encoder({.keyframeIntervalNs = 1'000'000'000, .crf = 23, .fps = 30});
   std::vector<std::vector<std::uint8_t>> packets(pictures.size());
   std::string error;
   for (std::size_t i = 0; i < pictures.size(); ++i)
-    ASSERT_TRUE(encoder.encode({pictures[i].data(), w, h}, packets[i], error)) << error;
+    ASSERT_TRUE(encoder.encode({pictures[i].data(), w, h}, at(i), packets[i], error)) << error;
   H264Decoder decoder;
   std::vector<std::uint8_t> back;
   int bw = 0, bh = 0;
@@ -86,11 +91,11 @@ TEST(H264, BadInputIsAnErrorNotACrash) {
   std::vector<std::uint8_t> packet;
   std::string error;
   const std::vector<std::uint8_t> odd(33 * 25 * 3 / 2, 128);
-  EXPECT_FALSE(encoder.encode({odd.data(), 33, 25}, packet, error));
+  EXPECT_FALSE(encoder.encode({odd.data(), 33, 25}, 0, packet, error));
   EXPECT_NE(error.find("even size"), std::string::npos) << error;
   const std::vector<std::uint8_t> small(32 * 24 * 3 / 2, 128), big(64 * 48 * 3 / 2, 128);
-  ASSERT_TRUE(encoder.encode({small.data(), 32, 24}, packet, error)) << error;
-  EXPECT_FALSE(encoder.encode({big.data(), 64, 48}, packet, error));
+  ASSERT_TRUE(encoder.encode({small.data(), 32, 24}, 0, packet, error)) << error;
+  EXPECT_FALSE(encoder.encode({big.data(), 64, 48}, at(1), packet, error));
   EXPECT_NE(error.find("size changed from 32x24 to 64x48"), std::string::npos) << error;
 
   // Garbage, an empty packet and an IDR cut in half: refused or concealed, never a crash.
@@ -103,7 +108,7 @@ TEST(H264, BadInputIsAnErrorNotACrash) {
   for (auto& b : garbage) b = static_cast<std::uint8_t>(rng.uniform(0, 256));
   EXPECT_FALSE(decoder.decode(garbage, back, w, h, error));
   H264Encoder again({});
-  ASSERT_TRUE(again.encode({big.data(), 64, 48}, packet, error)) << error;
+  ASSERT_TRUE(again.encode({big.data(), 64, 48}, 0, packet, error)) << error;
   H264Decoder fresh;
   const std::vector<std::uint8_t> cut(packet.begin(), packet.begin() + packet.size() / 2);
   if (fresh.decode(cut, back, w, h, error)) {  // concealed: still the stream's size

@@ -715,7 +715,7 @@ TEST(McapReplay, AnH264RecordReplaysFromItsFirstIdrPicture) {
   // part that opened between two IDR pictures does.
   std::vector<std::vector<std::uint8_t>> pictures;
   {
-    H264Encoder encoder({.keyframeInterval = 10, .crf = 18, .fps = 30});
+    H264Encoder encoder({.keyframeIntervalNs = 333'333'333, .crf = 18, .fps = 30});
     FlightOutputOptions o;
     o.mcapPath = path;
     o.startNs = start;
@@ -727,7 +727,8 @@ TEST(McapReplay, AnH264RecordReplaysFromItsFirstIdrPicture) {
       std::vector<std::uint8_t> picture(w * h * 3 / 2, 128);
       for (int y = 0; y < h; ++y)
         for (int x = 0; x < w; ++x) picture[y * w + x] = static_cast<std::uint8_t>(x + y + 2 * i);
-      ASSERT_TRUE(encoder.encode({picture.data(), w, h}, packet, error)) << error;
+      ASSERT_TRUE(encoder.encode({picture.data(), w, h}, start + i * 33'333'333, packet, error))
+          << error;
       pictures.push_back(std::move(picture));
       if (i >= 3) recordFrame(outputs, i, start + i * 33'333'333, packet, "h264");
     }
