@@ -372,6 +372,8 @@ std::vector<Field> makeSchema() {
       "camera", "realtime", [](auto& c) -> auto& { return c.camera.realtime; }));
   f.push_back(text(
       "camera", "start_time", [](auto& c) -> auto& { return c.camera.startTime; }, checkUtcTime));
+  f.push_back(integer(
+      "camera", "queue_ms", [](auto& c) -> auto& { return c.camera.queueMs; }, R{0, 5000}));
 
   // [selection]: the same settings as `keyframed select`'s options.
   const auto sel = "selection";

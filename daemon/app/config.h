@@ -41,6 +41,7 @@ struct DaemonConfig {
     std::string pixelFormat = "auto";  // camera.pixel_format (FourCC or "auto")
     bool realtime = true;              // camera.realtime (file: pace at the video's rate)
     std::string startTime;             // camera.start_time (file: UTC of frame 0)
+    int queueMs = 300;                 // camera.queue_ms (frames waiting for analysis)
   };
 
   struct Telemetry {

@@ -672,9 +672,13 @@ int Daemon::run() {
   output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
                                              config_.telemetry.waitMs,
                                              config_.telemetry.link.decoder.store);
-  constexpr std::size_t kQueueFrames = 4;
-  queue_ = std::make_unique<FrameQueue>(kQueueFrames);
-  pool_ = std::make_unique<FramePool>(kQueueFrames + 3);  // + analysing, + capturing, + spare
+  // Room for camera.queue_ms of the analysis falling behind (a burst of keyframes, a
+  // busy companion): frames past that are dropped, oldest first, and counted.
+  const std::size_t queueFrames = queueFramesFor(config_.camera.queueMs, source_->info().fps);
+  KF_LOG(Capture, Info) << "frame queue: " << queueFrames << " frames (" << config_.camera.queueMs
+                        << " ms at " << source_->info().fps << " fps)";
+  queue_ = std::make_unique<FrameQueue>(queueFrames);
+  pool_ = std::make_unique<FramePool>(queueFrames + 3);  // + analysing, + capturing, + spare
   // A camera may come back (V4L2 reopens it): never give up on it; the watchdog
   // says when it is gone too long. A file that keeps failing to decode will not.
   constexpr int kFileMaxErrors = 10;
@@ -775,7 +779,14 @@ int Daemon::run() {
     }
   }
   notifier_.stopping("flushing");
-  capture_->stop();
+  // A source stuck in a read it cannot interrupt (a pipe whose writer went silent) must
+  // not keep the rest from flushing: it is left behind, and the process exits past it.
+  constexpr std::chrono::milliseconds kCaptureStopWait{2000};
+  const bool captureStopped = capture_->stopWithin(kCaptureStopWait);
+  if (!captureStopped) {
+    KF_LOG(Capture, Warning) << "the source did not stop within " << kCaptureStopWait.count() / 1000
+                             << " s (blocked in a read): flushing without it";
+  }
   queue_->close();
   // A signal: stop now, keep the candidate. A failed capture: the frames before the
   // failure are good, analyse them all.
@@ -815,8 +826,14 @@ int Daemon::run() {
   KF_LOG(App, Notice) << "stopped (" << state << "): " << cs.captured << " frames captured, "
                       << queue_->dropped() + cs.noBuffer << " dropped, " << writer_.count()
                       << " keyframes in " << flightDir_;
-  if (!ok || state == "capture_failed" || state == "failed") return 1;
-  return 0;
+  const int rc = !ok || state == "capture_failed" || state == "failed" ? 1 : 0;
+  if (!captureStopped) {
+    // Everything is flushed; the capture thread still holds the source, the pool and
+    // the queue, so nothing of it may be destroyed: leave without destructors.
+    std::fflush(nullptr);
+    std::_Exit(rc);
+  }
+  return rc;
 }
 
 }  // namespace

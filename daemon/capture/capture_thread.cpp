@@ -73,6 +73,10 @@ CaptureThread::~CaptureThread() {
 void CaptureThread::start() {
   if (thread_.joinable()) return;
   stop_ = false;
+  {
+    std::lock_guard lock(stopMutex_);
+    finished_ = false;
+  }
   running_ = true;
   thread_ = std::thread([this] { run(); });
 }
@@ -88,6 +92,23 @@ void CaptureThread::stop() {
     thread_.join();
   }
   running_ = false;
+}
+
+bool CaptureThread::stopWithin(std::chrono::milliseconds wait) {
+  {
+    std::lock_guard lock(stopMutex_);
+    stop_ = true;
+  }
+  stopped_.notify_all();
+  if (thread_.joinable()) {
+    source_.interrupt();
+    std::unique_lock lock(stopMutex_);
+    if (!stopped_.wait_for(lock, wait, [this] { return finished_; })) return false;
+    lock.unlock();
+    thread_.join();
+  }
+  running_ = false;
+  return true;
 }
 
 bool CaptureThread::pause(std::chrono::nanoseconds d) {
@@ -116,6 +137,11 @@ void CaptureThread::run() {
   }
   queue_.close();
   running_ = false;
+  {
+    std::lock_guard lock(stopMutex_);
+    finished_ = true;
+  }
+  stopped_.notify_all();
 }
 
 void CaptureThread::loop() {

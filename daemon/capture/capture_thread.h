@@ -46,6 +46,11 @@ class CaptureThread {
   // waiting for a frame returns at once; see FrameSource::interrupt, which is for
   // good) and any back-off wait.
   void stop();
+  // stop(), but waits for the thread only `wait`: false when it is still inside a read
+  // that the source cannot interrupt (a file source on a pipe whose writer went
+  // silent). The thread is then left to itself; the owner flushes and exits without
+  // destroying this object (whose destructor would wait for it).
+  [[nodiscard]] bool stopWithin(std::chrono::milliseconds wait);
   [[nodiscard]] bool running() const { return running_; }
   [[nodiscard]] Stats stats() const;
   [[nodiscard]] std::string lastError() const;
@@ -68,6 +73,7 @@ class CaptureThread {
   std::atomic<bool> stop_{false};
   std::atomic<bool> running_{false};
   std::atomic<bool> ended_{false};
+  bool finished_ = false;  // run() returned (under stopMutex_)
   std::mutex stopMutex_;
   std::condition_variable stopped_;
   mutable std::mutex mutex_;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <cstddef>
 #include <cstdint>
@@ -181,5 +182,16 @@ class BoundedQueue {
 };
 
 using FrameQueue = BoundedQueue<FramePtr>;
+
+// How many frames the capture queue holds to ride out `queueMs` of analysis falling
+// behind at `fps` (camera.queue_ms): rounded up, at least 2, at most 64 (a frame of
+// 4K YUV is 12 MB; the pool makes them only when a stall fills the queue).
+[[nodiscard]] inline std::size_t queueFramesFor(int queueMs, double fps) {
+  constexpr std::size_t kMin = 2, kMax = 64;
+  if (!(fps > 0) || queueMs <= 0) return kMin;
+  const double frames = std::ceil(queueMs * fps / 1000.0 - 1e-9);
+  return std::clamp(frames >= static_cast<double>(kMax) ? kMax : static_cast<std::size_t>(frames),
+                    kMin, kMax);
+}
 
 }  // namespace keyframed

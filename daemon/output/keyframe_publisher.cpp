@@ -177,15 +177,30 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   ZenohSession::Options so;
   so.configFile = o.configFile;
   so.overrides = o.overrides;
-  std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
-  if (!session) {
-    // A configuration error stays an error; a link that is not there (yet) is tried
-    // again when asked to. `error` says why for the caller's warning.
-    if (o.retryMs <= 0 || error.rfind("cannot open zenoh session", 0) != 0) return nullptr;
-    p->retryThread_ = std::thread(retryLoop, p->retry_, so, o.retryMs, o.onLate, p.get());
+  if (o.retryMs <= 0) {
+    std::unique_ptr<ZenohSession> session = ZenohSession::open(so, error);
+    if (!session || !p->attach(std::move(session), error)) return nullptr;
     return p;
   }
-  if (!p->attach(std::move(session), error)) return nullptr;
+  // The first attempt runs on the retry thread, and open() waits for it only so long:
+  // a router that accepts and never answers holds an attempt for Zenoh's open_timeout
+  // (10 s), which must not hold up the camera. A configuration error stays an error;
+  // a link that is not there (yet) is tried again.
+  Retry& r = *p->retry_;
+  p->retryThread_ = std::thread(retryLoop, p->retry_, so, o.retryMs, o.onLate, p.get());
+  std::unique_lock lock(r.m);
+  if (!r.cv.wait_for(lock, std::chrono::milliseconds(kFirstAttemptWaitMs),
+                     [&] { return r.answered; })) {
+    r.answered = true;  // the attempt's outcome goes to onLate now
+    error = "cannot open zenoh session: no answer within " +
+            std::to_string(kFirstAttemptWaitMs / 1000) + " s (going on without it)";
+    return p;
+  }
+  error = r.error;
+  if (r.fatal) {
+    lock.unlock();
+    return nullptr;  // the thread has ended; the destructor joins it
+  }
   return p;
 }
 
@@ -229,27 +244,46 @@ void KeyframePublisher::retryLoop(const std::shared_ptr<Retry>& retry,
                                   ZenohSession::Options options, int retryMs,
                                   const std::function<void(const std::string&)>& onLate,
                                   KeyframePublisher* self) {
-  int attempts = 1;
   std::unique_lock lock(retry->m);
-  while (!retry->cv.wait_for(lock, std::chrono::milliseconds(retryMs),
-                             [&] { return retry->stopping; })) {
+  for (int attempt = 1;; ++attempt) {
+    if (attempt > 1 && retry->cv.wait_for(lock, std::chrono::milliseconds(retryMs),
+                                          [&] { return retry->stopping; }))
+      return;
+    if (retry->stopping) return;
     retry->opening = true;
     lock.unlock();
-    ++attempts;
     std::string error;
     std::unique_ptr<ZenohSession> session = ZenohSession::open(options, error);
     lock.lock();
     retry->opening = false;
     if (retry->stopping) return;  // the publisher went meanwhile: the session closes here
-    if (!session) continue;
-    // One try at declaring: a failure there is no link problem.
-    const bool attached = self->attach(std::move(session), error);
+    // A configuration error (or a session that cannot declare) is no link problem:
+    // trying again would not help.
+    bool fatal = false;
+    const bool opened = session != nullptr;
+    if (opened) {
+      fatal = !self->attach(std::move(session), error);
+      if (fatal) error = "zenoh session open but not usable: " + error;
+    } else {
+      fatal = error.rfind("cannot open zenoh session", 0) != 0;
+      if (!fatal && attempt > 1) continue;
+    }
+    if (!retry->answered) {  // open() is waiting for this first attempt
+      retry->answered = true;
+      retry->fatal = fatal;
+      retry->error = error;
+      lock.unlock();
+      retry->cv.notify_all();
+      if (fatal || self->live()) return;
+      lock.lock();
+      continue;
+    }
+    if (!fatal && !opened) continue;
     lock.unlock();
     if (onLate) {
-      onLate(attached ? "zenoh session open at attempt " + std::to_string(attempts) +
-                            ": publishing; the ground station fetches the keyframes "
-                            "before"
-                      : "zenoh session open but not usable: " + error);
+      onLate(fatal ? error
+                   : "zenoh session open at attempt " + std::to_string(attempt) +
+                         ": publishing; the ground station fetches the keyframes before");
     }
     return;
   }

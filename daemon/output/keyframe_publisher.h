@@ -29,12 +29,13 @@ struct KeyframePublisherOptions {
   std::string flight;
   std::string flightsDir;
   // A session that cannot open (a client whose router is not up yet, a refused
-  // password): 0 fails open(); > 0 opens the publisher without a session and tries
-  // again every retryMs on a thread of its own, so that the flight is recorded
-  // whatever the link does. Until the session opens nothing is put; keyframes are
-  // remembered for the queryable, which serves them once it is declared.
+  // password): 0 fails open(); > 0 opens the publisher without a session (after
+  // waiting kFirstAttemptWaitMs at most) and tries again every retryMs on a thread of
+  // its own, so that the flight is recorded whatever the link does. Until the session
+  // opens nothing is put; keyframes are remembered for the queryable, which serves
+  // them once it is declared.
   int retryMs = 0;
-  // Told when a session opens on a retry (any thread).
+  // Told when a session opens on a retry, or turns out unusable (any thread).
   std::function<void(const std::string&)> onLate;
 };
 
@@ -48,6 +49,10 @@ class KeyframePublisher {
  public:
   static std::unique_ptr<KeyframePublisher> open(const KeyframePublisherOptions& options,
                                                  std::string& error);
+  // How long open() waits for the first attempt when retryMs > 0 (the attempt goes on
+  // on the retry thread): a router that accepts and never answers holds it for Zenoh's
+  // open_timeout (10 s); peer mode's scouting takes 0.5 s.
+  static constexpr int kFirstAttemptWaitMs = 3000;
   ~KeyframePublisher();
   KeyframePublisher(const KeyframePublisher&) = delete;
   KeyframePublisher& operator=(const KeyframePublisher&) = delete;
@@ -94,6 +99,11 @@ class KeyframePublisher {
     std::condition_variable cv;
     bool stopping = false;  // the publisher is going: touch it no more
     bool opening = false;   // an attempt is inside ZenohSession::open
+    // The first attempt's outcome, for open(), which waits kFirstAttemptWaitMs for it
+    // (answered is set by open() too when it waits no longer).
+    bool answered = false;
+    bool fatal = false;  // a configuration error, or a session that cannot declare
+    std::string error;
   };
   // The retry thread: every `retryMs`, a session; `onLate` says how it went. `self` is
   // touched only under retry->m while !retry->stopping.

@@ -135,6 +135,16 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
     if (n.isString()) dst = static_cast<std::string>(n);
   };
   const auto integer = [](const cv::FileNode& n) { return n.isInt() ? static_cast<int>(n) : 0; };
+  // OpenCV's calibration sample writes fisheye_model: 1 for cv::fisheye::calibrate: k1-k4
+  // of the equidistant model, which read as k1, k2, p1, p2 would be silently wrong.
+  if (const cv::FileNode f = fs["fisheye_model"];
+      (f.isInt() && static_cast<int>(f) != 0) ||
+      (f.isString() && static_cast<std::string>(f) != "0")) {
+    error = path +
+            ": a fisheye calibration (fisheye_model) is not supported: the tags carry the "
+            "pinhole model with Brown-Conrady distortion (calibrate with cv::calibrateCamera)";
+    return false;
+  }
   const cv::FileNode k = fs["camera_matrix"];
   if (!k.empty()) {
     // cv::calibrateCamera sample layout.
@@ -162,6 +172,12 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
     text(fs["model"], m.model);
   } else if (!fs["fx"].empty()) {
     // keyframed.synth intrinsics.json; its "model" key is the projection ("pinhole").
+    if (const cv::FileNode p = fs["model"];
+        p.isString() && static_cast<std::string>(p) != "pinhole") {
+      error = path + ": projection model \"" + static_cast<std::string>(p) +
+              "\" is not supported (only \"pinhole\", with Brown-Conrady distortion)";
+      return false;
+    }
     m.width = integer(fs["width"]);
     m.height = integer(fs["height"]);
     m.fx = number(fs["fx"]);

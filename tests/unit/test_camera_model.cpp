@@ -196,6 +196,41 @@ TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
   EXPECT_NE(error.find("cannot open"), std::string::npos);
 }
 
+TEST(CameraModel, FisheyeCalibrationIsRefusedNotMisread) {
+  // OpenCV's calibration sample with a fisheye lens: k1-k4 of the equidistant model,
+  // which taken as k1, k2, p1, p2 would tag every keyframe with a wrong lens.
+  const fs::path p = tempDir() / "fisheye.yaml";
+  {
+    cv::FileStorage out(p.string(), cv::FileStorage::WRITE);
+    out << "image_width" << 1280 << "image_height" << 720;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << 600, 0, 640, 0, 600, 360, 0, 0, 1);
+    out << "distortion_coefficients" << (cv::Mat_<double>(4, 1) << 0.05, -0.01, 0.002, -0.0005);
+    out << "fisheye_model" << 1;
+  }
+  CameraModel m;
+  std::string error;
+  EXPECT_FALSE(loadCameraModel(p.string(), m, error));
+  EXPECT_NE(error.find("fisheye"), std::string::npos) << error;
+  EXPECT_NE(error.find("fisheye.yaml"), std::string::npos) << error;
+  EXPECT_EQ(error.find('\n'), std::string::npos) << error;
+
+  // The same file from a pinhole calibration (fisheye_model: 0) reads.
+  {
+    cv::FileStorage out(p.string(), cv::FileStorage::WRITE);
+    out << "image_width" << 1280 << "image_height" << 720;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << 600, 0, 640, 0, 600, 360, 0, 0, 1);
+    out << "distortion_coefficients" << (cv::Mat_<double>(5, 1) << 0.05, -0.01, 0, 0, 0.001);
+    out << "fisheye_model" << 0;
+  }
+  EXPECT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+
+  const fs::path j = tempFile("fisheye.json", R"({"width": 960, "height": 540, "fx": 400,
+    "fy": 400, "cx": 480, "cy": 270, "model": "fisheye"})");
+  CameraModel n;
+  EXPECT_FALSE(loadCameraModel(j.string(), n, error));
+  EXPECT_NE(error.find("\"fisheye\" is not supported"), std::string::npos) << error;
+}
+
 TEST(CameraModel, ScaledToKeepsTheFieldOfView) {
   CameraModel m;
   m.width = 1920;

@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <limits>
 #include <stdexcept>
 #include <string>
 #include <string_view>
@@ -463,6 +464,21 @@ TEST(CaptureThread, StopInterruptsASourceWaitingForAFrame) {
   EXPECT_EQ(capture.stats().errors, 0u);  // an interrupted read is no capture error
   EXPECT_TRUE(log.lines.empty());
   EXPECT_FALSE(q.pop(0ms).has_value());
+}
+
+TEST(QueueFramesFor, CoversTheConfiguredTimeAtTheSourceRate) {
+  EXPECT_EQ(queueFramesFor(300, 30.0), 9u);   // 300 ms at 30 fps
+  EXPECT_EQ(queueFramesFor(300, 60.0), 18u);  // the same time, twice the frames
+  EXPECT_EQ(queueFramesFor(100, 29.97), 3u);  // 2.997 frames: rounded up
+  EXPECT_EQ(queueFramesFor(1000, 25.0), 25u);
+}
+
+TEST(QueueFramesFor, StaysWithinTwoAndSixtyFourFrames) {
+  EXPECT_EQ(queueFramesFor(0, 30.0), 2u);       // no slack asked: still double-buffered
+  EXPECT_EQ(queueFramesFor(10, 30.0), 2u);      // 0.3 frames
+  EXPECT_EQ(queueFramesFor(300, 0.0), 2u);      // a source that does not know its rate
+  EXPECT_EQ(queueFramesFor(5000, 240.0), 64u);  // 1200 frames would be gigabytes
+  EXPECT_EQ(queueFramesFor(300, std::numeric_limits<double>::quiet_NaN()), 2u);
 }
 
 }  // namespace

@@ -538,6 +538,54 @@ TEST(KeyframePublisher, StopsRetryingWhenClosed) {
   EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(5));
 }
 
+TEST(KeyframePublisher, ASilentRouterHoldsUpOpenOnlyBriefly) {
+  // A router that takes the connection and never answers (a hung zenohd): the kernel
+  // completes the TCP handshake into the backlog, nothing accepts or replies, and each
+  // attempt waits for Zenoh's open_timeout (10 s). With retries on, open() waits
+  // kFirstAttemptWaitMs at most and goes on without a session.
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t len = sizeof a;
+  ASSERT_EQ(::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
+  ASSERT_EQ(::listen(fd, 8), 0);
+  ASSERT_EQ(::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len), 0);
+  const std::string client = tempPath("client-silent.json5");
+  std::ofstream(client) << R"({mode: "client", scouting: {multicast: {enabled: false}},
+                              connect: {endpoints: ["tcp/127.0.0.1:)" +
+                               std::to_string(ntohs(a.sin_port)) + R"("]}})";
+  KeyframePublisherOptions o;
+  o.configFile = client;
+  o.retryMs = 1000;
+  std::string error;
+  const auto start = std::chrono::steady_clock::now();
+  auto publisher = KeyframePublisher::open(o, error);
+  const auto took = std::chrono::steady_clock::now() - start;
+  ASSERT_TRUE(publisher) << error;
+  EXPECT_FALSE(publisher->live());
+  EXPECT_NE(error.find("no answer within 3 s"), std::string::npos) << error;
+  EXPECT_GE(took, std::chrono::milliseconds(KeyframePublisher::kFirstAttemptWaitMs - 100));
+  EXPECT_LT(took, std::chrono::milliseconds(KeyframePublisher::kFirstAttemptWaitMs + 3000));
+  // Closing leaves the attempt inside Zenoh's open to end on its own.
+  const auto closing = std::chrono::steady_clock::now();
+  publisher.reset();
+  EXPECT_LT(std::chrono::steady_clock::now() - closing, std::chrono::seconds(2));
+  ::close(fd);
+}
+
+TEST(KeyframePublisher, ConfigErrorFailsOpenEvenWithRetries) {
+  const std::string bad = tempPath("bad-retry.json5");
+  std::ofstream(bad) << R"({mode: "spaceship"})";
+  KeyframePublisherOptions o;
+  o.configFile = bad;
+  o.retryMs = 1000;  // retries are for links, not for a configuration that cannot work
+  std::string error;
+  EXPECT_FALSE(KeyframePublisher::open(o, error));
+  EXPECT_NE(error.find("zenoh config"), std::string::npos) << error;
+  EXPECT_NE(error.find("bad-retry.json5"), std::string::npos) << error;
+}
+
 TEST(KeyframeRange, QueryParameterForms) {
   std::int64_t a = -1, b = -1;
   std::string error;
