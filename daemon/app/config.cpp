@@ -861,6 +861,13 @@ class Loader {
             {"telemetry.url", "camera.source", "camera.start_time"},
             "a tlog replays a recorded flight: it needs camera.source = \"file\" and "
             "camera.start_time");
+    // Frames read as fast as they decode carry the video's time, which a live link's
+    // poses have nothing to do with: every keyframe would be tagged wrong or not at all.
+    require(c.camera.source != Source::File || c.camera.realtime || url.empty() || isTlogUrl(url),
+            {"camera.realtime", "telemetry.url"},
+            "a live telemetry link needs camera.realtime = true (a file read as fast as it "
+            "decodes is on the video's clock; replay its tlog instead, or set telemetry.url "
+            "= \"\")");
     // The core's own rules (e.g. "0 or >= 64") as a last line of defence.
     if (errors_.empty()) {
       std::vector<std::string> keys;
@@ -948,8 +955,10 @@ ConfigLoadResult loadConfig(const ConfigSources& sources) {
     // A missing main file or conf.d means: defaults.
     if (fs::exists(dir / "keyframed.toml", ec)) loader.file((dir / "keyframed.toml").string());
     std::vector<std::string> dropIns;
-    for (const auto& e : fs::directory_iterator(dir / "conf.d", ec)) {
-      if (isTomlFile(e)) dropIns.push_back(e.path().string());
+    // increment(ec), not a range-for: a read error mid-directory (a failing SD card,
+    // on a SIGHUP reload too) is reported, not thrown.
+    for (fs::directory_iterator it(dir / "conf.d", ec), end; !ec && it != end; it.increment(ec)) {
+      if (isTomlFile(*it)) dropIns.push_back(it->path().string());
     }
     // Missing is fine; there but unreadable would silently drop its settings.
     if (ec && ec != std::errc::no_such_file_or_directory) {

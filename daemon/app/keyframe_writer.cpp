@@ -187,6 +187,7 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     pendingRows_.push_back(row + "\n");
     if (!appendIndexRows(error)) return false;
   }
+  rec.indexed = true;
   return tagError.empty();
 }
 

@@ -44,6 +44,9 @@ struct KeyframeRecord {
   std::optional<Quaternion> cameraToNed;
   std::string geotag;    // "ok", why a part is missing, or "" without telemetry
   bool encoded = false;  // the tagged JPEG is in lastJpeg() (even when saving it failed)
+  // Saved and its row in keyframes.csv, where the queryable finds it: false when either
+  // failed (a full disk can take the row after the JPEG; it goes in with a later one).
+  bool indexed = false;
 };
 
 // Encodes keyframes (libjpeg-turbo), tags them (EXIF/XMP with the pose at the frame

@@ -450,7 +450,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
     char b[1024];
     const auto off = telemetry_->decoder().clockOffsetNs();
     std::snprintf(b, sizeof b,
-                  "{\"source\": \"%s\", \"geotagged\": %lld, \"clock\": \"%s\", "
+                  "\"geotagged\": %lld, \"clock\": \"%s\", "
                   "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
                   "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
                   "\"captures_pending\": %llu, "
@@ -458,7 +458,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   "\"captures_requested\": %llu, \"captures_refused\": %llu, "
                   "\"link_errors\": %llu, "
                   "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"autopilot_reboots\": %llu}",
-                  config_.telemetry.link.url.c_str(), static_cast<long long>(writer_.geotagged()),
+                  static_cast<long long>(writer_.geotagged()),
                   toString(telemetry_->decoder().clockSource()),
                   off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
                   static_cast<unsigned long long>(ts.parser.messages),
@@ -475,26 +475,26 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
                   static_cast<unsigned long long>(ts.reconnects),
                   static_cast<unsigned long long>(ts.decoder.gimbal),
                   static_cast<unsigned long long>(ts.decoder.reboots));
-    tel = b;
+    // The URL (a device path, a file) as text of a JSON string.
+    tel = "{\"source\": \"" + jsonEscape(config_.telemetry.link.url) + "\", " + b;
   }
   const SourceInfo& info = source_->info();
   const double cpu = cpuSeconds();
   const double decode = decodeCpuSeconds(*source_);
-  char buf[4096];
+  char buf[2048];
   std::snprintf(
       buf, sizeof buf,
-      "{\n  \"state\": \"%s\",\n  \"source\": \"%s\",\n  \"width\": %d,\n  \"height\": %d,\n"
+      "  \"width\": %d,\n  \"height\": %d,\n"
       "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n  \"frames_read\": %lld,\n"
       "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"write_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
       "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
       "  \"analysis_ms_mean\": %.3f,\n  \"cpu_seconds\": %.3f,\n  \"cpu_percent\": %.1f,\n"
       "  \"decode_cpu_seconds\": %.3f,\n  \"cpu_percent_without_decode\": %.1f,\n"
-      "  \"max_rss_mb\": %.1f,\n  \"telemetry\": %s\n}\n",
-      state.c_str(), info.description.c_str(), info.width, info.height,
-      static_cast<unsigned long long>(cs.captured), static_cast<unsigned long long>(dropped),
-      static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
-      static_cast<long long>(writer_.saved()),
+      "  \"max_rss_mb\": %.1f,\n",
+      info.width, info.height, static_cast<unsigned long long>(cs.captured),
+      static_cast<unsigned long long>(dropped), static_cast<long long>(c.framesRead),
+      static_cast<long long>(c.kept), static_cast<long long>(writer_.saved()),
       static_cast<long long>(writer_.count() - writer_.saved()),
       static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
       static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
@@ -502,8 +502,13 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       seconds > 0 ? static_cast<double>(c.framesRead) / seconds : 0.0,
       c.framesRead > 0 ? c.analysisNs / static_cast<double>(c.framesRead) / 1e6 : 0.0, cpu,
       seconds > 0 ? 100.0 * cpu / seconds : 0.0, decode,
-      seconds > 0 ? 100.0 * (cpu - decode) / seconds : 0.0, maxRssMb(), tel.c_str());
-  return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(buf), error);
+      seconds > 0 ? 100.0 * (cpu - decode) / seconds : 0.0, maxRssMb());
+  // The source's description (a file's path, a V4L2 card's name) is any text: escaped,
+  // and outside the fixed-size buffer.
+  const std::string json = "{\n  \"state\": \"" + jsonEscape(state) + "\",\n  \"source\": \"" +
+                           jsonEscape(info.description) + "\",\n" + buf +
+                           "  \"telemetry\": " + tel + "\n}\n";
+  return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(json), error);
 }
 
 int Daemon::run() {
@@ -535,6 +540,21 @@ int Daemon::run() {
       isTlogUrl(config_.telemetry.link.url)) {
     std::int64_t ns = 0;
     if (parseUtcTime(config_.camera.startTime, ns)) videoStartNs = ns;  // checked at load
+  }
+  // A file read as fast as it decodes is on its own clock too: its container times
+  // (from camera.start_time when given, else from 0: this run's start in unix time).
+  std::int64_t videoUnixOffsetNs = 0;
+  if (config_.camera.source == DaemonConfig::Source::File && !config_.camera.realtime &&
+      !videoStartNs) {
+    std::int64_t ns = 0;
+    if (!config_.camera.startTime.empty() && parseUtcTime(config_.camera.startTime, ns)) {
+      videoStartNs = ns;
+    } else {
+      videoStartNs = 0;
+      videoUnixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                              std::chrono::system_clock::now().time_since_epoch())
+                              .count();
+    }
   }
   videoClock_ = videoStartNs.has_value();
   if (videoStartNs) clockOffsetNs_.store(*videoStartNs - monotonicNowNs());  // until a frame
@@ -598,8 +618,9 @@ int Daemon::run() {
   wc.quality = config_.tagging.jpegQuality;
   wc.camera = camera_;
   if (config_.tagging.systemClockUtc && videoClock_) {
-    wc.utcFallback = [](std::int64_t unixNs) -> std::optional<std::int64_t> {
-      return unixNs / 1000;  // a recorded flight's frames are stamped in unix time
+    // A recorded flight's frames are stamped in unix time (or container time, offset).
+    wc.utcFallback = [videoUnixOffsetNs](std::int64_t ns) -> std::optional<std::int64_t> {
+      return (ns + videoUnixOffsetNs) / 1000;
     };
   } else if (config_.tagging.systemClockUtc) {
     // Frames are stamped on CLOCK_MONOTONIC: the companion's UTC at that instant.
@@ -627,8 +648,11 @@ int Daemon::run() {
   fo.mcapCompression = config_.output.mcapCompression != "auto" ? config_.output.mcapCompression
                        : config_.output.previewWidth > 0        ? "none"
                                                                 : "zstd";
-  fo.liveClock = !videoClock_;                   // frames and MAVLink on CLOCK_MONOTONIC
-  if (videoStartNs) fo.startNs = *videoStartNs;  // or a recorded flight's unix time
+  fo.liveClock = !videoClock_;  // frames and MAVLink on CLOCK_MONOTONIC
+  if (videoStartNs) {           // or a recorded flight's unix time, or container time
+    fo.startNs = *videoStartNs;
+    fo.unixOffsetNs = videoUnixOffsetNs;
+  }
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
   fo.error = [](const std::string& m) { KF_LOG(Output, Error) << m; };
   fo.note = [](const std::string& m) { KF_LOG(Output, Notice) << m; };
@@ -674,9 +698,14 @@ int Daemon::run() {
                                              config_.telemetry.link.decoder.store);
   // Room for camera.queue_ms of the analysis falling behind (a burst of keyframes, a
   // busy companion): frames past that are dropped, oldest first, and counted.
-  const std::size_t queueFrames = queueFramesFor(config_.camera.queueMs, source_->info().fps);
+  // Sized for the largest frame a source delivers (BGR, 3 bytes a pixel).
+  const SourceInfo& si = source_->info();
+  const std::size_t queueFrames =
+      queueFramesFor(config_.camera.queueMs, si.fps,
+                     static_cast<std::size_t>(si.width) * static_cast<std::size_t>(si.height) * 3);
   KF_LOG(Capture, Info) << "frame queue: " << queueFrames << " frames (" << config_.camera.queueMs
-                        << " ms at " << source_->info().fps << " fps)";
+                        << " ms at " << si.fps << " fps, " << kQueueBudgetBytes / (1 << 20)
+                        << " MiB at most)";
   queue_ = std::make_unique<FrameQueue>(queueFrames);
   pool_ = std::make_unique<FramePool>(queueFrames + 3);  // + analysing, + capturing, + spare
   // A camera may come back (V4L2 reopens it): never give up on it; the watchdog

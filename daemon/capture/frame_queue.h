@@ -32,8 +32,10 @@ using FramePool = BufferPool<FrameBuffer>;
   const auto rows = static_cast<std::size_t>(f.height);
   const auto stride = static_cast<std::size_t>(f.stride);
   switch (f.format) {
-    case PixelFormat::NV12:
-    case PixelFormat::YUV420: return stride * rows + stride * ((rows + 1) / 2);
+    case PixelFormat::NV12: return stride * rows + stride * ((rows + 1) / 2);
+    // Chroma rows stride / 2 long (as planeSizes() has them): an odd stride's are
+    // shorter than half of it, and reading stride * rows / 2 would run past the frame.
+    case PixelFormat::YUV420: return stride * rows + 2 * (stride / 2) * ((rows + 1) / 2);
     case PixelFormat::Gray8:
     case PixelFormat::YUYV:
     case PixelFormat::BGR24: return stride * rows;
@@ -184,14 +186,18 @@ class BoundedQueue {
 using FrameQueue = BoundedQueue<FramePtr>;
 
 // How many frames the capture queue holds to ride out `queueMs` of analysis falling
-// behind at `fps` (camera.queue_ms): rounded up, at least 2, at most 64 (a frame of
-// 4K YUV is 12 MB; the pool makes them only when a stall fills the queue).
-[[nodiscard]] inline std::size_t queueFramesFor(int queueMs, double fps) {
+// behind at `fps` (camera.queue_ms): rounded up, at least 2, at most 64, and no more
+// than kQueueBudgetBytes of frames of `frameBytes` each (a 4K frame is 12-25 MB). The
+// pool makes a buffer only when a stall first fills the queue that deep.
+inline constexpr std::size_t kQueueBudgetBytes = std::size_t{64} << 20;
+[[nodiscard]] inline std::size_t queueFramesFor(int queueMs, double fps, std::size_t frameBytes) {
   constexpr std::size_t kMin = 2, kMax = 64;
+  std::size_t cap = kMax;
+  if (frameBytes > 0) cap = std::clamp(kQueueBudgetBytes / frameBytes, kMin, kMax);
   if (!(fps > 0) || queueMs <= 0) return kMin;
   const double frames = std::ceil(queueMs * fps / 1000.0 - 1e-9);
-  return std::clamp(frames >= static_cast<double>(kMax) ? kMax : static_cast<std::size_t>(frames),
-                    kMin, kMax);
+  return std::clamp(frames >= static_cast<double>(cap) ? cap : static_cast<std::size_t>(frames),
+                    kMin, cap);
 }
 
 }  // namespace keyframed

@@ -422,8 +422,9 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     }
   }
   if (!impl_->publisher) return;
-  // Not on disk for the queryable (a full disk): it serves this one from memory.
-  if (rec.file.empty()) impl_->publisher->keepUnsaved(rec.sequence, jpeg, meta);
+  // Not on disk for the queryable (a full disk took the JPEG or its index row): it
+  // serves this one from memory.
+  if (!rec.indexed) impl_->publisher->keepUnsaved(rec.sequence, jpeg, meta);
   if (impl_->options.offline) {
     impl_->put(rec.sequence, jpeg, meta);
     return;
@@ -432,7 +433,7 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     std::lock_guard lock(impl_->putMutex);
     // One that could not be saved (a full disk) is not on disk for the queryable: the
     // link is its only way out, so it waits for the link whatever the queue holds.
-    if (impl_->puts.size() < Impl::kMaxQueuedPuts || rec.file.empty()) {
+    if (impl_->puts.size() < Impl::kMaxQueuedPuts || !rec.indexed) {
       impl_->puts.push_back({rec.sequence, {jpeg.begin(), jpeg.end()}, meta});
       impl_->putCv.notify_one();
       return;

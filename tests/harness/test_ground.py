@@ -85,6 +85,8 @@ class Vehicle:
             "lat": row["lat"],
             "lon": row["lon"],
             "alt_rel": row["alt_rel"],
+            # Pix4D yaw, pitch, roll in degrees, null when unknown (as the daemon's)
+            **{k: float(row[k]) if row[k] else None for k in ("yaw", "pitch", "roll")},
         }
 
     def _serve(self, query: Any) -> None:
@@ -195,6 +197,7 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     # one query per gap: 1..2 in the middle, n-1 at the end
     assert sorted(vehicle.queries) == [(1, 2), (n - 1, n - 1)], vehicle.queries
     assert summary["gap_queries"] == 2
+    assert summary["calibrated"] is True
 
     ds = out / "uav1"
     for row in vehicle.rows:
@@ -214,20 +217,26 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     assert cx == pytest.approx(intr["cx"] + 0.5, abs=0.01)
     assert cy == pytest.approx(intr["cy"] + 0.5, abs=0.01)
 
-    # cameras.json for OpenDroneMap: keyed as OpenSfM names the camera of these images
-    # (read here by exiftool), the same intrinsics normalised by the longer side
-    tags = json.loads(
-        subprocess.run(
-            ["exiftool", "-j", "-n", str(ds / "images" / vehicle.rows[0]["file"])],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout
-    )[0]
-    make, model = str(tags["Make"]), str(tags["Model"]).replace(str(tags["Make"]), "")
-    size = (tags["ExifImageWidth"], tags["ExifImageHeight"])
+    # cameras.json for OpenDroneMap: keyed as ODM's Photo.camera_id() names the camera
+    # of these images (read here by exiftool; the make is not in the model, so plain
+    # OpenSfM's id is the same), the same intrinsics normalised by the longer side
+    exif = {
+        t["FileName"]: t
+        for t in json.loads(
+            subprocess.run(
+                ["exiftool", "-j", "-n", str(ds / "images")],
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout
+        )
+    }
+    tags = exif[vehicle.rows[0]["file"]]
+    make, model = str(tags["Make"]), str(tags["Model"])
+    assert make not in model
     ratio = str(tags["FocalLengthIn35mmFormat"] / 36.0)[:6]
-    camera_id = f"{make.strip()} {model.strip()} {size[0]} {size[1]} brown {ratio}".lower()
+    size = f"{tags['ImageWidth']} {tags['ImageHeight']}"
+    camera_id = f"{make.strip()} {model.strip()} {size} brown {ratio}".lower()
     odm = json.loads((ds / "cameras.json").read_text())
     assert list(odm) == [camera_id] and summary["odm_camera"] == camera_id
     brown = odm[camera_id]
@@ -246,8 +255,23 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
         assert (a, b) in pairs
     assert len(pairs) < n * (n - 1) / 2 or n < 6, "pairs are not exhaustive"
 
+    # geo.txt: position, the camera's yaw pitch roll and the accuracies, as the
+    # keyframe's metadata and its XMP (read by exiftool) have them: no made-up 0 0 0
     geo = (ds / "geo.txt").read_text().splitlines()
     assert geo[0] == "EPSG:4326" and len(geo) == n + 1
+    by_file = {r["file"]: r for r in vehicle.rows}
+    for line in geo[1:]:
+        name, *values = line.split()
+        assert len(values) == 8, line
+        lon, lat, _, yaw, pitch, roll, xy, z = (float(v) for v in values)
+        t, row = exif[name], by_file[name]
+        assert (lat, lon) == pytest.approx((float(row["lat"]), float(row["lon"])), abs=1e-7)
+        assert [yaw, pitch, roll] == pytest.approx([t["Yaw"], t["Pitch"], t["Roll"]], abs=1e-6)
+        assert [yaw, pitch, roll] == pytest.approx(
+            [float(row["yaw"]), float(row["pitch"]), float(row["roll"])], abs=1e-4
+        )  # the metadata's, to its 4 decimals
+        assert (xy, z) == pytest.approx((t["GPSXYAccuracy"], t["GPSZAccuracy"]), abs=1e-3)
+    assert any(abs(float(line.split()[4])) > 1.0 for line in geo[1:]), "a yaw other than 0"
 
     # SIFT in COLMAP's import format
     for f in files:
@@ -460,15 +484,90 @@ def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_p
 
     odm = odm_cameras(tags)
     assert odm is not None
-    ((camera_id, brown),) = odm.items()
-    # OpenSfM drops a make repeated in the model; f35 = round(fx * 36 / 320) = 26
-    assert camera_id == f"acme cam 2 320 180 brown {str(26 / 36)[:6]}"
+    # ODM's id keeps the make in the model ("v2 acme acme cam 2 ..." in OpenDroneMap,
+    # the file's keys go without "v2 "), plain OpenSfM's drops it: ODM's first, the
+    # same camera under both; f35 = round(fx * 36 / 320) = 26
+    ratio = str(26 / 36)[:6]
+    assert list(odm) == [
+        f"acme acme cam 2 320 180 brown {ratio}",
+        f"acme cam 2 320 180 brown {ratio}",
+    ]
+    brown = odm[f"acme acme cam 2 320 180 brown {ratio}"]
+    assert odm[f"acme cam 2 320 180 brown {ratio}"] == brown
     assert brown["focal_x"] * 320 == pytest.approx(calib["fx"], rel=1e-5)
     assert brown["focal_y"] * 320 == pytest.approx(calib["fy"], rel=1e-5)
     assert 160 + brown["c_x"] * 320 == pytest.approx(calib["cx"] + 0.5, rel=1e-5)
     assert 90 + brown["c_y"] * 320 == pytest.approx(calib["cy"] + 0.5, rel=1e-5)
     got = [brown[n] for n in ("k1", "k2", "p1", "p2", "k3")]
     assert got == pytest.approx(k, rel=1e-6)
+
+
+def test_an_uncalibrated_camera_gets_no_cameras_file(kf_bin: Path, tmp_path: Path) -> None:
+    """A camera known by its lens and sensor only (no calibration): the keyframes have
+    EXIF's focal length and focal plane resolution but no XMP calibration. The ground
+    station makes no camera of them (a centred principal point and zero distortion
+    would be taken for a calibration), removes the one an earlier run left, and its
+    summary says there is none; the other files are written as ever."""
+    from keyframed.ground import VehicleDataset, colmap_camera, odm_cameras, read_tags
+
+    fl = flight("nadir", width=320, height=180, seconds=3.0)
+    (tmp_path / "camera.toml").write_text(
+        '[camera]\nmake = "Acme"\nmodel = "Acme Cam 2"\nwidth = 320\nheight = 180\n'
+        "sensor_width_mm = 6.4\nfocal_length_mm = 4.4\n"
+    )
+    out = tmp_path / "tagged"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(fl / "video.avi"), "--out", str(out), "--quiet"]
+        + ["--calibration", str(tmp_path / "camera.toml")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    jpegs = sorted(out.glob("*.jpg"))
+    assert len(jpegs) >= 2
+    tags = read_tags(jpegs[0].read_bytes())
+    assert tags.focal_mm == pytest.approx(4.4) and tags.pixels_per_mm == pytest.approx(50.0)
+    assert tags.focal_35mm and not tags.calibrated
+    assert colmap_camera(tags) is None and odm_cameras(tags) is None
+
+    ds = VehicleDataset(tmp_path / "dataset", "uav5", None)
+    (ds.dir / "cameras.txt").write_text("1 OPENCV 320 180 220 220 160 90 0 0 0 0\n")
+    (ds.dir / "cameras.json").write_text("{}\n")
+    for seq, jpeg in enumerate(jpegs):
+        ds.add({"sequence": seq, "file": jpeg.name}, jpeg.read_bytes())
+    summary = ds.finish()
+    assert summary["calibrated"] is False and summary["camera"] is None
+    assert summary["odm_camera"] is None
+    assert not (ds.dir / "cameras.txt").exists() and not (ds.dir / "cameras.json").exists()
+    assert (ds.dir / "pairs.txt").read_text() and (ds.dir / "geo.txt").exists()
+
+
+def test_geo_txt_rows_never_make_up_angles() -> None:
+    """geo.txt's columns are positional and OpenDroneMap takes a row's yaw pitch roll
+    over the image's, and its accuracies, none if the row has none: the angles are the
+    keyframe's (its XMP, else its metadata), never 0 0 0; an image whose accuracies a
+    row cannot carry gets none (ODM then reads its own tags); no position, no row."""
+    from keyframed.ground import ImageTags, geo_row
+
+    def tags(**kw: Any) -> ImageTags:
+        return ImageTags(lat=51.5, lon=-0.25, alt=70.0, **kw)
+
+    acc: dict[str, Any] = {"xy_accuracy": 0.8, "z_accuracy": 1.2}
+    xmp: dict[str, Any] = {"attitude": (90.0, 1.5, 0.5)}
+    meta = {"yaw": "271.5", "pitch": 12.25, "roll": -3.0}  # a number, or as CSV has it
+    lla = "a.jpg -0.250000000 51.500000000 70.000"
+    assert geo_row("a.jpg", tags(**acc, **xmp), meta) == (
+        f"{lla} 90.000000 1.500000 0.500000 0.800 1.200"
+    )
+    assert geo_row("a.jpg", tags(**acc), meta) == (
+        f"{lla} 271.500000 12.250000 -3.000000 0.800 1.200"
+    )
+    assert geo_row("a.jpg", tags(**xmp), {}) == f"{lla} 90.000000 1.500000 0.500000"
+    assert geo_row("a.jpg", tags(), {"yaw": 10.0, "pitch": None, "roll": 0.0}) == lla
+    assert geo_row("a.jpg", tags(**acc), {"yaw": float("nan"), "pitch": 0, "roll": 0}) is None
+    assert geo_row("a.jpg", tags(xy_accuracy=0.8, **xmp), meta) is None
+    assert geo_row("a.jpg", ImageTags(**acc, **xmp), meta) is None
 
 
 def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path) -> None:
@@ -541,6 +640,50 @@ def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:
         assert (ds / "images" / row["file"]).read_bytes() == (tagged / row["file"]).read_bytes()
     seqs = [json.loads(x)["sequence"] for x in (ds / "keyframes.jsonl").read_text().splitlines()]
     assert seqs == list(range(n))
+
+
+def test_resume_computes_the_sift_features_an_earlier_run_did_not(
+    tagged: Path, tmp_path: Path
+) -> None:
+    """The station was killed with SIFT jobs pending: of three stored images one has
+    its features, one none (its job never ran), one half-written ones (``.tmp``).
+    Started again with --sift, it computes the two missing, keeps the one there, and
+    computes those of the keyframes it fetches: every image ends with its features."""
+    port = free_port()
+    vehicle = Vehicle("uav6", tagged, port)
+    n = len(vehicle.rows)
+    assert n >= 4
+    ds = tmp_path / "dataset" / "uav6"
+    (ds / "images").mkdir(parents=True)
+    (ds / "features").mkdir()
+    stored = vehicle.rows[:3]
+    for row in stored:
+        (ds / "images" / row["file"]).write_bytes((tagged / row["file"]).read_bytes())
+    index = "".join(json.dumps(vehicle.meta(row), sort_keys=True) + "\n" for row in stored)
+    (ds / "keyframes.jsonl").write_text(index)
+    kept = ds / "features" / (stored[0]["file"] + ".txt")
+    kept.write_text("0 128\n")  # complete, if empty: not computed again
+    (ds / "features" / (stored[2]["file"] + ".txt.tmp")).write_text("4000 128\n1.5 2")
+    proc = ground(tmp_path / "dataset", port, "--sift")
+    try:
+        wait_connected(vehicle)
+        vehicle.status()  # "I have written n"
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n and summary["fetched_by_query"] == n - 3
+    assert summary["sift_failed"] == 0, stderr
+    assert vehicle.queries == [(3, n - 1)]
+    assert not list(ds.rglob("*.tmp"))
+    assert kept.read_text() == "0 128\n"
+    for row in vehicle.rows[1:]:
+        lines = (ds / "features" / (row["file"] + ".txt")).read_text().splitlines()
+        count, dim = (int(v) for v in lines[0].split())
+        assert dim == 128 and count == len(lines) - 1 and count > 50, row["file"]
 
 
 @pytest.mark.parametrize("name", ["nadir", "orbit"])

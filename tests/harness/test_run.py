@@ -161,6 +161,44 @@ def test_system_clock_utc_dates_keyframes_without_telemetry(kf_bin: Path, tmp_pa
         assert abs((int(u1) - int(u0)) / 1e6 / (i1 - i0) - 1 / 30) < 0.01
 
 
+def test_a_file_read_as_fast_as_it_decodes_is_dated_on_its_own_clock(
+    kf_bin: Path, tmp_path: Path
+) -> None:
+    """camera.realtime = false: frames carry the video's container time, from the
+    run's start (unix time) on, not CLOCK_MONOTONIC. The keyframes' capture times
+    (tagging.system_clock_utc) and the record's log times are then this run's, a
+    frame period apart per frame, however fast the file decodes."""
+    from mcap.reader import make_reader
+    from PIL import Image
+
+    fl = flight("nadir", width=320, height=180, seconds=3.0)
+    t0 = time.time()
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={fl / 'video.avi'}",
+        "camera.realtime=false",
+        "tagging.system_clock_utc=true",
+    )
+    _, stderr = proc.communicate(timeout=60)
+    t1 = time.time()
+    assert proc.returncode == 0, stderr
+    fd = flight_dir(tmp_path)
+    kfs = rows(fd / "keyframes" / "keyframes.csv")
+    assert len(kfs) >= 2
+    for k in kfs:
+        utc = int(k["utc_us"]) / 1e6
+        # the video's own time: index / 30 s after the run began
+        assert t0 <= utc - int(k["index"]) / 30 <= t1, (t0, utc, k["index"], t1)
+        exif = Image.open(fd / "keyframes" / k["file"]).getexif().get_ifd(0x8769)
+        assert exif.get(0x9003) == time.strftime("%Y:%m:%d %H:%M:%S", time.gmtime(int(utc)))
+    (i0, u0), (i1, u1) = [(int(k["index"]), int(k["utc_us"])) for k in (kfs[0], kfs[-1])]
+    assert abs((u1 - u0) / 1e6 - (i1 - i0) / 30) < 0.002
+    with open(fd / "flight.mcap", "rb") as f:
+        times = [m.log_time for _, _, m in make_reader(f).iter_messages()]
+    assert times and all(t0 - 1 <= t / 1e9 <= t1 + 3.5 for t in times), (t0, t1, min(times))
+
+
 def test_run_replays_a_tlog_with_its_video_as_select_does(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
@@ -605,6 +643,8 @@ def test_sigterm_while_a_silent_pipe_blocks_the_read_still_flushes(
         (["camera.source=libcamera", "camera.device=/no/such/camera"], "libcamera:"),
         (["camera.path=/nonexistent/flight.avi"], "/nonexistent/flight.avi"),
         (["camera.fps=500"], "camera.fps"),
+        # a file on its own clock cannot be tagged from a live link
+        (["camera.realtime=false", "telemetry.url=udpin:127.0.0.1:14550"], "camera.realtime"),
         (["camera.nonsense=1"], "camera.nonsense"),
         (["tagging.calibration=/nonexistent/cal.yaml"], "cal.yaml"),
     ],

@@ -11,6 +11,7 @@
 #include <toml++/toml.h>
 
 #include "app/config.h"
+#include "app/settings.h"
 
 namespace keyframed {
 namespace {
@@ -235,7 +236,7 @@ TEST(Config, SetOverridesTakeTomlValuesAndBareStrings) {
   TempDir dir;
   const ConfigLoadResult r =
       loadDir(dir, {"camera.source=file", "camera.path=/data/flight 1.mp4", "camera.realtime=false",
-                    "selection.target=0.65", "selection.blur_floor=12",
+                    "telemetry.url=", "selection.target=0.65", "selection.blur_floor=12",
                     "tagging.calibration=", "zenoh.vehicle=\"quoted\"", "telemetry.autopilot=1:1",
                     "log.capture=debug", "camera.fps=29.97"});
   ASSERT_TRUE(r.ok()) << joined(r.errors);
@@ -369,6 +370,11 @@ TEST(Config, CrossChecksNameTheLastKeySet) {
   expectOneError(dir, "[telemetry]\nurl = \"flight.tlog\"\n",
                  "2: telemetry.url: a tlog replays a recorded flight: it needs camera.source = "
                  "\"file\" and camera.start_time");
+  // A file read as fast as it decodes with the default live link (udpin:0.0.0.0:14550).
+  expectOneError(dir, "[camera]\nsource = \"file\"\npath = \"f.avi\"\nrealtime = false\n",
+                 "4: camera.realtime: a live telemetry link needs camera.realtime = true (a file "
+                 "read as fast as it decodes is on the video's clock; replay its tlog instead, or "
+                 "set telemetry.url = \"\")");
 }
 
 TEST(Config, ZeroOrAtLeastSettingsNameTheirOwnKeyAndLine) {
@@ -484,6 +490,23 @@ TEST(Config, TakeConfigArgsLeavesTheRest) {
   EXPECT_EQ(args, (std::vector<std::string>{"run", "--verbose"}));
   std::vector<std::string> bad = {"--set"};
   EXPECT_EQ(takeConfigArgs(bad, s), "option --set needs a value");
+}
+
+TEST(ParseUtcTime, IsoAndUnixSecondsWithinTheRangeAnInt64OfNanosecondsHolds) {
+  std::int64_t ns = 0;
+  ASSERT_TRUE(parseUtcTime("2026-12-02T23:15:00.25Z", ns));
+  EXPECT_EQ(ns, 1'796'253'300'250'000'000);
+  ASSERT_TRUE(parseUtcTime("2026-12-02T23:15:00+00:00", ns));
+  EXPECT_EQ(ns, 1'796'253'300'000'000'000);
+  ASSERT_TRUE(parseUtcTime("1796253300.5", ns));
+  EXPECT_EQ(ns, 1'796'253'300'500'000'000);
+  ASSERT_TRUE(parseUtcTime("2099-12-31T23:59:59Z", ns));
+  // A typo'd year past 2262 overflowed the nanoseconds; before 1970 is no video's.
+  for (const char* bad : {"2300-01-01T00:00:00Z", "9999-12-31T23:59:59Z", "1969-12-31T23:59:59Z",
+                          "2026-12-02T-1:15:00Z", "2026-12-02T23:-5:00Z", "2026-13-02T23:15:00Z",
+                          "2026-12-02T23:15:00+01:00", "2026-12-02", "-5", "5e9"}) {
+    EXPECT_FALSE(parseUtcTime(bad, ns)) << bad;
+  }
 }
 
 }  // namespace

@@ -19,6 +19,7 @@
 #include "capture/capture_thread.h"
 #include "capture/frame_queue.h"
 #include "capture/interrupter.h"
+#include "capture/plane_layout.h"
 
 namespace keyframed {
 namespace {
@@ -188,6 +189,23 @@ TEST(FrameBytes, CoversAllPlanes) {
   f.format = PixelFormat::YUYV;
   f.stride = 1280;
   EXPECT_EQ(frameBytes(f), 1280u * 480u);
+}
+
+TEST(FrameBytes, MatchesThePlanesACameraHandsOverForEveryStride) {
+  // copyFrame() reads frameBytes() from a buffer contiguousFrame() checked against
+  // planeSizes(): the two must agree, or an odd stride reads past the frame.
+  for (const PixelFormat fmt : {PixelFormat::NV12, PixelFormat::YUV420, PixelFormat::YUYV,
+                                PixelFormat::Gray8, PixelFormat::BGR24}) {
+    for (const int stride : {640, 641, 643, 1280}) {
+      for (const int height : {480, 481}) {
+        std::size_t planes = 0;
+        for (std::size_t n : planeSizes(fmt, stride, height)) planes += n;
+        const Frame f{fmt, nullptr, 640, height, stride, 0, 0};
+        EXPECT_EQ(frameBytes(f), planes)
+            << toString(fmt) << " stride " << stride << " height " << height;
+      }
+    }
+  }
 }
 
 TEST(FrameQueue, ConcurrentProducerConsumerKeepsOrderAndReturnsBuffers) {
@@ -467,18 +485,24 @@ TEST(CaptureThread, StopInterruptsASourceWaitingForAFrame) {
 }
 
 TEST(QueueFramesFor, CoversTheConfiguredTimeAtTheSourceRate) {
-  EXPECT_EQ(queueFramesFor(300, 30.0), 9u);   // 300 ms at 30 fps
-  EXPECT_EQ(queueFramesFor(300, 60.0), 18u);  // the same time, twice the frames
-  EXPECT_EQ(queueFramesFor(100, 29.97), 3u);  // 2.997 frames: rounded up
-  EXPECT_EQ(queueFramesFor(1000, 25.0), 25u);
+  constexpr std::size_t k1080 = 1920 * 1080 * 3;
+  EXPECT_EQ(queueFramesFor(300, 30.0, k1080), 9u);           // 300 ms at 30 fps
+  EXPECT_EQ(queueFramesFor(100, 29.97, k1080), 3u);          // 2.997 frames: rounded up
+  EXPECT_EQ(queueFramesFor(300, 60.0, 640 * 480 * 3), 18u);  // twice the frames at 60 fps
+  EXPECT_EQ(queueFramesFor(1000, 25.0, 0), 25u);             // size unknown: time alone
 }
 
-TEST(QueueFramesFor, StaysWithinTwoAndSixtyFourFrames) {
-  EXPECT_EQ(queueFramesFor(0, 30.0), 2u);       // no slack asked: still double-buffered
-  EXPECT_EQ(queueFramesFor(10, 30.0), 2u);      // 0.3 frames
-  EXPECT_EQ(queueFramesFor(300, 0.0), 2u);      // a source that does not know its rate
-  EXPECT_EQ(queueFramesFor(5000, 240.0), 64u);  // 1200 frames would be gigabytes
-  EXPECT_EQ(queueFramesFor(300, std::numeric_limits<double>::quiet_NaN()), 2u);
+TEST(QueueFramesFor, StaysWithinTwoAndSixtyFourFramesAndTheMemoryBudget) {
+  constexpr std::size_t k1080 = 1920 * 1080 * 3;
+  EXPECT_EQ(queueFramesFor(0, 30.0, k1080), 2u);   // no slack asked: still double-buffered
+  EXPECT_EQ(queueFramesFor(10, 30.0, k1080), 2u);  // 0.3 frames
+  EXPECT_EQ(queueFramesFor(300, 0.0, k1080), 2u);  // a source that does not know its rate
+  EXPECT_EQ(queueFramesFor(300, std::numeric_limits<double>::quiet_NaN(), k1080), 2u);
+  EXPECT_EQ(queueFramesFor(5000, 240.0, 320 * 240 * 3), 64u);  // 1200 frames asked
+  // 1080p60: 18 frames asked, 10 fit in 64 MiB; 4K: 2 frames at most (25 MB each).
+  EXPECT_EQ(queueFramesFor(300, 60.0, k1080), kQueueBudgetBytes / k1080);
+  EXPECT_EQ(queueFramesFor(300, 60.0, k1080), 10u);
+  EXPECT_EQ(queueFramesFor(300, 30.0, 3840 * 2160 * 3), 2u);
 }
 
 }  // namespace

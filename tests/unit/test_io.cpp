@@ -678,11 +678,12 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
         return true;
       });
   const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
-  const auto keyframe = [&](std::int64_t i, bool saved = true) {
+  const auto keyframe = [&](std::int64_t i, bool saved = true, bool indexed = true) {
     KeyframeRecord r;
     r.sequence = i;
     r.frameIndex = 10 * i;
     if (saved) r.file = "/state/keyframes/" + std::to_string(10 * i) + ".jpg";
+    r.indexed = saved && indexed;
     outputs.keyframe(r, jpeg);
   };
   keyframe(0);
@@ -696,6 +697,9 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   for (std::int64_t i = 1; i <= 11; ++i) keyframe(i);
   // One the disk could not take is on no disk for the queryable: it waits for the link.
   keyframe(12, /*saved=*/false);
+  // Nor one whose JPEG was saved but whose index row the disk did not take: the
+  // queryable reads the index.
+  keyframe(13, /*saved=*/true, /*indexed=*/false);
   EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(2));
   ASSERT_EQ(warnings.size(), 1U);
   EXPECT_NE(warnings[0].find("keyframe 9 left to the queryable"), std::string::npos) << warnings[0];
@@ -706,7 +710,7 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   cv.notify_all();
   // close() puts what is queued first.
   ASSERT_TRUE(outputs.close("done", error)) << error;
-  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 12}));
+  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13}));
   ASSERT_EQ(warnings.size(), 2U);
   EXPECT_NE(warnings[1].find("3 keyframes left to the queryable"), std::string::npos)
       << warnings[1];

@@ -23,17 +23,22 @@ down before the daemon restarted; those older than ``--earlier-flights`` seconds
 - ``keyframes.jsonl``: the metadata of each, by flight (the time it started) and
   sequence number;
 - ``cameras.txt``: the camera in COLMAP's text format (OPENCV model, from the
-  intrinsics in the JPEG's tags);
+  calibration in the JPEG's XMP tags); absent when the keyframes carry no calibration
+  (the summary says ``"calibrated": false``): EXIF's nominal focal length is no
+  calibration, and a camera with zero distortion made of it would be held as one;
 - ``cameras.json``: the same camera for OpenDroneMap (``--camera-lens brown --cameras
-  cameras.json``), keyed by the camera id OpenSfM derives from the tags;
+  cameras.json``), keyed by the camera id OpenDroneMap gives these images (and by
+  plain OpenSfM's, where that differs); absent with ``cameras.txt``;
 - ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``, the
   edges of the overlap graph: each keyframe with its neighbours along the flight and
   with those whose ground footprints (projected from position, camera attitude and
   intrinsics) overlap its own (the next survey line), so matching need not be
   exhaustive;
-- ``geo.txt``: positions for OpenDroneMap (EPSG:4326; lon lat alt, accuracies);
+- ``geo.txt``: positions for OpenDroneMap (EPSG:4326; lon lat alt, the camera's yaw
+  pitch roll, accuracies);
 - with ``--sift``: ``features/<image>.txt``, SIFT keypoints and descriptors in the
-  text format ``colmap feature_importer`` reads, computed by a low-priority worker.
+  text format ``colmap feature_importer`` reads, computed by a low-priority worker
+  (on a resumed dataset, also for the images stored before that have none yet).
 """
 
 from __future__ import annotations
@@ -113,6 +118,11 @@ class ImageTags:
     pixels_per_mm_y: float | None = None  # from FocalPlaneYResolution (fy may differ)
     principal_mm: tuple[float, float] | None = None
     distortion: list[float] = field(default_factory=list)  # Pix4D R1,R2,R3,T1,T2
+    # XMP PerspectiveFocalLength, PrincipalPoint and PerspectiveDistortion all given:
+    # the camera was calibrated (the daemon writes them only then), so focal_mm is
+    # the calibrated one, not EXIF's nominal lens
+    calibrated: bool = False
+    attitude: tuple[float, float, float] | None = None  # XMP Yaw, Pitch, Roll (Pix4D)
     make: str = ""
     model: str = ""
     exif_size: tuple[int, int] | None = None  # PixelXDimension, PixelYDimension
@@ -189,6 +199,10 @@ def _read_tags(jpeg: bytes) -> ImageTags:
         dist = _xmp_value(xmp, "PerspectiveDistortion")
         if dist:
             tags.distortion = [float(s) for s in dist.split(",")]
+        tags.calibrated = bool(pp and fl and dist)
+        yaw, pitch, roll = (_xmp_value(xmp, name) for name in ("Yaw", "Pitch", "Roll"))
+        if yaw and pitch and roll:
+            tags.attitude = (float(yaw), float(pitch), float(roll))
     return tags
 
 
@@ -208,9 +222,12 @@ class Intrinsics:
 
 
 def intrinsics(tags: ImageTags) -> Intrinsics | None:
-    """The intrinsics the tags give in pixels, or None when they do not: the focal
-    length (mm) and the focal plane resolution (pixels per mm) at least."""
-    if not (tags.focal_mm and tags.pixels_per_mm and tags.width):
+    """The calibration the tags give in pixels, or None when they do not: the XMP
+    calibration (focal length and principal point in mm, distortion) and the focal
+    plane resolution (pixels per mm) to turn it into pixels. EXIF's focal length alone
+    is no calibration: the principal point at the centre and zero distortion would be
+    made up, and a tool told to hold the camera fixed would hold them."""
+    if not (tags.calibrated and tags.focal_mm and tags.pixels_per_mm and tags.width):
         return None
     per_mm_y = tags.pixels_per_mm_y or tags.pixels_per_mm
     if tags.principal_mm:
@@ -245,12 +262,25 @@ def colmap_camera(tags: ImageTags) -> str | None:
     return f"1 {model} {cam.width} {cam.height} " + " ".join(f"{p:.9g}" for p in params)
 
 
+def odm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
+    """The camera id OpenDroneMap gives images with these tags (its Photo.camera_id())
+    as its ``--cameras`` file is keyed, without the "v2 " it puts in front: make and
+    model as they are (empty when absent), the image's size in pixels, the projection
+    (its --camera-lens) and the focal ratio FocalLengthIn35mmFilm / 36 as its first 6
+    characters, lowercase. None without the 35 mm focal length, which ODM would
+    replace by another estimate."""
+    if not tags.focal_35mm:
+        return None
+    ratio = str(tags.focal_35mm / 36.0)[:6]
+    parts = [tags.make.strip(), tags.model.strip(), str(tags.width), str(tags.height)]
+    return " ".join(parts + [projection, ratio]).lower()
+
+
 def opensfm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
-    """The camera id OpenSfM (and so OpenDroneMap) gives images with these tags, ODM's
-    form (without OpenSfM's "v2 " prefix): make, model (less a repeated make), the
-    image size from PixelX/YDimension, the projection (ODM's --camera-lens) and the
-    focal ratio from FocalLengthIn35mmFilm / 36 as its first 6 characters, lowercase.
-    None without the 35 mm focal length, which OpenSfM would replace by a guess."""
+    """The camera id plain OpenSfM gives images with these tags (exif.camera_id_), in
+    the same form as ``odm_camera_id``: it differs in dropping a make repeated in the
+    model ("Acme" "Acme Cam" is "acme cam"), "unknown" for a missing make or model,
+    and the size from PixelX/YDimension. None without the 35 mm focal length."""
     if not tags.focal_35mm:
         return None
     make = tags.make or "unknown"
@@ -267,29 +297,34 @@ def odm_cameras(tags: ImageTags) -> dict[str, Any] | None:
     """OpenDroneMap's cameras.json (``--camera-lens brown --cameras cameras.json``):
     the calibration as OpenSfM's Brown-Conrady model, normalised by the image's longer
     side with the principal point as an offset from the centre; the distortion
-    coefficients are OpenCV's (the same polynomial). None without the intrinsics or
-    the tags OpenSfM's camera id is made of."""
+    coefficients are OpenCV's (the same polynomial). Keyed by ODM's camera id first,
+    which ODM looks the images' camera up by; when plain OpenSfM's id differs (a make
+    repeated in the model), the same camera again under that one: ODM ignores a key
+    no image has. None without the calibration or the tags the id is made of."""
     cam = intrinsics(tags)
-    camera_id = opensfm_camera_id(tags)
+    camera_id = odm_camera_id(tags)
     if cam is None or camera_id is None:
         return None
     size = float(max(cam.width, cam.height))
-    return {
-        camera_id: {
-            "projection_type": "brown",
-            "width": cam.width,
-            "height": cam.height,
-            "focal_x": cam.fx / size,
-            "focal_y": cam.fy / size,
-            "c_x": (cam.cx - cam.width / 2.0) / size,
-            "c_y": (cam.cy - cam.height / 2.0) / size,
-            "k1": cam.k[0],
-            "k2": cam.k[1],
-            "p1": cam.p[0],
-            "p2": cam.p[1],
-            "k3": cam.k[2],
-        }
+    brown = {
+        "projection_type": "brown",
+        "width": cam.width,
+        "height": cam.height,
+        "focal_x": cam.fx / size,
+        "focal_y": cam.fy / size,
+        "c_x": (cam.cx - cam.width / 2.0) / size,
+        "c_y": (cam.cy - cam.height / 2.0) / size,
+        "k1": cam.k[0],
+        "k2": cam.k[1],
+        "p1": cam.p[0],
+        "p2": cam.p[1],
+        "k3": cam.k[2],
     }
+    out: dict[str, Any] = {camera_id: brown}
+    opensfm_id = opensfm_camera_id(tags)
+    if opensfm_id is not None and opensfm_id != camera_id:
+        out[opensfm_id] = dict(brown)
+    return out
 
 
 # ------------------------------------------------------------------------ pairs
@@ -523,6 +558,19 @@ class VehicleDataset:
             if plain:
                 self.flights.remove(plain[0])
                 self.flights.insert(0, plain[0])
+        if sift is not None:
+            # Jobs are submitted only as keyframes arrive: an image an earlier run
+            # stored without its features (killed before its worker got to it, or
+            # half-way through, the .tmp thrown away above) gets them now.
+            for m in self.meta.values():
+                if not (self.dir / "features" / (m["file"] + ".txt")).exists():
+                    self._queue_sift(m["file"])
+
+    def _queue_sift(self, name: str) -> None:
+        """Has the worker write the SIFT features of ``images/<name>``."""
+        if self.sift is not None:
+            out = str(self.dir / "features" / (name + ".txt"))
+            self.sift_jobs.append(self.sift.submit(sift_to_colmap, str(self.images / name), out))
 
     def _flight(self, flight: str) -> bool:
         """Notes a flight (under the lock); True for the dataset's first."""
@@ -582,9 +630,7 @@ class VehicleDataset:
                 self.fetched += 1
             with open(self.dir / "keyframes.jsonl", "a") as f:
                 f.write(json.dumps(meta, sort_keys=True) + "\n")
-        if self.sift is not None:
-            out = str(self.dir / "features" / (name + ".txt"))
-            self.sift_jobs.append(self.sift.submit(sift_to_colmap, str(self.images / name), out))
+        self._queue_sift(name)
         return True
 
     def missing(self) -> list[Key]:
@@ -626,25 +672,30 @@ class VehicleDataset:
         _write_atomic(self.dir / "keyframes.jsonl", lines.encode())
         names = [m["file"] for m in metas]
         tags = [read_tags((self.images / n).read_bytes()) for n in names]
+        # Only a calibration the tags carry: a camera made of EXIF's nominal focal length
+        # (centred principal point, no distortion) would be taken for one. Without it
+        # there is no cameras.txt or cameras.json (nor one an earlier run left).
         camera = next((c for c in (colmap_camera(t) for t in tags) if c), None)
-        header = "# Camera list with one line of data per camera:\n"
-        header += "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-        _write_atomic(self.dir / "cameras.txt", (header + (camera or "") + "\n").encode())
+        if camera:
+            header = "# Camera list with one line of data per camera:\n"
+            header += "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+            _write_atomic(self.dir / "cameras.txt", (header + camera + "\n").encode())
+        else:
+            (self.dir / "cameras.txt").unlink(missing_ok=True)
         odm = next((c for c in (odm_cameras(t) for t in tags) if c), None)
         if odm:
             _write_atomic(self.dir / "cameras.json", (json.dumps(odm, indent=2) + "\n").encode())
+        else:
+            (self.dir / "cameras.json").unlink(missing_ok=True)
         rel = [_float_or_none(m.get("alt_rel")) for m in metas]
         quats = [m.get("cam_q") if isinstance(m.get("cam_q"), list) else None for m in metas]
         pairs = image_pairs(names, tags, alt_above_ground=rel, cam_q=quats)
         _write_atomic(self.dir / "pairs.txt", "".join(f"{a} {b}\n" for a, b in pairs).encode())
         geo = ["EPSG:4326"]
-        for n, t in zip(names, tags, strict=True):
-            if t.lat is None or t.lon is None:
-                continue
-            row = f"{n} {t.lon:.9f} {t.lat:.9f} {t.alt if t.alt is not None else 0.0:.3f}"
-            if t.xy_accuracy is not None and t.z_accuracy is not None:
-                row += f" 0 0 0 {t.xy_accuracy:.3f} {t.z_accuracy:.3f}"
-            geo.append(row)
+        for n, t, m in zip(names, tags, metas, strict=True):
+            row = geo_row(n, t, m)
+            if row is not None:
+                geo.append(row)
         _write_atomic(self.dir / "geo.txt", ("\n".join(geo) + "\n").encode())
         return {
             "vehicle": self.vehicle,
@@ -659,6 +710,7 @@ class VehicleDataset:
                 s if f == (self.flights or [""])[0] else f"{f}:{s}" for f, s in self.missing()
             ],
             "pairs": len(pairs),
+            "calibrated": camera is not None,  # else no cameras.txt, cameras.json
             "camera": camera,
             "odm_camera": next(iter(odm)) if odm else None,
         }
@@ -669,6 +721,42 @@ def _float_or_none(v: Any) -> float | None:
         return float(v) if v not in (None, "") else None
     except (TypeError, ValueError):
         return None
+
+
+def attitude(meta: dict[str, Any], tags: ImageTags) -> tuple[float, float, float] | None:
+    """The camera's yaw, pitch, roll in degrees, Pix4D's convention (yaw 0: image top
+    north, pitch 0: nadir; OpenDroneMap's for all but DJI's cameras): the XMP
+    Camera:Yaw/Pitch/Roll of the JPEG, as the rest of its geo.txt line, else the
+    keyframe's metadata (the same angles, to 4 decimals); None when neither has all
+    three."""
+    if tags.attitude is not None:
+        return tags.attitude
+    ypr = [_float_or_none(meta.get(k)) for k in ("yaw", "pitch", "roll")]
+    y, p, r = (v if v is not None and math.isfinite(v) else None for v in ypr)
+    return (y, p, r) if y is not None and p is not None and r is not None else None
+
+
+def geo_row(name: str, tags: ImageTags, meta: dict[str, Any]) -> str | None:
+    """The image's line of OpenDroneMap's geo.txt, ``name lon lat alt [yaw pitch roll
+    [xy_accuracy z_accuracy]]`` (positional columns), or None without a position. ODM
+    takes a line's angles over the image's own, so unknown ones are left out, never
+    0 0 0 (every camera nadir, image top north); and it replaces the image's accuracies
+    by the line's, by none when the line has none. So an image with an accuracy the
+    line cannot carry (its attitude unknown, or only one of the two known) gets no
+    line: ODM then reads position, angles and accuracies from its tags, as it would
+    without geo.txt, rather than lose the accuracies."""
+    if tags.lat is None or tags.lon is None:
+        return None
+    ypr = attitude(meta, tags)
+    xy, z = tags.xy_accuracy, tags.z_accuracy
+    if (xy is not None or z is not None) and (ypr is None or xy is None or z is None):
+        return None
+    row = f"{name} {tags.lon:.9f} {tags.lat:.9f} {tags.alt if tags.alt is not None else 0.0:.3f}"
+    if ypr is not None:
+        row += " " + " ".join(f"{v:.6f}" for v in ypr)
+    if xy is not None and z is not None:
+        row += f" {xy:.3f} {z:.3f}"
+    return row
 
 
 # ------------------------------------------------------------------------ station
