@@ -51,6 +51,10 @@ struct SelectOptions {
   // The command line as parsed, so that a replay can apply its selection options on
   // top of the settings a flight record was made with.
   std::vector<std::string> args;
+  // The selector was set whole (the Python API's config): a flight record's own
+  // settings do not replace it. Without it and without args, a replay selects with
+  // the record's settings.
+  bool selectorGiven = false;
 };
 
 struct ParseResult {

@@ -604,6 +604,7 @@ int Daemon::run() {
       cd.sensorHeightMm = static_cast<float>(camera_->sensorHeightMm);
     }
     telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
+    telemetry_->setGimbalMount(config_.tagging.mountGimbal);  // ask for its attitude too
     logTelemetryEvents(*telemetry_);
     // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
     telemetry_->setCaptureRequestSink(

@@ -141,7 +141,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                    "keyframed select: warning: the record's selection settings do not load "
                    "(%s): replaying with the defaults and the options given\n",
                    r.errors.front().c_str());
-    } else if (!opts.args.empty() && parseSelectOptions(opts.args, recorded).ok) {
+    } else if (opts.args.empty() ? !opts.selectorGiven
+                                 : parseSelectOptions(opts.args, recorded).ok) {
       opts.selector = recorded.selector;
       if (replay->settingsChanges() > 0) {
         std::fprintf(stderr,
@@ -221,6 +222,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       cd.sensorHeightMm = static_cast<float>(camera->sensorHeightMm);
     }
     telemetry = std::make_unique<TelemetryService>(tc, cd);
+    telemetry->setGimbalMount(opts.mountGimbal);  // a live link: ask for its attitude too
     logTelemetryEvents(*telemetry);
     // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
     telemetry->setCaptureRequestSink(

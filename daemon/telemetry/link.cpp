@@ -196,6 +196,8 @@ class UdpLink final : public MavlinkLink {
     return open(error);
   }
 
+  [[nodiscard]] bool datagrams() const override { return true; }
+
   void pinPeerToLastSender() override {
     if (url_.scheme != "udpin") return;
     peer_ = lastSender_;  // follows the autopilot if it comes back from another port
@@ -270,6 +272,9 @@ class SerialLink final : public MavlinkLink {
       error = "serial port " + url_.host + " is closed";
       return Status::Error;
     }
+    // The rest of a frame cut short goes out as soon as there is room, not only
+    // with the next write.
+    if (!unsent_.empty() && !flush(error) && !error.empty()) return Status::Error;
     pollfd p{fd_, POLLIN, 0};
     const int r = ::poll(&p, 1, timeoutMs);
     if (r == 0) return Status::Timeout;
@@ -295,12 +300,18 @@ class SerialLink final : public MavlinkLink {
 
   bool write(const std::uint8_t* data, std::size_t size, std::string& error) override {
     if (fd_ < 0) return false;
+    // A frame cut short is finished first: anything written before its rest would run
+    // into it at the receiver, and both frames be lost.
+    if (!flush(error)) return false;  // radio buffer still full: drop, MAVLink is lossy
     const ssize_t n = ::write(fd_, data, size);
     if (n < 0) {
       if (errno == EAGAIN) return false;  // radio buffer full: drop, MAVLink is lossy
       error = errnoText("write " + url_.host);
       return false;
     }
+    // Room for only part of it: the rest is kept and goes before anything else, so
+    // the frame is sent (read() and the next write() send what is left).
+    unsent_.assign(data + n, data + size);
     return true;
   }
 
@@ -317,10 +328,25 @@ class SerialLink final : public MavlinkLink {
   void closeFd() {
     if (fd_ >= 0) ::close(fd_);
     fd_ = -1;
+    unsent_.clear();  // a reopened port starts on a frame boundary
+  }
+
+  // Writes what is left of a frame cut short; true once none is left. False with
+  // error empty while the port has no room.
+  bool flush(std::string& error) {
+    if (unsent_.empty()) return true;
+    const ssize_t n = ::write(fd_, unsent_.data(), unsent_.size());
+    if (n < 0) {
+      if (errno != EAGAIN) error = errnoText("write " + url_.host);
+      return false;
+    }
+    unsent_.erase(unsent_.begin(), unsent_.begin() + n);
+    return unsent_.empty();
   }
 
   Url url_;
   int fd_ = -1;
+  std::vector<std::uint8_t> unsent_;  // the rest of a frame that a write cut short
 };
 
 class TlogLink final : public MavlinkLink {

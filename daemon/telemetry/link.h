@@ -19,10 +19,15 @@ class MavlinkLink {
   // timeNs the arrival time (CLOCK_MONOTONIC, or the tlog's record time).
   virtual Status read(std::uint8_t* buffer, std::size_t capacity, std::size_t& size,
                       std::int64_t& timeNs, int timeoutMs, std::string& error) = 0;
-  // Sends a packet; false when there is no peer yet or the link failed.
+  // Sends a packet; false when there is no peer yet, no room (error empty: the packet
+  // is dropped, nothing of it sent) or the link failed (error set).
   virtual bool write(const std::uint8_t* data, std::size_t size, std::string& error) = 0;
   // Reopens after an error (a serial device unplugged and plugged back in).
   virtual bool reopen(std::string& error) = 0;
+  // Each read() returns one datagram, which starts on a frame boundary (UDP): a frame
+  // cut short in one never goes on in the next. A byte stream (serial) can split a
+  // frame anywhere.
+  [[nodiscard]] virtual bool datagrams() const { return false; }
   // The bytes last read came from the autopilot: on a link that can hear several
   // senders (udpin), write() goes to that sender from now on, not to whoever spoke
   // last (a ground station or a second vehicle on the same port).

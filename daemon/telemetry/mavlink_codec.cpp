@@ -9,6 +9,13 @@ MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte) {
   const std::uint8_t stateBefore = status_.parse_state;
   const std::uint8_t result =
       mavlink_frame_char_buffer(&rx_, &status_, byte, &message_, &messageStatus_);
+  // A signed frame whose checksum is bad, or cannot be checked (an unknown id), is
+  // reported at the checksum too, with the previous frame still in message_, and
+  // again, as itself, once the signature has been read: only the last counts.
+  if (result == MAVLINK_FRAMING_BAD_CRC &&
+      status_.parse_state == MAVLINK_PARSE_STATE_SIGNATURE_WAIT_BAD_CRC) {
+    return Frame::None;
+  }
   if (result == MAVLINK_FRAMING_OK) {
     ++stats_.messages;
     if (message_.magic == MAVLINK_STX_MAVLINK1) ++stats_.mavlink1;
@@ -25,6 +32,15 @@ MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte) {
     ++stats_.skippedBytes;  // not a start byte: noise between frames
   }
   return Frame::None;
+}
+
+void MavlinkParser::reset() {
+  if (status_.parse_state != MAVLINK_PARSE_STATE_UNINIT &&
+      status_.parse_state != MAVLINK_PARSE_STATE_IDLE) {
+    ++stats_.rejected;
+  }
+  rx_ = {};
+  status_ = {};
 }
 
 MavlinkEncoder::MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1)

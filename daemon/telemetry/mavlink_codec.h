@@ -52,6 +52,11 @@ class MavlinkParser {
     }
   }
 
+  // Drops a frame half read (counted as rejected: a frame cut short): the next byte
+  // is taken as the start of a new one. For a link reopened (the bytes before the
+  // drop are gone) and for each UDP datagram (each starts on a frame boundary).
+  void reset();
+
   [[nodiscard]] const ParserStats& stats() const { return stats_; }
 
  private:

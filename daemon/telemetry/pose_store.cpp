@@ -12,6 +12,11 @@ Quaternion normalized(const Quaternion& q) {
   return {q.w / n, q.x / n, q.y / n, q.z / n};
 }
 
+bool usableRotation(const Quaternion& q) {
+  const double n2 = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z;
+  return std::isfinite(n2) && n2 >= 0.5;  // a NaN or infinite part makes n2 one too
+}
+
 Quaternion slerp(const Quaternion& a, const Quaternion& b0, double t) {
   Quaternion b = b0;
   double d = a.w * b.w + a.x * b.x + a.y * b.y + a.z * b.z;
@@ -73,9 +78,11 @@ void PoseStore::append(std::deque<Sample<T>>& q, std::int64_t timeNs, const T& v
   while (q.size() > 2 && q.front().timeNs < timeNs - historyNs) q.pop_front();
 }
 
-void PoseStore::addAttitude(std::int64_t timeNs, const Quaternion& bodyToNed) {
+bool PoseStore::addAttitude(std::int64_t timeNs, const Quaternion& bodyToNed) {
+  if (!usableRotation(bodyToNed)) return false;
   std::lock_guard lock(mutex_);
   append(attitude_, timeNs, normalized(bodyToNed), config_.historyNs);
+  return true;
 }
 
 void PoseStore::addPosition(std::int64_t timeNs, const GeoPosition& position) {
@@ -88,9 +95,11 @@ void PoseStore::addGps(std::int64_t timeNs, const GpsQuality& gps) {
   append(gps_, timeNs, gps, config_.historyNs);
 }
 
-void PoseStore::addGimbal(std::int64_t timeNs, const Quaternion& q, bool earthFrame) {
+bool PoseStore::addGimbal(std::int64_t timeNs, const Quaternion& q, bool earthFrame) {
+  if (!usableRotation(q)) return false;
   std::lock_guard lock(mutex_);
   append(gimbal_, timeNs, GimbalSample{normalized(q), earthFrame}, config_.historyNs);
+  return true;
 }
 
 void PoseStore::clear() {
@@ -208,7 +217,7 @@ Pose PoseStore::at(std::int64_t timeNs) const {
     reasons.push_back(why);
   }
 
-  if (bracket(gimbal_, timeNs, config_.maxAttitudeGapNs, config_.maxHoldNs, i0, i1, why,
+  if (bracket(gimbal_, timeNs, maxGimbalGapNs(), config_.maxHoldNs, i0, i1, why,
               "gimbal attitude")) {
     const auto& a = gimbal_[i0];
     const auto& b = gimbal_[i1];

@@ -32,13 +32,23 @@ class PoseStore {
   PoseStore() = default;
   explicit PoseStore(Config config) : config_(config) {}
 
-  void addAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
+  // The max spacing of the gimbal's samples used: maxAttitudeGapNs, and at least this.
+  // A stabilised gimbal holds the attitude it is set to while the airframe turns under
+  // it, so its reports may lie further apart than the airframe's (a gimbal reporting
+  // at 1-2 Hz, with one report lost).
+  static constexpr std::int64_t kMinGimbalGapNs = 1'000'000'000;
+  [[nodiscard]] std::int64_t maxGimbalGapNs() const {
+    return config_.maxAttitudeGapNs > kMinGimbalGapNs ? config_.maxAttitudeGapNs : kMinGimbalGapNs;
+  }
+
+  // False (nothing stored) for a quaternion that is no rotation (usableRotation()).
+  bool addAttitude(std::int64_t timeNs, const Quaternion& bodyToNed);
   void addPosition(std::int64_t timeNs, const GeoPosition& position);
   void addGps(std::int64_t timeNs, const GpsQuality& gps);
   // A gimbal's attitude (gimbal FRD -> NED when earthFrame, else relative to the
   // vehicle frame: NED turned by the vehicle's heading, roll and pitch still to the
-  // horizon, as GIMBAL_DEVICE_ATTITUDE_STATUS defines them).
-  void addGimbal(std::int64_t timeNs, const Quaternion& q, bool earthFrame);
+  // horizon, as GIMBAL_DEVICE_ATTITUDE_STATUS defines them). False as addAttitude.
+  bool addGimbal(std::int64_t timeNs, const Quaternion& q, bool earthFrame);
   void clear();
 
   // The pose at timeNs (same timeline as the samples). Pose::timeNs = timeNs;
@@ -78,7 +88,13 @@ class PoseStore {
 
 // Spherical linear interpolation between unit quaternions (shortest path).
 Quaternion slerp(const Quaternion& a, const Quaternion& b, double t);
+// The unit quaternion of q's direction; identity for a zero or NaN q (check those
+// with usableRotation() where they may come from outside).
 Quaternion normalized(const Quaternion& q);
+// True when q, as received, describes a rotation: finite, and not (near) zero. A unit
+// quaternion sent as floats has a norm of 1 to within 1e-7; an unset or zeroed one
+// (an estimator not aligned yet) is no attitude at all, not "level, facing north".
+bool usableRotation(const Quaternion& q);
 // ZYX (yaw, pitch, roll) aeronautical Euler angles in radians -> body->NED quaternion.
 Quaternion quaternionFromEuler(double roll, double pitch, double yaw);
 // Hamilton product a * b (rotate by b, then by a).

@@ -72,10 +72,35 @@ void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
   if (lastBootMs_ >= 0 && static_cast<std::int64_t>(bootMs) + 5000 < lastBootMs_) {
     store_.clear();
     clock_ = ClockMapper(config_.clock);
+    quaternions_ = {};
+    euler_ = {};
     ++stats_.reboots;
   }
   lastBootMs_ = bootMs;
   clock_.observeArrival(bootMs, localNs);
+}
+
+void TelemetryDecoder::StreamTiming::observe(std::int64_t ms) {
+  if (ms <= lastMs) return;  // a repeat, or a reordered datagram
+  if (lastMs >= 0) spacingMs = ms - lastMs;
+  lastMs = ms;
+}
+
+// ATTITUDE and ATTITUDE_QUATERNION describe the same estimate, and the quaternion has
+// no gimbal lock: an ATTITUDE is left out while the quaternions stand for it, that is
+// while they come about as often as ATTITUDE (at most half again as far apart), close
+// enough together for the pose store (within the attitude gap limit), and the next
+// one is due. A slow quaternion stream (another ground station on a shared router
+// asked for 1 Hz, a low-bandwidth stream profile) then never blanks out a fast
+// ATTITUDE one, and ATTITUDE takes over at once when the quaternions stop.
+bool TelemetryDecoder::quaternionsStandFor(std::int64_t attitudeMs) const {
+  const StreamTiming& q = quaternions_;
+  if (q.lastMs < 0) return false;
+  if (attitudeMs == q.lastMs) return true;  // the same instant, in both streams
+  if (q.spacingMs <= 0 || q.spacingMs > config_.store.maxAttitudeGapNs / kMs) return false;
+  if (euler_.spacingMs > 0 && 2 * q.spacingMs > 3 * euler_.spacingMs) return false;
+  // The quaternion of this instant may come right after it: due within 1.5 spacings.
+  return attitudeMs - q.lastMs <= q.spacingMs * 3 / 2;
 }
 
 void TelemetryDecoder::handleGimbal(const mavlink_message_t& msg, std::int64_t localNs) {
@@ -90,9 +115,9 @@ void TelemetryDecoder::handleGimbal(const mavlink_message_t& msg, std::int64_t l
     return;
   }
   const Quaternion q{g.q[0], g.q[1], g.q[2], g.q[3]};
-  if (!std::isfinite(q.w) || !std::isfinite(q.x) || !std::isfinite(q.y) || !std::isfinite(q.z) ||
-      q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z < 0.5) {
-    return;  // NaN or no rotation: nothing to use
+  if (!usableRotation(q)) {
+    ++stats_.badAttitudes;  // NaN or no rotation: nothing to use
+    return;
   }
   // The frame of yaw: the explicit flags, else (older gimbals) YAW_LOCK means earth.
   bool earth = (g.flags & GIMBAL_DEVICE_FLAGS_YAW_LOCK) != 0;
@@ -135,8 +160,12 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       mavlink_attitude_quaternion_t a;
       mavlink_msg_attitude_quaternion_decode(&msg, &a);
       observeBootTime(a.time_boot_ms, localNs);
-      lastQuaternionNs_ = localNs;
-      store_.addAttitude(a.time_boot_ms * kMs, {a.q1, a.q2, a.q3, a.q4});
+      // Normalising a zero or NaN quaternion would make it level, facing north.
+      if (!store_.addAttitude(a.time_boot_ms * kMs, {a.q1, a.q2, a.q3, a.q4})) {
+        ++stats_.badAttitudes;
+        break;
+      }
+      quaternions_.observe(a.time_boot_ms);
       ++stats_.attitude;
       break;
     }
@@ -144,8 +173,12 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       mavlink_attitude_t a;
       mavlink_msg_attitude_decode(&msg, &a);
       observeBootTime(a.time_boot_ms, localNs);
-      // Both streams describe the same estimate; the quaternion has no gimbal lock.
-      if (lastQuaternionNs_ >= 0 && localNs - lastQuaternionNs_ < 2000 * kMs) break;
+      if (!std::isfinite(a.roll) || !std::isfinite(a.pitch) || !std::isfinite(a.yaw)) {
+        ++stats_.badAttitudes;
+        break;
+      }
+      euler_.observe(a.time_boot_ms);
+      if (quaternionsStandFor(a.time_boot_ms)) break;
       store_.addAttitude(a.time_boot_ms * kMs, quaternionFromEuler(a.roll, a.pitch, a.yaw));
       ++stats_.attitude;
       break;

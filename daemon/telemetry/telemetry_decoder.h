@@ -27,6 +27,9 @@ struct TelemetryStats {
   std::uint64_t gimbal = 0;        // GIMBAL_DEVICE_ATTITUDE_STATUS used
   std::uint64_t reboots = 0;       // time_boot_ms went backwards: history cleared
   std::uint64_t badPositions = 0;  // GLOBAL_POSITION_INT at 0,0 or out of range: not used
+  // ATTITUDE with a NaN or infinite angle, ATTITUDE_QUATERNION or the gimbal's with a
+  // NaN or zero quaternion: no rotation, not used
+  std::uint64_t badAttitudes = 0;
 };
 
 // A GLOBAL_POSITION_INT that names a place: not 0,0 (what an estimator without an
@@ -72,9 +75,17 @@ class TelemetryDecoder {
   [[nodiscard]] std::int64_t autopilotSinceNs() const;
 
  private:
+  // When an attitude stream's samples come, on the autopilot's clock.
+  struct StreamTiming {
+    std::int64_t lastMs = -1;
+    std::int64_t spacingMs = -1;  // between the last two; -1 until there are two
+    void observe(std::int64_t ms);
+  };
+
   bool accept(const mavlink_message_t& msg);
   void handleGimbal(const mavlink_message_t& msg, std::int64_t localNs);
   void observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
+  [[nodiscard]] bool quaternionsStandFor(std::int64_t attitudeMs) const;
 
   TelemetryConfig config_;
   mutable std::mutex mutex_;  // guards everything but store_ (which has its own)
@@ -87,7 +98,8 @@ class TelemetryDecoder {
   int gimbalComponent_ = -1;  // the first gimbal heard (component, device id) is used
   int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;
-  std::int64_t lastQuaternionNs_ = -1;  // ATTITUDE_QUATERNION seen: ignore ATTITUDE
+  StreamTiming quaternions_;  // ATTITUDE_QUATERNION
+  StreamTiming euler_;        // ATTITUDE
   bool localClockIsUtc_ = false;
 };
 

@@ -237,12 +237,13 @@ void TelemetryService::requestMessageRates(std::int64_t nowNs) {
   ++rates_.rounds;
   rates_.nextNs = nowNs + 2 * kSecond;
   const double hz = config_.messageRateHz;
-  const std::pair<std::uint32_t, double> wanted[] = {
+  std::vector<std::pair<std::uint32_t, double>> wanted = {
       {MAVLINK_MSG_ID_ATTITUDE, hz},
       {MAVLINK_MSG_ID_GLOBAL_POSITION_INT, hz},
       {MAVLINK_MSG_ID_GPS_RAW_INT, std::min(hz, 5.0)},
       {MAVLINK_MSG_ID_SYSTEM_TIME, std::min(hz, 1.0)},
   };
+  if (gimbalMount_) wanted.emplace_back(MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, hz);
   for (const auto& w : wanted) {
     const std::uint32_t id = w.first;  // not a structured binding: clang 14 lambdas
     const float intervalUs = static_cast<float>(std::round(1e6 / w.second));
@@ -256,7 +257,7 @@ void TelemetryService::requestMessageRates(std::int64_t nowNs) {
         }));
   }
   std::lock_guard lock(mutex_);
-  stats_.rateRequests += std::size(wanted);
+  stats_.rateRequests += wanted.size();
 }
 
 void TelemetryService::onCommandAck(const mavlink_message_t& msg) {
@@ -275,13 +276,14 @@ void TelemetryService::onCommandAck(const mavlink_message_t& msg) {
   if (rates_.done) return;
   rates_.done = true;  // one answer is enough to know it heard us
   if (accepted) {
-    log(TelemetryLogLevel::Notice,
-        "asked the autopilot for attitude and position at " + formatHz(config_.messageRateHz));
+    log(TelemetryLogLevel::Notice, std::string("asked the autopilot for attitude and position") +
+                                       (gimbalMount_ ? " and the gimbal's attitude" : "") + " at " +
+                                       formatHz(config_.messageRateHz));
   } else {
     log(TelemetryLogLevel::Warning,
         "the autopilot refused MAV_CMD_SET_MESSAGE_INTERVAL (result " + std::to_string(a.result) +
-            "): set its stream rates for this link (ArduPilot: SRn_EXTRA1, SRn_POSITION) to " +
-            formatHz(config_.messageRateHz));
+            "): set its stream rates for this link (ArduPilot: SRn_EXTRA1, SRn_POSITION" +
+            (gimbalMount_ ? ", SRn_EXTRA3" : "") + ") to " + formatHz(config_.messageRateHz));
   }
 }
 
@@ -640,6 +642,9 @@ void TelemetryService::run() {
       if (link_->reopen(error)) {
         broken = false;
         lastData = now;
+        // The rest of a frame half read before the drop is gone: the first bytes now
+        // are not its continuation.
+        parser_.reset();
         log(TelemetryLogLevel::Notice, "MAVLink link " + name + " reopened");
         std::lock_guard lock(mutex_);
         ++stats_.reconnects;
@@ -687,6 +692,9 @@ void TelemetryService::run() {
                                              formatMs(static_cast<double>(t - lastData) / 1e6, 0));
         }
         lastData = t;
+        // A datagram starts on a frame boundary: whatever the last one left unfinished
+        // (a datagram cut short, another protocol's) must not swallow this one's start.
+        if (link_->datagrams()) parser_.reset();
         bool fromAutopilot = false;
         parser_.feed(
             buf.data(), n,

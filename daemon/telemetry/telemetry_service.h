@@ -132,6 +132,10 @@ class TelemetryService {
   using CaptureRequestSink = std::function<bool(bool intervalTick)>;
   static constexpr double kMinCaptureIntervalS = 0.05;
   void setCaptureRequestSink(CaptureRequestSink sink) { captureSink_ = std::move(sink); }
+  // The camera is on a gimbal whose attitude tags it (tagging.mount = "gimbal"):
+  // GIMBAL_DEVICE_ATTITUDE_STATUS is then asked for at messageRateHz too (ArduPilot
+  // sends it in its EXTRA3 stream group, often at 1-2 Hz). Set before start().
+  void setGimbalMount(bool gimbal) { gimbalMount_ = gimbal; }
   // Every MAVLink message received on a live link, with its arrival time (e.g. for
   // the flight record), those of other dialects too (unchecked: their message id is
   // not in the common dialect). Called on the telemetry thread; set or clear at any
@@ -207,12 +211,13 @@ class TelemetryService {
   struct {
     int autopilot = 0;          // sysid << 8 | compid the requests went to
     std::uint64_t reboots = 0;  // its reboots then: another asks again
-    int rounds = 0;             // sent so far (all four messages each)
+    int rounds = 0;             // sent so far (all the messages each)
     std::int64_t nextNs = 0;    // when to send the next round
     bool done = false;          // answered, or given up (and said so)
   } rates_;
   std::int64_t lastCaptureWarningNs_ = 0;
   CaptureRequestSink captureSink_;
+  bool gimbalMount_ = false;
   struct {
     int sequence = 0;  // param4 of the last single capture taken (a repeat is ignored)
     int sender = 0;    // its sysid << 8 | compid

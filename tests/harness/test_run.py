@@ -1170,6 +1170,15 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
     assert settings["target"] == 0.65 and settings["band"] == [0.6, 0.9], settings
     assert len(rows(other / "keyframes.csv")) < len(live_kf)
 
+    # The Python API, given no settings, replays with the flight's too.
+    import keyframed
+
+    py = keyframed.select_video(str(fd / "flight.mcap"), str(tmp_path / "python"))
+    assert json.loads(Path(py["summary_path"]).read_text())["settings"]["target"] == 0.78
+    assert [k["index"] for k in rows(tmp_path / "python" / "keyframes.csv")] == [
+        k["index"] for k in replay_kf
+    ]
+
     # Replay streams the record: its memory does not grow with the file. The same
     # record cut to a third replays in about the same peak RSS.
     full = fd / "flight.mcap"

@@ -1,7 +1,12 @@
+#include <fcntl.h>
 #include <gtest/gtest.h>
+#include <poll.h>
+#include <unistd.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <limits>
@@ -38,6 +43,15 @@ std::vector<std::uint8_t> attitudeQ(MavlinkEncoder& enc, std::uint32_t bootMs,
         mavlink_msg_attitude_quaternion_pack_status(s, c, st, m, bootMs, qq[0], qq[1], qq[2], qq[3],
                                                     0, 0, 0, nullptr);
       });
+}
+
+std::vector<std::uint8_t> attitudeEuler(MavlinkEncoder& enc, std::uint32_t bootMs, double roll,
+                                        double pitch, double yaw) {
+  return enc.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st,
+                        mavlink_message_t* m) {
+    mavlink_msg_attitude_pack_status(s, c, st, m, bootMs, static_cast<float>(roll),
+                                     static_cast<float>(pitch), static_cast<float>(yaw), 0, 0, 0);
+  });
 }
 
 std::vector<std::uint8_t> position(MavlinkEncoder& enc, std::uint32_t bootMs, double lat,
@@ -118,6 +132,26 @@ TEST(PoseStore, SaysStaleInsteadOfInventingAPose) {
   // Before the first sample.
   p = store.at(-5 * kMs);
   EXPECT_FALSE(p.attitude.has_value());
+}
+
+TEST(PoseStore, AQuaternionThatIsNoRotationIsNotStored) {
+  // Normalising a zero or NaN quaternion would make it level and facing north: an
+  // attitude made up, not reported.
+  PoseStore store;
+  store.addAttitude(1000 * kMs, Quaternion{0, 0, 0, 0});
+  store.addAttitude(1050 * kMs, Quaternion{NAN, 0, 0, 0});
+  store.addGimbal(1000 * kMs, Quaternion{0, 0, 0, 0}, true);
+  Pose p = store.at(1000 * kMs);
+  EXPECT_FALSE(p.attitude.has_value());
+  EXPECT_FALSE(p.gimbal.has_value());
+  EXPECT_NE(p.staleReason.find("no attitude"), std::string::npos) << p.staleReason;
+  // Between good samples, a bad one is simply not there.
+  store.addAttitude(1100 * kMs, quaternionFromEuler(0, 0, 20 * kDeg));
+  store.addAttitude(1150 * kMs, Quaternion{0, 0, 0, 0});
+  store.addAttitude(1200 * kMs, quaternionFromEuler(0, 0, 40 * kDeg));
+  p = store.at(1150 * kMs);
+  ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 30 * kDeg)), 0.0, 1e-9);
 }
 
 TEST(PoseStore, NoFixMeansNoPosition) {
@@ -206,6 +240,134 @@ TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   // A lone 0 on one axis is a real place (the equator, the prime meridian).
   push(position(ap, 1100, 0.0, 20.0, 50.0));
   EXPECT_EQ(dec.stats().badPositions, 6U);
+}
+
+TEST(TelemetryDecoder, ASlowQuaternionStreamDoesNotHideAFastEulerOne) {
+  // ATTITUDE at 20 Hz (what the daemon asks for) and ATTITUDE_QUATERNION at 1 Hz
+  // (another ground station on a shared router asked for it): the quaternions alone
+  // lie too far apart for a pose, so ATTITUDE is used.
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  const Quaternion q = quaternionFromEuler(5 * kDeg, -3 * kDeg, 30 * kDeg);
+  for (int i = 0; i <= 60; ++i) {
+    const auto boot = static_cast<std::uint32_t>(i * 50);
+    now = (10'000 + boot) * kMs;
+    if (i % 20 == 0) push(attitudeQ(ap, boot, q));
+    push(attitudeEuler(ap, boot, 5 * kDeg, -3 * kDeg, 30 * kDeg));
+  }
+  for (const std::int64_t ms : {525, 1990, 2975}) {
+    const Pose p = dec.poseAt((10'000 + ms) * kMs);
+    ASSERT_TRUE(p.attitude.has_value()) << ms << " ms: " << p.staleReason;
+    EXPECT_NEAR(angleBetween(*p.attitude, q), 0.0, 1e-6);
+  }
+}
+
+TEST(TelemetryDecoder, QuaternionsAtAGoodRateArePreferredUntilTheyStop) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  // Both at 20 Hz, in either order; the Euler angles say 35 degrees less, to tell
+  // which one is used. The quaternions stop after 1 s (the ground station that asked
+  // for them left).
+  const Quaternion q = quaternionFromEuler(0, 0, 45 * kDeg);
+  const Quaternion euler = quaternionFromEuler(0, 0, 10 * kDeg);
+  for (int i = 0; i <= 40; ++i) {
+    const auto boot = static_cast<std::uint32_t>(i * 50);
+    now = (10'000 + boot) * kMs;
+    const auto e = attitudeEuler(ap, boot, 0, 0, 10 * kDeg);
+    if (i > 20) {
+      push(e);
+    } else if (i % 2 == 0) {
+      push(attitudeQ(ap, boot, q));
+      push(e);
+    } else {
+      push(e);
+      push(attitudeQ(ap, boot, q));
+    }
+  }
+  for (const std::int64_t ms : {0, 25, 525, 975, 1000}) {
+    const Pose p = dec.poseAt((10'000 + ms) * kMs);
+    ASSERT_TRUE(p.attitude.has_value()) << ms << " ms: " << p.staleReason;
+    EXPECT_NEAR(angleBetween(*p.attitude, q), 0.0, 1e-6) << ms << " ms";
+  }
+  // ATTITUDE takes over at once: no hole in the attitude, and none for seconds after.
+  for (const std::int64_t ms : {1075, 1300, 1990}) {
+    const Pose p = dec.poseAt((10'000 + ms) * kMs);
+    ASSERT_TRUE(p.attitude.has_value()) << ms << " ms: " << p.staleReason;
+    if (ms >= 1100) {
+      EXPECT_NEAR(angleBetween(*p.attitude, euler), 0.0, 1e-6) << ms << " ms";
+    }
+  }
+}
+
+TEST(TelemetryDecoder, AQuaternionStreamSlowerThanAttitudeLetsAttitudeIn) {
+  // ATTITUDE_QUATERNION at 5 Hz (samples 200 ms apart: usable), ATTITUDE at 20 Hz:
+  // the faster stream gives the finer attitude, and both are the same estimate.
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  for (int i = 0; i <= 40; ++i) {
+    const auto boot = static_cast<std::uint32_t>(i * 50);
+    now = (10'000 + boot) * kMs;
+    const double yaw = i * 2 * kDeg;  // turning at 40 deg/s
+    if (i % 4 == 0) push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, yaw)));
+    push(attitudeEuler(ap, boot, 0, 0, yaw));
+  }
+  // Each ATTITUDE that no quaternion of the same instant stands for (30), and the
+  // quaternions (11).
+  EXPECT_EQ(dec.stats().attitude, 41U);
+  const Pose p = dec.poseAt((10'000 + 1075) * kMs);
+  ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 43 * kDeg)), 0.0, 1e-6);
+}
+
+TEST(TelemetryDecoder, NaNAnglesAndAZeroQuaternionAreNoAttitude) {
+  // An estimator not aligned yet, or a sender's bug: not "level, facing north".
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  auto push = [&](const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  for (int i = 0; i <= 10; ++i) {
+    const auto boot = static_cast<std::uint32_t>(i * 50);
+    now = (10'000 + boot) * kMs;
+    push(attitudeQ(ap, boot, Quaternion{0, 0, 0, 0}));
+    push(attitudeEuler(ap, boot + 20, NAN, 0, 0));
+    push(attitudeEuler(ap, boot + 30, 0, std::numeric_limits<double>::infinity(), 0));
+  }
+  Pose p = dec.poseAt((10'000 + 250) * kMs);
+  EXPECT_FALSE(p.attitude.has_value());
+  EXPECT_EQ(dec.stats().attitude, 0U);
+  EXPECT_EQ(dec.stats().badAttitudes, 33U);  // counted, as bad positions are
+  // A stream of zero quaternions does not hide good ATTITUDE either.
+  for (int i = 11; i <= 20; ++i) {
+    const auto boot = static_cast<std::uint32_t>(i * 50);
+    now = (10'000 + boot) * kMs;
+    push(attitudeQ(ap, boot, Quaternion{0, 0, 0, 0}));
+    push(attitudeEuler(ap, boot, 0, 0, 20 * kDeg));
+  }
+  p = dec.poseAt((10'000 + 775) * kMs);
+  ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
+  EXPECT_NEAR(angleBetween(*p.attitude, quaternionFromEuler(0, 0, 20 * kDeg)), 0.0, 1e-6);
 }
 
 TEST(TelemetryDecoder, ATlogsRecordTimesGiveUtcWithoutSystemTime) {
@@ -405,6 +567,95 @@ TEST(MavlinkParser, CountsEachKindOfBadInputExactly) {
   EXPECT_EQ(st.bytes, s.size());
 }
 
+// A MAVLink 2 frame that says it is signed: header, payload, checksum (over CRC_EXTRA
+// 0x5B, as another dialect's message might have), then the 13-byte signature.
+std::vector<std::uint8_t> signedFrame(std::uint32_t id, std::uint8_t seq,
+                                      const std::vector<std::uint8_t>& payload) {
+  const std::uint8_t header[] = {0xFD,
+                                 static_cast<std::uint8_t>(payload.size()),
+                                 MAVLINK_IFLAG_SIGNED,
+                                 0,
+                                 seq,
+                                 1,
+                                 1,
+                                 static_cast<std::uint8_t>(id & 0xFF),
+                                 static_cast<std::uint8_t>((id >> 8) & 0xFF),
+                                 static_cast<std::uint8_t>(id >> 16)};
+  std::vector<std::uint8_t> f;
+  f.reserve(MAVLINK_MAX_PACKET_LEN);
+  for (const std::uint8_t c : header) f.push_back(c);
+  for (const std::uint8_t c : payload) f.push_back(c);
+  std::uint16_t crc = crc_calculate(f.data() + 1, static_cast<std::uint16_t>(f.size() - 1));
+  crc_accumulate(0x5B, &crc);
+  f.push_back(static_cast<std::uint8_t>(crc & 0xFF));
+  f.push_back(static_cast<std::uint8_t>(crc >> 8));
+  for (int k = 0; k < MAVLINK_SIGNATURE_BLOCK_LEN; ++k)
+    f.push_back(static_cast<std::uint8_t>(0x30 + k + seq));
+  return f;
+}
+
+TEST(MavlinkParser, ASignedFrameOfAnotherDialectIsHandedOnOnce) {
+  // The parser reports a signed frame's bad (or uncheckable) checksum twice: at the
+  // checksum, with the previous frame still in its message buffer, and once the
+  // signature has been read. Only the second is the frame.
+  MavlinkEncoder ap(1, 1);
+  std::vector<std::uint8_t> s;
+  const auto add = [&s](const std::vector<std::uint8_t>& p) {
+    s.insert(s.end(), p.begin(), p.end());
+  };
+  add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  const auto a = signedFrame(0x2AB8, 7, {1, 2, 3, 4});
+  const auto b = signedFrame(0x2AB9, 8, {5, 6, 7, 8, 9});
+  add(a);
+  add(b);
+  // A known message, signed, corrupted in flight: rejected, once.
+  auto corrupt = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  corrupt[2] |= MAVLINK_IFLAG_SIGNED;  // under the checksum: it no longer fits
+  add(corrupt);
+  add(std::vector<std::uint8_t>(MAVLINK_SIGNATURE_BLOCK_LEN, 0x11));
+  add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  MavlinkParser parser;
+  int heartbeats = 0;
+  std::vector<std::vector<std::uint8_t>> unknown;
+  parser.feed(
+      s.data(), s.size(),
+      [&](const mavlink_message_t& m) {
+        if (m.msgid == MAVLINK_MSG_ID_HEARTBEAT) ++heartbeats;
+      },
+      [&](const mavlink_message_t& m) {
+        std::uint8_t buf[MAVLINK_MAX_PACKET_LEN];
+        unknown.emplace_back(buf, buf + mavlink_msg_to_send_buffer(buf, &m));
+      });
+  EXPECT_EQ(heartbeats, 2);
+  ASSERT_EQ(unknown.size(), 2U);
+  EXPECT_EQ(unknown[0], a);  // as received, signature and all
+  EXPECT_EQ(unknown[1], b);
+  const ParserStats st = parser.stats();
+  EXPECT_EQ(st.messages, 2U);
+  EXPECT_EQ(st.unknownIds, 2U);
+  EXPECT_EQ(st.rejected, 1U);
+  EXPECT_EQ(st.skippedBytes, 0U);
+}
+
+TEST(MavlinkParser, ResetDropsAHalfReadFrame) {
+  MavlinkEncoder ap(1, 1);
+  auto cut = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  cut.resize(8);
+  const auto good = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  MavlinkParser parser;
+  int n = 0;
+  parser.feed(cut.data(), cut.size(), [&](const mavlink_message_t&) { ++n; });
+  parser.reset();
+  parser.feed(good.data(), good.size(), [&](const mavlink_message_t&) { ++n; });
+  EXPECT_EQ(n, 1);
+  EXPECT_EQ(parser.stats().rejected, 1U);  // the frame cut short
+  parser.reset();                          // between frames: nothing dropped
+  parser.feed(good.data(), good.size(), [&](const mavlink_message_t&) { ++n; });
+  EXPECT_EQ(n, 2);
+  EXPECT_EQ(parser.stats().rejected, 1U);
+  EXPECT_EQ(parser.stats().bytes, cut.size() + 2 * good.size());
+}
+
 TEST(MavlinkParser, ReadsMavlink1AndMavlink2) {
   MavlinkEncoder v1(1, 1, true);
   MavlinkEncoder v2(1, 1, false);
@@ -539,6 +790,35 @@ TEST(PoseStore, CoversWaitsForAGimbalOnceOneReports) {
   EXPECT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
 }
 
+TEST(PoseStore, AGimbalMayReportLessOftenThanTheAirframe) {
+  // A stabilised gimbal holds its attitude while the airframe turns under it: its
+  // reports (ArduPilot's EXTRA3 stream, 1-2 Hz unless asked for more) may lie further
+  // apart than the airframe's attitude samples, up to their own limit.
+  PoseStore::Config cfg;
+  PoseStore store(cfg);
+  ASSERT_EQ(store.maxGimbalGapNs(), 1000 * kMs);
+  for (std::int64_t t = 1000; t <= 4000; t += 50) {
+    store.addAttitude(t * kMs, quaternionFromEuler(0, 0, 60 * kDeg));
+  }
+  store.addGimbal(1000 * kMs, quaternionFromEuler(0, -80 * kDeg, 0), true);
+  store.addGimbal(1500 * kMs, quaternionFromEuler(0, -90 * kDeg, 0), true);
+  Pose p = store.at(1250 * kMs);
+  ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
+  EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -85 * kDeg, 0)), 0.0, 1e-9);
+  // The airframe's own limit still holds for the airframe.
+  EXPECT_TRUE(p.attitude.has_value()) << p.staleReason;
+  // Further apart than the gimbal's limit: said, not interpolated.
+  store.addGimbal(1500 * kMs + store.maxGimbalGapNs() + 1 * kMs,
+                  quaternionFromEuler(0, -90 * kDeg, 0), true);
+  p = store.at(2000 * kMs);
+  EXPECT_FALSE(p.gimbal.has_value());
+  EXPECT_NE(p.gimbalReason.find("gimbal attitude gap"), std::string::npos) << p.gimbalReason;
+  EXPECT_TRUE(p.attitude.has_value());
+  // An attitude gap limit set wider than that applies to the gimbal too.
+  cfg.maxAttitudeGapNs = 3000 * kMs;
+  EXPECT_EQ(PoseStore(cfg).maxGimbalGapNs(), 3000 * kMs);
+}
+
 TEST(PoseStore, HasAttitudeSinceLooksOnlyAtTheNewestSample) {
   // A link that has just started: one attitude sample, nothing before it. It counts
   // as delivering at once (the output thread then waits for the samples after a frame).
@@ -559,7 +839,8 @@ TEST(PoseStore, GimbalGapsAreSaidNotInvented) {
   EXPECT_FALSE(p.gimbal.has_value());
   EXPECT_EQ(p.gimbalReason, "no gimbal attitude");
   store.addGimbal(1000 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), true);
-  store.addGimbal(2000 * kMs, quaternionFromEuler(0, -45 * kDeg, 0), true);
+  store.addGimbal(1000 * kMs + store.maxGimbalGapNs() + 10 * kMs,
+                  quaternionFromEuler(0, -45 * kDeg, 0), true);
   p = store.at(1500 * kMs);
   EXPECT_FALSE(p.gimbal.has_value());
   EXPECT_NE(p.gimbalReason.find("gap"), std::string::npos) << p.gimbalReason;
@@ -598,6 +879,11 @@ TEST(TelemetryDecoder, ReadsTheVehiclesGimbalInItsFrame) {
     push(gimbalStatus(otherVehicle, boot, quaternionFromEuler(0, 0, 0), 0));
   }
   EXPECT_EQ(dec.stats().gimbal, 11U);
+  // A report that is no rotation is counted, not used.
+  push(gimbalStatus(gimbal, 778'100, Quaternion{0, 0, 0, 0},
+                    GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME));
+  EXPECT_EQ(dec.stats().gimbal, 11U);
+  EXPECT_EQ(dec.stats().badAttitudes, 1U);
   const Pose p = dec.poseAt(10'550 * kMs);
   ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
   // 30 deg down, looking east (the vehicle's heading).
@@ -661,6 +947,72 @@ TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
   EXPECT_FALSE(bad.open(path.string(), error));
   EXPECT_NE(error.find("not a MAVLink tlog"), std::string::npos) << error;
   std::filesystem::remove(path);
+}
+
+TEST(MavlinkLink, ASerialWriteCutShortIsFinishedBeforeTheNextFrame) {
+  // A pseudo-terminal stands for the serial port. Nobody reads its other end, so its
+  // buffer fills, and a write then takes only the start of a frame: every frame the
+  // link took must still arrive whole, in order (a cut one would also take the next
+  // frame down with it at the receiver).
+  const int master = ::posix_openpt(O_RDWR | O_NOCTTY);
+  char name[128] = {};
+  if (master < 0 || ::grantpt(master) != 0 || ::unlockpt(master) != 0 ||
+      ::ptsname_r(master, name, sizeof name) != 0) {
+    GTEST_SKIP() << "no pseudo-terminal";
+  }
+  ::fcntl(master, F_SETFL, ::fcntl(master, F_GETFL) | O_NONBLOCK);
+  std::string error;
+  auto link = openMavlinkLink(std::string("serial:") + name + ":115200", error);
+  ASSERT_TRUE(link) << error;
+  MavlinkEncoder cam(1, 100);
+  const auto frame = [&](int i) {
+    const std::string url = "file:///k/" + std::to_string(i) + ".jpg";
+    const float q[4] = {1, 0, 0, 0};
+    return cam.encode(
+        [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+          mavlink_msg_camera_image_captured_pack_status(s, c, st, m, 1000, 0, 0, 1, 2, 3, 4, q, i,
+                                                        1, url.c_str());
+        });
+  };
+  std::vector<std::uint8_t> sent;  // the frames the link took
+  std::vector<std::uint8_t> refused;
+  int taken = 0;
+  for (; taken < 100'000; ++taken) {
+    const auto f = frame(taken);
+    if (!link->write(f.data(), f.size(), error)) {
+      refused = f;
+      break;
+    }
+    sent.insert(sent.end(), f.begin(), f.end());
+  }
+  ASSERT_FALSE(refused.empty()) << "the buffer never filled";
+  ASSERT_TRUE(error.empty()) << error;  // a full buffer, not a broken link
+  // Read the other end; the refused frame goes once the link has room again.
+  std::vector<std::uint8_t> got;
+  bool refusedTaken = false;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (std::chrono::steady_clock::now() < deadline) {
+    std::uint8_t buf[4096];
+    const ssize_t n = ::read(master, buf, sizeof buf);
+    if (n > 0) got.insert(got.end(), buf, buf + n);
+    if (!refusedTaken && link->write(refused.data(), refused.size(), error)) {
+      refusedTaken = true;
+      sent.insert(sent.end(), refused.begin(), refused.end());
+    }
+    if (refusedTaken && got.size() >= sent.size()) break;
+    if (n <= 0) ::poll(nullptr, 0, 1);
+  }
+  EXPECT_TRUE(refusedTaken);
+  EXPECT_TRUE(error.empty()) << error;
+  EXPECT_EQ(got.size(), sent.size());
+  EXPECT_TRUE(got == sent) << "the bytes that arrived are not the frames taken";
+  MavlinkParser parser;
+  int frames = 0;
+  parser.feed(got.data(), got.size(), [&](const mavlink_message_t&) { ++frames; });
+  EXPECT_EQ(frames, taken + 1);
+  EXPECT_EQ(parser.stats().rejected, 0U);
+  link.reset();
+  ::close(master);
 }
 
 TEST(MavlinkLink, RejectsBadUrls) {

@@ -664,6 +664,31 @@ TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
   EXPECT_EQ(logged.count("autopilot clock"), 1);
 }
 
+TEST(TelemetryService, AFrameCutShortBeforeAReopenDoesNotSwallowTheNext) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  auto cut = quadHeartbeat(ap);
+  cut.resize(8);  // the serial adapter was unplugged mid-frame
+  peer.push(cut);
+  ASSERT_TRUE(eventually([&] {
+    std::lock_guard lock(peer.state->m);
+    return peer.state->in.empty();
+  }));
+  {
+    std::lock_guard lock(peer.state->m);
+    peer.state->failNextRead = true;
+  }
+  ASSERT_TRUE(eventually([&] { return svc.stats().reconnects == 1; }));
+  // Plugged back in: the first frame is read whole, not as the rest of the cut one.
+  peer.push(quadHeartbeat(ap));
+  EXPECT_TRUE(eventually([&] { return svc.decoder().autopilotSystem() == 1; }, 1500));
+  svc.stop();
+  EXPECT_EQ(svc.stats().parser.messages, 1U);
+}
+
 std::vector<std::uint8_t> commandAck(MavlinkEncoder& enc, std::uint16_t command,
                                      std::uint8_t result) {
   return enc.encode(
@@ -718,6 +743,47 @@ TEST(TelemetryService, AsksTheAutopilotForItsMessageRatesUntilItAnswers) {
   EXPECT_EQ(svc.stats().rateRequests, 8U);
   svc.stop();
   EXPECT_EQ(logged.count("attitude and position at 20 Hz"), 1);
+}
+
+TEST(TelemetryService, AsksForTheGimbalsAttitudeWhenTheCameraIsOnAGimbal) {
+  // ArduPilot sends GIMBAL_DEVICE_ATTITUDE_STATUS in its EXTRA3 group, often at 1-2 Hz:
+  // a camera tagged by the gimbal's attitude asks for it at the attitude's rate.
+  Peer peer;
+  TelemetryServiceConfig cfg = serviceConfig();
+  cfg.messageRateHz = 20.0;
+  TelemetryService svc(cfg, CameraDescription{});
+  svc.setGimbalMount(true);
+  LogCollector logged;
+  logged.attach(svc);
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+  const auto rates = [&] {
+    std::vector<std::pair<int, int>> r;
+    for (const auto& m : peer.written(MAVLINK_MSG_ID_COMMAND_LONG)) {
+      mavlink_command_long_t c;
+      mavlink_msg_command_long_decode(&m, &c);
+      if (c.command == MAV_CMD_SET_MESSAGE_INTERVAL && c.target_system == 1 &&
+          c.target_component == 1) {
+        r.emplace_back(static_cast<int>(c.param1), static_cast<int>(c.param2));
+      }
+    }
+    return r;
+  };
+  ASSERT_TRUE(eventually([&] { return rates().size() >= 5; }));
+  EXPECT_EQ(rates(), (std::vector<std::pair<int, int>>{
+                         {MAVLINK_MSG_ID_ATTITUDE, 50'000},
+                         {MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 50'000},
+                         {MAVLINK_MSG_ID_GPS_RAW_INT, 200'000},
+                         {MAVLINK_MSG_ID_SYSTEM_TIME, 1'000'000},
+                         {MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, 50'000}}));
+  peer.push(commandAck(ap, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED));
+  ASSERT_TRUE(eventually([&] { return svc.stats().rateAccepted == 1; }));
+  svc.stop();
+  EXPECT_EQ(svc.stats().rateRequests, 5U);
+  EXPECT_EQ(logged.count("attitude and position and the gimbal's attitude at 20 Hz"), 1)
+      << logged.all();
 }
 
 TEST(TelemetryService, LeavesTheAutopilotsRatesAloneWhenToldTo) {
@@ -839,6 +905,39 @@ TEST(MavlinkLink, UdpinAnswersTheAutopilotNotTheLastSender) {
   EXPECT_GE(heartbeats, 2);
   EXPECT_GE(timesyncs, 2);
   EXPECT_TRUE(heardByGcs.empty()) << heardByGcs.size() << " messages went to the GCS";
+}
+
+TEST(MavlinkLink, EachUdpDatagramStartsOnAFrameBoundary) {
+  sockaddr_in apAddr{}, probe{};
+  const int apFd = udpSocket(apAddr);
+  const int probeFd = udpSocket(probe);  // a free port for the service to listen on
+  ASSERT_GE(apFd, 0);
+  ASSERT_GE(probeFd, 0);
+  const int port = ntohs(probe.sin_port);
+  ::close(probeFd);
+  auto cfg = serviceConfig();
+  cfg.url = "udpin:127.0.0.1:" + std::to_string(port);
+  TelemetryService svc(cfg, CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(error)) << error;
+  sockaddr_in to{};
+  to.sin_family = AF_INET;
+  to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  to.sin_port = htons(static_cast<std::uint16_t>(port));
+  auto sendFrom = [&](const std::vector<std::uint8_t>& pkt) {
+    ::sendto(apFd, pkt.data(), pkt.size(), 0, reinterpret_cast<const sockaddr*>(&to), sizeof to);
+  };
+  MavlinkEncoder ap(1, 1);
+  // A datagram that ends mid-frame (cut short, or another protocol's packet that
+  // happens to hold a start byte), then a good one: a frame never spans datagrams.
+  auto cut = quadHeartbeat(ap);
+  cut.resize(8);
+  sendFrom(cut);
+  sendFrom(quadHeartbeat(ap));
+  EXPECT_TRUE(eventually([&] { return svc.decoder().autopilotSystem() == 1; }, 1500));
+  svc.stop();
+  ::close(apFd);
+  EXPECT_EQ(svc.stats().parser.messages, 1U);
 }
 
 }  // namespace

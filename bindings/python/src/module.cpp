@@ -266,7 +266,10 @@ NB_MODULE(_core, m) {
         SelectOptions o;
         o.video = video;
         o.outDir = outDir;
-        if (config) o.selector = *config;
+        if (config) {
+          o.selector = *config;
+          o.selectorGiven = true;
+        }
         checkValid(o.selector);
         if (decisions == "csv")
           o.decisions = DecisionFormat::Csv;
