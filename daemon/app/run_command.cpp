@@ -449,32 +449,34 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
     const TelemetryServiceStats ts = telemetry_->stats();
     char b[1024];
     const auto off = telemetry_->decoder().clockOffsetNs();
-    std::snprintf(b, sizeof b,
-                  "\"geotagged\": %lld, \"clock\": \"%s\", "
-                  "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
-                  "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
-                  "\"captures_pending\": %llu, "
-                  "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
-                  "\"captures_requested\": %llu, \"captures_refused\": %llu, "
-                  "\"link_errors\": %llu, "
-                  "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"autopilot_reboots\": %llu}",
-                  static_cast<long long>(writer_.geotagged()),
-                  toString(telemetry_->decoder().clockSource()),
-                  off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
-                  static_cast<unsigned long long>(ts.parser.messages),
-                  static_cast<unsigned long long>(ts.parser.rejected),
-                  static_cast<unsigned long long>(ts.parser.unknownIds),
-                  static_cast<unsigned long long>(ts.parser.skippedBytes),
-                  static_cast<unsigned long long>(ts.capturesSent),
-                  static_cast<unsigned long long>(ts.capturesPending),
-                  static_cast<unsigned long long>(ts.capturesDropped),
-                  static_cast<unsigned long long>(ts.capturesResent),
-                  static_cast<unsigned long long>(ts.captureRequests),
-                  static_cast<unsigned long long>(ts.captureRefused),
-                  static_cast<unsigned long long>(ts.linkErrors),
-                  static_cast<unsigned long long>(ts.reconnects),
-                  static_cast<unsigned long long>(ts.decoder.gimbal),
-                  static_cast<unsigned long long>(ts.decoder.reboots));
+    std::snprintf(
+        b, sizeof b,
+        "\"geotagged\": %lld, \"clock\": \"%s\", "
+        "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
+        "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
+        "\"captures_pending\": %llu, "
+        "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
+        "\"captures_requested\": %llu, \"captures_refused\": %llu, "
+        "\"link_errors\": %llu, "
+        "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"bad_samples\": %llu, "
+        "\"autopilot_reboots\": %llu}",
+        static_cast<long long>(writer_.geotagged()), toString(telemetry_->decoder().clockSource()),
+        off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
+        static_cast<unsigned long long>(ts.parser.messages),
+        static_cast<unsigned long long>(ts.parser.rejected),
+        static_cast<unsigned long long>(ts.parser.unknownIds),
+        static_cast<unsigned long long>(ts.parser.skippedBytes),
+        static_cast<unsigned long long>(ts.capturesSent),
+        static_cast<unsigned long long>(ts.capturesPending),
+        static_cast<unsigned long long>(ts.capturesDropped),
+        static_cast<unsigned long long>(ts.capturesResent),
+        static_cast<unsigned long long>(ts.captureRequests),
+        static_cast<unsigned long long>(ts.captureRefused),
+        static_cast<unsigned long long>(ts.linkErrors),
+        static_cast<unsigned long long>(ts.reconnects),
+        static_cast<unsigned long long>(ts.decoder.gimbal),
+        static_cast<unsigned long long>(ts.decoder.badAttitudes + ts.decoder.badPositions),
+        static_cast<unsigned long long>(ts.decoder.reboots));
     // The URL (a device path, a file) as text of a JSON string.
     tel = "{\"source\": \"" + jsonEscape(config_.telemetry.link.url) + "\", " + b;
   }

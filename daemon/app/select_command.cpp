@@ -41,7 +41,8 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
                   "    \"unknown_ids\": %llu,\n"
                   "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
-                  "    \"gimbal_messages\": %llu,\n    \"autopilot_reboots\": %llu,\n"
+                  "    \"gimbal_messages\": %llu,\n    \"bad_samples\": %llu,\n"
+                  "    \"autopilot_reboots\": %llu,\n"
                   "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
                   "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
                   "    \"captures_requested\": %llu,\n    \"captures_refused\": %llu,\n"
@@ -56,6 +57,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.skippedBytes),
                   static_cast<unsigned long long>(s.telemetry.otherSources),
                   static_cast<unsigned long long>(s.telemetry.gimbal),
+                  static_cast<unsigned long long>(s.telemetry.badSamples),
                   static_cast<unsigned long long>(s.telemetry.reboots),
                   static_cast<unsigned long long>(s.telemetry.capturesSent),
                   static_cast<unsigned long long>(s.telemetry.capturesPending),
@@ -412,6 +414,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.telemetry.skippedBytes = ts.parser.skippedBytes;
     s.telemetry.otherSources = ts.decoder.otherSources;
     s.telemetry.gimbal = ts.decoder.gimbal;
+    s.telemetry.badSamples = ts.decoder.badAttitudes + ts.decoder.badPositions;
     s.telemetry.reboots = ts.decoder.reboots;
     s.telemetry.capturesSent = ts.capturesSent;
     s.telemetry.capturesPending = ts.capturesPending;

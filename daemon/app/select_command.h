@@ -31,8 +31,9 @@ struct SelectSummary {
     std::uint64_t unknownIds = 0;
     std::uint64_t skippedBytes = 0;
     std::uint64_t otherSources = 0;
-    std::uint64_t gimbal = 0;   // gimbal attitude messages used
-    std::uint64_t reboots = 0;  // the autopilot's clock went back: it restarted
+    std::uint64_t gimbal = 0;      // gimbal attitude messages used
+    std::uint64_t badSamples = 0;  // attitudes (NaN, no rotation) and positions not used
+    std::uint64_t reboots = 0;     // the autopilot's clock went back: it restarted
     std::uint64_t capturesSent = 0;
     std::uint64_t capturesPending = 0;    // never sent: the link did not take them by the end
     std::uint64_t capturesDropped = 0;    // pushed out of the full queue while the link was down

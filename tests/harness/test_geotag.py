@@ -379,6 +379,53 @@ def test_no_fix_means_no_gps_tags_and_the_decision_says_why(
     assert inside >= 1 and outside >= 2, (inside, outside)
 
 
+@needs_exiftool
+def test_nan_and_zero_attitudes_are_counted_not_used(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """An autopilot whose estimator hands out NaN angles and zero quaternions for a
+    while (a reset, a bad IMU): those samples are counted, and keyframes then carry
+    no attitude rather than "level, facing north"."""
+    epoch_us = synth.EPOCH_UNIX_S * 1_000_000
+    bad0, bad1 = epoch_us + 3_000_000, epoch_us + 5_500_000
+
+    def edit(t: int, msg: Any) -> Any:
+        if bad0 <= t < bad1:
+            if msg.get_type() == "ATTITUDE":
+                msg.roll = float("nan")
+            elif msg.get_type() == "ATTITUDE_QUATERNION":
+                msg.q1 = msg.q2 = msg.q3 = msg.q4 = 0.0
+        return msg
+
+    tlog = tmp_path / "badatt.tlog"
+    rewrite_tlog(short_nadir / "flight.tlog", tlog, edit)
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin, short_nadir, out, "--telemetry", str(tlog), "--video-start", str(synth.EPOCH_UNIX_S)
+    )
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    # both streams, 2.5 s of them, are refused (the tlog sends each at tens of Hz)
+    assert summary["telemetry"]["bad_samples"] >= 100, summary["telemetry"]
+    kfs = keyframes(out)
+    tags = exif([out / k["file"] for k in kfs])
+    dec = decisions(out)
+    inside = outside = 0
+    for k in kfs:
+        idx = int(k["index"])
+        t_us = epoch_us + idx / 30.0 * 1e6
+        t = tags[k["file"]]
+        if bad0 + 300_000 <= t_us < bad1 - 300_000:
+            inside += 1
+            assert "XMP-Camera:Yaw" not in t, k["file"]
+            assert "attitude" in dec[idx]["geotag"], dec[idx]
+            assert "GPS:GPSLatitude" in t, "the position does not need the attitude"
+        elif t_us < bad0 - 300_000 or t_us >= bad1 + 300_000:
+            outside += 1
+            assert "XMP-Camera:Yaw" in t and dec[idx]["geotag"] == "ok", dec[idx]
+    assert inside >= 1 and outside >= 2, (inside, outside)
+
+
 def test_truncated_tlog_tags_what_it_covers(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
