@@ -248,18 +248,25 @@ ZenohQueryable::~ZenohQueryable() {
 }
 
 void ZenohQueryable::trampoline(void* user, const char* key, const char* parameters,
-                                kfio_reply* reply) {
+                                kfio_reply* reply) noexcept {
   auto* self = static_cast<ZenohQueryable*>(user);
   ZenohReply r(reply);
-  // No exception may unwind into Rust.
+  // No exception may unwind into Rust, not even one from saying what went wrong (out
+  // of memory): that one is swallowed, and the querier gets no reply.
   try {
     self->handler_(key, parameters, r);
   } catch (const std::exception& ex) {
-    std::string ignored;
-    r.fail(std::string("internal error: ") + ex.what(), ignored);
+    try {
+      std::string ignored;
+      r.fail(std::string("internal error: ") + ex.what(), ignored);
+    } catch (...) {
+    }
   } catch (...) {
-    std::string ignored;
-    r.fail("internal error", ignored);
+    try {
+      std::string ignored;
+      r.fail("internal error", ignored);
+    } catch (...) {
+    }
   }
 }
 

@@ -140,7 +140,8 @@ class ZenohQueryable {
 
  private:
   ZenohQueryable() = default;
-  static void trampoline(void* user, const char* key, const char* parameters, kfio_reply* reply);
+  static void trampoline(void* user, const char* key, const char* parameters,
+                         kfio_reply* reply) noexcept;
   kfio_queryable* handle_ = nullptr;
   Handler handler_;
 };

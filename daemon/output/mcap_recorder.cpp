@@ -176,26 +176,29 @@ bool McapRecorder::openFile(const std::string& path, std::string& error) {
   wo.chunkSize = options.chunkSize;
   writer_ = McapWriter::open(wo, error);
   if (!writer_) return false;
+  // A part that fails before its first message holds nothing of the flight: it goes,
+  // rather than stay as an empty file that a replay would take for a record.
+  const auto failed = [&] {
+    writer_.reset();
+    std::error_code ec;
+    std::filesystem::remove(path, ec);
+    return false;
+  };
   for (int i = 0; i < static_cast<int>(McapTopic::Count); ++i) {
     const TopicSpec& t = kTopics[i];
     const auto data = schemaData(t);
     if (data.empty()) {
       error = std::string("no schema compiled in for ") + t.schema;
-      writer_.reset();
-      return false;
+      return failed();
     }
     std::uint16_t schemaId = 0;
     if (!writer_->addSchema(t.schema, t.schemaEncoding, data, schemaId, error) ||
         !writer_->addChannel(schemaId, t.topic, t.messageEncoding, {}, channels_[i], error)) {
-      writer_.reset();
-      return false;
+      return failed();
     }
   }
   // Schemas and channels reach the disk now: a file cut short later still reads.
-  if (!writer_->flush(options.fsync, error)) {
-    writer_.reset();
-    return false;
-  }
+  if (!writer_->flush(options.fsync, error)) return failed();
   std::lock_guard lock(mutex_);
   ++stats_.files;
   return true;

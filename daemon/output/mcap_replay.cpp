@@ -244,7 +244,19 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   std::int64_t lastNs = 0;
   for (std::size_t part = 0; part < s->parts_.size(); ++part) {
     const auto r = McapReader::open(s->parts_[part], topics, error);
-    if (!r) return nullptr;
+    if (!r && part == 0) return nullptr;
+    if (!r) {
+      // A later part that does not open (empty: the disk filled, or a power cut came,
+      // as it was made) ends the record like a cut one: the parts before it replay.
+      s->truncated_ = true;
+      std::fprintf(stderr,
+                   "keyframed: %s does not read (%s): replaying the record up to it, not the "
+                   "%zu part(s) from it on\n",
+                   s->parts_[part].c_str(), error.c_str(), s->parts_.size() - part);
+      error.clear();
+      s->parts_.resize(part);
+      break;
+    }
     McapReader::Message m;
     while (r->next(m)) {
       const std::span<const std::uint8_t> msg = m.data;
@@ -355,7 +367,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
 ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
 #ifdef KEYFRAMED_HAVE_IO
   Impl& impl = *impl_;
-  if (index_ >= impl.frames) return ReadStatus::End;
+  if (index_ >= impl.frames || !impl.images) return ReadStatus::End;  // (a part that failed)
   McapReader::Message m;
   while (true) {
     if (!impl.images->next(m)) {
@@ -382,10 +394,14 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       impl.started = true;
       int w = 0, h = 0;
       std::string why;
-      if (!impl.decoder.decode(*field, impl.i420, w, h, why) || w != info_.width ||
-          h != info_.height) {
-        error = "video frame " + std::to_string(index_) + " cannot be decoded" +
-                (why.empty() ? std::string(" (another size)") : " (" + why + ")");
+      if (!impl.decoder.decode(*field, impl.i420, w, h, why)) {
+        error = "video frame " + std::to_string(index_) + " cannot be decoded (" + why + ")";
+        return ReadStatus::Error;
+      }
+      if (w != info_.width || h != info_.height) {
+        error = "video frame " + std::to_string(index_) + " changes the size from " +
+                std::to_string(info_.width) + "x" + std::to_string(info_.height) + " to " +
+                std::to_string(w) + "x" + std::to_string(h) + ": not replayed";
         return ReadStatus::Error;
       }
       frame = Frame{};
@@ -401,8 +417,15 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
                                       const_cast<std::uint8_t*>(field->data())),
                               cv::IMREAD_COLOR);
-      if (impl.bgr.empty() || impl.bgr.cols != info_.width || impl.bgr.rows != info_.height) {
+      if (impl.bgr.empty()) {
         error = "preview frame " + std::to_string(index_) + " cannot be decoded";
+        return ReadStatus::Error;
+      }
+      if (impl.bgr.cols != info_.width || impl.bgr.rows != info_.height) {
+        error = "preview frame " + std::to_string(index_) + " changes the size from " +
+                std::to_string(info_.width) + "x" + std::to_string(info_.height) + " to " +
+                std::to_string(impl.bgr.cols) + "x" + std::to_string(impl.bgr.rows) +
+                ": not replayed";
         return ReadStatus::Error;
       }
       frame = Frame::ofBgr(impl.bgr, index, t);

@@ -759,6 +759,38 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
   EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9})) << error;
 }
 
+TEST(McapReplay, AnEmptyLastPartEndsTheRecordInsteadOfFailingIt) {
+  // A rotation onto a full disk, or a power cut just after one, leaves the new part
+  // empty: the parts before it are the flight, and replay.
+  const std::string path = tempPath("replay-emptypart.mcap");
+  const std::string next = tempPath("replay-emptypart-001.mcap");
+  const std::int64_t start = 1'000'000'000;
+  {
+    FlightOutputOptions o;
+    o.mcapPath = path;
+    o.startNs = start;
+    FlightOutputs outputs;
+    std::string error;
+    ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
+    std::vector<std::uint8_t> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    for (const std::int64_t index : {0, 1, 2})
+      recordFrame(outputs, index, start + index * 33'333'333, jpeg, "jpeg");
+    ASSERT_TRUE(outputs.close("done", error)) << error;
+  }
+  std::ofstream(next).close();  // 0 bytes
+  std::string error;
+  const auto replay = McapReplaySource::open(path, error);
+  ASSERT_TRUE(replay) << error;
+  EXPECT_TRUE(replay->truncated());
+  EXPECT_EQ(replay->parts(), (std::vector<std::string>{path}));
+  int frames = 0;
+  Frame f;
+  while (replay->next(f, error) == ReadStatus::Frame) ++frames;
+  EXPECT_EQ(frames, 3) << error;
+  std::filesystem::remove(next);
+}
+
 TEST(McapReplay, AnH264RecordReplaysFromItsFirstIdrPicture) {
   const std::string path = tempPath("replay-h264.mcap");
   const std::int64_t start = 2'000'000'000;

@@ -191,6 +191,9 @@ pub unsafe extern "C" fn kfio_mcap_reader_open(
     guard(err, err_len, std::ptr::null_mut(), || {
         use std::io::Read;
         let path = cstr(path, "path")?;
+        if count > 0 && topics.is_null() {
+            return Err("topic array is NULL".into());
+        }
         let mut wanted: Vec<String> = Vec::with_capacity(count);
         for i in 0..count {
             // SAFETY: the caller passes `count` string pointers.
@@ -266,8 +269,18 @@ pub unsafe extern "C" fn kfio_mcap_reader_next(
         }
         None
     }));
-    let Ok(Some((t, time))) = found else {
-        return 0;
+    let (t, time) = match found {
+        Ok(Some(next)) => next,
+        Ok(None) => return 0,
+        Err(_) => {
+            // A panic inside the reader (a corrupt file it did not expect): the record
+            // ends here as a cut one, not as a complete one, and is not read further.
+            // SAFETY: a live handle from kfio_mcap_reader_open.
+            let r = unsafe { &mut *reader };
+            r.truncated = true;
+            r.done = true;
+            return 0;
+        }
     };
     // SAFETY: a live handle and valid out pointers.
     unsafe {
@@ -760,7 +773,9 @@ pub unsafe extern "C" fn kfio_queryable_declare(
             .declare_queryable(key.clone())
             .callback(move |q| match tx.try_send(q) {
                 Ok(()) | Err(TrySendError::Disconnected(_)) => {}
-                Err(TrySendError::Full(_)) => {} // the querier times out
+                // 64 queries waiting: this one is dropped, and zenoh ends it at once
+                // with no reply; the ground station asks again for what is missing.
+                Err(TrySendError::Full(_)) => {}
             })
             .wait()
             .map_err(|e| format!("cannot declare queryable on '{key}': {e}"))?;
