@@ -33,7 +33,7 @@ inline constexpr SettingRange<double> kOverlapTarget{0.01, 0.99};
 inline constexpr SettingRange<double> kOverlapBand{0.01, 0.99};
 inline constexpr SettingRange<double> kMinOverlap{0.01, 0.99};
 inline constexpr SettingRange<double> kMotionRatio{0.0, 100.0};
-inline constexpr SettingRange<double> kMotionMinFraction{0.0, 0.99};
+inline constexpr SettingRange<double> kMotionMinFraction{0.001, 0.99};
 inline constexpr SettingRange<std::int64_t> kMotionWindow{5, 10000};
 inline constexpr SettingRange<std::int64_t> kCaptureWaitMs{0, 60000};
 inline constexpr SettingRange<std::int64_t> kAnalysisWidth{0, 16384};

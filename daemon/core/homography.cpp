@@ -58,6 +58,28 @@ std::uint64_t xorshift(std::uint64_t& s) {
   return s;
 }
 
+// Twice the signed area of the triangle p, q, r.
+double cross(const cv::Point2d& p, const cv::Point2d& q, const cv::Point2d& r) {
+  return (q.x - p.x) * (r.y - p.y) - (q.y - p.y) * (r.x - p.x);
+}
+
+// A sample four points can fit a homography to: no three nearly on a line (in the
+// normalised coordinates, where the points spread over about 2 x 2), in either
+// image, and each triangle turning the same way in both (a camera does not mirror
+// the ground). Near-collinear samples, common when the texture is a road or a
+// field edge, fit any homography at all.
+bool goodSample(const cv::Point2d* a, const cv::Point2d* b, const int* idx) {
+  constexpr double kMinCross = 1e-2;
+  static constexpr int kTriangles[4][3] = {{0, 1, 2}, {0, 1, 3}, {0, 2, 3}, {1, 2, 3}};
+  for (const auto& t : kTriangles) {
+    const double ca = cross(a[idx[t[0]]], a[idx[t[1]]], a[idx[t[2]]]);
+    const double cb = cross(b[idx[t[0]]], b[idx[t[1]]], b[idx[t[2]]]);
+    if (std::fabs(ca) < kMinCross || std::fabs(cb) < kMinCross || (ca > 0) != (cb > 0))
+      return false;
+  }
+  return true;
+}
+
 }  // namespace
 
 bool solveHomography(const cv::Point2d* src, const cv::Point2d* dst, const int* idx, int n,
@@ -140,6 +162,7 @@ HomographyFit RansacHomography::fit(const std::vector<cv::Point2f>& src,
         for (int k = 0; k < j; ++k) fresh &= idx[k] != idx[j];
       } while (!fresh);
     }
+    if (!goodSample(a_.data(), b_.data(), idx)) continue;
     cv::Matx33d hn;
     if (!solveHomography(a_.data(), b_.data(), idx, 4, hn)) continue;
     const int count = score(hn, inlierMask);
@@ -178,6 +201,38 @@ HomographyFit RansacHomography::fit(const std::vector<cv::Point2f>& src,
     std::swap(bestMask_, mask);
   }
 
+  // The inliers must spread in both directions: along a line (one road, one edge)
+  // they fix the mapping across it not at all. The smaller eigenvalue of their
+  // covariance, in the normalised coordinates (variance about 1 a direction there).
+  {
+    double mx = 0, my = 0;
+    int m = 0;
+    for (int i = 0; i < n; ++i) {
+      if (!inlierMask[static_cast<std::size_t>(i)]) continue;
+      mx += a_[static_cast<std::size_t>(i)].x;
+      my += a_[static_cast<std::size_t>(i)].y;
+      ++m;
+    }
+    if (m < 4) return best;
+    mx /= m;
+    my /= m;
+    double sxx = 0, syy = 0, sxy = 0;
+    for (int i = 0; i < n; ++i) {
+      if (!inlierMask[static_cast<std::size_t>(i)]) continue;
+      const double dx = a_[static_cast<std::size_t>(i)].x - mx;
+      const double dy = a_[static_cast<std::size_t>(i)].y - my;
+      sxx += dx * dx;
+      syy += dy * dy;
+      sxy += dx * dy;
+    }
+    sxx /= m;
+    syy /= m;
+    sxy /= m;
+    const double smaller =
+        0.5 * (sxx + syy) - std::sqrt(0.25 * (sxx - syy) * (sxx - syy) + sxy * sxy);
+    constexpr double kMinSpread = 1e-3;  // a standard deviation of 3 % of the spread
+    if (!(smaller >= kMinSpread)) return best;
+  }
   cv::Matx33d h = tdInv * bestHn * ts;
   if (std::fabs(h(2, 2)) < 1e-12) return best;
   h *= 1.0 / h(2, 2);

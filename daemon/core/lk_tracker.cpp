@@ -12,7 +12,7 @@ namespace {
 
 // Index i mirrored into [0, n) without repeating the edge (BORDER_REFLECT_101).
 int reflect101(int i, int n) {
-  if (n == 1) return 0;
+  if (n <= 1) return 0;  // (n = 0 would never end)
   while (i < 0 || i >= n) i = i < 0 ? -i : 2 * n - 2 - i;
   return i;
 }

@@ -159,7 +159,8 @@ void BilinearResizer::resize(GrayView src, cv::Size size, cv::Mat& dst) {
 GrayView DownScaler::scale(GrayView src, int width, int height) {
   if (src.width <= width) return src;
   std::size_t level = 0;
-  while (src.width / 2 >= width) {
+  // (Never down to no rows: a frame a few rows high is scaled in one bilinear step.)
+  while (src.width / 2 >= width && src.height / 2 >= std::max(height, 1)) {
     if (halves_.size() <= level) halves_.emplace_back();
     halveArea(src, halves_[level]);
     src = GrayView::of(halves_[level++]);

@@ -27,8 +27,10 @@ std::string SelectorConfig::validate() const {
   if (!(bandLow > 0.0 && bandLow <= target)) return "overlap band low must be in (0, target]";
   if (!(bandHigh >= target && bandHigh < 1.0)) return "overlap band high must be in [target, 1)";
   if (!(motionRatio == 0.0 || motionRatio >= 1.0)) return "motion ratio must be 0 (off) or >= 1";
-  if (!(motionMinFraction >= 0.0 && motionMinFraction < 1.0))
-    return "motion minimum fraction must be in [0, 1)";
+  // Not 0: a hover's sub-pixel jitter would become the reference every cruise is
+  // judged fast against.
+  if (!(motionMinFraction > 0.0 && motionMinFraction < 1.0))
+    return "motion minimum fraction must be in (0, 1)";
   if (motionWindow < 5 || motionWindow > 10000) return "motion window must be 5..10000 frames";
   if (!(minOverlap > 0.0 && minOverlap <= bandLow))
     return "minimum overlap must be in (0, band low]";
@@ -65,6 +67,7 @@ void KeyframeSelector::reconfigure(const SelectorConfig& config) {
   // A new estimator has no reference: the next sharp frame starts a new chain.
   overlap_ = OverlapEstimator::create(config.overlap);
   haveKeyframe_ = false;
+  needAnchor_ = false;
   clearCandidate();
 }
 
@@ -89,6 +92,8 @@ void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
   overlap_->setReferenceToCurrent();
   haveKeyframe_ = true;
   keyframeFeatures_ = d.features;
+  chainTracked_ = false;
+  needAnchor_ = false;
   clearCandidate();
   ++keyframes_;
 }
@@ -115,7 +120,9 @@ std::int64_t KeyframeSelector::finish() {
 }
 
 void KeyframeSelector::serveCaptureRequest(Decision& d) {
-  if (captureWaitFromNs_ < 0) captureWaitFromNs_ = d.timestampNs;
+  // (A clock that went back, a source restarted: the wait starts again from here.)
+  if (captureWaitFromNs_ < 0 || d.timestampNs < captureWaitFromNs_)
+    captureWaitFromNs_ = d.timestampNs;
   const bool waited =
       d.timestampNs - captureWaitFromNs_ >= std::int64_t{config_.captureWaitMs} * 1'000'000;
   if (!d.kept && (d.sharp || (waited && d.sharpness >= config_.blur.floor))) {
@@ -145,8 +152,9 @@ Decision KeyframeSelector::process(const Frame& frame) {
 
   GrayView analysis = gray;
   if (config_.analysisWidth > 0 && gray.width > config_.analysisWidth) {
-    const int h = static_cast<int>(
-        std::lround(static_cast<double>(gray.height) * config_.analysisWidth / gray.width));
+    // At least a row (a 1920x1 frame would round to none).
+    const int h = std::max(1, static_cast<int>(std::lround(static_cast<double>(gray.height) *
+                                                           config_.analysisWidth / gray.width)));
     // Halve (2x2 average) while that stays above the target, then one
     // bilinear step: 1920 -> 640 in a fraction of a direct INTER_AREA resize by
     // 3, and no allocation once the sizes are known.
@@ -168,11 +176,15 @@ Decision KeyframeSelector::process(const Frame& frame) {
   }
 
   const bool paper = config_.overlap.mode == OverlapMode::Paper;
+  if (ov.valid) chainTracked_ = true;
+  // Tracked from the frame before it (geometric mode; paper mode matches against the
+  // keyframe alone and has no such test).
+  const bool anchored = paper || std::isfinite(ov.motionPx);
   if (!haveKeyframe_) {
-    if (d.sharp)
+    if (d.sharp && (!needAnchor_ || anchored))
       keepCurrent(d, Reason::First);
     else
-      d.reason = Reason::Blurry;
+      d.reason = d.sharp ? Reason::Lost : Reason::Blurry;
   } else if (!ov.valid && keyframeFeatures_ < minTrackable()) {
     // The keyframe had nothing to track: there was no chain to lose. A new chain
     // starts at the first sharp frame with texture enough; until then each frame
@@ -189,7 +201,10 @@ Decision KeyframeSelector::process(const Frame& frame) {
     promoteCandidate(d);
     haveKeyframe_ = false;
     overlap_->reset();
-    if (d.sharp)
+    // A keyframe lost before any frame was tracked against it: the scene may not be
+    // trackable at all, and each sharp frame would become one more "first".
+    needAnchor_ = !paper && !chainTracked_;
+    if (d.sharp && (!needAnchor_ || anchored))
       keepCurrent(d, Reason::First);
     else
       d.reason = Reason::Lost;

@@ -149,6 +149,12 @@ class KeyframeSelector {
   DownScaler scaler_;  // luma -> analysis image
   bool haveKeyframe_ = false;
   int keyframeFeatures_ = 0;  // features of the frame kept last (keepCurrent)
+  // Geometric mode: a frame was tracked against the last keyframe since it was kept.
+  // A keyframe lost at once, never tracked, may be a scene nothing can be tracked in
+  // (glinting water, noise at dusk, a garbled frame): the next chain then starts only
+  // at a frame tracked from the one before it (needAnchor_), not at every sharp frame.
+  bool chainTracked_ = false;
+  bool needAnchor_ = false;
   std::int64_t keyframes_ = 0;
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;

@@ -250,9 +250,9 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
       // as it was made) ends the record like a cut one: the parts before it replay.
       s->truncated_ = true;
       std::fprintf(stderr,
-                   "keyframed: %s does not read (%s): replaying the record up to it, not the "
-                   "%zu part(s) from it on\n",
-                   s->parts_[part].c_str(), error.c_str(), s->parts_.size() - part);
+                   "keyframed: %s: replaying the record up to that part, not the %zu part(s) "
+                   "from it on\n",
+                   error.c_str(), s->parts_.size() - part);
       error.clear();
       s->parts_.resize(part);
       break;

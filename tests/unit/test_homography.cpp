@@ -91,5 +91,40 @@ TEST(Homography, DegenerateInputFails) {
   EXPECT_FALSE(r.fit({{0, 0}, {1, 1}}, {{0, 0}, {1, 1}}, 1.0, m).ok);
 }
 
+TEST(Homography, PointsNearlyOnALineGiveNoFit) {
+  // Tracks along one road or field edge, with tracking noise: any homography fits
+  // them (the mapping across the line is free), so none is to be trusted.
+  cv::RNG rng(3);
+  for (int trial = 0; trial < 5; ++trial) {
+    std::vector<cv::Point2f> src, dst;
+    for (int i = 0; i < 40; ++i) {
+      const float t = static_cast<float>(i) * 12.0f;
+      const cv::Point2f p(20.0f + t, 40.0f + 0.5f * t);
+      src.push_back(p + cv::Point2f(rng.gaussian(0.3), rng.gaussian(0.3)));
+      dst.push_back(p + cv::Point2f(5.0f, -3.0f) +
+                    cv::Point2f(rng.gaussian(0.3), rng.gaussian(0.3)));
+    }
+    RansacHomography r;
+    std::vector<unsigned char> m;
+    EXPECT_FALSE(r.fit(src, dst, 1.5, m).ok) << "trial " << trial;
+  }
+  // The same line with a second one across it: a fit, the true shift.
+  std::vector<cv::Point2f> src, dst;
+  for (int i = 0; i < 40; ++i) {
+    const float t = static_cast<float>(i) * 12.0f;
+    for (const cv::Point2f p :
+         {cv::Point2f(20.0f + t, 40.0f + 0.5f * t), cv::Point2f(300.0f - 0.4f * t, 20.0f + t)}) {
+      src.push_back(p);
+      dst.push_back(p + cv::Point2f(5.0f, -3.0f));
+    }
+  }
+  RansacHomography r;
+  std::vector<unsigned char> m;
+  const HomographyFit fit = r.fit(src, dst, 1.5, m);
+  ASSERT_TRUE(fit.ok);
+  EXPECT_NEAR(fit.h(0, 2), 5.0, 1e-3);
+  EXPECT_NEAR(fit.h(1, 2), -3.0, 1e-3);
+}
+
 }  // namespace
 }  // namespace keyframed

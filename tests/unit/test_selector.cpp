@@ -19,8 +19,10 @@ struct PanRun {
 // Pans a camera along the photo strip with the given per-frame positions; frames
 // listed in `blurred` get a Gaussian blur.
 // `requests`: capture requests made just before that frame (how many).
+// `times`: each frame's timestamp (default: 30 fps from 0).
 PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred = {},
-           SelectorConfig cfg = {}, const std::map<int, int>& requests = {}) {
+           SelectorConfig cfg = {}, const std::map<int, int>& requests = {},
+           const std::vector<std::int64_t>& times = {}) {
   const cv::Mat strip = test::photoStrip();
   cfg.analysisWidth = 0;
   KeyframeSelector sel(cfg);
@@ -36,8 +38,8 @@ PanRun pan(const std::vector<double>& xs, const std::map<int, double>& blurred =
     if (auto it = requests.find(static_cast<int>(i)); it != requests.end()) {
       for (int k = 0; k < it->second; ++k) EXPECT_TRUE(sel.requestCapture());
     }
-    Decision d = sel.process(
-        Frame::ofGray(v, static_cast<std::int64_t>(i), static_cast<std::int64_t>(i) * 33333333));
+    const std::int64_t t = times.empty() ? static_cast<std::int64_t>(i) * 33333333 : times[i];
+    Decision d = sel.process(Frame::ofGray(v, static_cast<std::int64_t>(i), t));
     if (d.promotedIndex >= 0) run.keyframes.push_back(d.promotedIndex);
     if (d.kept) run.keyframes.push_back(d.index);
     run.decisions.push_back(d);
@@ -127,6 +129,25 @@ TEST(Selector, ARequestedCaptureTakesABlurredFrameAfterWaitingASecond) {
   EXPECT_FALSE(r.decisions[41].sharp);
   EXPECT_EQ(r.decisions[41].reason, Reason::Commanded);
   EXPECT_EQ(r.decisions[40].reason, Reason::Blurry);
+}
+
+TEST(Selector, ACaptureWaitStartsAgainWhenTheClockGoesBack) {
+  // The request is made at 10.3 s; from frame 20 the clock starts again at 0 (a
+  // source restarted). The wait counts from there, not from a time that will not
+  // come round again for 10 s: served a second after the jump, at frame 51.
+  std::map<int, double> blurred;
+  for (int i = 10; i < 80; ++i) blurred[i] = 2.5;
+  SelectorConfig cfg;
+  cfg.blur.mode = BlurMode::Absolute;
+  const PanRun sharpRun = pan(hover(12, 100), {}, cfg);
+  cfg.blur.absoluteThreshold = sharpRun.decisions[5].sharpness * 0.8;
+  cfg.blur.floor = 1.0;
+  std::vector<std::int64_t> times;
+  for (int i = 0; i < 80; ++i)
+    times.push_back(i < 20 ? 10'000'000'000 + i * 33333333LL : (i - 20) * 33333333LL);
+  const PanRun r = pan(hover(80, 100), blurred, cfg, {{10, 1}}, times);
+  ASSERT_EQ(r.keyframes, (std::vector<std::int64_t>{0, 51}));
+  EXPECT_EQ(r.decisions[51].reason, Reason::Commanded);
 }
 
 TEST(Selector, AtMostSixteenRequestsWait) {
@@ -308,6 +329,54 @@ TEST(Selector, ASharpSceneWithoutTextureGivesOneKeyframeNotOneAFrame) {
     EXPECT_EQ(ds[k].reason, Reason::First);
     EXPECT_TRUE(ds[k + 1].tracking);
     EXPECT_EQ(sel.keyframes(), 2);
+  }
+}
+
+TEST(Selector, ASharpSceneNothingCanBeTrackedInGivesOneKeyframeNotOneAFrame) {
+  // Glinting water, high-gain noise at dusk: every frame sharp and full of corners,
+  // none of which is there in the next frame. Each frame was a new "first" keyframe.
+  SelectorConfig cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  std::vector<Decision> ds;
+  auto feed = [&](const cv::Mat& v) {
+    const auto i = static_cast<std::int64_t>(ds.size());
+    ds.push_back(sel.process(Frame::ofGray(v, i, i * 33333333)));
+  };
+  cv::RNG rng(5);
+  for (int i = 0; i < 60; ++i) {
+    cv::Mat noise(270, 480, CV_8UC1);
+    rng.fill(noise, cv::RNG::UNIFORM, 0, 256);
+    cv::GaussianBlur(noise, noise, cv::Size(), 1.0);
+    feed(noise);
+  }
+  EXPECT_GE(ds[5].features, cfg.overlap.minInliers) << "the scene has corners";
+  EXPECT_LE(sel.keyframes(), 2);
+  for (int i = 2; i < 60; ++i) {
+    EXPECT_FALSE(ds[i].tracking) << i;
+    EXPECT_EQ(ds[i].reason, Reason::Lost) << i;
+  }
+  // Ground comes into view: a new chain starts as soon as a frame is tracked from the
+  // one before it, and goes on from there.
+  const cv::Mat strip = test::photoStrip();
+  const int before = sel.keyframes();
+  for (int i = 0; i < 10; ++i) feed(test::viewAt(strip, 100 + 2.0 * i));
+  EXPECT_FALSE(ds[60].kept);  // not tracked from the noise before it
+  EXPECT_TRUE(ds[61].kept);
+  EXPECT_EQ(ds[61].reason, Reason::First);
+  EXPECT_TRUE(ds[62].tracking);
+  EXPECT_EQ(sel.keyframes(), before + 1);
+}
+
+TEST(Selector, AFrameOneRowHighIsAnalysedNotHung) {
+  // A malformed source: 640 px analysis of a 1920x1 frame is 0 rows by rounding.
+  KeyframeSelector sel;
+  for (const int h : {1, 2, 3}) {
+    const cv::Mat thin(h, 1920, CV_8UC1, cv::Scalar(90));
+    for (int i = 0; i < 3; ++i) {
+      const Decision d = sel.process(Frame::ofGray(thin, i, i * 33333333));
+      EXPECT_FALSE(d.tracking);
+    }
   }
 }
 
