@@ -966,12 +966,14 @@ TEST(MavlinkLink, ASerialWriteCutShortIsFinishedBeforeTheNextFrame) {
   ASSERT_TRUE(link) << error;
   MavlinkEncoder cam(1, 100);
   const auto frame = [&](int i) {
-    const std::string url = "file:///k/" + std::to_string(i) + ".jpg";
+    // file_url is a fixed 205-byte field that the packer copies whole.
+    char url[205] = {};
+    std::snprintf(url, sizeof url, "file:///k/%d.jpg", i);
     const float q[4] = {1, 0, 0, 0};
     return cam.encode(
         [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
           mavlink_msg_camera_image_captured_pack_status(s, c, st, m, 1000, 0, 0, 1, 2, 3, 4, q, i,
-                                                        1, url.c_str());
+                                                        1, url);
         });
   };
   std::vector<std::uint8_t> sent;  // the frames the link took
