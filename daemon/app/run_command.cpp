@@ -537,20 +537,16 @@ int Daemon::run() {
     KF_LOG(Tagging, Warning)
         << "no tagging.calibration or [tagging.camera]: keyframes carry no intrinsics";
   }
+  // Frames on the video's own clock: a file replayed with its tlog (camera.start_time
+  // + container time, the tlog's unix times), or read as fast as it decodes (container
+  // time from camera.start_time when given, else from 0: this run's start in unix time).
   std::optional<std::int64_t> videoStartNs;
-  if (config_.camera.source == DaemonConfig::Source::File &&
-      isTlogUrl(config_.telemetry.link.url)) {
-    std::int64_t ns = 0;
-    if (parseUtcTime(config_.camera.startTime, ns)) videoStartNs = ns;  // checked at load
-  }
-  // A file read as fast as it decodes is on its own clock too: its container times
-  // (from camera.start_time when given, else from 0: this run's start in unix time).
   std::int64_t videoUnixOffsetNs = 0;
-  if (config_.camera.source == DaemonConfig::Source::File && !config_.camera.realtime &&
-      !videoStartNs) {
+  if (config_.camera.source == DaemonConfig::Source::File &&
+      (isTlogUrl(config_.telemetry.link.url) || !config_.camera.realtime)) {
     std::int64_t ns = 0;
     if (!config_.camera.startTime.empty() && parseUtcTime(config_.camera.startTime, ns)) {
-      videoStartNs = ns;
+      videoStartNs = ns;  // checked at load; a tlog requires it
     } else {
       videoStartNs = 0;
       videoUnixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(

@@ -81,27 +81,25 @@ void CaptureThread::start() {
   thread_ = std::thread([this] { run(); });
 }
 
-void CaptureThread::stop() {
+void CaptureThread::requestStop() {
   {
     std::lock_guard lock(stopMutex_);
     stop_ = true;
   }
   stopped_.notify_all();
-  if (thread_.joinable()) {
-    source_.interrupt();  // a camera waiting for a frame gives up now, not at its timeout
-    thread_.join();
-  }
+  // A camera waiting for a frame gives up now, not at its timeout.
+  if (thread_.joinable()) source_.interrupt();
+}
+
+void CaptureThread::stop() {
+  requestStop();
+  if (thread_.joinable()) thread_.join();
   running_ = false;
 }
 
 bool CaptureThread::stopWithin(std::chrono::milliseconds wait) {
-  {
-    std::lock_guard lock(stopMutex_);
-    stop_ = true;
-  }
-  stopped_.notify_all();
+  requestStop();
   if (thread_.joinable()) {
-    source_.interrupt();
     std::unique_lock lock(stopMutex_);
     if (!stopped_.wait_for(lock, wait, [this] { return finished_; })) return false;
     lock.unlock();

@@ -62,6 +62,8 @@ class CaptureThread {
  private:
   void run();
   void loop();
+  // Sets stop_ and interrupts the source's read; no join.
+  void requestStop();
   // Waits up to `d` unless stop() is called; false when it was.
   bool pause(std::chrono::nanoseconds d);
 

@@ -25,19 +25,29 @@ from ports import free_port
 zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is installed by tools/setup.sh")
 
 
-@pytest.fixture(scope="module")
-def tagged(kf_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    fl = flight("nadir", width=480, height=270, seconds=8.0)
-    out = tmp_path_factory.mktemp("tagged")
+def select(kf_bin: Path, video: Path, out: Path, *args: str) -> str:
+    """`keyframed select VIDEO --out OUT ARGS...`, which must succeed."""
     r = subprocess.run(
-        [str(kf_bin), "select", str(fl / "video.avi"), "--out", str(out), "--quiet"]
-        + ["--telemetry", str(fl / "flight.tlog"), "--video-start", "2026-06-01T10:00:00Z"]
-        + ["--calibration", str(fl / "intrinsics.json")],
+        [str(kf_bin), "select", str(video), "--out", str(out), "--quiet", *args],
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert r.returncode == 0, r.stderr
+    return r.stderr
+
+
+@pytest.fixture(scope="module")
+def tagged(kf_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    fl = flight("nadir", width=480, height=270, seconds=8.0)
+    out = tmp_path_factory.mktemp("tagged")
+    select(
+        kf_bin,
+        fl / "video.avi",
+        out,
+        *["--telemetry", str(fl / "flight.tlog"), "--video-start", "2026-06-01T10:00:00Z"],
+        *["--calibration", str(fl / "intrinsics.json")],
+    )
     return out
 
 
@@ -463,15 +473,8 @@ def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_p
         'focal_length_mm: 4.4\nmake: "Acme"\nmodel: "Acme Cam 2"\n'
     )
     out = tmp_path / "tagged"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(fl / "video.avi"), "--out", str(out), "--quiet"]
-        + ["--calibration", str(tmp_path / "calib.yaml")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 0, r.stderr
-    assert "sensor_width_mm" not in r.stderr  # the focal length in mm was enough
+    stderr = select(kf_bin, fl / "video.avi", out, "--calibration", str(tmp_path / "calib.yaml"))
+    assert "sensor_width_mm" not in stderr  # the focal length in mm was enough
     jpeg = next(out.glob("*.jpg")).read_bytes()
     tags = read_tags(jpeg)
     line = colmap_camera(tags)
@@ -516,14 +519,7 @@ def test_an_uncalibrated_camera_gets_no_cameras_file(kf_bin: Path, tmp_path: Pat
         "sensor_width_mm = 6.4\nfocal_length_mm = 4.4\n"
     )
     out = tmp_path / "tagged"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(fl / "video.avi"), "--out", str(out), "--quiet"]
-        + ["--calibration", str(tmp_path / "camera.toml")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 0, r.stderr
+    select(kf_bin, fl / "video.avi", out, "--calibration", str(tmp_path / "camera.toml"))
     jpegs = sorted(out.glob("*.jpg"))
     assert len(jpegs) >= 2
     tags = read_tags(jpegs[0].read_bytes())

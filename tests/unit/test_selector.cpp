@@ -113,18 +113,27 @@ TEST(Selector, RequestsAreCountedAndAKeyframeDueAnywayServesOne) {
   EXPECT_EQ(r.decisions[11].reason, Reason::Commanded);
 }
 
+// A hover blurred from frame 10 on, every frame still above the blur floor, and
+// the absolute threshold that makes those frames blurry: a capture request made
+// there can only be served by waiting.
+struct BlurredHover {
+  std::map<int, double> blurred;
+  SelectorConfig cfg;
+  BlurredHover() {
+    for (int i = 10; i < 80; ++i) blurred[i] = 2.5;
+    cfg.blur.mode = BlurMode::Absolute;
+    const PanRun sharpRun = pan(hover(12, 100), {}, cfg);
+    cfg.blur.absoluteThreshold = sharpRun.decisions[5].sharpness * 0.8;
+    cfg.blur.floor = 1.0;
+  }
+};
+
 TEST(Selector, ARequestedCaptureTakesABlurredFrameAfterWaitingASecond) {
   // Every frame blurred from 10 on (yet above the floor): the request made at frame
   // 10 is served at the first frame a second later (frame 41: 30 frame intervals of
   // 33333333 ns fall just short of it).
-  std::map<int, double> blurred;
-  for (int i = 10; i < 80; ++i) blurred[i] = 2.5;
-  SelectorConfig cfg;
-  cfg.blur.mode = BlurMode::Absolute;
-  const PanRun sharpRun = pan(hover(12, 100), {}, cfg);
-  cfg.blur.absoluteThreshold = sharpRun.decisions[5].sharpness * 0.8;
-  cfg.blur.floor = 1.0;
-  const PanRun r = pan(hover(80, 100), blurred, cfg, {{10, 1}});
+  const BlurredHover h;
+  const PanRun r = pan(hover(80, 100), h.blurred, h.cfg, {{10, 1}});
   ASSERT_EQ(r.keyframes, (std::vector<std::int64_t>{0, 41}));
   EXPECT_FALSE(r.decisions[41].sharp);
   EXPECT_EQ(r.decisions[41].reason, Reason::Commanded);
@@ -135,17 +144,11 @@ TEST(Selector, ACaptureWaitStartsAgainWhenTheClockGoesBack) {
   // The request is made at 10.3 s; from frame 20 the clock starts again at 0 (a
   // source restarted). The wait counts from there, not from a time that will not
   // come round again for 10 s: served a second after the jump, at frame 51.
-  std::map<int, double> blurred;
-  for (int i = 10; i < 80; ++i) blurred[i] = 2.5;
-  SelectorConfig cfg;
-  cfg.blur.mode = BlurMode::Absolute;
-  const PanRun sharpRun = pan(hover(12, 100), {}, cfg);
-  cfg.blur.absoluteThreshold = sharpRun.decisions[5].sharpness * 0.8;
-  cfg.blur.floor = 1.0;
+  const BlurredHover h;
   std::vector<std::int64_t> times;
   for (int i = 0; i < 80; ++i)
     times.push_back(i < 20 ? 10'000'000'000 + i * 33333333LL : (i - 20) * 33333333LL);
-  const PanRun r = pan(hover(80, 100), blurred, cfg, {{10, 1}}, times);
+  const PanRun r = pan(hover(80, 100), h.blurred, h.cfg, {{10, 1}}, times);
   ASSERT_EQ(r.keyframes, (std::vector<std::int64_t>{0, 51}));
   EXPECT_EQ(r.decisions[51].reason, Reason::Commanded);
 }

@@ -209,17 +209,24 @@ TEST(PoseStore, BeforeTheFirstGpsReportOnlyAReportRightAfterCounts) {
   EXPECT_TRUE(p.position.has_value()) << p.staleReason;
 }
 
+// Encoded packets into a decoder, arriving at `now` (CLOCK_MONOTONIC ns).
+struct Feeder {
+  explicit Feeder(TelemetryDecoder& d) : dec(d) {}
+  TelemetryDecoder& dec;
+  MavlinkParser parser;
+  std::int64_t now = 10'000 * kMs;
+  void operator()(const std::vector<std::uint8_t>& pkt) {
+    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
+  }
+};
+
 TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   for (int i = 0; i <= 10; ++i) {
-    now = (10'000 + i * 100) * kMs;
+    push.now = (10'000 + i * 100) * kMs;
     const auto boot = static_cast<std::uint32_t>(i * 100);
     push(gpsRaw(ap, 3));
     push(attitudeQ(ap, boot, Quaternion{}));
@@ -248,16 +255,12 @@ TEST(TelemetryDecoder, ASlowQuaternionStreamDoesNotHideAFastEulerOne) {
   // lie too far apart for a pose, so ATTITUDE is used.
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   const Quaternion q = quaternionFromEuler(5 * kDeg, -3 * kDeg, 30 * kDeg);
   for (int i = 0; i <= 60; ++i) {
     const auto boot = static_cast<std::uint32_t>(i * 50);
-    now = (10'000 + boot) * kMs;
+    push.now = (10'000 + boot) * kMs;
     if (i % 20 == 0) push(attitudeQ(ap, boot, q));
     push(attitudeEuler(ap, boot, 5 * kDeg, -3 * kDeg, 30 * kDeg));
   }
@@ -271,11 +274,7 @@ TEST(TelemetryDecoder, ASlowQuaternionStreamDoesNotHideAFastEulerOne) {
 TEST(TelemetryDecoder, QuaternionsAtAGoodRateArePreferredUntilTheyStop) {
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   // Both at 20 Hz, in either order; the Euler angles say 35 degrees less, to tell
   // which one is used. The quaternions stop after 1 s (the ground station that asked
@@ -284,7 +283,7 @@ TEST(TelemetryDecoder, QuaternionsAtAGoodRateArePreferredUntilTheyStop) {
   const Quaternion euler = quaternionFromEuler(0, 0, 10 * kDeg);
   for (int i = 0; i <= 40; ++i) {
     const auto boot = static_cast<std::uint32_t>(i * 50);
-    now = (10'000 + boot) * kMs;
+    push.now = (10'000 + boot) * kMs;
     const auto e = attitudeEuler(ap, boot, 0, 0, 10 * kDeg);
     if (i > 20) {
       push(e);
@@ -316,15 +315,11 @@ TEST(TelemetryDecoder, AQuaternionStreamSlowerThanAttitudeLetsAttitudeIn) {
   // the faster stream gives the finer attitude, and both are the same estimate.
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   for (int i = 0; i <= 40; ++i) {
     const auto boot = static_cast<std::uint32_t>(i * 50);
-    now = (10'000 + boot) * kMs;
+    push.now = (10'000 + boot) * kMs;
     const double yaw = i * 2 * kDeg;  // turning at 40 deg/s
     if (i % 4 == 0) push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, yaw)));
     push(attitudeEuler(ap, boot, 0, 0, yaw));
@@ -341,15 +336,11 @@ TEST(TelemetryDecoder, NaNAnglesAndAZeroQuaternionAreNoAttitude) {
   // An estimator not aligned yet, or a sender's bug: not "level, facing north".
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   for (int i = 0; i <= 10; ++i) {
     const auto boot = static_cast<std::uint32_t>(i * 50);
-    now = (10'000 + boot) * kMs;
+    push.now = (10'000 + boot) * kMs;
     push(attitudeQ(ap, boot, Quaternion{0, 0, 0, 0}));
     push(attitudeEuler(ap, boot + 20, NAN, 0, 0));
     push(attitudeEuler(ap, boot + 30, 0, std::numeric_limits<double>::infinity(), 0));
@@ -361,7 +352,7 @@ TEST(TelemetryDecoder, NaNAnglesAndAZeroQuaternionAreNoAttitude) {
   // A stream of zero quaternions does not hide good ATTITUDE either.
   for (int i = 11; i <= 20; ++i) {
     const auto boot = static_cast<std::uint32_t>(i * 50);
-    now = (10'000 + boot) * kMs;
+    push.now = (10'000 + boot) * kMs;
     push(attitudeQ(ap, boot, Quaternion{0, 0, 0, 0}));
     push(attitudeEuler(ap, boot, 0, 0, 20 * kDeg));
   }
@@ -685,11 +676,7 @@ TEST(MavlinkParser, RandomBytesNeverCrash) {
 TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
   TelemetryDecoder dec;
   MavlinkEncoder gcs(255, 190), ap(1, 1), other(2, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(gcs, MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID));
   // ArduPilot's antenna tracker and a companion computer run "an autopilot" too, but
   // fly nothing: not followed.
@@ -697,12 +684,12 @@ TEST(TelemetryDecoder, FollowsTheChosenAutopilotOnly) {
   push(heartbeat(tracker, MAV_TYPE_ANTENNA_TRACKER, MAV_AUTOPILOT_ARDUPILOTMEGA));
   push(heartbeat(companion, MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_ARDUPILOTMEGA));
   EXPECT_EQ(dec.autopilotSinceNs(), std::numeric_limits<std::int64_t>::max());  // none yet
-  now += 7 * kMs;
+  push.now += 7 * kMs;
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
   EXPECT_EQ(dec.autopilotSinceNs(), 10'007 * kMs);  // named by this heartbeat
   push(heartbeat(other, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
   for (int i = 0; i <= 10; ++i) {
-    now = (10'000 + i * 100) * kMs + 5 * kMs;
+    push.now = (10'000 + i * 100) * kMs + 5 * kMs;
     const auto boot = static_cast<std::uint32_t>(i * 100);
     push(gpsRaw(ap, 3));
     push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, 45 * kDeg)));
@@ -725,15 +712,11 @@ TEST(TelemetryDecoder, AChosenAutopilotThatIsNotTheFirstHeard) {
   cfg.autopilotComponent = 1;
   TelemetryDecoder dec(cfg);
   MavlinkEncoder first(1, 1), chosen(2, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(first, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4));
   push(heartbeat(chosen, MAV_TYPE_FIXED_WING, MAV_AUTOPILOT_ARDUPILOTMEGA));
   for (int i = 0; i <= 10; ++i) {
-    now = (10'000 + i * 100) * kMs;
+    push.now = (10'000 + i * 100) * kMs;
     const auto boot = static_cast<std::uint32_t>(i * 100);
     push(gpsRaw(first, 3));
     push(attitudeQ(first, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
@@ -856,18 +839,14 @@ TEST(TelemetryDecoder, ReadsTheVehiclesGimbalInItsFrame) {
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1), gimbal(1, MAV_COMP_ID_GIMBAL), second(1, MAV_COMP_ID_GIMBAL2),
       otherVehicle(2, MAV_COMP_ID_GIMBAL);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   // Before the autopilot is known, gimbal messages are not used.
   push(gimbalStatus(gimbal, 5, quaternionFromEuler(0, -30 * kDeg, 0),
                     GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME));
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   EXPECT_EQ(dec.stats().gimbal, 0U);
   for (int i = 0; i <= 10; ++i) {
-    now = (10'000 + i * 100) * kMs;
+    push.now = (10'000 + i * 100) * kMs;
     const auto boot = static_cast<std::uint32_t>(i * 100);
     push(gpsRaw(ap, 3));
     push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
@@ -893,14 +872,10 @@ TEST(TelemetryDecoder, ReadsTheVehiclesGimbalInItsFrame) {
 TEST(TelemetryDecoder, LegacyYawLockMeansEarthFrame) {
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);
-  MavlinkParser parser;
-  std::int64_t now = 10'000 * kMs;
-  auto push = [&](const std::vector<std::uint8_t>& pkt) {
-    parser.feed(pkt.data(), pkt.size(), [&](const mavlink_message_t& m) { dec.handle(m, now); });
-  };
+  Feeder push{dec};
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   for (int i = 0; i <= 5; ++i) {
-    now = (10'000 + i * 100) * kMs;
+    push.now = (10'000 + i * 100) * kMs;
     const auto boot = static_cast<std::uint32_t>(i * 100);
     push(attitudeQ(ap, boot, quaternionFromEuler(0, 0, 90 * kDeg)));
     // ArduPilot sends it from the autopilot component, device id 1, on its boot clock.

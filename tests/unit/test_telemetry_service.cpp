@@ -852,26 +852,30 @@ std::vector<std::uint32_t> hear(int fd, int timeoutMs) {
   }
 }
 
+// A loopback UDP address no socket is bound to (port 0 when none could be had): for
+// the service to listen on.
+sockaddr_in freeLoopbackPort() {
+  sockaddr_in a{};
+  const int fd = udpSocket(a);
+  if (fd < 0) return {};
+  ::close(fd);
+  return a;
+}
+
 TEST(MavlinkLink, UdpinAnswersTheAutopilotNotTheLastSender) {
-  sockaddr_in apAddr{}, gcsAddr{}, probe{};
+  sockaddr_in apAddr{}, gcsAddr{};
   const int apFd = udpSocket(apAddr);
   const int gcsFd = udpSocket(gcsAddr);
-  const int probeFd = udpSocket(probe);  // a free port for the service to listen on
   ASSERT_GE(apFd, 0);
   ASSERT_GE(gcsFd, 0);
-  ASSERT_GE(probeFd, 0);
-  const int port = ntohs(probe.sin_port);
-  ::close(probeFd);
+  const sockaddr_in to = freeLoopbackPort();
+  ASSERT_NE(to.sin_port, 0);
 
   auto cfg = serviceConfig();
-  cfg.url = "udpin:127.0.0.1:" + std::to_string(port);
+  cfg.url = "udpin:127.0.0.1:" + std::to_string(ntohs(to.sin_port));
   TelemetryService svc(cfg, CameraDescription{});
   std::string error;
   ASSERT_TRUE(svc.start(error)) << error;
-  sockaddr_in to{};
-  to.sin_family = AF_INET;
-  to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  to.sin_port = htons(static_cast<std::uint16_t>(port));
   auto sendFrom = [&](int fd, const std::vector<std::uint8_t>& pkt) {
     ::sendto(fd, pkt.data(), pkt.size(), 0, reinterpret_cast<const sockaddr*>(&to), sizeof to);
   };
@@ -908,22 +912,16 @@ TEST(MavlinkLink, UdpinAnswersTheAutopilotNotTheLastSender) {
 }
 
 TEST(MavlinkLink, EachUdpDatagramStartsOnAFrameBoundary) {
-  sockaddr_in apAddr{}, probe{};
+  sockaddr_in apAddr{};
   const int apFd = udpSocket(apAddr);
-  const int probeFd = udpSocket(probe);  // a free port for the service to listen on
   ASSERT_GE(apFd, 0);
-  ASSERT_GE(probeFd, 0);
-  const int port = ntohs(probe.sin_port);
-  ::close(probeFd);
+  const sockaddr_in to = freeLoopbackPort();
+  ASSERT_NE(to.sin_port, 0);
   auto cfg = serviceConfig();
-  cfg.url = "udpin:127.0.0.1:" + std::to_string(port);
+  cfg.url = "udpin:127.0.0.1:" + std::to_string(ntohs(to.sin_port));
   TelemetryService svc(cfg, CameraDescription{});
   std::string error;
   ASSERT_TRUE(svc.start(error)) << error;
-  sockaddr_in to{};
-  to.sin_family = AF_INET;
-  to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  to.sin_port = htons(static_cast<std::uint16_t>(port));
   auto sendFrom = [&](const std::vector<std::uint8_t>& pkt) {
     ::sendto(apFd, pkt.data(), pkt.size(), 0, reinterpret_cast<const sockaddr*>(&to), sizeof to);
   };
