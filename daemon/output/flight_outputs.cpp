@@ -228,7 +228,11 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       m.width = static_cast<std::uint32_t>(width);
       m.height = static_cast<std::uint32_t>(height);
       m.d = c.distortion;
-      if (m.d.size() > 5) m.distortionModel = "rational_polynomial";
+      if (c.lens == CameraModel::Lens::Fisheye) {
+        m.distortionModel = "kannala_brandt";  // OpenCV's fisheye k1..k4
+      } else if (m.d.size() > 5) {
+        m.distortionModel = "rational_polynomial";
+      }
       m.k = {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1};
       m.p = {c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0};
       m.timeNs = impl_->nowNs() + impl_->options.unixOffsetNs;

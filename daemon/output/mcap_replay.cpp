@@ -127,6 +127,10 @@ bool forEachField(std::span<const std::uint8_t> msg, F&& f) {
   const bool ok = forEachField(msg, [&](const ProtoField& f) {
     if (f.wire == 5 && f.number == 2) c.width = static_cast<int>(f.value);
     if (f.wire == 5 && f.number == 3) c.height = static_cast<int>(f.value);
+    if (f.wire == 2 && f.number == 4) {
+      const std::string model(f.bytes.begin(), f.bytes.end());
+      if (model == "kannala_brandt") c.lens = CameraModel::Lens::Fisheye;
+    }
     if (f.wire == 2 && f.number == 5) doubles(f.bytes, c.distortion);
     if (f.wire == 2 && f.number == 6) doubles(f.bytes, k);
     return true;

@@ -91,13 +91,22 @@ bool finish(const std::string& path, CameraModel& m, std::string& error) {
   for (double v : {m.sensorWidthMm, m.sensorHeightMm, m.focalLengthMm}) {
     if (!std::isnan(v) && !(v > 0.0 && std::isfinite(v))) return bad("sizes in mm must be > 0");
   }
-  // k1, k2, p1, p2, k3 is what the tags can carry; longer OpenCV vectors (rational or
-  // thin-prism models) are accepted only when their extra terms are zero.
-  if (!m.distortion.empty() && m.distortion.size() < 4) return bad("distortion needs 4 or 5 terms");
-  for (std::size_t i = 5; i < m.distortion.size(); ++i) {
-    if (m.distortion[i] != 0.0) return bad("only k1, k2, p1, p2, k3 distortion is supported");
+  if (m.lens == CameraModel::Lens::Fisheye) {
+    // cv::fisheye::calibrate's D is exactly k1..k4.
+    if (!m.distortion.empty() && m.distortion.size() != 4) {
+      return bad("a fisheye lens's distortion is k1, k2, k3, k4 (4 terms)");
+    }
+  } else {
+    // k1, k2, p1, p2, k3 is what the tags can carry; longer OpenCV vectors (rational
+    // or thin-prism models) are accepted only when their extra terms are zero.
+    if (!m.distortion.empty() && m.distortion.size() < 4) {
+      return bad("distortion needs 4 or 5 terms");
+    }
+    for (std::size_t i = 5; i < m.distortion.size(); ++i) {
+      if (m.distortion[i] != 0.0) return bad("only k1, k2, p1, p2, k3 distortion is supported");
+    }
+    if (m.distortion.size() > 5) m.distortion.resize(5);
   }
-  if (m.distortion.size() > 5) m.distortion.resize(5);
   for (double d : m.distortion) {
     if (!std::isfinite(d)) return bad("distortion terms must be finite");
   }
@@ -135,15 +144,12 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
     if (n.isString()) dst = static_cast<std::string>(n);
   };
   const auto integer = [](const cv::FileNode& n) { return n.isInt() ? static_cast<int>(n) : 0; };
-  // OpenCV's calibration sample writes fisheye_model: 1 for cv::fisheye::calibrate: k1-k4
-  // of the equidistant model, which read as k1, k2, p1, p2 would be silently wrong.
+  // OpenCV's calibration sample writes fisheye_model: 1 for cv::fisheye::calibrate: its
+  // four distortion terms are k1-k4 of the equidistant model, not k1, k2, p1, p2.
   if (const cv::FileNode f = fs["fisheye_model"];
       (f.isInt() && static_cast<int>(f) != 0) ||
       (f.isString() && static_cast<std::string>(f) != "0")) {
-    error = path +
-            ": a fisheye calibration (fisheye_model) is not supported: the tags carry the "
-            "pinhole model with Brown-Conrady distortion (calibrate with cv::calibrateCamera)";
-    return false;
+    m.lens = CameraModel::Lens::Fisheye;
   }
   const cv::FileNode k = fs["camera_matrix"];
   if (!k.empty()) {
@@ -171,12 +177,17 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
     text(fs["make"], m.make);
     text(fs["model"], m.model);
   } else if (!fs["fx"].empty()) {
-    // keyframed.synth intrinsics.json; its "model" key is the projection ("pinhole").
-    if (const cv::FileNode p = fs["model"];
-        p.isString() && static_cast<std::string>(p) != "pinhole") {
-      error = path + ": projection model \"" + static_cast<std::string>(p) +
-              "\" is not supported (only \"pinhole\", with Brown-Conrady distortion)";
-      return false;
+    // keyframed.synth intrinsics.json; its "model" key is the projection.
+    if (const cv::FileNode p = fs["model"]; p.isString()) {
+      const auto name = static_cast<std::string>(p);
+      if (name == "fisheye") {
+        m.lens = CameraModel::Lens::Fisheye;
+      } else if (name != "pinhole") {
+        error = path + ": projection model \"" + name +
+                "\" is not supported (\"pinhole\", with Brown-Conrady distortion, or "
+                "\"fisheye\", OpenCV's k1-k4)";
+        return false;
+      }
     }
     m.width = integer(fs["width"]);
     m.height = integer(fs["height"]);
@@ -238,6 +249,7 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
   };
   static const std::set<std::string> kKeys = {"make",
                                               "model",
+                                              "lens",
                                               "width",
                                               "height",
                                               "fx",
@@ -258,7 +270,12 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
       error = where(node) + prefix + "." + k + " must be " + want;
       return false;
     };
-    if (k == "make" || k == "model") {
+    if (k == "lens") {
+      const auto v = node.value<std::string>();
+      if (!v || (*v != "pinhole" && *v != "fisheye"))
+        return wrongType("\"pinhole\" or \"fisheye\"");
+      m.lens = *v == "fisheye" ? CameraModel::Lens::Fisheye : CameraModel::Lens::Pinhole;
+    } else if (k == "make" || k == "model") {
       const auto v = node.value<std::string>();
       if (!v) return wrongType("a string");
       (k == "make" ? m.make : m.model) = *v;

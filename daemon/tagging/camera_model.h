@@ -10,6 +10,12 @@ namespace keyframed {
 // convention: the centre of pixel (0,0) is at (0,0)), distortion and physical size.
 // Unknown numbers are NaN; nothing is guessed.
 struct CameraModel {
+  // The lens's projection: a pinhole with Brown-Conrady distortion (cv::calibrateCamera)
+  // or OpenCV's fisheye model (cv::fisheye::calibrate: equidistant projection with the
+  // Kannala-Brandt polynomial theta * (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 +
+  // k4 theta^8)). The same fx, fy, cx, cy in both.
+  enum class Lens { Pinhole, Fisheye };
+
   std::string make = "keyframed";
   std::string model = "camera";
   int width = 0;  // pixels the intrinsics refer to
@@ -18,7 +24,9 @@ struct CameraModel {
   double fy = NAN;
   double cx = NAN;
   double cy = NAN;
-  std::vector<double> distortion;  // OpenCV order: k1, k2, p1, p2[, k3]
+  Lens lens = Lens::Pinhole;
+  // OpenCV order: pinhole k1, k2, p1, p2[, k3]; fisheye k1, k2, k3, k4.
+  std::vector<double> distortion;
   double sensorWidthMm = NAN;
   double sensorHeightMm = NAN;
   double focalLengthMm = NAN;
@@ -45,14 +53,16 @@ struct CameraModel {
 };
 
 // Reads a camera model from:
-//  - OpenCV FileStorage YAML/XML as cv::calibrateCamera samples write it
-//    (camera_matrix, distortion_coefficients, image_width, image_height; optional
-//    sensor_width_mm, sensor_height_mm, focal_length_mm, make, model);
-//  - TOML (*.toml): a [camera] table with make, model, width, height, fx, fy, cx, cy,
-//    distortion, sensor_width_mm, sensor_height_mm, focal_length_mm (unknown keys are
-//    errors);
+//  - OpenCV FileStorage YAML/XML as OpenCV's calibration sample writes it
+//    (camera_matrix, distortion_coefficients, image_width, image_height, fisheye_model
+//    (1: cv::fisheye); optional sensor_width_mm, sensor_height_mm, focal_length_mm,
+//    make, model);
+//  - TOML (*.toml): a [camera] table with make, model, lens ("pinhole" or "fisheye"),
+//    width, height, fx, fy, cx, cy, distortion, sensor_width_mm, sensor_height_mm,
+//    focal_length_mm (unknown keys are errors);
 //  - JSON intrinsics.json from keyframed.synth (width, height, fx, fy, cx, cy,
-//    distortion, sensor_width_mm, sensor_height_mm, focal_length_mm).
+//    distortion, model ("pinhole" or "fisheye"), sensor_width_mm, sensor_height_mm,
+//    focal_length_mm).
 // Derives focalLengthMm = fx * sensorWidthMm / width when it is not given.
 // Returns false with a one-line error; never throws.
 [[nodiscard]] bool loadCameraModel(const std::string& path, CameraModel& out, std::string& error);

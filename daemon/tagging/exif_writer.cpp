@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <ctime>
 #include <mutex>
+#include <vector>
 
 // exiv2 0.27 hands images out as std::auto_ptr, deprecated in C++11 and still provided
 // by libstdc++; the warning is about exiv2's API, not this file.
@@ -20,6 +21,9 @@ namespace {
 // Pix4D's XMP namespace (https://support.pix4d.com/hc/en-us/articles/360016450032); the
 // trailing slash is how Pix4D-aware cameras (Parrot Sequoia, DJI) write it.
 constexpr const char* kPix4dNs = "http://pix4d.com/camera/1.0/";
+// keyframed's own XMP namespace, for what Pix4D's cannot say exactly: an OpenCV fisheye
+// calibration (Pix4D's fisheye model is another polynomial). docs/formats.md.
+constexpr const char* kKeyframedNs = "https://github.com/keyframed/keyframed/xmp/1.0/";
 
 // Typical 1-sigma user range error of a standalone single-frequency GPS receiver;
 // accuracy ~ DOP x UERE when the receiver does not report h_acc/v_acc.
@@ -42,6 +46,7 @@ void initExiv2Once() {
     static std::mutex toolkitMutex;
     Exiv2::XmpParser::initialize(xmpLock, &toolkitMutex);
     Exiv2::XmpProperties::registerNs(kPix4dNs, "Camera");
+    Exiv2::XmpProperties::registerNs(kKeyframedNs, "Keyframed");
     // Warnings (e.g. about odd input files) would go to stderr; errors come back to us
     // as exceptions anyway.
     Exiv2::LogMsg::setLevel(Exiv2::LogMsg::error);
@@ -105,7 +110,8 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
     exif["Exif.Photo.FocalPlaneResolutionUnit"] = std::uint16_t{3};
   }
   if (!cam.calibrated()) return;  // no fabricated intrinsics
-  xmp["Xmp.Camera.ModelType"] = "perspective";
+  const bool fisheye = cam.lens == CameraModel::Lens::Fisheye;
+  xmp["Xmp.Camera.ModelType"] = fisheye ? "fisheye" : "perspective";
   if (sensorKnown) {
     const double pitchX = cam.sensorWidthMm / cam.width;
     const double pitchY = sensorH / cam.height;
@@ -113,18 +119,22 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
     // (-0.5, -0.5) pixels.
     xmp["Xmp.Camera.PrincipalPoint"] =
         format("%.6f", (cam.cx + 0.5) * pitchX) + "," + format("%.6f", (cam.cy + 0.5) * pitchY);
-    xmp["Xmp.Camera.PerspectiveFocalLength"] = format("%.6f", cam.fx * pitchX);
+    xmp[fisheye ? "Xmp.Keyframed.FisheyeFocalLength" : "Xmp.Camera.PerspectiveFocalLength"] =
+        format("%.6f", cam.fx * pitchX);
   }
-  // Pix4D R1,R2,R3,T1,T2 <- OpenCV k1,k2,k3,p1,p2 (same polynomial; docs/formats.md).
   const auto d = [&](std::size_t i) { return i < cam.distortion.size() ? cam.distortion[i] : 0.0; };
   std::string dist;
-  for (double v : {d(0), d(1), d(4), d(2), d(3)}) {
+  // Pix4D R1,R2,R3,T1,T2 <- OpenCV k1,k2,k3,p1,p2 (same polynomial; docs/formats.md);
+  // a fisheye's k1..k4 as OpenCV has them.
+  const std::vector<double> terms = fisheye ? std::vector<double>{d(0), d(1), d(2), d(3)}
+                                            : std::vector<double>{d(0), d(1), d(4), d(2), d(3)};
+  for (double v : terms) {
     if (!dist.empty()) {
       dist += ',';
     }
     dist += format("%.9g", v);
   }
-  xmp["Xmp.Camera.PerspectiveDistortion"] = dist;
+  xmp[fisheye ? "Xmp.Keyframed.FisheyeDistortion" : "Xmp.Camera.PerspectiveDistortion"] = dist;
 }
 
 void writeTime(Exiv2::ExifData& exif, std::int64_t utcUs, bool gps) {

@@ -163,6 +163,51 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
     assert overlaps and float(np.median(overlaps)) > 0.8, overlaps
 
 
+def test_a_fisheye_calibration_is_recorded_and_replayed_as_fisheye(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """A fisheye lens's calibration goes into the record as Foxglove's kannala_brandt
+    (OpenCV's fisheye k1..k4), and a replay of the record tags its keyframes as the
+    same fisheye, not as a pinhole with those four numbers."""
+    from keyframed.ground import read_tags
+
+    intr = json.loads((short_nadir / "intrinsics.json").read_text())
+    d = [0.041, -0.0093, 0.0021, -0.00037]
+    intr |= {"model": "fisheye", "distortion": d, "fx": 150.0, "fy": 150.0}
+    calib = tmp_path / "fisheye.json"
+    calib.write_text(json.dumps(intr))
+    run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        "camera.realtime=false",
+        'telemetry.url=""',
+        f"tagging.calibration={calib}",
+    )
+    mcap = (tmp_path / "state" / "latest" / "flight.mcap").resolve()
+    (cal,) = decoded(mcap, "/camera/calibration")
+    assert cal.distortion_model == "kannala_brandt"
+    assert list(cal.D) == pytest.approx(d)
+    assert list(cal.K) == pytest.approx([150, 0, intr["cx"], 0, 150, intr["cy"], 0, 0, 1])
+
+    again = tmp_path / "replay"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(mcap), "--out", str(again), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    jpegs = sorted(again.glob("*.jpg"))
+    assert jpegs
+    xmp = jpegs[0].read_bytes()
+    assert b'Camera:ModelType="fisheye"' in xmp
+    assert b'Keyframed:FisheyeDistortion="0.041,-0.0093,0.0021,-0.00037"' in xmp
+    assert b"PerspectiveDistortion" not in xmp
+    tags = read_tags(xmp)
+    assert tags.lens == "fisheye" and tags.distortion == pytest.approx(d)
+
+
 def rows(path: Path) -> list[dict[str, str]]:
     with open(path) as f:
         return list(csv.DictReader(f))

@@ -248,7 +248,11 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     size = f"{tags['ImageWidth']} {tags['ImageHeight']}"
     camera_id = f"{make.strip()} {model.strip()} {size} brown {ratio}".lower()
     odm = json.loads((ds / "cameras.json").read_text())
-    assert list(odm) == [camera_id] and summary["odm_camera"] == camera_id
+    # ODM's id with --camera-lens brown, then as its default "auto" makes it from the
+    # XMP ModelType: the same camera under both
+    auto_id = camera_id.replace(" brown ", " perspective ")
+    assert list(odm) == [camera_id, auto_id] and summary["odm_camera"] == camera_id
+    assert odm[auto_id] == odm[camera_id]
     brown = odm[camera_id]
     assert brown["projection_type"] == "brown" and (brown["width"], brown["height"]) == (480, 270)
     assert brown["focal_x"] * 480 == pytest.approx(fx, rel=1e-9)
@@ -491,10 +495,14 @@ def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_p
     # the file's keys go without "v2 "), plain OpenSfM's drops it: ODM's first, the
     # same camera under both; f35 = round(fx * 36 / 320) = 26
     ratio = str(26 / 36)[:6]
+    # ... and both again as ODM's --camera-lens auto names them: the XMP ModelType
     assert list(odm) == [
         f"acme acme cam 2 320 180 brown {ratio}",
         f"acme cam 2 320 180 brown {ratio}",
+        f"acme acme cam 2 320 180 perspective {ratio}",
+        f"acme cam 2 320 180 perspective {ratio}",
     ]
+    assert all(v == odm[f"acme acme cam 2 320 180 brown {ratio}"] for v in odm.values())
     brown = odm[f"acme acme cam 2 320 180 brown {ratio}"]
     assert odm[f"acme cam 2 320 180 brown {ratio}"] == brown
     assert brown["focal_x"] * 320 == pytest.approx(calib["fx"], rel=1e-5)
@@ -503,6 +511,77 @@ def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_p
     assert 90 + brown["c_y"] * 320 == pytest.approx(calib["cy"] + 0.5, rel=1e-5)
     got = [brown[n] for n in ("k1", "k2", "p1", "p2", "k3")]
     assert got == pytest.approx(k, rel=1e-6)
+
+
+def test_a_fisheye_calibration_reaches_colmap_and_odm_as_fisheye(
+    kf_bin: Path, tmp_path: Path
+) -> None:
+    """cv::fisheye::calibrate's output as OpenCV's calibration sample writes it
+    (fisheye_model: 1, k1..k4): the keyframes say fisheye, COLMAP gets OPENCV_FISHEYE
+    and ODM fisheye_opencv with the same numbers, and a point COLMAP's camera projects
+    lands where OpenCV's fisheye model puts it; the ground footprint inverts the lens."""
+    import cv2
+    import numpy as np
+    import pycolmap
+    from keyframed.ground import _fisheye_ray, colmap_camera, odm_cameras, read_tags
+
+    fl = flight("nadir", width=320, height=180, seconds=2.0)
+    fx, fy, cx, cy = 101.5, 102.25, 158.75, 91.25
+    d = [0.043, -0.0121, 0.0034, -0.00052]
+    matrix = [fx, 0, cx, 0, fy, cy, 0, 0, 1]
+    (tmp_path / "fisheye.yaml").write_text(
+        "%YAML:1.0\n---\nimage_width: 320\nimage_height: 180\nfisheye_model: 1\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: {matrix}\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 4\n   cols: 1\n   dt: d\n"
+        f"   data: {d}\n"
+        'focal_length_mm: 1.8\nmake: "Acme"\nmodel: "Fish 1"\n'
+    )
+    out = tmp_path / "tagged"
+    select(kf_bin, fl / "video.avi", out, "--calibration", str(tmp_path / "fisheye.yaml"))
+    tags = read_tags(next(out.glob("*.jpg")).read_bytes())
+    assert tags.lens == "fisheye" and tags.calibrated
+    line = colmap_camera(tags)
+    assert line is not None
+    model, w, h, *params = line.split()[1:]
+    assert (model, w, h) == ("OPENCV_FISHEYE", "320", "180")
+    expected = [fx, fy, cx + 0.5, cy + 0.5, *d]
+    assert [float(v) for v in params] == pytest.approx(expected, rel=1e-5, abs=1e-8)
+
+    # COLMAP's camera and OpenCV's fisheye model agree on where points land, out to
+    # 75 degrees off the axis (COLMAP counts from the corner, OpenCV from the first
+    # pixel's centre: half a pixel apart).
+    cam = pycolmap.Camera(model=model, width=320, height=180, params=[float(v) for v in params])
+    rng = np.random.default_rng(7)
+    theta = rng.uniform(0.0, np.radians(75), 50)
+    phi = rng.uniform(-np.pi, np.pi, 50)
+    rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
+    colmap_px = cam.img_from_cam(rays)
+    k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    opencv_px, _ = cv2.fisheye.projectPoints(
+        rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), k, np.array(d)
+    )
+    assert np.abs(colmap_px - (opencv_px.reshape(-1, 2) + 0.5)).max() < 1e-3
+
+    # The footprint's ray for a pixel is the direction OpenCV projects there.
+    for ray, px in zip(rays[:10], opencv_px.reshape(-1, 2)[:10], strict=True):
+        back = _fisheye_ray((px[0] - cx) / fx, (px[1] - cy) / fy, d)
+        back = np.array(back) / np.linalg.norm(back)
+        assert np.degrees(np.arccos(np.clip(back @ ray, -1, 1))) < 0.01, (back, ray)
+
+    odm = odm_cameras(tags)
+    assert odm is not None
+    ratio = str(round(fx * 36 / 320) / 36)[:6]
+    assert list(odm) == [
+        f"acme fish 1 320 180 fisheye_opencv {ratio}",
+        f"acme fish 1 320 180 fisheye {ratio}",
+    ]
+    cam_json = odm[f"acme fish 1 320 180 fisheye_opencv {ratio}"]
+    assert cam_json["projection_type"] == "fisheye_opencv"
+    assert cam_json["focal_x"] * 320 == pytest.approx(fx, rel=1e-5)
+    assert 160 + cam_json["c_x"] * 320 == pytest.approx(cx + 0.5, rel=1e-5)
+    assert [cam_json[f"k{i}"] for i in range(1, 5)] == pytest.approx(d, rel=1e-6)
+    assert "p1" not in cam_json
 
 
 def test_an_uncalibrated_camera_gets_no_cameras_file(kf_bin: Path, tmp_path: Path) -> None:

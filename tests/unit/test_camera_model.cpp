@@ -196,7 +196,7 @@ TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
   EXPECT_NE(error.find("cannot open"), std::string::npos);
 }
 
-TEST(CameraModel, FisheyeCalibrationIsRefusedNotMisread) {
+TEST(CameraModel, FisheyeCalibrationReadsAsFisheye) {
   // OpenCV's calibration sample with a fisheye lens: k1-k4 of the equidistant model,
   // which taken as k1, k2, p1, p2 would tag every keyframe with a wrong lens.
   const fs::path p = tempDir() / "fisheye.yaml";
@@ -209,12 +209,30 @@ TEST(CameraModel, FisheyeCalibrationIsRefusedNotMisread) {
   }
   CameraModel m;
   std::string error;
-  EXPECT_FALSE(loadCameraModel(p.string(), m, error));
-  EXPECT_NE(error.find("fisheye"), std::string::npos) << error;
-  EXPECT_NE(error.find("fisheye.yaml"), std::string::npos) << error;
-  EXPECT_EQ(error.find('\n'), std::string::npos) << error;
+  ASSERT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+  EXPECT_EQ(m.lens, CameraModel::Lens::Fisheye);
+  EXPECT_EQ(m.distortion, (std::vector<double>{0.05, -0.01, 0.002, -0.0005}));
+  EXPECT_DOUBLE_EQ(m.fx, 600);
+  // Scaling keeps the lens and its (angle-based) distortion.
+  const CameraModel half = m.scaledTo(640, 360);
+  EXPECT_EQ(half.lens, CameraModel::Lens::Fisheye);
+  EXPECT_DOUBLE_EQ(half.fx, 300);
+  EXPECT_EQ(half.distortion, m.distortion);
 
-  // The same file from a pinhole calibration (fisheye_model: 0) reads.
+  // A fisheye has exactly k1..k4: five terms are a mistake, not a crop.
+  {
+    cv::FileStorage out(p.string(), cv::FileStorage::WRITE);
+    out << "image_width" << 1280 << "image_height" << 720;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << 600, 0, 640, 0, 600, 360, 0, 0, 1);
+    out << "distortion_coefficients" << (cv::Mat_<double>(5, 1) << 0.05, -0.01, 0, 0, 0.001);
+    out << "fisheye_model" << 1;
+  }
+  CameraModel five;
+  EXPECT_FALSE(loadCameraModel(p.string(), five, error));
+  EXPECT_NE(error.find("k1, k2, k3, k4"), std::string::npos) << error;
+  EXPECT_NE(error.find("fisheye.yaml"), std::string::npos) << error;
+
+  // The same file from a pinhole calibration (fisheye_model: 0) reads as a pinhole.
   {
     cv::FileStorage out(p.string(), cv::FileStorage::WRITE);
     out << "image_width" << 1280 << "image_height" << 720;
@@ -222,13 +240,38 @@ TEST(CameraModel, FisheyeCalibrationIsRefusedNotMisread) {
     out << "distortion_coefficients" << (cv::Mat_<double>(5, 1) << 0.05, -0.01, 0, 0, 0.001);
     out << "fisheye_model" << 0;
   }
-  EXPECT_TRUE(loadCameraModel(p.string(), m, error)) << error;
+  CameraModel pin;
+  EXPECT_TRUE(loadCameraModel(p.string(), pin, error)) << error;
+  EXPECT_EQ(pin.lens, CameraModel::Lens::Pinhole);
 
   const fs::path j = tempFile("fisheye.json", R"({"width": 960, "height": 540, "fx": 400,
-    "fy": 400, "cx": 480, "cy": 270, "model": "fisheye"})");
+    "fy": 400, "cx": 480, "cy": 270, "model": "fisheye", "distortion": [0.1, 0, 0, 0]})");
   CameraModel n;
-  EXPECT_FALSE(loadCameraModel(j.string(), n, error));
-  EXPECT_NE(error.find("\"fisheye\" is not supported"), std::string::npos) << error;
+  ASSERT_TRUE(loadCameraModel(j.string(), n, error)) << error;
+  EXPECT_EQ(n.lens, CameraModel::Lens::Fisheye);
+  const fs::path o = tempFile("omni.json", R"({"width": 960, "height": 540, "fx": 400,
+    "fy": 400, "cx": 480, "cy": 270, "model": "omnidirectional"})");
+  EXPECT_FALSE(loadCameraModel(o.string(), n, error));
+  EXPECT_NE(error.find("\"omnidirectional\" is not supported"), std::string::npos) << error;
+
+  const fs::path t = tempFile("fisheye.toml", R"([camera]
+lens = "fisheye"
+width = 1280
+height = 720
+fx = 600.0
+fy = 600.0
+cx = 640.0
+cy = 360.0
+distortion = [0.05, -0.01, 0.002, -0.0005]
+)");
+  CameraModel tm;
+  ASSERT_TRUE(loadCameraModel(t.string(), tm, error)) << error;
+  EXPECT_EQ(tm.lens, CameraModel::Lens::Fisheye);
+  const fs::path bad = tempFile("bad-lens.toml", "[camera]\nlens = \"fish\"\n");
+  EXPECT_FALSE(loadCameraModel(bad.string(), tm, error));
+  EXPECT_NE(error.find("bad-lens.toml:2: camera.lens must be \"pinhole\" or \"fisheye\""),
+            std::string::npos)
+      << error;
 }
 
 TEST(CameraModel, ScaledToKeepsTheFieldOfView) {

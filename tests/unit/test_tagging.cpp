@@ -159,6 +159,29 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   EXPECT_NEAR(number(j, "XMP-Camera:PerspectiveFocalLength"), 6.0, 1e-6);
 }
 
+TEST_F(TaggingTest, FisheyeLensReadByExiftool) {
+  // cv::fisheye's k1..k4 go as they are into keyframed's namespace, ModelType says
+  // fisheye, and none of the pinhole's Perspective* tags is written.
+  if (!haveExiftool()) GTEST_SKIP() << "exiftool not installed (Debian: libimage-exiftool-perl)";
+  CameraModel cam = calibratedCamera();
+  cam.lens = CameraModel::Lens::Fisheye;
+  cam.fx = cam.fy = 120.0;
+  cam.distortion = {0.031, -0.0072, 0.0011, -0.00019};
+  cam.focalLengthMm = NAN;
+  TagSet t;
+  t.camera = &cam;
+  const std::string j = tagAndRead(t, "fisheye.jpg");
+  EXPECT_EQ(field(j, "XMP-Camera:ModelType"), "fisheye") << j;
+  EXPECT_EQ(field(j, "XMP-Keyframed:FisheyeDistortion"), "0.031,-0.0072,0.0011,-0.00019") << j;
+  EXPECT_NEAR(number(j, "XMP-Keyframed:FisheyeFocalLength"), 120.0 * 6.4 / 320, 1e-6);
+  EXPECT_EQ(field(j, "XMP-Camera:PrincipalPoint"), "3.200000,2.400000");
+  EXPECT_EQ(field(j, "XMP-Camera:PerspectiveFocalLength"), "");
+  EXPECT_EQ(field(j, "XMP-Camera:PerspectiveDistortion"), "");
+  const std::string bytes(jpeg_.begin(), jpeg_.end());
+  EXPECT_NE(bytes.find("xmlns:Keyframed=\"https://github.com/keyframed/keyframed/xmp/1.0/\""),
+            std::string::npos);
+}
+
 TEST_F(TaggingTest, SouthWestAndBelowSeaLevel) {
   if (!haveExiftool()) GTEST_SKIP() << "exiftool not installed (Debian: libimage-exiftool-perl)";
   TagSet t;

@@ -22,13 +22,16 @@ down before the daemon restarted; those older than ``--earlier-flights`` seconds
   (EXIF GPS and XMP Pix4D tags: ODM, OpenSfM and Pix4D read these directly);
 - ``keyframes.jsonl``: the metadata of each, by flight (the time it started) and
   sequence number;
-- ``cameras.txt``: the camera in COLMAP's text format (OPENCV model, from the
-  calibration in the JPEG's XMP tags); absent when the keyframes carry no calibration
+- ``cameras.txt``: the camera in COLMAP's text format (OPENCV or FULL_OPENCV, or
+  OPENCV_FISHEYE for a fisheye lens, from the calibration in the JPEG's XMP tags);
+  absent when the keyframes carry no calibration
   (the summary says ``"calibrated": false``): EXIF's nominal focal length is no
   calibration, and a camera with zero distortion made of it would be held as one;
 - ``cameras.json``: the same camera for OpenDroneMap (``--camera-lens brown --cameras
-  cameras.json``), keyed by the camera id OpenDroneMap gives these images (and by
-  plain OpenSfM's, where that differs); absent with ``cameras.txt``;
+  cameras.json``, or ``fisheye_opencv`` for a fisheye), keyed by the camera id
+  OpenDroneMap gives these images (and by plain OpenSfM's, where that differs), with
+  that lens or with the one their XMP ModelType says (ODM's ``auto``); absent with
+  ``cameras.txt``;
 - ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``, the
   edges of the overlap graph: each keyframe with its neighbours along the flight and
   with those whose ground footprints (projected from position, camera attitude and
@@ -117,10 +120,13 @@ class ImageTags:
     pixels_per_mm: float | None = None  # from FocalPlaneXResolution
     pixels_per_mm_y: float | None = None  # from FocalPlaneYResolution (fy may differ)
     principal_mm: tuple[float, float] | None = None
-    distortion: list[float] = field(default_factory=list)  # Pix4D R1,R2,R3,T1,T2
-    # XMP PerspectiveFocalLength, PrincipalPoint and PerspectiveDistortion all given:
-    # the camera was calibrated (the daemon writes them only then), so focal_mm is
-    # the calibrated one, not EXIF's nominal lens
+    # Pix4D R1,R2,R3,T1,T2 (perspective), or OpenCV's fisheye k1..k4
+    distortion: list[float] = field(default_factory=list)
+    lens: str = "perspective"  # XMP ModelType: "perspective" or "fisheye"
+    # XMP PrincipalPoint with the lens's focal length and distortion (Pix4D's
+    # Perspective* or keyframed's Fisheye*) all given: the camera was calibrated (the
+    # daemon writes them only then), so focal_mm is the calibrated one, not EXIF's
+    # nominal lens
     calibrated: bool = False
     attitude: tuple[float, float, float] | None = None  # XMP Yaw, Pitch, Roll (Pix4D)
     make: str = ""
@@ -129,9 +135,9 @@ class ImageTags:
     focal_35mm: float | None = None  # FocalLengthIn35mmFilm
 
 
-def _xmp_value(xmp: str, name: str) -> str | None:
-    m = re.search(rf'Camera:{name}="([^"]*)"', xmp) or re.search(
-        rf"<Camera:{name}>([^<]*)</Camera:{name}>", xmp
+def _xmp_value(xmp: str, name: str, prefix: str = "Camera") -> str | None:
+    m = re.search(rf'{prefix}:{name}="([^"]*)"', xmp) or re.search(
+        rf"<{prefix}:{name}>([^<]*)</{prefix}:{name}>", xmp
     )
     return m.group(1) if m else None
 
@@ -193,10 +199,15 @@ def _read_tags(jpeg: bytes) -> ImageTags:
         if pp:
             x, y = (float(s) for s in pp.split(","))
             tags.principal_mm = (x, y)
-        fl = _xmp_value(xmp, "PerspectiveFocalLength")
+        if (_xmp_value(xmp, "ModelType") or "").lower() == "fisheye":
+            tags.lens = "fisheye"
+            fl = _xmp_value(xmp, "FisheyeFocalLength", "Keyframed")
+            dist = _xmp_value(xmp, "FisheyeDistortion", "Keyframed")
+        else:
+            fl = _xmp_value(xmp, "PerspectiveFocalLength")
+            dist = _xmp_value(xmp, "PerspectiveDistortion")
         if fl:
             tags.focal_mm = float(fl)
-        dist = _xmp_value(xmp, "PerspectiveDistortion")
         if dist:
             tags.distortion = [float(s) for s in dist.split(",")]
         tags.calibrated = bool(pp and fl and dist)
@@ -219,6 +230,8 @@ class Intrinsics:
     cy: float
     k: tuple[float, float, float]  # radial k1 k2 k3
     p: tuple[float, float]  # tangential p1 p2 (OpenCV's)
+    # OpenCV's fisheye model (cv::fisheye) k1..k4 instead of k and p when a fisheye
+    fisheye: tuple[float, float, float, float] | None = None
 
 
 def intrinsics(tags: ImageTags) -> Intrinsics | None:
@@ -235,6 +248,13 @@ def intrinsics(tags: ImageTags) -> Intrinsics | None:
     else:
         cx, cy = tags.width / 2.0, tags.height / 2.0
     r = (tags.distortion + [0.0] * 5)[:5]  # Pix4D R1 R2 R3 T1 T2 = k1 k2 k3 p1 p2
+    if tags.lens == "fisheye":
+        k = (tags.distortion + [0.0] * 4)[:4]
+        fx, fy = tags.focal_mm * tags.pixels_per_mm, tags.focal_mm * per_mm_y
+        no_k, no_p = (0.0, 0.0, 0.0), (0.0, 0.0)
+        return Intrinsics(
+            tags.width, tags.height, fx, fy, cx, cy, no_k, no_p, (k[0], k[1], k[2], k[3])
+        )
     return Intrinsics(
         tags.width,
         tags.height,
@@ -250,14 +270,17 @@ def intrinsics(tags: ImageTags) -> Intrinsics | None:
 def colmap_camera(tags: ImageTags) -> str | None:
     """One COLMAP camera line, or None when the tags do not give the intrinsics in
     pixels: OPENCV (fx fy cx cy k1 k2 p1 p2), or FULL_OPENCV (k3 to k6 after p2) when
-    the calibration has a k3. COLMAP puts the image's top-left corner at (0, 0), the
+    the calibration has a k3, or OPENCV_FISHEYE (fx fy cx cy k1 k2 k3 k4, OpenCV's
+    fisheye model) for a fisheye lens. COLMAP puts the image's top-left corner at (0, 0), the
     first pixel's centre at (0.5, 0.5): the principal point is the tags' distance from
     that corner (OpenCV's cx + 0.5), and the SIFT export counts the same way."""
     cam = intrinsics(tags)
     if cam is None:
         return None
     model, params = "OPENCV", [cam.fx, cam.fy, cam.cx, cam.cy, cam.k[0], cam.k[1], *cam.p]
-    if cam.k[2] != 0.0:
+    if cam.fisheye is not None:
+        model, params = "OPENCV_FISHEYE", [cam.fx, cam.fy, cam.cx, cam.cy, *cam.fisheye]
+    elif cam.k[2] != 0.0:
         model, params = "FULL_OPENCV", params + [cam.k[2], 0.0, 0.0, 0.0]
     return f"1 {model} {cam.width} {cam.height} " + " ".join(f"{p:.9g}" for p in params)
 
@@ -295,35 +318,38 @@ def opensfm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
 
 def odm_cameras(tags: ImageTags) -> dict[str, Any] | None:
     """OpenDroneMap's cameras.json (``--camera-lens brown --cameras cameras.json``):
-    the calibration as OpenSfM's Brown-Conrady model, normalised by the image's longer
-    side with the principal point as an offset from the centre; the distortion
-    coefficients are OpenCV's (the same polynomial). Keyed by ODM's camera id first,
-    which ODM looks the images' camera up by; when plain OpenSfM's id differs (a make
-    repeated in the model), the same camera again under that one: ODM ignores a key
-    no image has. None without the calibration or the tags the id is made of."""
+    the calibration as OpenSfM's Brown-Conrady model (``fisheye_opencv``, OpenCV's
+    fisheye model, for a fisheye lens: ``--camera-lens fisheye_opencv``), normalised by
+    the image's longer side with the principal point as an offset from the centre; the
+    distortion coefficients are OpenCV's (the same polynomials). Keyed by ODM's camera
+    id first, which ODM looks the images' camera up by; when plain OpenSfM's id differs
+    (a make repeated in the model), the same camera again under that one; then both
+    again with the projection the images' XMP ModelType names ("perspective",
+    "fisheye"), which is what ODM's default ``--camera-lens auto`` puts in the id. ODM
+    ignores a key no image has. None without the calibration or the tags the id is
+    made of."""
     cam = intrinsics(tags)
-    camera_id = odm_camera_id(tags)
-    if cam is None or camera_id is None:
+    if cam is None or odm_camera_id(tags) is None:
         return None
     size = float(max(cam.width, cam.height))
-    brown = {
-        "projection_type": "brown",
+    model: dict[str, Any] = {
+        "projection_type": "brown" if cam.fisheye is None else "fisheye_opencv",
         "width": cam.width,
         "height": cam.height,
         "focal_x": cam.fx / size,
         "focal_y": cam.fy / size,
         "c_x": (cam.cx - cam.width / 2.0) / size,
         "c_y": (cam.cy - cam.height / 2.0) / size,
-        "k1": cam.k[0],
-        "k2": cam.k[1],
-        "p1": cam.p[0],
-        "p2": cam.p[1],
-        "k3": cam.k[2],
     }
-    out: dict[str, Any] = {camera_id: brown}
-    opensfm_id = opensfm_camera_id(tags)
-    if opensfm_id is not None and opensfm_id != camera_id:
-        out[opensfm_id] = dict(brown)
+    if cam.fisheye is None:
+        model |= {"k1": cam.k[0], "k2": cam.k[1], "p1": cam.p[0], "p2": cam.p[1], "k3": cam.k[2]}
+    else:
+        model |= {f"k{i + 1}": v for i, v in enumerate(cam.fisheye)}
+    out: dict[str, Any] = {}
+    for projection in (model["projection_type"], tags.lens):
+        for camera_id in (odm_camera_id(tags, projection), opensfm_camera_id(tags, projection)):
+            if camera_id is not None and camera_id not in out:
+                out[camera_id] = dict(model)
     return out
 
 
@@ -366,11 +392,35 @@ def footprint(
         cx, cy = (v * tags.pixels_per_mm for v in tags.principal_mm)
     out = []
     for u, v in ((0, 0), (tags.width, 0), (tags.width, tags.height), (0, tags.height)):
-        dn, de, dd = _rotate(cam_q, ((u - cx) / f, (v - cy) / f, 1.0))
+        ray = ((u - cx) / f, (v - cy) / f, 1.0)
+        if tags.lens == "fisheye":
+            ray = _fisheye_ray(ray[0], ray[1], tags.distortion)
+        dn, de, dd = _rotate(cam_q, ray)
         if dd < 0.05 * math.hypot(dn, de, dd):  # within ~3 degrees of the horizon
             return None
         out.append((north_east[0] + dn * height / dd, north_east[1] + de * height / dd))
     return out
+
+
+def _fisheye_ray(x: float, y: float, k: list[float]) -> tuple[float, float, float]:
+    """The direction (OpenCV camera axes) of a fisheye pixel at (x, y) focal lengths
+    from the principal point: OpenCV's model puts it at distorted angle
+    theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8) from the axis; theta by Newton."""
+    theta_d = math.hypot(x, y)
+    if theta_d == 0.0:
+        return (0.0, 0.0, 1.0)
+    c = (k + [0.0] * 4)[:4]
+    theta = theta_d
+    for _ in range(20):
+        t2 = theta * theta
+        poly = 1 + t2 * (c[0] + t2 * (c[1] + t2 * (c[2] + t2 * c[3])))
+        slope = 1 + t2 * (3 * c[0] + t2 * (5 * c[1] + t2 * (7 * c[2] + t2 * 9 * c[3])))
+        step = (theta * poly - theta_d) / slope if slope > 1e-9 else 0.0
+        theta -= step
+        if abs(step) < 1e-12:
+            break
+    s = math.sin(theta) / theta_d
+    return (x * s, y * s, math.cos(theta))
 
 
 def _area(poly: list[tuple[float, float]]) -> float:
@@ -439,7 +489,7 @@ def image_pairs(
         if h is None:
             continue
         east, north = _local_xy(tags[i].lat or 0.0, tags[i].lon or 0.0, lat0, lon0)
-        q = cam_q[i] if cam_q is not None and cam_q[i] else nadir
+        q = (cam_q[i] if cam_q is not None else None) or nadir
         poly = footprint((north, east), h, q, tags[i])
         if poly is not None:
             polys[i] = poly
