@@ -17,7 +17,8 @@ install(DIRECTORY DESTINATION "${KEYFRAMED_CONFIG_DIR}/conf.d")
 install(FILES README.md docs/configuration.md docs/design.md docs/formats.md docs/performance.md
               docs/deploy.md docs/capture.md
         DESTINATION "${CMAKE_INSTALL_DOCDIR}")
-install(FILES config/camera-example.yaml DESTINATION "${CMAKE_INSTALL_DOCDIR}/examples")
+install(FILES config/camera-example.yaml config/camera-fisheye-example.yaml
+        DESTINATION "${CMAKE_INSTALL_DOCDIR}/examples")
 
 # Debian package.
 set(CPACK_GENERATOR DEB)

@@ -256,6 +256,12 @@ class Daemon {
   std::atomic<bool> stopAnalysis_{false};
   std::mutex reloadMutex_;
   std::optional<SelectorConfig> pendingSelection_;
+  // The selection settings with the calibrated lens, which the overlap is measured
+  // through (geometric mode).
+  SelectorConfig throughLens(SelectorConfig selection) const {
+    if (camera_) selection.overlap.lens = camera_->lensModel();
+    return selection;
+  }
   CaptureRequests captureRequests_;  // MAVLink (telemetry thread) -> analysis
   StageCounts finalCounts_;
   std::unique_ptr<PreviewEncoder> preview_;  // made once the source's frame rate is known
@@ -430,7 +436,7 @@ void Daemon::reload() {
       // A reload for [log], or none at all: the overlap chain goes on.
       KF_LOG(Select, Notice) << "reload: selection settings unchanged";
     } else {
-      pendingSelection_ = r.config.selection;
+      pendingSelection_ = throughLens(r.config.selection);
       config_.selection = r.config.selection;
       outputs_.settings(frameClockNowNs(), settings);
     }
@@ -691,7 +697,8 @@ int Daemon::run() {
   }
   MonotonicClock clock;
   stage_ = std::make_unique<KeyframeStage>(
-      config_.selection, &clock, [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
+      throughLens(config_.selection), &clock,
+      [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
   output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
                                              config_.telemetry.waitMs,
                                              config_.telemetry.link.decoder.store);

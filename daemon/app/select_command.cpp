@@ -315,7 +315,10 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   bool outputFailed = false;
 
   MonotonicClock clock;
-  KeyframeStage stage(opts.selector, &clock, [&](KeyframeEvent&& ev) {
+  // The geometric overlap is measured through the calibrated lens.
+  SelectorConfig selector = opts.selector;
+  if (camera) selector.overlap.lens = camera->lensModel();
+  KeyframeStage stage(selector, &clock, [&](KeyframeEvent&& ev) {
     if (!outputFailed && !output.handle(ev, error)) {
       outputFailed = true;
       s.error = error;

@@ -10,6 +10,10 @@ namespace keyframed {
 namespace {
 constexpr int kGridCols = 16;
 constexpr int kGridRows = 9;
+// The sample grid that measures overlap through a lens: one point per cell of a
+// 48 x 27 grid (0.08 % of the image each).
+constexpr int kSampleCols = 48;
+constexpr int kSampleRows = 27;
 
 // Largest displacement of the image corners and centre under a step homography.
 double stepMotion(const cv::Matx33d& h, cv::Size size) {
@@ -39,6 +43,9 @@ GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
   curPts_.reserve(n);
   goodPrev_.reserve(n);
   goodCur_.reserve(n);
+  idealPrev_.reserve(n);
+  idealCur_.reserve(n);
+  sampleIdeal_.reserve(kSampleCols * kSampleRows);
   status_.reserve(n);
   inlierMask_.reserve(n);
   keypoints_.reserve(8192);
@@ -52,6 +59,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
     haveReference_ = false;
     haveCandidate_ = false;
     prevPts_.clear();
+    prepareLens();
   }
   curPyr_.build(gray, config_.lkLevels, config_.lkWindow);
 
@@ -73,16 +81,36 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
         goodCur_.push_back(p);
       }
     }
+    if (lens_.active()) {
+      // Homographies hold between ideal pixels: undistort both ends, and drop the
+      // pairs the lens maps no ideal point for.
+      idealPrev_.clear();
+      idealCur_.clear();
+      std::size_t kept = 0;
+      for (std::size_t i = 0; i < goodCur_.size(); ++i) {
+        cv::Point2d a, b;
+        if (!lens_.undistort(goodPrev_[i], a) || !lens_.undistort(goodCur_[i], b)) continue;
+        goodPrev_[kept] = goodPrev_[i];
+        goodCur_[kept] = goodCur_[i];
+        ++kept;
+        idealPrev_.emplace_back(static_cast<float>(a.x), static_cast<float>(a.y));
+        idealCur_.emplace_back(static_cast<float>(b.x), static_cast<float>(b.y));
+      }
+      goodPrev_.resize(kept);
+      goodCur_.resize(kept);
+    }
     lastTracked_ = static_cast<int>(goodCur_.size());
     if (lastTracked_ >= config_.minInliers) {
-      const HomographyFit fit = ransac_.fit(goodPrev_, goodCur_, config_.ransacPixels, inlierMask_);
+      const HomographyFit fit =
+          lens_.active() ? ransac_.fit(idealPrev_, idealCur_, config_.ransacPixels, inlierMask_)
+                         : ransac_.fit(goodPrev_, goodCur_, config_.ransacPixels, inlierMask_);
       if (fit.ok) {
         curPts_.clear();
         for (std::size_t i = 0; i < goodCur_.size(); ++i)
           if (inlierMask_[i]) curPts_.push_back(goodCur_[i]);
         lastInliers_ = static_cast<int>(curPts_.size());
         if (lastInliers_ >= config_.minInliers) {
-          lastMotion_ = stepMotion(fit.h, size_);
+          lastMotion_ = lens_.active() ? lensMotion(fit.h) : stepMotion(fit.h, size_);
           refToCur_ = fit.h * refToCur_;
           refToCur_ *= 1.0 / refToCur_(2, 2);
           tracked = true;
@@ -114,12 +142,70 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
 OverlapResult GeometricOverlap::overlapNow() const {
   OverlapResult r;
   if (!haveReference_) return r;
-  cv::Matx33d curToRef = refToCur_.inv();
-  const double f = visibleFraction(curToRef, size_.width, size_.height);
+  const double f = lens_.active() ? lensVisibleFraction(refToCur_)
+                                  : visibleFraction(refToCur_.inv(), size_.width, size_.height);
   if (f < 0.0) return r;  // degenerate mapping: treat as lost
   r.valid = true;
   r.overlap = std::clamp(f, 0.0, 1.0);
   return r;
+}
+
+void GeometricOverlap::prepareLens() {
+  lens_ = config_.lens.active() ? config_.lens.scaledTo(size_.width, size_.height) : LensModel{};
+  sampleIdeal_.clear();
+  if (!lens_.active()) return;
+  const double reach = lens_.monotonicRadius();
+  lensReach2_ = reach * reach;
+  const double cw = static_cast<double>(size_.width) / kSampleCols;
+  const double ch = static_cast<double>(size_.height) / kSampleRows;
+  for (int row = 0; row < kSampleRows; ++row) {
+    for (int col = 0; col < kSampleCols; ++col) {
+      // Cell centres, in OpenCV's pixel-centre coordinates.
+      const cv::Point2d p((col + 0.5) * cw - 0.5, (row + 0.5) * ch - 0.5);
+      cv::Point2d ideal;
+      if (lens_.undistort(p, ideal)) sampleIdeal_.push_back(ideal);
+    }
+  }
+}
+
+// The largest displacement, in image pixels, of the image's corners and centre under
+// a step homography between ideal pixels: the measure stepMotion() takes without a
+// lens. A point the lens maps no ideal point for is left out.
+double GeometricOverlap::lensMotion(const cv::Matx33d& h) const {
+  const double w = size_.width, hh = size_.height;
+  const cv::Point2d pts[5] = {{0, 0}, {w, 0}, {w, hh}, {0, hh}, {w / 2, hh / 2}};
+  double worst = 0.0;
+  for (const cv::Point2d& p : pts) {
+    cv::Point2d ideal;
+    if (!lens_.undistort(p, ideal)) continue;
+    const cv::Vec3d v = h * cv::Vec3d(ideal.x, ideal.y, 1.0);
+    if (!(v[2] > 1e-9)) return std::numeric_limits<double>::infinity();
+    const cv::Point2d q = lens_.distort({v[0] / v[2], v[1] / v[2]});
+    worst = std::max(worst, std::hypot(q.x - p.x, q.y - p.y));
+  }
+  return worst;
+}
+
+// The share of the reference's sample points that the current image shows: each
+// one's ideal pixel carried by the homography, drawn back through the lens, inside
+// the image. Negative (lost) when the mapping folds the image over.
+double GeometricOverlap::lensVisibleFraction(const cv::Matx33d& refToCur) const {
+  if (sampleIdeal_.empty() || !(cv::determinant(refToCur) > 0.0)) return -1.0;
+  const double w = size_.width, h = size_.height;
+  int visible = 0;
+  for (const cv::Point2d& p : sampleIdeal_) {
+    const cv::Vec3d v = refToCur * cv::Vec3d(p.x, p.y, 1.0);
+    if (!(v[2] > 1e-9)) continue;  // behind the camera
+    const cv::Point2d ideal(v[0] / v[2], v[1] / v[2]);
+    // A distortion polynomial folds back far outside the calibrated field: a point
+    // that would land inside the image only that way is not seen.
+    const double nx = (ideal.x - lens_.cx) / lens_.fx;
+    const double ny = (ideal.y - lens_.cy) / lens_.fy;
+    if (!(nx * nx + ny * ny < lensReach2_)) continue;
+    const cv::Point2d q = lens_.distort(ideal);
+    if (q.x >= -0.5 && q.y >= -0.5 && q.x < w - 0.5 && q.y < h - 0.5) ++visible;
+  }
+  return static_cast<double>(visible) / static_cast<double>(sampleIdeal_.size());
 }
 
 void GeometricOverlap::replenish(GrayView gray) {

@@ -31,6 +31,10 @@ class GeometricOverlap final : public OverlapEstimator {
  private:
   void replenish(GrayView gray);
   OverlapResult overlapNow() const;
+  // Through a lens: the ideal pixels of the sample grid, and the step's motion.
+  void prepareLens();
+  double lensMotion(const cv::Matx33d& h) const;
+  double lensVisibleFraction(const cv::Matx33d& refToCur) const;
 
   OverlapConfig config_;
   cv::Size size_;
@@ -41,6 +45,11 @@ class GeometricOverlap final : public OverlapEstimator {
   std::vector<cv::Point2f> curPts_;
   std::vector<cv::Point2f> goodPrev_;
   std::vector<cv::Point2f> goodCur_;
+  LensModel lens_;                      // config_.lens at the analysis size
+  std::vector<cv::Point2f> idealPrev_;  // goodPrev_/goodCur_ undistorted
+  std::vector<cv::Point2f> idealCur_;
+  std::vector<cv::Point2d> sampleIdeal_;  // the reference's sample grid, ideal pixels
+  double lensReach2_ = 0.0;               // lens_.monotonicRadius() squared
   std::vector<unsigned char> status_;
   std::vector<unsigned char> inlierMask_;
   std::vector<cv::KeyPoint> keypoints_;

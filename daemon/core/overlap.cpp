@@ -21,7 +21,7 @@ std::string OverlapConfig::validate() const {
   if (fastThreshold < 1 || fastThreshold > 200) return "FAST threshold must be 1..200";
   if (lkWindow < 5 || lkWindow > 61) return "LK window must be 5..61";
   if (lkLevels < 0 || lkLevels > 6) return "LK pyramid levels must be 0..6";
-  return {};
+  return lens.invalidReason();
 }
 
 std::unique_ptr<OverlapEstimator> OverlapEstimator::create(const OverlapConfig& config) {

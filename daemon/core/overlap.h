@@ -5,6 +5,7 @@
 #include <string>
 
 #include "core/frame.h"
+#include "core/lens.h"
 
 namespace keyframed {
 
@@ -29,6 +30,11 @@ struct OverlapConfig {
   int fastThreshold = 20;
   int lkWindow = 13;
   int lkLevels = 3;
+  // The camera's lens (geometric mode): when set, tracked points are undistorted
+  // before the homography is fitted, and the overlap is the share of the reference
+  // image's pixels that land inside the current image through the lens. Scaled to
+  // the analysis size. None: pixels are taken as a distortion-free pinhole's.
+  LensModel lens;
 
   [[nodiscard]] std::string validate() const;
 };

@@ -67,6 +67,27 @@ std::string CameraModel::physicalSizeWarning() const {
          "exact focal need them); add either";
 }
 
+LensModel CameraModel::lensModel() const {
+  LensModel out;
+  const bool distorted =
+      std::any_of(distortion.begin(), distortion.end(), [](double d) { return d != 0.0; });
+  if (!calibrated() || (lens == Lens::Pinhole && !distorted)) return out;
+  out.kind = lens == Lens::Fisheye ? LensModel::Kind::Fisheye : LensModel::Kind::Pinhole;
+  out.width = width;
+  out.height = height;
+  out.fx = fx;
+  out.fy = fy;
+  out.cx = cx;
+  out.cy = cy;
+  if (lens == Lens::Fisheye) {
+    for (std::size_t i = 0; i < 4 && i < distortion.size(); ++i) out.k[i] = distortion[i];
+  } else {
+    // OpenCV's k1, k2, p1, p2[, k3], the order LensModel keeps.
+    for (std::size_t i = 0; i < 5 && i < distortion.size(); ++i) out.k[i] = distortion[i];
+  }
+  return out;
+}
+
 namespace {
 
 bool endsWith(const std::string& s, const std::string& suffix) {

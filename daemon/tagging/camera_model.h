@@ -4,6 +4,8 @@
 #include <string>
 #include <vector>
 
+#include "core/lens.h"
+
 namespace keyframed {
 
 // What is known about the camera: identity, pinhole intrinsics in pixels (OpenCV
@@ -50,6 +52,9 @@ struct CameraModel {
   // "" unless the calibration is in pixels only (no sensor size, no focal length in
   // mm): then the tags cannot carry the principal point and the focal length in mm.
   [[nodiscard]] std::string physicalSizeWarning() const;
+  // The lens as the overlap analysis takes it: none unless calibrated with a fisheye
+  // or a non-zero distortion (a distortion-free pinhole changes no homography).
+  [[nodiscard]] LensModel lensModel() const;
 };
 
 // Reads a camera model from:

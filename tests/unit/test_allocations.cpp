@@ -35,8 +35,11 @@ struct Count {
 };
 
 // Allocations over frames [warmup, end) of the pan.
-Count steadyStateAllocations(const std::vector<cv::Mat>& frames, int warmup) {
-  KeyframeSelector sel;  // default settings: geometric, 640 px analysis
+Count steadyStateAllocations(const std::vector<cv::Mat>& frames, int warmup,
+                             const LensModel& lens = {}) {
+  SelectorConfig config;  // default settings: geometric, 640 px analysis
+  config.overlap.lens = lens;
+  KeyframeSelector sel(config);
   Count c;
   for (int i = 0; i < static_cast<int>(frames.size()); ++i) {
     const cv::Mat& m = frames[static_cast<std::size_t>(i)];
@@ -74,6 +77,22 @@ TEST(Allocations, NonePerFrameInSteadyStateGeometricGrey) {
   const auto frames = pan1080(150, false);
   const Count c = steadyStateAllocations(frames, 30);
   EXPECT_GE(c.keyframes, 3) << "the pan must make keyframes while counting";
+  EXPECT_EQ(c.allocations, 0u);
+}
+
+TEST(Allocations, NonePerFrameInSteadyStateThroughALens) {
+  // A calibrated wide-angle lens: points undistorted, overlap sampled through it.
+  LensModel lens;
+  lens.kind = LensModel::Kind::Pinhole;
+  lens.width = 1920;
+  lens.height = 1080;
+  lens.fx = lens.fy = 1400;
+  lens.cx = 959.5;
+  lens.cy = 539.5;
+  lens.k = {-0.12, 0.04, 0.0, 0.0, 0.0};
+  const auto frames = pan1080(150, false);
+  const Count c = steadyStateAllocations(frames, 30, lens);
+  EXPECT_GE(c.keyframes, 3);
   EXPECT_EQ(c.allocations, 0u);
 }
 

@@ -108,6 +108,16 @@ TEST(CameraModel, ReadsTheShippedExample) {
   EXPECT_EQ(m.make, "ExampleCam");
   EXPECT_DOUBLE_EQ(m.focalLengthMm, 4.41);
   EXPECT_DOUBLE_EQ(m.sensorHeightMm, 3.47);
+  EXPECT_EQ(m.lens, CameraModel::Lens::Pinhole);
+
+  CameraModel f;
+  ASSERT_TRUE(loadCameraModel(KEYFRAMED_SOURCE_DIR "/config/camera-fisheye-example.yaml", f, error))
+      << error;
+  EXPECT_EQ(f.lens, CameraModel::Lens::Fisheye);
+  EXPECT_EQ(f.distortion.size(), 4u);
+  EXPECT_EQ(f.lensModel().kind, LensModel::Kind::Fisheye);
+  EXPECT_STREQ(f.lensModel().invalidReason(), "");
+  EXPECT_EQ(m.lensModel().kind, LensModel::Kind::Pinhole);  // its k1..k3 are not zero
 }
 
 TEST(CameraModel, ReadsSynthIntrinsicsJson) {

@@ -1,0 +1,135 @@
+#include "core/lens.h"
+
+#include <cmath>
+#include <limits>
+#include <numbers>
+
+namespace keyframed {
+namespace {
+
+// Largest field angle a fisheye pixel may have and still be an ideal pixel: tan()
+// grows without bound towards 90 degrees, and so would the homography's leverage.
+constexpr double kMaxFisheyeTheta = 80.0 * std::numbers::pi / 180.0;
+
+// theta * (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8) and its derivative.
+double fisheyeTheta(double theta, const std::array<double, 5>& k, double* slope) {
+  const double t2 = theta * theta;
+  const double poly = 1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])));
+  if (slope != nullptr) {
+    *slope = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])));
+  }
+  return theta * poly;
+}
+
+// Brown-Conrady on normalised coordinates.
+cv::Point2d brown(cv::Point2d p, const std::array<double, 5>& k) {
+  const double r2 = p.x * p.x + p.y * p.y;
+  const double radial = 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]));
+  return {p.x * radial + 2 * k[2] * p.x * p.y + k[3] * (r2 + 2 * p.x * p.x),
+          p.y * radial + k[2] * (r2 + 2 * p.y * p.y) + 2 * k[3] * p.x * p.y};
+}
+
+}  // namespace
+
+LensModel LensModel::scaledTo(int w, int h) const {
+  LensModel out = *this;
+  if (width <= 0 || height <= 0 || (w == width && h == height)) return out;
+  const double sx = static_cast<double>(w) / width;
+  const double sy = static_cast<double>(h) / height;
+  out.width = w;
+  out.height = h;
+  out.fx = fx * sx;
+  out.fy = fy * sy;
+  out.cx = (cx + 0.5) * sx - 0.5;
+  out.cy = (cy + 0.5) * sy - 0.5;
+  return out;
+}
+
+bool LensModel::undistort(cv::Point2d pixel, cv::Point2d& ideal) const {
+  if (kind == Kind::None) {
+    ideal = pixel;
+    return true;
+  }
+  const cv::Point2d d((pixel.x - cx) / fx, (pixel.y - cy) / fy);
+  cv::Point2d n = d;
+  if (kind == Kind::Fisheye) {
+    const double thetaD = std::hypot(d.x, d.y);
+    if (thetaD > 1e-12) {
+      double theta = thetaD;
+      for (int i = 0; i < 20; ++i) {
+        double slope = 0;
+        const double err = fisheyeTheta(theta, k, &slope) - thetaD;
+        if (!(slope > 1e-6)) return false;  // the polynomial turns back: no inverse
+        theta -= err / slope;
+        if (std::fabs(err) < 1e-12) break;
+      }
+      if (!(theta >= 0.0 && theta < kMaxFisheyeTheta)) return false;
+      const double s = std::tan(theta) / thetaD;
+      n = {d.x * s, d.y * s};
+    }
+  } else {
+    // Fixed-point iteration (as cv::undistortPoints), then a check that it converged.
+    for (int i = 0; i < 20; ++i) {
+      const cv::Point2d b = brown(n, k);
+      n = {n.x + (d.x - b.x), n.y + (d.y - b.y)};
+    }
+    const cv::Point2d back = brown(n, k);
+    if (!(std::hypot((back.x - d.x) * fx, (back.y - d.y) * fy) < 0.05)) return false;
+  }
+  ideal = {n.x * fx + cx, n.y * fy + cy};
+  return std::isfinite(ideal.x) && std::isfinite(ideal.y);
+}
+
+cv::Point2d LensModel::distort(cv::Point2d ideal) const {
+  if (kind == Kind::None) return ideal;
+  const cv::Point2d n((ideal.x - cx) / fx, (ideal.y - cy) / fy);
+  cv::Point2d d = n;
+  if (kind == Kind::Fisheye) {
+    const double r = std::hypot(n.x, n.y);
+    if (r > 1e-12) {
+      const double s = fisheyeTheta(std::atan(r), k, nullptr) / r;
+      d = {n.x * s, n.y * s};
+    }
+  } else {
+    d = brown(n, k);
+  }
+  return {d.x * fx + cx, d.y * fy + cy};
+}
+
+double LensModel::monotonicRadius() const {
+  if (kind == Kind::None) return std::numeric_limits<double>::infinity();
+  if (kind == Kind::Fisheye) {
+    // The first angle where theta_d stops growing, at most 80 degrees.
+    double limit = kMaxFisheyeTheta;
+    for (double theta = 0.0; theta < kMaxFisheyeTheta; theta += 0.001) {
+      double slope = 0;
+      fisheyeTheta(theta, k, &slope);
+      if (!(slope > 0.0)) {
+        limit = theta;
+        break;
+      }
+    }
+    return std::tan(limit);
+  }
+  // d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6) = 1 + 3 k1 r^2 + 5 k2 r^4 + 7 k3 r^6.
+  for (double r = 0.0; r < 10.0; r += 0.001) {
+    const double r2 = r * r;
+    if (!(1 + r2 * (3 * k[0] + r2 * (5 * k[1] + r2 * 7 * k[4])) > 0.0)) return r;
+  }
+  return 10.0;  // about 84 degrees off the axis: further than any pinhole lens sees
+}
+
+const char* LensModel::invalidReason() const {
+  if (kind == Kind::None) return "";
+  if (width <= 0 || height <= 0) return "lens: image size missing";
+  if (!(fx > 0 && fy > 0 && std::isfinite(fx) && std::isfinite(fy))) {
+    return "lens: focal lengths must be > 0";
+  }
+  if (!(std::isfinite(cx) && std::isfinite(cy))) return "lens: principal point must be finite";
+  for (double v : k) {
+    if (!std::isfinite(v)) return "lens: distortion terms must be finite";
+  }
+  return "";
+}
+
+}  // namespace keyframed
