@@ -56,13 +56,15 @@ bool LensModel::undistort(cv::Point2d pixel, cv::Point2d& ideal) const {
     const double thetaD = std::hypot(d.x, d.y);
     if (thetaD > 1e-12) {
       double theta = thetaD;
-      for (int i = 0; i < 20; ++i) {
+      double err = 1.0;
+      for (int i = 0; i < 20 && std::fabs(err) > 1e-12; ++i) {
         double slope = 0;
-        const double err = fisheyeTheta(theta, k, &slope) - thetaD;
+        err = fisheyeTheta(theta, k, &slope) - thetaD;
         if (!(slope > 1e-6)) return false;  // the polynomial turns back: no inverse
         theta -= err / slope;
-        if (std::fabs(err) < 1e-12) break;
       }
+      // Not converged (a far-off start on a strong polynomial), or out of reach.
+      if (!(std::fabs(fisheyeTheta(theta, k, nullptr) - thetaD) < 1e-9)) return false;
       if (!(theta >= 0.0 && theta < kMaxFisheyeTheta)) return false;
       const double s = std::tan(theta) / thetaD;
       n = {d.x * s, d.y * s};

@@ -106,6 +106,7 @@ def test_overlap_is_measured_through_the_fisheye_lens(
     calib = fisheye_flight / "fisheye.yaml"
     with_lens = _keyframes(kf_bin, video, tmp_path / "lens", "--calibration", str(calib))
     without = _keyframes(kf_bin, video, tmp_path / "raw")
+    assert len(with_lens) >= 5 and len(without) >= 2, (with_lens, without)
     pairs = [_seen(rays, a, b) for a, b in zip(with_lens, with_lens[1:], strict=False)]
     raw_pairs = [_seen(rays, a, b) for a, b in zip(without, without[1:], strict=False)]
     print(
@@ -115,8 +116,7 @@ def test_overlap_is_measured_through_the_fisheye_lens(
     )
     print("through the lens", [round(p, 3) for p in pairs])
     print("without", [round(p, 3) for p in raw_pairs])
-    # 128 m flown, about 20 m between keyframes.
-    assert len(with_lens) >= 5
+    # 128 m flown, about 20 m between keyframes (asserted above).
     # The last keyframe may close the flight early; the others are at the target.
     assert all(abs(p - 0.70) < 0.025 for p in pairs[:-1]), pairs
     assert all(0.60 <= p for p in pairs), pairs

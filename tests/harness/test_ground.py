@@ -9,6 +9,7 @@ makes of the dataset, exiftool's values through the JPEG bytes."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import subprocess
 import sys
@@ -523,7 +524,14 @@ def test_a_fisheye_calibration_reaches_colmap_and_odm_as_fisheye(
     import cv2
     import numpy as np
     import pycolmap
-    from keyframed.ground import _fisheye_ray, colmap_camera, odm_cameras, read_tags
+    from keyframed.ground import (
+        _area,
+        _fisheye_ray,
+        colmap_camera,
+        footprint,
+        odm_cameras,
+        read_tags,
+    )
 
     fl = flight("nadir", width=320, height=180, seconds=2.0)
     fx, fy, cx, cy = 101.5, 102.25, 158.75, 91.25
@@ -568,6 +576,34 @@ def test_a_fisheye_calibration_reaches_colmap_and_odm_as_fisheye(
         back = _fisheye_ray((px[0] - cx) / fx, (px[1] - cy) / fy, d)
         back = np.array(back) / np.linalg.norm(back)
         assert np.degrees(np.arccos(np.clip(back @ ray, -1, 1))) < 0.01, (back, ray)
+
+    # A nadir footprint 30 m up has the area of the image's outline on the ground,
+    # traced densely through OpenCV's model. This lens sees past the horizon at its
+    # corners (104 degrees off the axis): no footprint. At twice the focal length
+    # (corners 52 degrees off) the footprint's area is the outline's.
+    nadir = [np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)]
+    assert footprint((0.0, 0.0), 30.0, nadir, tags) is None
+    assert tags.focal_mm is not None
+    long_lens = dataclasses.replace(tags, focal_mm=2 * tags.focal_mm)
+    k2 = np.array([[2 * fx, 0, cx], [0, 2 * fy, cy], [0, 0, 1]])
+    edge = np.linspace(0.0, 1.0, 200, endpoint=False)
+    zero = 0 * edge
+    outline = np.concatenate(
+        [
+            np.stack([edge * 320, zero], 1),
+            np.stack([320 + zero, edge * 180], 1),
+            np.stack([320 - edge * 320, 180 + zero], 1),
+            np.stack([zero, 180 - edge * 180], 1),
+        ]
+    )
+    rays = cv2.fisheye.undistortPoints((outline - 0.5).reshape(-1, 1, 2), k2, np.array(d))
+    truth = 30.0**2 * _area([(float(x), float(y)) for x, y in rays.reshape(-1, 2)])
+    poly = footprint((0.0, 0.0), 30.0, nadir, long_lens)
+    assert poly is not None
+    assert _area(poly) == pytest.approx(truth, rel=0.03)
+    # Its four corners alone would take in much more ground than the lens shows.
+    corners = [poly[0], poly[8], poly[16], poly[24]]
+    assert _area(corners) > 1.2 * truth
 
     odm = odm_cameras(tags)
     assert odm is not None

@@ -382,19 +382,34 @@ def footprint(
 ) -> list[tuple[float, float]] | None:
     """The image's outline on flat ground ``height`` metres below the camera, as a
     polygon of (north, east) metres: each corner's ray (OpenCV camera axes, turned to
-    NED by ``cam_q``) meets the ground. None when a corner looks at or above the
-    horizon (no bounded footprint) or the intrinsics are unknown."""
+    NED by ``cam_q``) meets the ground. A fisheye's straight image edges are curved
+    lines on the ground: 8 points along each edge, through the lens. None when a
+    corner looks at or above the horizon (no bounded footprint) or the intrinsics are
+    unknown."""
     if not (tags.focal_mm and tags.pixels_per_mm and tags.width and tags.height) or height <= 0:
         return None
-    f = tags.focal_mm * tags.pixels_per_mm
+    per_mm_y = tags.pixels_per_mm_y or tags.pixels_per_mm
+    fx, fy = tags.focal_mm * tags.pixels_per_mm, tags.focal_mm * per_mm_y
     cx, cy = tags.width / 2, tags.height / 2
     if tags.principal_mm:
-        cx, cy = (v * tags.pixels_per_mm for v in tags.principal_mm)
+        cx, cy = tags.principal_mm[0] * tags.pixels_per_mm, tags.principal_mm[1] * per_mm_y
+    w, h = tags.width, tags.height
+    corners = [(0.0, 0.0), (w, 0.0), (w, h), (0.0, h)]
+    outline = corners
+    if tags.lens == "fisheye":
+        steps = 8
+        outline = [
+            (a[0] + (b[0] - a[0]) * t / steps, a[1] + (b[1] - a[1]) * t / steps)
+            for a, b in zip(corners, corners[1:] + corners[:1], strict=True)
+            for t in range(steps)
+        ]
     out = []
-    for u, v in ((0, 0), (tags.width, 0), (tags.width, tags.height), (0, tags.height)):
-        ray = ((u - cx) / f, (v - cy) / f, 1.0)
+    for u, v in outline:
+        ray: tuple[float, float, float] | None = ((u - cx) / fx, (v - cy) / fy, 1.0)
         if tags.lens == "fisheye":
-            ray = _fisheye_ray(ray[0], ray[1], tags.distortion)
+            ray = _fisheye_ray((u - cx) / fx, (v - cy) / fy, tags.distortion)
+        if ray is None:
+            return None
         dn, de, dd = _rotate(cam_q, ray)
         if dd < 0.05 * math.hypot(dn, de, dd):  # within ~3 degrees of the horizon
             return None
@@ -402,10 +417,11 @@ def footprint(
     return out
 
 
-def _fisheye_ray(x: float, y: float, k: list[float]) -> tuple[float, float, float]:
+def _fisheye_ray(x: float, y: float, k: list[float]) -> tuple[float, float, float] | None:
     """The direction (OpenCV camera axes) of a fisheye pixel at (x, y) focal lengths
     from the principal point: OpenCV's model puts it at distorted angle
-    theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8) from the axis; theta by Newton."""
+    theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8) from the axis; theta by Newton.
+    None where the polynomial has no such angle."""
     theta_d = math.hypot(x, y)
     if theta_d == 0.0:
         return (0.0, 0.0, 1.0)
@@ -415,12 +431,39 @@ def _fisheye_ray(x: float, y: float, k: list[float]) -> tuple[float, float, floa
         t2 = theta * theta
         poly = 1 + t2 * (c[0] + t2 * (c[1] + t2 * (c[2] + t2 * c[3])))
         slope = 1 + t2 * (3 * c[0] + t2 * (5 * c[1] + t2 * (7 * c[2] + t2 * 9 * c[3])))
-        step = (theta * poly - theta_d) / slope if slope > 1e-9 else 0.0
+        if slope <= 1e-9:
+            return None
+        step = (theta * poly - theta_d) / slope
         theta -= step
         if abs(step) < 1e-12:
             break
+    t2 = theta * theta
+    if abs(theta * (1 + t2 * (c[0] + t2 * (c[1] + t2 * (c[2] + t2 * c[3])))) - theta_d) > 1e-9:
+        return None
     s = math.sin(theta) / theta_d
     return (x * s, y * s, math.cos(theta))
+
+
+def _hull(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Convex hull (Andrew's monotone chain), counter-clockwise."""
+    pts = sorted(set(points))
+    if len(pts) < 3:
+        return pts
+
+    def cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower: list[tuple[float, float]] = []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 0:
+            lower.pop()
+        lower.append(p)
+    upper: list[tuple[float, float]] = []
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
+            upper.pop()
+        upper.append(p)
+    return lower[:-1] + upper[:-1]
 
 
 def _area(poly: list[tuple[float, float]]) -> float:
@@ -452,8 +495,10 @@ def _clip(subject: list[tuple[float, float]], clip: list[tuple[float, float]]) -
 
 
 def footprint_overlap(a: list[tuple[float, float]], b: list[tuple[float, float]]) -> float:
-    """Shared ground area over the smaller footprint's area (0..1)."""
-    inter = _clip(a, b)
+    """Shared ground area over the smaller footprint's area (0..1). ``a`` is clipped by
+    the convex hull of ``b`` (a fisheye's footprint is concave: the hull errs towards
+    more overlap, so towards one pair more, not one missed)."""
+    inter = _clip(a, _hull(b))
     small = min(_area(a), _area(b))
     return _area(inter) / small if len(inter) >= 3 and small > 0 else 0.0
 
