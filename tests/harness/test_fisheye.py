@@ -120,3 +120,27 @@ def test_overlap_is_measured_through_the_fisheye_lens(
     # The last keyframe may close the flight early; the others are at the target.
     assert all(abs(p - 0.70) < 0.025 for p in pairs[:-1]), pairs
     assert all(0.60 <= p for p in pairs), pairs
+
+
+def test_the_python_module_selects_through_the_lens_too(
+    kf_bin: Path, fisheye_flight: Path, tmp_path: Path
+) -> None:
+    """keyframed.select_video with the calibration decides as `keyframed select
+    --calibration` does, and differently from without it."""
+    import keyframed
+
+    video = fisheye_flight / "video.avi"
+    calib = str(fisheye_flight / "fisheye.yaml")
+    cli = _keyframes(kf_bin, video, tmp_path / "cli", "--calibration", calib)
+    r = keyframed.select_video(str(video), str(tmp_path / "py"), calibration=calib)
+    assert r["error"] == "" and r["kept"] == len(cli)
+    with (tmp_path / "py" / "decisions.csv").open() as f:
+        py = [int(row["index"]) for row in csv.DictReader(f) if row["kept"] == "1"]
+    assert py == cli
+    assert b'Camera:ModelType="fisheye"' in (tmp_path / "py" / f"{cli[1]:06d}.jpg").read_bytes()
+    raw = keyframed.select_video(str(video), str(tmp_path / "raw"))
+    with (tmp_path / "raw" / "decisions.csv").open() as f:
+        unlensed = [int(row["index"]) for row in csv.DictReader(f) if row["kept"] == "1"]
+    assert unlensed != cli and raw["kept"] == len(unlensed)
+    with pytest.raises(RuntimeError, match="nonexistent"):
+        keyframed.select_video(str(video), str(tmp_path / "bad"), calibration="/nonexistent.yaml")

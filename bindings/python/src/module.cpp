@@ -262,10 +262,12 @@ NB_MODULE(_core, m) {
   m.def(
       "select_video",
       [](const std::string& video, const std::string& outDir, std::optional<SelectorConfig> config,
-         const std::string& decisions, int jpegQuality, std::int64_t maxFrames) {
+         const std::string& decisions, int jpegQuality, std::int64_t maxFrames,
+         const std::string& calibration) {
         SelectOptions o;
         o.video = video;
         o.outDir = outDir;
+        o.calibration = calibration;
         if (config) {
           o.selector = *config;
           o.selectorGiven = true;
@@ -303,8 +305,11 @@ NB_MODULE(_core, m) {
         return r;
       },
       "video"_a, "out_dir"_a, "config"_a = nb::none(), "decisions"_a = "csv", "jpeg_quality"_a = 92,
-      "max_frames"_a = -1,
+      "max_frames"_a = -1, "calibration"_a = "",
       "Run selection over a video file, writing keyframes, decisions and summary into out_dir.\n"
+      "calibration: a camera calibration file (as `keyframed select --calibration`): its\n"
+      "intrinsics go into the keyframes' tags, and a fisheye or distorting lens is the one\n"
+      "the overlap is measured through.\n"
       "Raises RuntimeError when the video cannot be read at all; a video that breaks off\n"
       "part-way returns the summary with 'error' and 'truncated' set.");
 }
