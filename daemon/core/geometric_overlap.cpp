@@ -15,18 +15,6 @@ constexpr int kGridRows = 9;
 constexpr int kSampleCols = 48;
 constexpr int kSampleRows = 27;
 
-// Largest displacement of the image corners and centre under a step homography.
-double stepMotion(const cv::Matx33d& h, cv::Size size) {
-  const double w = size.width, hh = size.height;
-  const cv::Point2d pts[5] = {{0, 0}, {w, 0}, {w, hh}, {0, hh}, {w / 2, hh / 2}};
-  double worst = 0.0;
-  for (const cv::Point2d& p : pts) {
-    const cv::Vec3d v = h * cv::Vec3d(p.x, p.y, 1.0);
-    if (!(v[2] > 1e-9)) return std::numeric_limits<double>::infinity();
-    worst = std::max(worst, std::hypot(v[0] / v[2] - p.x, v[1] / v[2] - p.y));
-  }
-  return worst;
-}
 }  // namespace
 
 GeometricOverlap::GeometricOverlap(const OverlapConfig& config)
@@ -110,7 +98,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
           if (inlierMask_[i]) curPts_.push_back(goodCur_[i]);
         lastInliers_ = static_cast<int>(curPts_.size());
         if (lastInliers_ >= config_.minInliers) {
-          lastMotion_ = lens_.active() ? lensMotion(fit.h) : stepMotion(fit.h, size_);
+          lastMotion_ = stepMotion(fit.h);
           refToCur_ = fit.h * refToCur_;
           refToCur_ *= 1.0 / refToCur_(2, 2);
           tracked = true;
@@ -169,9 +157,9 @@ void GeometricOverlap::prepareLens() {
 }
 
 // The largest displacement, in image pixels, of the image's corners and centre under
-// a step homography between ideal pixels: the measure stepMotion() takes without a
-// lens. A point the lens maps no ideal point for is left out.
-double GeometricOverlap::lensMotion(const cv::Matx33d& h) const {
+// a step homography (between ideal pixels when there is a lens: each point goes
+// through it and back; a point the lens maps no ideal point for is left out).
+double GeometricOverlap::stepMotion(const cv::Matx33d& h) const {
   const double w = size_.width, hh = size_.height;
   const cv::Point2d pts[5] = {{0, 0}, {w, 0}, {w, hh}, {0, hh}, {w / 2, hh / 2}};
   double worst = 0.0;

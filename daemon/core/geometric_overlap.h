@@ -31,9 +31,10 @@ class GeometricOverlap final : public OverlapEstimator {
  private:
   void replenish(GrayView gray);
   OverlapResult overlapNow() const;
-  // Through a lens: the ideal pixels of the sample grid, and the step's motion.
+  // The lens at the analysis size and the ideal pixels of its sample grid.
   void prepareLens();
-  double lensMotion(const cv::Matx33d& h) const;
+  // How far the image moved in a step, in image pixels.
+  double stepMotion(const cv::Matx33d& h) const;
   double lensVisibleFraction(const cv::Matx33d& refToCur) const;
 
   OverlapConfig config_;

@@ -1,6 +1,5 @@
 #include "output/mcap_replay.h"
 
-#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -138,18 +137,12 @@ bool forEachField(std::span<const std::uint8_t> msg, F&& f) {
   });
   if (!ok) return std::nullopt;
   if (k.size() != 9 || c.width <= 0 || c.height <= 0) return std::nullopt;
-  // What a calibration file may hold: a fisheye's k1..k4, a pinhole's 4 or 5 terms.
-  const std::size_t nd = c.distortion.size();
-  if (c.lens == CameraModel::Lens::Fisheye ? (nd != 0 && nd != 4) : (nd != 0 && nd != 4 && nd != 5))
-    return std::nullopt;
-  for (double d : c.distortion) {
-    if (!std::isfinite(d)) return std::nullopt;
-  }
   c.fx = k[0];
   c.cx = k[2];
   c.fy = k[4];
   c.cy = k[5];
-  if (!c.calibrated() || !(c.fx > 0 && c.fy > 0)) return std::nullopt;
+  std::string error;  // held to what a calibration file is held to
+  if (!c.calibrated() || !checkCameraModel("record", c, error)) return std::nullopt;
   return c;
 }
 

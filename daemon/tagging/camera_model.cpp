@@ -360,4 +360,8 @@ bool loadCameraModel(const std::string& path, CameraModel& out, std::string& err
   return true;
 }
 
+bool checkCameraModel(const std::string& origin, CameraModel& m, std::string& error) {
+  return finish(origin, m, error);
+}
+
 }  // namespace keyframed

@@ -72,4 +72,9 @@ struct CameraModel {
 // Returns false with a one-line error; never throws.
 [[nodiscard]] bool loadCameraModel(const std::string& path, CameraModel& out, std::string& error);
 
+// The checks every calibration file passes (sizes, focal lengths, the lens's number of
+// distortion terms, finite numbers), and the values derived from it, for a camera
+// model from elsewhere (a flight record); errors start with `origin`.
+[[nodiscard]] bool checkCameraModel(const std::string& origin, CameraModel& m, std::string& error);
+
 }  // namespace keyframed

@@ -91,6 +91,11 @@ def _keyframes(kf_bin: Path, video: Path, out: Path, *args: str) -> list[int]:
         timeout=300,
     )
     assert r.returncode == 0, r.stderr
+    return _kept(out)
+
+
+def _kept(out: Path) -> list[int]:
+    """The kept frames' indices in OUT/decisions.csv."""
     with (out / "decisions.csv").open() as f:
         return [int(row["index"]) for row in csv.DictReader(f) if row["kept"] == "1"]
 
@@ -134,13 +139,10 @@ def test_the_python_module_selects_through_the_lens_too(
     cli = _keyframes(kf_bin, video, tmp_path / "cli", "--calibration", calib)
     r = keyframed.select_video(str(video), str(tmp_path / "py"), calibration=calib)
     assert r["error"] == "" and r["kept"] == len(cli)
-    with (tmp_path / "py" / "decisions.csv").open() as f:
-        py = [int(row["index"]) for row in csv.DictReader(f) if row["kept"] == "1"]
-    assert py == cli
+    assert _kept(tmp_path / "py") == cli
     assert b'Camera:ModelType="fisheye"' in (tmp_path / "py" / f"{cli[1]:06d}.jpg").read_bytes()
     raw = keyframed.select_video(str(video), str(tmp_path / "raw"))
-    with (tmp_path / "raw" / "decisions.csv").open() as f:
-        unlensed = [int(row["index"]) for row in csv.DictReader(f) if row["kept"] == "1"]
+    unlensed = _kept(tmp_path / "raw")
     assert unlensed != cli and raw["kept"] == len(unlensed)
     with pytest.raises(RuntimeError, match="nonexistent"):
         keyframed.select_video(str(video), str(tmp_path / "bad"), calibration="/nonexistent.yaml")

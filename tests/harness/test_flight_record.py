@@ -77,6 +77,17 @@ def doctor(path: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+def replay(kf_bin: Path, mcap: Path, out: Path, *args: str) -> None:
+    """`keyframed select RECORD --out OUT ARGS...`, which must succeed."""
+    r = subprocess.run(
+        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+
+
 def assert_doctor_clean(path: Path) -> None:
     r = doctor(path)
     text = " ".join(r.stdout.split())
@@ -129,13 +140,7 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
     from PIL import Image
 
     out = tmp_path / "replay"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 0, r.stderr
+    replay(kf_bin, mcap, out)
     intr = json.loads((short_nadir / "intrinsics.json").read_text())
     jpegs = sorted(out.glob("*.jpg"))
     assert jpegs
@@ -145,14 +150,7 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
 
     # Replayed with other settings: the same frames decided anew, closer together.
     tight = tmp_path / "replay-tight"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(mcap), "--out", str(tight), "--quiet"]
-        + ["--target", "0.85", "--band", "0.75,0.95"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 0, r.stderr
+    replay(kf_bin, mcap, tight, "--target", "0.85", "--band", "0.75,0.95")
     base, again = rows(out / "decisions.csv"), rows(tight / "decisions.csv")
     assert [x["index"] for x in again] == [x["index"] for x in base]
     kept_base = [x for x in base if x["kept"] == "1"]
@@ -191,13 +189,7 @@ def test_a_fisheye_calibration_is_recorded_and_replayed_as_fisheye(
     assert list(cal.K) == pytest.approx([150, 0, intr["cx"], 0, 150, intr["cy"], 0, 0, 1])
 
     again = tmp_path / "replay"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(mcap), "--out", str(again), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 0, r.stderr
+    replay(kf_bin, mcap, again)
     jpegs = sorted(again.glob("*.jpg"))
     assert jpegs
     xmp = jpegs[0].read_bytes()
@@ -423,14 +415,7 @@ def test_h264_video_stream_is_foxglove_compressed_video_and_replays(
 
     # Replayed: the same frames, decided again on the decoded video.
     out = tmp_path / "replay"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet"]
-        + ["--mcap", str(tmp_path / "replay.mcap")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 0, r.stderr
+    replay(kf_bin, mcap, out, "--mcap", str(tmp_path / "replay.mcap"))
     live = rows(mcap.parent / "decisions.csv")
     again = rows(out / "decisions.csv")
     assert [x["index"] for x in again] == [x["index"] for x in live]

@@ -13,29 +13,25 @@ namespace keyframed {
 namespace {
 
 LensModel fisheyeLens() {
-  LensModel l;
-  l.kind = LensModel::Kind::Fisheye;
-  l.width = 480;
-  l.height = 270;
-  l.fx = 220.0;
-  l.fy = 221.5;
-  l.cx = 241.25;
-  l.cy = 133.75;
-  l.k = {0.032, -0.0081, 0.0017, -0.0003, 0.0};
-  return l;
+  return {LensModel::Kind::Fisheye,
+          480,
+          270,
+          220.0,
+          221.5,
+          241.25,
+          133.75,
+          {0.032, -0.0081, 0.0017, -0.0003, 0.0}};
 }
 
 LensModel pinholeLens() {
-  LensModel l;
-  l.kind = LensModel::Kind::Pinhole;
-  l.width = 640;
-  l.height = 480;
-  l.fx = 520.0;
-  l.fy = 518.0;
-  l.cx = 322.5;
-  l.cy = 241.0;
-  l.k = {-0.21, 0.06, 0.0012, -0.0009, -0.008};  // k1 k2 p1 p2 k3
-  return l;
+  return {LensModel::Kind::Pinhole,
+          640,
+          480,
+          520.0,
+          518.0,
+          322.5,
+          241.0,
+          {-0.21, 0.06, 0.0012, -0.0009, -0.008}};  // k1 k2 p1 p2 k3
 }
 
 // Rays (camera frame, in front) spread over the field of view.
