@@ -3,10 +3,12 @@
 #include <algorithm>
 #include <array>
 #include <cctype>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <functional>
 #include <map>
@@ -275,6 +277,20 @@ std::string checkCalibration(const std::string& s) {
   std::string e;
   if (!loadCameraModel(s, model, e)) return e;  // names the file
   return {};
+}
+
+// A file the daemon reads at start (the Zenoh configuration): there and readable, so
+// that check-config says so rather than the start.
+std::string checkReadableFile(const std::string& s) {
+  if (s.empty()) return {};
+  std::error_code ec;
+  if (!fs::exists(s, ec)) return "no such file: " + s;
+  if (!fs::is_regular_file(s, ec)) return "not a regular file: " + s;
+  if (std::FILE* f = std::fopen(s.c_str(), "rb")) {
+    std::fclose(f);
+    return {};
+  }
+  return "cannot be read: " + s + ": " + std::strerror(errno);
 }
 
 std::string checkAbsolutePath(const std::string& s) {
@@ -596,7 +612,7 @@ std::vector<Field> makeSchema() {
   f.push_back(boolean(
       "zenoh", "enabled", [](auto& c) -> auto& { return c.zenoh.enabled; }));
   f.push_back(text(
-      "zenoh", "config", [](auto& c) -> auto& { return c.zenoh.config; }));
+      "zenoh", "config", [](auto& c) -> auto& { return c.zenoh.config; }, checkReadableFile));
   f.push_back(text(
       "zenoh", "vehicle", [](auto& c) -> auto& { return c.zenoh.vehicle; }, checkVehicle));
   f.push_back(integer(

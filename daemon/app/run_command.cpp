@@ -66,10 +66,17 @@ output.state_dir/flights/<UTC start time>/ (state_dir/latest points at the newes
 records the flight to MCAP and publishes keyframes over Zenoh, until SIGINT or
 SIGTERM (or the end of a video file). SIGHUP reloads the selection settings.
 
+Exit status: 0 stopped or the video ended; 1 the camera, link or outputs failed;
+2 bad command line; 78 bad configuration (systemd does not restart on 2 and 78).
+
 Configuration: built-in defaults < DIR/keyframed.toml < DIR/conf.d/*.toml < --set
 (DIR: --config-dir, else $KEYFRAMED_CONFIG_DIR, else /etc/keyframed); see
 `keyframed check-config` and docs/configuration.md.
 )";
+
+// sysexits.h's EX_CONFIG: the unit's RestartPreventExitStatus. A typo in a file is
+// not fixed by starting again every two seconds, a camera that is not there yet is.
+constexpr int kExitConfig = 78;
 
 // CPU seconds spent decoding video (0 for cameras).
 double decodeCpuSeconds(const FrameSource& source) {
@@ -534,7 +541,7 @@ int Daemon::run() {
     CameraModel m;
     if (!loadCameraModel(config_.tagging.calibration, m, error)) {
       KF_LOG(App, Error) << "tagging.calibration: " << error;
-      return 1;
+      return kExitConfig;
     }
     camera_ = m;
   } else if (config_.tagging.camera) {
@@ -897,7 +904,7 @@ int runMain(const std::vector<std::string>& argsIn) {
   ConfigLoadResult r = loadConfig(sources);
   if (!r.ok()) {
     for (const auto& e : r.errors) std::fprintf(stderr, "keyframed: %s\n", e.c_str());
-    return 1;
+    return kExitConfig;
   }
   if (std::string w = logging::configure(r.config.log); !w.empty()) {
     std::fprintf(stderr, "keyframed: %s\n", w.c_str());

@@ -61,9 +61,15 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
   info.width = src->bgr_.cols;
   info.height = src->bgr_.rows;
   info.fps = src->capture_.get(cv::CAP_PROP_FPS);
-  if (!(info.fps > 0.0 && info.fps < 1000.0)) info.fps = 0.0;
   const double count = src->capture_.get(cv::CAP_PROP_FRAME_COUNT);
   info.frameCount = count > 0 && std::isfinite(count) ? static_cast<std::int64_t>(count) : -1;
+  // FFmpeg's frame count is the duration times the frame rate; a rate it got wrong
+  // (an MPEG-TS's 90 kHz clock) makes the count wrong too, and a complete file would
+  // look truncated.
+  if (!(info.fps > 0.0 && info.fps < 1000.0)) {
+    info.fps = 0.0;
+    info.frameCount = -1;
+  }
   info.description = "file:" + path;
   // FFmpeg reads a photograph as a one-frame video; say what it is instead. Only a
   // regular file can be a photograph here: a FIFO or device carrying MJPEG starts

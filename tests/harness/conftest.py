@@ -52,11 +52,14 @@ def photo_strip() -> np.ndarray:
     return np.hstack(parts)
 
 
-def write_pan_video(path: Path, frames: int = 90, step: float = 6.0, size=(480, 270)) -> Path:
-    """A camera panning along real photos at `step` px per frame, MJPG at 30 fps."""
+def write_pan_video(
+    path: Path, frames: int = 90, step: float = 6.0, size=(480, 270), fourcc: str = "MJPG"
+) -> Path:
+    """A camera panning along real photos at `step` px per frame, MJPG (or `fourcc`) at
+    30 fps."""
     strip = photo_strip()
     w, h = size
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (w, h))
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30.0, (w, h))
     assert vw.isOpened()
     for i in range(frames):
         m = np.float32([[1, 0, -(50 + i * step)], [0, 1, -100]])

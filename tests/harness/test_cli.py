@@ -141,6 +141,22 @@ def test_truncated_video_keeps_what_was_read_and_fails(any_bin: Path, pan_video:
     assert len(kept) == len(list(out.glob("*.jpg"))) >= 1
 
 
+@pytest.mark.parametrize("suffix", [".ts", ".mkv"])
+def test_streamed_containers_are_read_whole(any_bin: Path, tmp_path, suffix):
+    """MPEG-TS and Matroska carry no frame index: a complete file is not reported as
+    truncated (FFmpeg's rate for an MPEG-4 TS is its 90 kHz clock, and the frame count
+    it derives from it is not believed), and every frame is read."""
+    from conftest import write_pan_video
+
+    whole = write_pan_video(tmp_path / f"whole{suffix}", frames=60, fourcc="mp4v")
+    out = tmp_path / "o"
+    p = run(any_bin, "select", whole, "--out", out)
+    assert p.returncode == 0, p.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_read"] == 60
+    assert summary["truncated"] is False
+
+
 @pytest.mark.parametrize(
     ("args", "needle"),
     [

@@ -634,27 +634,30 @@ def test_sigterm_while_a_silent_pipe_blocks_the_read_still_flushes(
 
 
 @pytest.mark.parametrize(
-    ("sets", "message"),
+    ("sets", "message", "status"),
     [
-        (["camera.source=v4l2", "camera.device=/dev/video-missing"], "/dev/video-missing"),
+        # a camera that is not there (yet): exit 1, which systemd restarts
+        (["camera.source=v4l2", "camera.device=/dev/video-missing"], "/dev/video-missing", 1),
         # a node that is not a V4L2 device: said before READY, exit 1
-        (["camera.source=v4l2", "camera.device=/dev/null"], "not a V4L2 device"),
+        (["camera.source=v4l2", "camera.device=/dev/null"], "not a V4L2 device", 1),
         # no such libcamera camera (here: none at all): said, exit 1, no crash
-        (["camera.source=libcamera", "camera.device=/no/such/camera"], "libcamera:"),
-        (["camera.path=/nonexistent/flight.avi"], "/nonexistent/flight.avi"),
-        (["camera.fps=500"], "camera.fps"),
+        (["camera.source=libcamera", "camera.device=/no/such/camera"], "libcamera:", 1),
+        (["camera.path=/nonexistent/flight.avi"], "/nonexistent/flight.avi", 1),
+        # a bad configuration: exit 78 (EX_CONFIG), which systemd does not restart
+        (["camera.fps=500"], "camera.fps", 78),
         # a file on its own clock cannot be tagged from a live link
-        (["camera.realtime=false", "telemetry.url=udpin:127.0.0.1:14550"], "camera.realtime"),
-        (["camera.nonsense=1"], "camera.nonsense"),
-        (["tagging.calibration=/nonexistent/cal.yaml"], "cal.yaml"),
+        (["camera.realtime=false", "telemetry.url=udpin:127.0.0.1:14550"], "camera.realtime", 78),
+        (["camera.nonsense=1"], "camera.nonsense", 78),
+        (["tagging.calibration=/nonexistent/cal.yaml"], "cal.yaml", 78),
+        (["zenoh.config=/nonexistent/zenoh.json5"], "zenoh.config", 78),
     ],
 )
 def test_bad_input_is_a_clear_error(
-    any_bin: Path, tmp_path: Path, sets: list[str], message: str
+    any_bin: Path, tmp_path: Path, sets: list[str], message: str, status: int
 ) -> None:
     proc = start(any_bin, tmp_path, *sets)
     _, stderr = proc.communicate(timeout=60)
-    assert proc.returncode in (1, 2), stderr
+    assert proc.returncode == status, stderr
     assert message in stderr
     assert "Sanitizer" not in stderr and "runtime error" not in stderr
 
@@ -804,7 +807,7 @@ def test_telemetry_lost_mid_flight_holds_up_nothing(
 def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
     _, stderr = proc.communicate(timeout=30)
-    assert proc.returncode == 1
+    assert proc.returncode == 78
     assert "keyframed.toml:3" in stderr and "camera.fps" in stderr
 
 

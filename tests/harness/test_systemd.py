@@ -64,6 +64,8 @@ def test_unit_has_the_agreed_settings():
     assert one["WatchdogSignal"] == "SIGTERM"
     assert one["Restart"] == "on-failure"
     assert one["StartLimitIntervalSec"] == "0", "a long camera outage must not fail the unit"
+    # ... but a bad configuration (keyframed run exits 78) or command line (2) does.
+    assert one["RestartPreventExitStatus"].split() == ["2", "78"]
     assert one["User"] == "keyframed" and one["DynamicUser"] == "no"
     assert one["SupplementaryGroups"] == "video dialout"
     assert one["DevicePolicy"] == "closed"
