@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
@@ -38,6 +39,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
     std::snprintf(tel, sizeof tel,
                   "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
                   "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
+                  "    \"record_clock_ahead_ms\": %s,\n"
                   "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
                   "    \"unknown_ids\": %llu,\n"
                   "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
@@ -50,7 +52,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   "    \"truncated\": %s\n  }",
                   jsonEscape(s.telemetry.source).c_str(),
                   static_cast<long long>(s.telemetry.geotagged), s.telemetry.clock.c_str(),
-                  s.telemetry.clockOffsetMs.c_str(),
+                  s.telemetry.clockOffsetMs.c_str(), s.telemetry.recordClockAheadMs.c_str(),
                   static_cast<unsigned long long>(s.telemetry.messages),
                   static_cast<unsigned long long>(s.telemetry.rejected),
                   static_cast<unsigned long long>(s.telemetry.unknownIds),
@@ -205,7 +207,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     tc.decoder.autopilotSystem = opts.autopilotSystem;
     tc.decoder.autopilotComponent = opts.autopilotComponent;
     telemetry = std::make_unique<TelemetryService>(tc, CameraDescription{});
-    telemetry->startFromPackets(replay->mavlink());
+    // A record made from a tlog keeps the tlog's unix times as its frames' (no offset
+    // between log and frame times): that clock is UTC, as it was for the tlog.
+    telemetry->startFromPackets(replay->mavlink(), replay->unixOffsetNs() == 0);
     s.telemetry.source = opts.video + " (/mavlink/raw)";
   } else if (!opts.telemetry.empty()) {
     TelemetryServiceConfig tc = telemetrySettings.link;
@@ -410,6 +414,21 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       char b[64];
       std::snprintf(b, sizeof b, "%.3f", static_cast<double>(*off) / 1e6);
       s.telemetry.clockOffsetMs = b;
+    }
+    if (const auto ahead = telemetry->decoder().recordClockAheadNs()) {
+      const double ms = static_cast<double>(*ahead) / 1e6;
+      char b[64];
+      std::snprintf(b, sizeof b, "%.3f", ms);
+      s.telemetry.recordClockAheadMs = b;
+      // Radio latency is tens of ms; beyond half a second the recording station's
+      // clock was off, and the frames were placed by the autopilot's GPS time.
+      if (std::fabs(ms) > 500.0) {
+        std::fprintf(stderr,
+                     "keyframed select: warning: the tlog's record times run %.3f s %s the "
+                     "autopilot's GPS time (SYSTEM_TIME); the video (--video-start, UTC) was "
+                     "placed by GPS time\n",
+                     std::fabs(ms) / 1e3, ms > 0 ? "ahead of" : "behind");
+      }
     }
     s.telemetry.messages = ts.parser.messages;
     s.telemetry.rejected = ts.parser.rejected;

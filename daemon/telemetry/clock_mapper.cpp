@@ -51,6 +51,7 @@ void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) 
 }
 
 ClockMapper::Source ClockMapper::source() const {
+  if (localIsUtc_ && utcMinusBootUs_) return Source::SystemTime;
   if (timesyncOffsetNs_ && lastArrivalNs_ - timesyncAtNs_ <= config_.timesyncTimeoutNs) {
     return Source::Timesync;
   }
@@ -63,6 +64,7 @@ bool ClockMapper::settled() const {
   switch (source()) {
     case Source::Timesync: return timesyncSamples_ >= 3;
     case Source::Arrival: return lastArrivalNs_ - firstArrivalNs_ >= kArrivalSettleNs;
+    case Source::SystemTime: return true;
     case Source::None: break;
   }
   return false;
@@ -72,9 +74,15 @@ std::optional<std::int64_t> ClockMapper::offsetNs() const {
   switch (source()) {
     case Source::Timesync: return timesyncOffsetNs_;
     case Source::Arrival: return arrivals_.front().offsetNs;
+    case Source::SystemTime: return *utcMinusBootUs_ * 1000;
     case Source::None: break;
   }
   return std::nullopt;
+}
+
+std::optional<std::int64_t> ClockMapper::arrivalMinusSystemTimeNs() const {
+  if (source() != Source::SystemTime || arrivals_.empty()) return std::nullopt;
+  return arrivals_.front().offsetNs - *utcMinusBootUs_ * 1000;
 }
 
 std::optional<std::int64_t> ClockMapper::toLocalNs(std::int64_t bootNs) const {
@@ -100,6 +108,7 @@ const char* toString(ClockMapper::Source source) {
   switch (source) {
     case ClockMapper::Source::Timesync: return "timesync";
     case ClockMapper::Source::Arrival: return "arrival";
+    case ClockMapper::Source::SystemTime: return "system_time";
     case ClockMapper::Source::None: break;
   }
   return "none";

@@ -18,9 +18,14 @@ namespace keyframed {
 //    min(arrival - time_boot_ms) over a sliding window is the offset plus the
 //    smallest latency seen. Used while TIMESYNC is not answered.
 // SYSTEM_TIME gives UTC for the autopilot's clock.
+//
+// When the local clock is UTC (a tlog replayed: its record times, frames stamped
+// from --video-start), SYSTEM_TIME is the offset itself (UTC - boot time, from the
+// autopilot's GPS) and is preferred to the record times, which are the recording
+// station's clock and may be seconds off.
 class ClockMapper {
  public:
-  enum class Source { None, Arrival, Timesync };
+  enum class Source { None, Arrival, Timesync, SystemTime };
 
   struct Config {
     std::int64_t arrivalWindowNs = 10'000'000'000;   // sliding window of the min filter
@@ -34,6 +39,8 @@ class ClockMapper {
   // tc1: autopilot time (ns), ts1: our time echoed (ns), nowNs: local arrival.
   void observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs);
   void observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs);
+  // The local clock is UTC (see above).
+  void setLocalIsUtc(bool utc) { localIsUtc_ = utc; }
 
   // Autopilot time (ns since its boot) -> local ns; empty until an estimate exists.
   [[nodiscard]] std::optional<std::int64_t> toLocalNs(std::int64_t bootNs) const;
@@ -47,6 +54,9 @@ class ClockMapper {
   // scheduler's hiccup (tens of ms at start-up) that only more of them expose.
   [[nodiscard]] bool settled() const;
   [[nodiscard]] double bestRoundTripMs() const;  // NaN without TIMESYNC
+  // With the local clock UTC and SYSTEM_TIME known: how far the arrival (record)
+  // times run ahead of the autopilot's UTC, the smallest latency included.
+  [[nodiscard]] std::optional<std::int64_t> arrivalMinusSystemTimeNs() const;
 
  private:
   struct Arrival {
@@ -63,6 +73,7 @@ class ClockMapper {
   std::int64_t bestRttNs_ = -1;
   int timesyncSamples_ = 0;  // used since the estimate (re)started
   std::optional<std::int64_t> utcMinusBootUs_;
+  bool localIsUtc_ = false;
 };
 
 const char* toString(ClockMapper::Source source);

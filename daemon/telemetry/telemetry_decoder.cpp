@@ -72,6 +72,7 @@ void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
   if (lastBootMs_ >= 0 && static_cast<std::int64_t>(bootMs) + 5000 < lastBootMs_) {
     store_.clear();
     clock_ = ClockMapper(config_.clock);
+    clock_.setLocalIsUtc(localClockIsUtc_);
     quaternions_ = {};
     euler_ = {};
     ++stats_.reboots;
@@ -232,6 +233,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
 void TelemetryDecoder::setLocalClockIsUtc(bool utc) {
   std::lock_guard lock(mutex_);
   localClockIsUtc_ = utc;
+  clock_.setLocalIsUtc(utc);
 }
 
 void TelemetryDecoder::handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
@@ -310,6 +312,11 @@ std::optional<std::int64_t> TelemetryDecoder::clockOffsetNs() const {
 bool TelemetryDecoder::clockSettled() const {
   std::lock_guard lock(mutex_);
   return clock_.settled();
+}
+
+std::optional<std::int64_t> TelemetryDecoder::recordClockAheadNs() const {
+  std::lock_guard lock(mutex_);
+  return clock_.arrivalMinusSystemTimeNs();
 }
 
 double TelemetryDecoder::clockRoundTripMs() const {

@@ -44,8 +44,10 @@ class TelemetryDecoder {
 
   // msg arrived at localNs (the companion clock, or the tlog's record time).
   void handle(const mavlink_message_t& msg, std::int64_t localNs);
-  // A replayed tlog: the local clock (its record times) is UTC, used for a frame's UTC
-  // when no SYSTEM_TIME gives the autopilot's.
+  // A replayed tlog (or a flight record made from one): the local clock (its record
+  // times) is UTC. The autopilot's clock is then mapped by SYSTEM_TIME once it comes
+  // (the record times are the recording station's clock), and a frame's UTC without
+  // SYSTEM_TIME is its local time.
   void setLocalClockIsUtc(bool utc);
   // Our TIMESYNC request's answer (handled by the camera component).
   void handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs);
@@ -66,6 +68,9 @@ class TelemetryDecoder {
   [[nodiscard]] std::optional<std::int64_t> clockOffsetNs() const;
   [[nodiscard]] bool clockSettled() const;        // ClockMapper::settled()
   [[nodiscard]] double clockRoundTripMs() const;  // best TIMESYNC round trip; NaN without
+  // Local clock UTC, mapped by SYSTEM_TIME: how far the record times run ahead of the
+  // autopilot's UTC (ClockMapper::arrivalMinusSystemTimeNs).
+  [[nodiscard]] std::optional<std::int64_t> recordClockAheadNs() const;
   [[nodiscard]] int autopilotSystem() const;
   [[nodiscard]] int autopilotComponent() const;
   // The local time of the HEARTBEAT that named the autopilot (INT64_MIN when both ids

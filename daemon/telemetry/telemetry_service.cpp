@@ -86,8 +86,9 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
   return true;
 }
 
-void TelemetryService::startFromPackets(std::vector<TimedPacket> packets) {
+void TelemetryService::startFromPackets(std::vector<TimedPacket> packets, bool utc) {
   replay_ = true;
+  decoder_.setLocalClockIsUtc(utc);
   startNs_ = monotonicNowNs();
   replayPackets_ = std::move(packets);
   std::lock_guard lock(mutex_);
@@ -98,13 +99,23 @@ void TelemetryService::advanceReplay(std::int64_t localNs) {
   if (!replay_) return;
   std::lock_guard replayLock(replayMutex_);
   constexpr std::int64_t kMax = std::numeric_limits<std::int64_t>::max();
-  const std::int64_t until = localNs > kMax - kReplayLeadNs ? kMax : localNs + kReplayLeadNs;
   const std::size_t from = replayFed_;
-  for (; replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until;
-       ++replayFed_) {
-    const TimedPacket& p = replayPackets_[replayFed_];
-    parser_.feed(p.bytes.data(), p.bytes.size(),
-                 [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
+  // A tlog whose record times run ahead of the autopilot's GPS time (a station's clock
+  // set wrong; the frames follow GPS time) is fed that much further ahead: once
+  // SYSTEM_TIME has told by how much, which may change the limit, hence the loop.
+  std::int64_t ahead = -1;
+  for (;;) {
+    const std::int64_t now = std::max<std::int64_t>(0, decoder_.recordClockAheadNs().value_or(0));
+    if (now == ahead) break;
+    ahead = now;
+    const std::int64_t lead = kReplayLeadNs + std::min<std::int64_t>(ahead, kMax / 4);
+    const std::int64_t until = localNs > kMax - lead ? kMax : localNs + lead;
+    for (; replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until;
+         ++replayFed_) {
+      const TimedPacket& p = replayPackets_[replayFed_];
+      parser_.feed(p.bytes.data(), p.bytes.size(),
+                   [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
+    }
   }
   if (replayFed_ == from) return;
   std::lock_guard lock(mutex_);

@@ -101,8 +101,9 @@ class TelemetryService {
   // Starts on a link opened by the caller (tests, fuzzing); config.url is not used.
   bool start(std::unique_ptr<MavlinkLink> link, std::string& error);
   // A replay of recorded packets (arrival time in ns, bytes), e.g. a flight
-  // record's /mavlink/raw: replayed like a tlog; no link, nothing sent.
-  void startFromPackets(std::vector<TimedPacket> packets);
+  // record's /mavlink/raw: replayed like a tlog; no link, nothing sent. utc: the
+  // arrival times are unix time, as a tlog's (TelemetryDecoder::setLocalClockIsUtc).
+  void startFromPackets(std::vector<TimedPacket> packets, bool utc = false);
   // A replay reaches the decoder as the frames go: every packet recorded up to
   // localNs + kReplayLeadNs, what a live link would have delivered by the time that
   // frame is tagged. The clock estimate (a window of recent arrivals), the history

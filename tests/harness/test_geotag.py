@@ -19,6 +19,7 @@ import pytest
 from fake_autopilot import (
     FakeAutopilot,
     Noise,
+    TlogRecord,
     autopilot_fixture,
     read_tlog,
     with_noise,
@@ -333,6 +334,35 @@ def test_tlog_without_system_time_takes_utc_from_its_records(
         )
         assert abs(utc_us_of(tags[k["file"]]) - int(k["utc_us"])) <= 1000
         assert tags[k["file"]].get("GPS:GPSTimeStamp") is not None
+
+
+@needs_exiftool
+@pytest.mark.parametrize("station_ahead_s", [2.0, -3.5])
+def test_a_tlog_recorded_on_a_wrong_clock_is_placed_by_gps_time(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, station_ahead_s: float
+) -> None:
+    """The ground station that recorded the tlog had its clock seconds off: its record
+    times do not place the video (--video-start is UTC), the autopilot's GPS time in
+    SYSTEM_TIME does. The tags match the ground truth as with a right clock, and the
+    summary and a warning say how far off the station was."""
+    tlog = tmp_path / "skewed.tlog"
+    shift_us = round(station_ahead_s * 1e6)
+    records = read_tlog(short_nadir / "flight.tlog")
+    write_tlog(tlog, [TlogRecord(r.unix_us + shift_us, r.msg) for r in records])
+    out = tmp_path / "out"
+    errs = tag_errors_with_tlog(kf_bin, short_nadir, tlog, out)
+    assert errs[:, 0].max() < 0.1 and errs[:, 1].max() < 0.1, errs
+    assert errs[:, 2].max() < 0.2, errs
+    tel = json.loads((out / "summary.json").read_text())["telemetry"]
+    assert tel["clock"] == "system_time"
+    # the generator's records carry no latency: the skew is the shift itself
+    assert tel["record_clock_ahead_ms"] == pytest.approx(station_ahead_s * 1e3, abs=1.0)
+    truth = Truth(short_nadir)
+    fps = json.loads((short_nadir / "intrinsics.json").read_text())["fps"]
+    for k in keyframes(out):
+        assert int(k["utc_us"]) == pytest.approx(
+            truth.epoch_us + int(k["index"]) / fps * 1e6, abs=1000
+        )
 
 
 @needs_exiftool

@@ -392,11 +392,29 @@ TEST(TelemetryDecoder, ATlogsRecordTimesGiveUtcWithoutSystemTime) {
   const Pose p = tlog.poseAt(t0 + 500 * kMs + 1234);
   ASSERT_TRUE(p.utcUs.has_value());
   EXPECT_EQ(*p.utcUs, t0 / 1000 + 500'000 + 1);
+  // With SYSTEM_TIME the frames (their local time UTC, from --video-start) are placed
+  // on the autopilot's clock by its GPS time, not by the station's record times: the
+  // attitude sampled at boot time 1.5 s (GPS 3.0 s after t0) is the one at t0 + 3 s.
   TelemetryDecoder both;
   both.setLocalClockIsUtc(true);
   feed(both, true);
-  ASSERT_TRUE(both.poseAt(t0 + 500 * kMs).utcUs.has_value());
-  EXPECT_EQ(*both.poseAt(t0 + 500 * kMs).utcUs, t0 / 1000 + 500'000 + 2'500'000);
+  EXPECT_EQ(both.clockSource(), ClockMapper::Source::SystemTime);
+  EXPECT_TRUE(both.clockSettled());
+  EXPECT_EQ(*both.clockOffsetNs(), t0 + 1500 * kMs);  // UTC - boot time
+  const Pose at = both.poseAt(t0 + 3000 * kMs);
+  ASSERT_TRUE(at.utcUs.has_value());
+  EXPECT_EQ(*at.utcUs, t0 / 1000 + 3'000'000);
+  EXPECT_TRUE(at.attitude.has_value()) << at.staleReason;
+  // The station's clock ran 2.5 s behind GPS (the smallest latency is 0 here).
+  ASSERT_TRUE(both.recordClockAheadNs().has_value());
+  EXPECT_EQ(*both.recordClockAheadNs(), -2500 * kMs);
+  // Before the autopilot's boot time 1.0 s (the first sample): nothing to tag with.
+  EXPECT_FALSE(both.poseAt(t0 + 2000 * kMs).attitude.has_value());
+  // A live link (local clock CLOCK_MONOTONIC) keeps mapping by arrival (TIMESYNC).
+  TelemetryDecoder liveSys;
+  feed(liveSys, true);
+  EXPECT_EQ(liveSys.clockSource(), ClockMapper::Source::Arrival);
+  EXPECT_FALSE(liveSys.recordClockAheadNs().has_value());
 }
 
 TEST(PoseStore, SlerpTakesTheShortWay) {
