@@ -86,10 +86,12 @@ unset ASAN_OPTIONS UBSAN_OPTIONS
 step "fuzz the MAVLink parser (libFuzzer, 30 s)"
 tools/fuzz.sh 30
 
-step "style (clang-format, ruff)"
+step "style and types (clang-format, ruff, mypy)"
 git ls-files -co --exclude-standard -- '*.cpp' '*.h' | xargs clang-format --dry-run --Werror
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+# The package and the test harness, as [tool.mypy] in pyproject.toml lists them.
+.venv/bin/mypy
 
 # Two processes (pytest-xdist), one test file each at a time: most tests replay a
 # flight in real time and leave a core idle. KEYFRAMED_TEST_WORKERS=0 runs them in one.

@@ -47,7 +47,8 @@ def reconstruct(dataset: Path, work: Path) -> ColmapResult:
         priors = {}
         for prior in db.read_all_pose_priors():
             name = names[prior.corr_data_id.id]
-            priors[name] = tuple(float(v) for v in prior.position)
+            lat, lon, alt = (float(v) for v in prior.position)
+            priors[name] = (lat, lon, alt)
         for im in images:
             kp, desc = _read_features(dataset / "features" / (im.name + ".txt"))
             db.write_keypoints(im.image_id, kp)

@@ -59,10 +59,10 @@ def write_pan_video(
     30 fps."""
     strip = photo_strip()
     w, h = size
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30.0, (w, h))
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), 30.0, (w, h))
     assert vw.isOpened()
     for i in range(frames):
-        m = np.float32([[1, 0, -(50 + i * step)], [0, 1, -100]])
+        m = np.array([[1, 0, -(50 + i * step)], [0, 1, -100]], np.float32)
         vw.write(cv2.warpAffine(strip, m, (w, h), borderMode=cv2.BORDER_REFLECT))
     vw.release()
     return path

@@ -45,7 +45,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, TypeAlias
 
 import numpy as np
 import pytest
@@ -59,7 +59,8 @@ _POLL_S = 0.05  # longest the I/O thread sleeps: bounds the latency of stop()
 _STX_V1 = 0xFE
 _STX_V2 = 0xFD
 
-Message = mavlink.MAVLink_message
+# A pymavlink message (a mavlink.MAVLink_message): pymavlink has no types.
+Message: TypeAlias = Any
 # payload lengths without the MAVLink 2 extension fields (pymavlink's v1.0 dialect
 # is generated from the same XML without them)
 _MAVLINK1_LENGTHS = {mid: cls.unpacker.size for mid, cls in mavlink1_dialect.mavlink_map.items()}
@@ -735,7 +736,10 @@ class FakeAutopilot:
                 self.finished.set()
 
 
-def autopilot_fixture(name: str = "fake_autopilot", scope: str = "function") -> Callable[..., Any]:
+def autopilot_fixture(
+    name: str = "fake_autopilot",
+    scope: Literal["session", "package", "module", "class", "function"] = "function",
+) -> Callable[..., Any]:
     """A pytest fixture that gives a factory ``make(tlog, **kwargs) -> FakeAutopilot``
     (not started) and stops every autopilot it made at teardown. In a test module:
     ``fake_autopilot = autopilot_fixture()``."""

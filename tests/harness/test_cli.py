@@ -90,7 +90,7 @@ def test_a_raw_mjpeg_file_is_a_video(kf_bin: Path, pan_video: Path, tmp_path):
     # Concatenated JPEGs (what an MJPEG camera dumped to disk looks like) start with a
     # JPEG's signature; they are still a video, not a photo.
     cap = cv2.VideoCapture(str(pan_video))
-    chunks = []
+    chunks: list[bytes] = []
     while len(chunks) < 12:
         ok, img = cap.read()
         assert ok
@@ -113,7 +113,7 @@ def test_an_mp4_cut_before_its_index_is_one_clear_error(any_bin: Path, tmp_path)
     import cv2
 
     mp4 = tmp_path / "whole.mp4"
-    w = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), 30, (160, 120))
+    w = cv2.VideoWriter(str(mp4), cv2.VideoWriter.fourcc(*"mp4v"), 30, (160, 120))
     assert w.isOpened()
     for i in range(30):
         w.write(np.full((120, 160, 3), i * 8, np.uint8))

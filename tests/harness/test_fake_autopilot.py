@@ -13,6 +13,7 @@ import pytest
 from fake_autopilot import (
     MAV_CMD_REQUEST_MESSAGE,
     FakeAutopilot,
+    Message,
     Noise,
     autopilot_fixture,
     read_tlog,
@@ -62,7 +63,7 @@ def started(ap: FakeAutopilot, conn: mavutil.mavfile) -> FakeAutopilot:
     return ap
 
 
-def fields(msg: object) -> dict:
+def fields(msg: Message) -> dict:
     d = msg.to_dict()
     d.pop("mavpackettype")
     return d

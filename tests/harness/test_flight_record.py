@@ -292,14 +292,14 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     from pymavlink.dialects.v20 import common
 
     mav = common.MAVLink(None)
-    raw = {}
+    attitudes = {}
     for p in parts:
         for pkt in decoded(p, "/mavlink/raw"):
             if pkt.message_id in (30, 31):
-                raw[pkt.timestamp.ToNanoseconds()] = mav.decode(bytearray(pkt.packet))
+                attitudes[pkt.timestamp.ToNanoseconds()] = mav.decode(bytearray(pkt.packet))
     kinds = set()
     for pose in poses:
-        m = raw[pose.timestamp.ToNanoseconds()]
+        m = attitudes[pose.timestamp.ToNanoseconds()]
         kinds.add(m.get_type())
         o = pose.pose.orientation
         got = matrix(o.w, o.x, o.y, o.z)

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from fake_autopilot import (
     FakeAutopilot,
+    Message,
     Noise,
     TlogRecord,
     autopilot_fixture,
@@ -631,8 +632,8 @@ def check_captures(fl: Path, out: Path, ap: FakeAutopilot, resent: tuple[int, ..
     indices in ``resent`` (re-requested), the same as the first."""
     truth = Truth(fl)
     kfs = keyframes(out)
-    caps = []
-    again = []
+    caps: list[Message] = []
+    again: list[Message] = []
     for c in ap.received("CAMERA_IMAGE_CAPTURED"):
         (again if any(o.image_index == c.image_index for o in caps) else caps).append(c)
     assert [c.image_index for c in caps] == list(range(len(kfs)))

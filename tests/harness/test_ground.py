@@ -573,8 +573,9 @@ def test_a_fisheye_calibration_reaches_colmap_and_odm_as_fisheye(
 
     # The footprint's ray for a pixel is the direction OpenCV projects there.
     for ray, px in zip(rays[:10], opencv_px.reshape(-1, 2)[:10], strict=True):
-        back = _fisheye_ray((px[0] - cx) / fx, (px[1] - cy) / fy, d)
-        back = np.array(back) / np.linalg.norm(back)
+        ray_back = _fisheye_ray((px[0] - cx) / fx, (px[1] - cy) / fy, d)
+        assert ray_back is not None
+        back = np.array(ray_back) / np.linalg.norm(ray_back)
         assert np.degrees(np.arccos(np.clip(back @ ray, -1, 1))) < 0.01, (back, ray)
 
     # A nadir footprint 30 m up has the area of the image's outline on the ground,

@@ -240,17 +240,16 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
     received: list[tuple[str, bytes, dict[str, Any]]] = []
     receipt_ns: list[int] = []  # CLOCK_MONOTONIC, as the daemon's stamps with --realtime
     status: list[dict[str, Any]] = []
+
+    def on_keyframe(s: Any) -> None:
+        receipt_ns.append(time.monotonic_ns())
+        received.append(
+            (str(s.key_expr), s.payload.to_bytes(), json.loads(s.attachment.to_bytes()))
+        )
+
     session = zenoh.open(zenoh.Config.from_json5(peer_config(listen=[endpoint])))
     try:
-        sub = session.declare_subscriber(
-            "keyframed/test1/keyframe",
-            lambda s: (
-                receipt_ns.append(time.monotonic_ns()),
-                received.append(
-                    (str(s.key_expr), s.payload.to_bytes(), json.loads(s.attachment.to_bytes()))
-                ),
-            ),
-        )
+        sub = session.declare_subscriber("keyframed/test1/keyframe", on_keyframe)
         st = session.declare_subscriber(
             "keyframed/test1/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
         )

@@ -33,12 +33,13 @@ def test_scorer_adapts_and_rejects_blur():
     g = grey("aero1.jpg")
     for _ in range(20):
         assert s.evaluate(g)[2]
-    score, thr, sharp = s.evaluate(cv2.GaussianBlur(g, (0, 0), 3))
+    blurred: np.ndarray = cv2.GaussianBlur(g, (0, 0), 3)
+    score, thr, sharp = s.evaluate(blurred)
     assert not sharp and score < thr
 
 
 def test_selector_on_a_pan_keeps_frames_near_the_target():
-    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    strip: np.ndarray = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
     cfg = keyframed.SelectorConfig()
     cfg.analysis_width = 0
     sel = keyframed.KeyframeSelector(cfg)
@@ -55,14 +56,14 @@ def test_selector_on_a_pan_keeps_frames_near_the_target():
 
 
 def test_a_requested_capture_keeps_the_next_sharp_frame_while_hovering():
-    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    strip: np.ndarray = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
     sel = keyframed.KeyframeSelector()
     view = np.ascontiguousarray(strip[100:370, 200:680])
     reasons = []
     for i in range(30):
         if i == 10:
             assert sel.request_capture() and sel.pending_captures == 1
-        frame = cv2.GaussianBlur(view, (0, 0), 2) if i in (10, 11) else view
+        frame: np.ndarray = cv2.GaussianBlur(view, (0, 0), 2) if i in (10, 11) else view
         reasons.append(sel.process(frame, i)["reason"])
     assert reasons[0] == "first" and reasons[12] == "commanded", reasons
     assert reasons[10:12] == ["blurry", "blurry"]
@@ -72,7 +73,8 @@ def test_a_requested_capture_keeps_the_next_sharp_frame_while_hovering():
 def test_decisions_carry_per_stage_times():
     # Core reads no clock; the binding lends it one, as the daemon does.
     sel = keyframed.KeyframeSelector()
-    bgr = cv2.imread(str(PHOTOS / "aero1.jpg"))
+    bgr: np.ndarray | None = cv2.imread(str(PHOTOS / "aero1.jpg"))
+    assert bgr is not None
     views = [np.ascontiguousarray(bgr[:, i * 4 : i * 4 + 600]) for i in range(3)]
     decisions = [sel.process(v, i) for i, v in enumerate(views)]
     for d in decisions:
@@ -87,7 +89,8 @@ def test_decisions_carry_per_stage_times():
 
 def test_bgr_input_and_bad_arrays():
     sel = keyframed.KeyframeSelector()
-    bgr = cv2.imread(str(PHOTOS / "aero3.jpg"))
+    bgr: np.ndarray | None = cv2.imread(str(PHOTOS / "aero3.jpg"))
+    assert bgr is not None
     d = sel.process(bgr, 0)
     assert d["kept"] and d["reason"] == "first"
     with pytest.raises(ValueError):
@@ -117,7 +120,7 @@ def test_overlap_estimator_measures_a_pan():
     """Geometric overlap of a pan against its first view: the visible fraction shrinks
     as the view slides (1 - shift/width), a candidate can become the reference, and a
     featureless frame loses tracking."""
-    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    strip: np.ndarray = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
     est = keyframed.OverlapEstimator.create(keyframed.SelectorConfig())
 
     def view(x: int) -> np.ndarray:
@@ -143,7 +146,7 @@ def test_paper_estimator_distance_grows_with_the_shift():
     cfg = keyframed.SelectorConfig()
     cfg.mode = "paper"
     est = keyframed.OverlapEstimator.create(cfg)
-    strip = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
+    strip: np.ndarray = cv2.cvtColor(photo_strip(), cv2.COLOR_BGR2GRAY)
     est.observe(np.ascontiguousarray(strip[100:370, 50:530]))
     est.set_reference_to_current()
     near = est.observe(np.ascontiguousarray(strip[100:370, 60:540]))["paper_distance"]

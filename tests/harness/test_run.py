@@ -295,14 +295,15 @@ def test_sigterm_stops_within_a_second_with_everything_flushed(
     from mcap.reader import make_reader
 
     with open(fd / "flight.mcap", "rb") as f:  # closed properly: the summary section reads
-        stats = make_reader(f).get_summary().statistics
-    assert stats is not None and stats.message_count > summary["frames_read"]
+        summ = make_reader(f).get_summary()
+    assert summ is not None and summ.statistics is not None
+    assert summ.statistics.message_count > summary["frames_read"]
 
 
 def jpeg_frames(video: Path) -> list[bytes]:
     """Every frame of `video` as a JPEG, to stream as raw MJPEG."""
     cap = cv2.VideoCapture(str(video))
-    out = []
+    out: list[bytes] = []
     while True:
         ok, img = cap.read()
         if not ok:
@@ -930,6 +931,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
 
     with open(fd / "flight.mcap", "rb") as f:
         summ = make_reader(f).get_summary()
+    assert summ is not None and summ.statistics is not None
     topics = {c.id: c.topic for c in summ.channels.values()}
     counts = {topics[cid]: n for cid, n in summ.statistics.channel_message_counts.items()}
     assert counts.get("/mavlink/raw", 0) > 100, counts
@@ -1050,8 +1052,8 @@ def test_fleet_three_vehicles_one_router_one_ground_station(kf_bin: Path, tmp_pa
         kfs = rows(fd / "keyframes" / "keyframes.csv")
         assert results[name]["keyframes"] == len(kfs) > 0
         assert results[name]["duplicates_ignored"] == 0
-        got = sorted(p.name for p in (out / name / "images").glob("*.jpg"))
-        assert got == sorted(k["file"] for k in kfs)
+        stored = sorted(p.name for p in (out / name / "images").glob("*.jpg"))
+        assert stored == sorted(k["file"] for k in kfs)
         for k in kfs:
             assert (out / name / "images" / k["file"]).read_bytes() == (
                 fd / "keyframes" / k["file"]
@@ -1075,6 +1077,7 @@ def test_mcap_rotates_by_duration_and_every_part_reads(
     for part in parts:
         with open(part, "rb") as f:
             summ = make_reader(f).get_summary()
+        assert summ is not None and summ.statistics is not None
         topics = {c.id: c.topic for c in summ.channels.values()}
         assert "/camera/calibration" in topics.values() and "/keyframed/decision" in topics.values()
         counts = {topics[cid]: n for cid, n in summ.statistics.channel_message_counts.items()}

@@ -266,6 +266,7 @@ def test_serial_device_unplugged_and_back(
     kfs = keyframes(out)
     tags = exif([out / k["file"] for k in kfs])
     # The daemon retries once a second; it reopened when it first spoke on the new pty.
+    assert ap.start_ns is not None
     unplug_ns = ap.start_ns + int(unplug_s * 1e9)
     reopen_ns = min(t for epoch, t, _ in ap.heard if epoch == 1)
     assert reopen_ns - unplug_ns < (plug_s - unplug_s + 1.5) * 1e9

@@ -63,15 +63,16 @@ def euler_to_r(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 def orb_overlap(a: np.ndarray, b: np.ndarray) -> float:
     """Image-based overlap of a in b: ORB + brute-force matching + RANSAC homography."""
-    orb = cv2.ORB_create(nfeatures=3000)
+    orb = cv2.ORB.create(nfeatures=3000)
     ga = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY)
     gb = cv2.cvtColor(b, cv2.COLOR_BGR2GRAY)
-    ka, da = orb.detectAndCompute(ga, None)
-    kb, db = orb.detectAndCompute(gb, None)
+    # No mask: OpenCV takes None, which its stubs leave out.
+    ka, da = orb.detectAndCompute(ga, None)  # type: ignore[call-overload]
+    kb, db = orb.detectAndCompute(gb, None)  # type: ignore[call-overload]
     matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(da, db)
     assert len(matches) > 100
-    src = np.float32([ka[m.queryIdx].pt for m in matches])
-    dst = np.float32([kb[m.trainIdx].pt for m in matches])
+    src = np.array([ka[m.queryIdx].pt for m in matches], np.float32)
+    dst = np.array([kb[m.trainIdx].pt for m in matches], np.float32)
     h, inl = cv2.findHomography(src, dst, cv2.RANSAC, 2.0)
     assert h is not None and int(inl.sum()) > 60
     return synth.overlap_fraction(h, a.shape[1], a.shape[0])
@@ -242,8 +243,8 @@ def test_motion_blur_from_sub_frames(tmp_path: Path) -> None:
         out = []
         for k in sorted(frames):
             g = cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY).astype(np.float64)
-            gx = float(np.mean(cv2.Sobel(g, cv2.CV_64F, 1, 0) ** 2))
-            gy = float(np.mean(cv2.Sobel(g, cv2.CV_64F, 0, 1) ** 2))
+            gx = float((cv2.Sobel(g, cv2.CV_64F, 1, 0) ** 2).mean())
+            gy = float((cv2.Sobel(g, cv2.CV_64F, 0, 1) ** 2).mean())
             out.append((cv2.Laplacian(g, cv2.CV_64F).var(), gx, gy))
         return np.array(out)
 

@@ -7,9 +7,10 @@ work even where the extension is not built.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-_NATIVE = (
+# All of them from the native core, loaded by __getattr__ on first use.
+__all__ = [
     "SharpnessScorer",
     "OverlapEstimator",
     "KeyframeSelector",
@@ -17,13 +18,23 @@ _NATIVE = (
     "select_video",
     "sampled_laplacian_variance",
     "reference_laplacian_variance",
-)
+]
 
-__all__ = list(_NATIVE)
+if TYPE_CHECKING:
+    # The same names for the type checker, typed by _core.pyi.
+    from ._core import (
+        KeyframeSelector,
+        OverlapEstimator,
+        SelectorConfig,
+        SharpnessScorer,
+        reference_laplacian_variance,
+        sampled_laplacian_variance,
+        select_video,
+    )
 
 
 def __getattr__(name: str) -> Any:
-    if name in _NATIVE:
+    if name in __all__:
         from . import _core
 
         return getattr(_core, name)

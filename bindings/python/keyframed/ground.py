@@ -57,6 +57,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -472,7 +473,9 @@ def _area(poly: list[tuple[float, float]]) -> float:
     )
 
 
-def _clip(subject: list[tuple[float, float]], clip: list[tuple[float, float]]) -> list:
+def _clip(
+    subject: list[tuple[float, float]], clip: list[tuple[float, float]]
+) -> list[tuple[float, float]]:
     """Sutherland-Hodgman: subject polygon clipped by a convex polygon."""
 
     def side(a: tuple[float, float], b: tuple[float, float], p: tuple[float, float]) -> float:
@@ -508,8 +511,8 @@ def image_pairs(
     tags: list[ImageTags],
     sequential: int = 3,
     min_overlap: float = 0.1,
-    alt_above_ground: list[float | None] | None = None,
-    cam_q: list[list[float] | None] | None = None,
+    alt_above_ground: Sequence[float | None] | None = None,
+    cam_q: Sequence[list[float] | None] | None = None,
 ) -> list[tuple[str, str]]:
     """Pairs to match, from the overlap graph: each image with the next ``sequential``
     ones (the daemon kept them at the target overlap), and any two whose ground
@@ -566,8 +569,9 @@ def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> i
     img = cv2.imread(jpeg_path, cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise ValueError(f"cannot read {jpeg_path}")
-    sift = cv2.SIFT_create(nfeatures=max_features)
-    kps, desc = sift.detectAndCompute(img, None)
+    sift = cv2.SIFT.create(nfeatures=max_features)
+    # No mask: OpenCV takes None, which its stubs leave out.
+    kps, desc = sift.detectAndCompute(img, None)  # type: ignore[call-overload]
     lines = [f"{len(kps)} 128"]
     if desc is not None:
         # As COLMAP stores SIFT: L2-normalised, times 512, clipped to 0..255.
@@ -677,7 +681,7 @@ class VehicleDataset:
         with self.lock:
             self._flight(flight)
 
-    def note_catalogue(self, flights: list[dict[str, Any]], max_age_s: float) -> None:
+    def note_catalogue(self, flights: list[Any], max_age_s: float) -> None:
         """The vehicle's flights (keyframed/<vehicle>/flights): each one it is running,
         or we know of already, or that ended at most ``max_age_s`` ago is noted with
         its keyframe count, so that what we lack of it is fetched by query."""

@@ -114,7 +114,7 @@ from typing import Any, NoReturn
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "BOOT_MS_AT_FRAME0",
@@ -406,7 +406,7 @@ def _rect(width: int, height: int) -> F64:
 
 
 def overlap_fraction(
-    h_ij: F64,
+    h_ij: ArrayLike,
     width: int,
     height: int,
     width_j: int | None = None,
@@ -434,7 +434,7 @@ def overlap_fraction(
     pj = _clip_rect(pj, -0.5, -0.5, wj - 0.5, hj - 0.5)
     if len(pj) < 3:
         return 0.0
-    pi, _ = _apply_h(np.linalg.inv(h), pj)
+    pi, _ = _apply_h(np.asarray(np.linalg.inv(h), np.float64), pj)
     return float(min(max(_area(pi) / float(width * height), 0.0), 1.0))
 
 
@@ -457,7 +457,7 @@ def _value_noise(rng: np.random.Generator, h: int, w: int, cell: float) -> F32:
         grid, (int(round(gw * cell)), int(round(gh * cell))), interpolation=cv2.INTER_CUBIC
     )
     o = int(cell)
-    out = np.ascontiguousarray(big[o : o + h, o : o + w])
+    out = np.ascontiguousarray(big[o : o + h, o : o + w], np.float32)
     out *= 1.0 / (float(out[::7, ::7].std()) + 1e-6)
     return out
 
@@ -528,7 +528,8 @@ def _random_polyline(rng: np.random.Generator, half_m: float) -> F64:
     off = rng.uniform(-0.7, 0.7) * half_m
     s = np.linspace(-1.6 * half_m, 1.6 * half_m, 40)
     wiggle = np.cumsum(rng.normal(0.0, 1.5, s.size))
-    wiggle = np.convolve(np.pad(wiggle, 5, mode="edge"), np.ones(11) / 11.0, mode="valid")
+    smooth = np.convolve(np.pad(wiggle, 5, mode="edge"), np.ones(11) / 11.0, mode="valid")
+    wiggle = np.asarray(smooth, np.float64)
     wiggle -= wiggle.mean()
     return s[:, None] * d + (off + wiggle)[:, None] * nrm
 
@@ -694,9 +695,9 @@ def _build_mosaic(seed: int = WORLD_SEED) -> _Mosaic:
         else:
             col = np.array([185.0, 190.0, 195.0]) + jit[i]  # stone
         r = rad[i] if kind[i] < 0.8 else rad[i] * 0.35
-        centre = (int(px[i] * 4), int(py[i] * 4))
+        centre_q = (int(px[i] * 4), int(py[i] * 4))  # quarter texels (shift 2)
         if kind[i] < 0.9:
-            cv2.circle(base, centre, max(int(r * 4), 4), col.tolist(), -1, cv2.LINE_AA, 2)
+            cv2.circle(base, centre_q, max(int(r * 4), 4), col.tolist(), -1, cv2.LINE_AA, 2)
         else:
             half_side = max(r, 1.5)
             box = cv2.boxPoints(((px[i], py[i]), (2 * half_side, 1.4 * half_side), kind[i] * 900))
@@ -721,8 +722,8 @@ def _build_mosaic(seed: int = WORLD_SEED) -> _Mosaic:
     full = cv2.cvtColor(base, cv2.COLOR_BGR2BGRA)
     del base
     hs = int(round(n / math.sqrt(2.0)))
-    s = hs / n
-    half_mat = np.array([[s, 0.0, 0.5 * s - 0.5], [0.0, s, 0.5 * s - 0.5], [0.0, 0.0, 1.0]])
+    hsc = hs / n
+    half_mat = np.array([[hsc, 0.0, 0.5 * hsc - 0.5], [0.0, hsc, 0.5 * hsc - 0.5], [0.0, 0.0, 1.0]])
     chains = [
         (full, np.eye(3)),
         (cv2.resize(full, (hs, hs), interpolation=cv2.INTER_AREA), half_mat),
@@ -865,7 +866,10 @@ def _nadir_plan(seconds: float, seed: int) -> _Plan:
     rng = np.random.default_rng([seed, 1])
     alt, v_c, v_t, r_turn = 50.0, 8.0, 6.5, 12.5
     x0, y_s = -12.5, -56.0
-    t = np.arange(int(round((seconds + _PRE_S + _POST_S) / _DT)) + 1) * _DT - _PRE_S
+    t = (
+        np.arange(int(round((seconds + _PRE_S + _POST_S) / _DT)) + 1, dtype=np.float64) * _DT
+        - _PRE_S
+    )
     t_end = float(t[-1])
 
     # speed schedule: (t_start, duration, v0, v1) with cosine ramps between speeds
@@ -959,7 +963,10 @@ def _orbit_plan(seconds: float, seed: int) -> _Plan:
     """
     rng = np.random.default_rng([seed, 2])
     radius, alt, speed = 30.0, 35.0, 6.0
-    t = np.arange(int(round((seconds + _PRE_S + _POST_S) / _DT)) + 1) * _DT - _PRE_S
+    t = (
+        np.arange(int(round((seconds + _PRE_S + _POST_S) / _DT)) + 1, dtype=np.float64) * _DT
+        - _PRE_S
+    )
     omega = speed / radius
     alpha = math.radians(-110.0) + omega * t
     pos = np.stack([radius * np.cos(alpha), radius * np.sin(alpha), np.full_like(t, alt)], 1)
@@ -1028,20 +1035,21 @@ def _level_map(m0: F64, width: int, height: int, nlev: int) -> F32:
     smin = np.sqrt(np.maximum(p - qq, 1e-12))
     lod = 1.5 * np.log2(np.maximum(smax, 1e-6)) + 0.5 * np.log2(np.maximum(smin, 1e-6))
     lod = np.clip(lod, 0.0, nlev - 1).astype(np.float32)
-    return cv2.resize(lod, (width, height), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(cv2.resize(lod, (width, height), interpolation=cv2.INTER_LINEAR), np.float32)
 
 
 def _warp_level(mosaic: _Mosaic, k: int, m0: F64, width: int, r0: int, r1: int) -> U8:
     """Rows r0..r1 of the view of pyramid level k (m0: image -> level-0 texel)."""
     sk = mosaic.level_mats[k]
     shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, r0], [0.0, 0.0, 1.0]])
-    return cv2.warpPerspective(
+    view = cv2.warpPerspective(
         mosaic.levels[k],
         sk @ m0 @ shift,
         (width, r1 - r0),
         flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
         borderMode=cv2.BORDER_REFLECT101,
     )
+    return np.asarray(view, np.uint8)
 
 
 def _render(mosaic: _Mosaic, h_gi: F64, lod: F32) -> U8:
@@ -1163,7 +1171,7 @@ def _frame_truth(
     # sub-frames at most 0.5 px apart; none below 1 px of motion (cheap, visually exact)
     nsub = np.clip(np.ceil(blur / 0.5) + 1, 1, 64).astype(np.int64)
     nsub[blur < 1.0] = 1
-    sigma = np.zeros(n)
+    sigma: F64 = np.zeros(n)
     scale = width / 960.0
     ramp = 0.1
     for d0, d1, s in plan.defocus:
@@ -1182,7 +1190,7 @@ class _Writer:
         self._vw = cv2.VideoWriter(
             str(path),
             cv2.CAP_OPENCV_MJPEG,
-            cv2.VideoWriter_fourcc(*"MJPG"),
+            cv2.VideoWriter.fourcc(*"MJPG"),
             fps,
             size,
             [cv2.VIDEOWRITER_PROP_QUALITY, MJPG_QUALITY],
@@ -1269,7 +1277,7 @@ def _render_video(
                         borderMode=cv2.BORDER_REFLECT101,
                     )
                     cv2.accumulate(sub, acc)
-                bgra = cv2.convertScaleAbs(acc, alpha=1.0 / nsub)
+                bgra = np.asarray(cv2.convertScaleAbs(acc, alpha=1.0 / nsub), np.uint8)
             img = cv2.cvtColor(bgra, cv2.COLOR_BGRA2BGR)
             if truth.sigma[i] > 0.05:
                 img = cv2.GaussianBlur(img, (0, 0), float(truth.sigma[i]))
@@ -1278,7 +1286,7 @@ def _render_video(
             dy, dx = (int(v) for v in fr.integers(0, pad, 2))
             img = cv2.add(img, pos_n[dy : dy + height, dx : dx + width])
             img = cv2.subtract(img, neg_n[dy : dy + height, dx : dx + width])
-            writer.write(img)
+            writer.write(np.asarray(img, np.uint8))
     finally:
         writer.close()
     cap = cv2.VideoCapture(str(path))
@@ -1453,10 +1461,10 @@ def _write_tlog(path: Path, plan: _Plan, n_frames: int, fps: float) -> None:
             qw, qx, qy, qz = (float(v) for v in q_nb[idx])
             msg = mav.attitude_quaternion_encode(boot_ms(t), qw, qx, qy, qz, p, q, r)
         elif name == "GLOBAL_POSITION_INT":
-            vn, ve, vd = (int(round(float(v) * 100.0)) for v in vel[idx])
+            vn_cm, ve_cm, vd_cm = (int(round(float(v) * 100.0)) for v in vel[idx])
             rel = int(round(float(pos[idx, 2]) * 1000.0))
             msg = mav.global_position_int_encode(
-                boot_ms(t), lat_i, lon_i, alt_mm, rel, vn, ve, vd, hdg
+                boot_ms(t), lat_i, lon_i, alt_mm, rel, vn_cm, ve_cm, vd_cm, hdg
             )
         else:
             vn, ve = float(vel[idx, 0]), float(vel[idx, 1])
@@ -1648,7 +1656,7 @@ class Flight:
         return _ground_to_image(self.K, self.rotations[i : i + 1], self.positions[i : i + 1])[0]
 
     def image_to_ground(self, i: int) -> F64:
-        return np.linalg.inv(self.ground_to_image(i))
+        return np.asarray(np.linalg.inv(self.ground_to_image(i)), np.float64)
 
     def homography(self, i: int, j: int) -> F64:
         """Plane-induced homography image i -> image j (w > 0 in front of camera j)."""
