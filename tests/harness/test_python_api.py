@@ -176,3 +176,11 @@ def test_star_import():
     ns: dict[str, object] = {}
     exec("from keyframed import *", ns)
     assert {"KeyframeSelector", "OverlapEstimator", "select_video"} <= ns.keys()
+
+
+def test_dir_lists_the_native_api() -> None:
+    """Tab completion and help() see the core's names before first use loads it."""
+    names = dir(keyframed)
+    for name in keyframed.__all__:
+        assert name in names
+        assert callable(getattr(keyframed, name))

@@ -39,3 +39,8 @@ def __getattr__(name: str) -> Any:
 
         return getattr(_core, name)
     raise AttributeError(f"module 'keyframed' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    # The native names too (tab completion, help()), without loading the core.
+    return sorted(set(globals()) | set(__all__))
