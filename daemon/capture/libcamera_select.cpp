@@ -75,9 +75,18 @@ libcamera::PixelFormat chooseLibcameraFormat(const std::vector<libcamera::PixelF
   return {};
 }
 
-libcamera::Size chooseLibcameraSize(const std::vector<libcamera::Size>& offered,
+libcamera::Size chooseLibcameraSize(const libcamera::StreamFormats& formats,
+                                    const libcamera::PixelFormat& format,
                                     const libcamera::Size& wanted, const libcamera::Size& current) {
   if (wanted.width == 0 || wanted.height == 0) return current;
+  // range() of discrete sizes spans them with steps of 0; one size is a range of one.
+  const libcamera::SizeRange range = formats.range(format);
+  if (range.hStep > 0 && range.vStep > 0 && range.min != range.max &&
+      wanted.width >= range.min.width && wanted.height >= range.min.height &&
+      wanted.width <= range.max.width && wanted.height <= range.max.height) {
+    return wanted;
+  }
+  const std::vector<libcamera::Size> offered = formats.sizes(format);
   if (offered.empty()) return wanted;  // the pipeline scales: let validate() adjust
   const libcamera::Size* best = nullptr;
   for (const auto& s : offered) {

@@ -10,6 +10,7 @@
 #include <libcamera/camera.h>
 #include <libcamera/geometry.h>
 #include <libcamera/pixel_format.h>
+#include <libcamera/stream.h>
 
 #include "core/frame.h"
 
@@ -27,9 +28,14 @@ std::shared_ptr<libcamera::Camera> selectCamera(
 libcamera::PixelFormat chooseLibcameraFormat(const std::vector<libcamera::PixelFormat>& offered,
                                              const std::string& wanted, std::string& error);
 
-// The offered size equal to `wanted`; else the smallest that covers it; else
-// the largest. `wanted` of 0x0 keeps `current`.
-libcamera::Size chooseLibcameraSize(const std::vector<libcamera::Size>& offered,
+// The size to ask for `format`. A stream that offers a range (a scaler: the Pi's
+// ISP) is asked for `wanted` itself when it lies within the range (validate() then
+// aligns it to the steps): StreamFormats::sizes() of a range is only libcamera's
+// list of common sizes, which would turn a 2028x1520 request into 2048x1536.
+// Among discrete sizes: the one equal to `wanted`; else the smallest that covers
+// it; else the largest. `wanted` of 0x0 keeps `current`.
+libcamera::Size chooseLibcameraSize(const libcamera::StreamFormats& formats,
+                                    const libcamera::PixelFormat& format,
                                     const libcamera::Size& wanted, const libcamera::Size& current);
 
 // The frame layout a libcamera format maps to; false for formats keyframed

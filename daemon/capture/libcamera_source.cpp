@@ -146,7 +146,7 @@ std::unique_ptr<LibcameraSource> LibcameraSource::open(const LibcameraOptions& o
     return nullptr;
   }
   sc.pixelFormat = pf;
-  sc.size = chooseLibcameraSize(sc.formats().sizes(pf),
+  sc.size = chooseLibcameraSize(sc.formats(), pf,
                                 libcamera::Size(static_cast<unsigned>(std::max(0, options.width)),
                                                 static_cast<unsigned>(std::max(0, options.height))),
                                 sc.size);

@@ -57,13 +57,38 @@ TEST(LibcameraSelect, HonoursARequestedFormat) {
 }
 
 TEST(LibcameraSelect, SizeExactElseSmallestCoveringElseLargest) {
-  const std::vector<Size> sizes{{640, 480}, {1280, 720}, {1920, 1080}, {4056, 3040}};
+  // A sensor's discrete modes (the simple and UVC pipelines).
+  const libcamera::StreamFormats discrete(
+      {{fmt::NV12,
+        {libcamera::SizeRange(Size(640, 480)), libcamera::SizeRange(Size(1280, 720)),
+         libcamera::SizeRange(Size(1920, 1080)), libcamera::SizeRange(Size(4056, 3040))}}});
   const Size current{1920, 1080};
-  EXPECT_EQ(chooseLibcameraSize(sizes, {1280, 720}, current), Size(1280, 720));
-  EXPECT_EQ(chooseLibcameraSize(sizes, {1000, 700}, current), Size(1280, 720));
-  EXPECT_EQ(chooseLibcameraSize(sizes, {8000, 6000}, current), Size(4056, 3040));
-  EXPECT_EQ(chooseLibcameraSize(sizes, {0, 0}, current), current);
-  EXPECT_EQ(chooseLibcameraSize({}, {800, 600}, current), Size(800, 600));
+  EXPECT_EQ(chooseLibcameraSize(discrete, fmt::NV12, {1280, 720}, current), Size(1280, 720));
+  EXPECT_EQ(chooseLibcameraSize(discrete, fmt::NV12, {1000, 700}, current), Size(1280, 720));
+  EXPECT_EQ(chooseLibcameraSize(discrete, fmt::NV12, {8000, 6000}, current), Size(4056, 3040));
+  EXPECT_EQ(chooseLibcameraSize(discrete, fmt::NV12, {0, 0}, current), current);
+  const libcamera::StreamFormats one({{fmt::NV12, {libcamera::SizeRange(Size(1920, 1080))}}});
+  EXPECT_EQ(chooseLibcameraSize(one, fmt::NV12, {1280, 720}, current), Size(1920, 1080));
+  EXPECT_EQ(chooseLibcameraSize(libcamera::StreamFormats(), fmt::NV12, {800, 600}, current),
+            Size(800, 600));
+}
+
+TEST(LibcameraSelect, ASizeWithinAScalersRangeIsAskedForAsIs) {
+  // The Pi's ISP output: one range (HQ camera: up to 4056x3040 in steps of 2).
+  // libcamera's own sizes() of it is its list of common sizes, which holds neither
+  // the HQ camera's 2028x1520 binned mode nor Camera Module 3's 2304x1296.
+  const libcamera::StreamFormats isp(
+      {{fmt::YUV420, {libcamera::SizeRange(Size(64, 64), Size(4056, 3040), 2, 2)}}});
+  const std::vector<Size> common = isp.sizes(fmt::YUV420);
+  ASSERT_FALSE(common.empty());
+  for (const Size& s : common) EXPECT_NE(s, Size(2028, 1520));
+  const Size current{1920, 1080};
+  EXPECT_EQ(chooseLibcameraSize(isp, fmt::YUV420, {2028, 1520}, current), Size(2028, 1520));
+  EXPECT_EQ(chooseLibcameraSize(isp, fmt::YUV420, {2304, 1296}, current), Size(2304, 1296));
+  // Beyond the range: the largest size offered, as among discrete sizes.
+  const Size big = chooseLibcameraSize(isp, fmt::YUV420, {8000, 6000}, current);
+  EXPECT_LE(big.width, 4056U);
+  EXPECT_LE(big.height, 3040U);
 }
 
 TEST(LibcameraSelect, FrameFormats) {
