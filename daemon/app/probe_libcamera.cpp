@@ -153,8 +153,8 @@ int probeLibcameraMain(const std::vector<std::string>& args) {
   emit("{\"event\":\"summary\",\"frames\":" + std::to_string(times.size()) + ",\"monotonic\":" +
        (monotonic ? "true" : "false") + ",\"indexed\":" + (indexed ? "true" : "false") +
        ",\"sensor_timestamps\":" + (source->sensorTimestamps() ? "true" : "false") +
-       ",\"failed_frames\":" + std::to_string(source->failedFrames()) +
-       ",\"interval_ms_median\":" + jsonNumber(median) +
+       ",\"failed_frames\":" + std::to_string(source->failedFrames()) + ",\"sequence_gaps\":" +
+       std::to_string(source->sequenceGaps()) + ",\"interval_ms_median\":" + jsonNumber(median) +
        ",\"distinct_means\":" + std::to_string(means.size()) + ",\"wall_s\":" + jsonNumber(wall) +
        ",\"cpu_s\":" + jsonNumber(probe::cpuSeconds() - cpuStart) + "}");
   source.reset();  // stop and release the camera before the process ends

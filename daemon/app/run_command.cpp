@@ -457,6 +457,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   const CaptureThread::Stats cs = capture_->stats();
   const StageCounts& c = finalCounts_;
   const std::uint64_t dropped = queue_->dropped() + cs.noBuffer;
+  const std::uint64_t lost = source_->lostFrames();
   std::string tel = "null";
   if (telemetry_) {
     const TelemetryServiceStats ts = telemetry_->stats();
@@ -500,7 +501,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   std::snprintf(
       buf, sizeof buf,
       "  \"width\": %d,\n  \"height\": %d,\n"
-      "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n  \"frames_read\": %lld,\n"
+      "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n"
+      "  \"frames_lost_in_camera\": %llu,\n  \"frames_read\": %lld,\n"
       "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"write_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
       "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
@@ -508,8 +510,9 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       "  \"decode_cpu_seconds\": %.3f,\n  \"cpu_percent_without_decode\": %.1f,\n"
       "  \"max_rss_mb\": %.1f,\n",
       info.width, info.height, static_cast<unsigned long long>(cs.captured),
-      static_cast<unsigned long long>(dropped), static_cast<long long>(c.framesRead),
-      static_cast<long long>(c.kept), static_cast<long long>(writer_.saved()),
+      static_cast<unsigned long long>(dropped), static_cast<unsigned long long>(lost),
+      static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
+      static_cast<long long>(writer_.saved()),
       static_cast<long long>(writer_.count() - writer_.saved()),
       static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
       static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
@@ -798,10 +801,13 @@ int Daemon::run() {
       const double el = std::chrono::duration<double>(now - lastStatus).count();
       const std::int64_t analysed = stats_.analysed.load();
       char buf[160];
+      // Dropped: by us (the analysis fell behind) and before us (the camera's driver
+      // had no free buffer: the capture thread fell behind).
       std::snprintf(buf, sizeof buf, "%.1f fps, %lld keyframes, %llu dropped%s",
                     static_cast<double>(analysed - lastAnalysed) / el,
                     static_cast<long long>(stats_.written.load()),
-                    static_cast<unsigned long long>(queue_->dropped() + capture_->stats().noBuffer),
+                    static_cast<unsigned long long>(queue_->dropped() + capture_->stats().noBuffer +
+                                                    source_->lostFrames()),
                     framesArrive || !ready_ ? "" : ", no frames");
       notifier_.status(buf);
       lastStatus = now;
@@ -866,8 +872,9 @@ int Daemon::run() {
   }
   const CaptureThread::Stats cs = capture_->stats();
   KF_LOG(App, Notice) << "stopped (" << state << "): " << cs.captured << " frames captured, "
-                      << queue_->dropped() + cs.noBuffer << " dropped, " << writer_.count()
-                      << " keyframes in " << flightDir_;
+                      << queue_->dropped() + cs.noBuffer << " dropped, " << source_->lostFrames()
+                      << " lost in the camera, " << writer_.count() << " keyframes in "
+                      << flightDir_;
   const int rc = !ok || state == "capture_failed" || state == "failed" ? 1 : 0;
   if (!captureStopped) {
     // Everything is flushed; the capture thread still holds the source, the pool and

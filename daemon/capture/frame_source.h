@@ -29,6 +29,10 @@ class FrameSource {
   // True once next() has returned an Error the source cannot recover from (a
   // truncated file, a camera gone for good): calling again would only repeat it.
   [[nodiscard]] virtual bool failed() const { return false; }
+  // Frames the camera produced that never came out of next(): the driver had no free
+  // buffer for them (gaps in its sequence numbers), or they came broken and were
+  // skipped. Counted by the source, read by any thread (STATUS, the summary).
+  [[nodiscard]] virtual std::uint64_t lostFrames() const { return 0; }
   // Called from another thread when the owner stops: a next() waiting for the
   // device returns at once (Error, "interrupted"), and so does every later one.
   // Sources whose next() never waits long (files) need not do anything.

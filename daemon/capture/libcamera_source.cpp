@@ -297,6 +297,14 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
       continue;
     }
     libcamera::FrameBuffer* buffer = request->findBuffer(d.stream);
+    if (buffer != nullptr) {
+      // A failed frame has its number too: counted once, as failed, not as a gap.
+      const std::uint32_t sequence = buffer->metadata().sequence;
+      if (haveSequence_ && sequence > lastSequence_ + 1)
+        sequenceGaps_ += sequence - lastSequence_ - 1;
+      lastSequence_ = sequence;
+      haveSequence_ = true;
+    }
     if (buffer == nullptr || buffer->metadata().status != libcamera::FrameMetadata::FrameSuccess) {
       ++failedFrames_;
       if (!requeue(request)) {

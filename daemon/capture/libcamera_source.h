@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -50,7 +51,13 @@ class LibcameraSource final : public FrameSource {
   [[nodiscard]] const std::string& cameraId() const { return cameraId_; }
   // True when the last frame's time came from controls::SensorTimestamp.
   [[nodiscard]] bool sensorTimestamps() const { return sensorTimestamps_; }
-  [[nodiscard]] std::uint64_t failedFrames() const { return failedFrames_; }
+  [[nodiscard]] std::uint64_t failedFrames() const { return failedFrames_.load(); }
+  // Frames the sensor produced with no request queued (gaps in
+  // FrameMetadata::sequence), and failed ones.
+  [[nodiscard]] std::uint64_t sequenceGaps() const { return sequenceGaps_.load(); }
+  [[nodiscard]] std::uint64_t lostFrames() const override {
+    return failedFrames_.load() + sequenceGaps_.load();
+  }
 
  private:
   struct Impl;
@@ -60,7 +67,10 @@ class LibcameraSource final : public FrameSource {
   SourceInfo info_;
   std::string cameraId_;
   bool sensorTimestamps_ = false;
-  std::uint64_t failedFrames_ = 0;
+  std::atomic<std::uint64_t> failedFrames_{0};
+  std::atomic<std::uint64_t> sequenceGaps_{0};
+  std::uint32_t lastSequence_ = 0;
+  bool haveSequence_ = false;
   std::int64_t index_ = 0;
   int timeoutMs_ = 2000;
 };

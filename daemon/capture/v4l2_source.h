@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
@@ -109,9 +110,12 @@ class V4l2Source final : public FrameSource {
   [[nodiscard]] bool driverTimestamps() const { return driverTimestamps_; }
   [[nodiscard]] const V4l2DeviceInfo& device() const { return device_; }
   // Frames the driver skipped (gaps in v4l2_buffer.sequence).
-  [[nodiscard]] std::uint64_t sequenceGaps() const { return sequenceGaps_; }
+  [[nodiscard]] std::uint64_t sequenceGaps() const { return sequenceGaps_.load(); }
   // Buffers flagged V4L2_BUF_FLAG_ERROR or MJPEG frames that failed to decode, skipped.
-  [[nodiscard]] std::uint64_t corruptFrames() const { return corruptFrames_; }
+  [[nodiscard]] std::uint64_t corruptFrames() const { return corruptFrames_.load(); }
+  [[nodiscard]] std::uint64_t lostFrames() const override {
+    return sequenceGaps_.load() + corruptFrames_.load();
+  }
   [[nodiscard]] std::uint64_t reopenCount() const { return reopens_; }
 
   // Parses a format name ("NV12", "yuv420", "YU12", "MJPEG", ...) to a V4L2
@@ -176,8 +180,8 @@ class V4l2Source final : public FrameSource {
   std::int64_t index_ = 0;
   std::uint32_t lastSequence_ = 0;
   bool haveSequence_ = false;
-  std::uint64_t sequenceGaps_ = 0;
-  std::uint64_t corruptFrames_ = 0;
+  std::atomic<std::uint64_t> sequenceGaps_{0};
+  std::atomic<std::uint64_t> corruptFrames_{0};
   // Frame waits in a row that timed out: at kStalledWaits (autoReopen) the stream is
   // restarted as if the device had been lost.
   int stalledWaits_ = 0;

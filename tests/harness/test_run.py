@@ -100,6 +100,7 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     assert summary["state"] == "done"
     assert summary["frames_captured"] == 240
     assert summary["frames_dropped"] == 0, "30 fps in real time: nothing dropped"
+    assert summary["frames_lost_in_camera"] == 0, summary  # a file loses nothing
     assert summary["frames_read"] == 240
     assert 28.0 < summary["frames_per_second"] < 31.0
 

@@ -124,7 +124,7 @@ class FakeDriver final : public V4l2Io {
         b->index = f.index;
         b->bytesused = static_cast<std::uint32_t>(f.used);
         b->flags = V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC;
-        b->sequence = sequence_++;
+        b->sequence = f.sequence;
         b->timestamp.tv_sec = 100 + b->sequence;
         if (filled_.empty()) {
           std::uint64_t n = 0;
@@ -141,13 +141,15 @@ class FakeDriver final : public V4l2Io {
   }
 
   // Fills the buffer the driver has held longest with `bytes`; false when the
-  // source holds every buffer.
+  // source holds every buffer: the frame is lost, and its sequence number with it,
+  // as a real driver does.
   bool deliver(const std::vector<std::uint8_t>& bytes) {
+    const std::uint32_t sequence = sequence_++;
     if (queued_.empty()) return false;
     const std::uint32_t index = queued_.front();
     queued_.pop_front();
     std::copy(bytes.begin(), bytes.end(), memory_[index].begin());
-    filled_.push_back({index, bytes.size()});
+    filled_.push_back({index, bytes.size(), sequence});
     const std::uint64_t one = 1;
     [[maybe_unused]] const ssize_t r = ::write(fd_, &one, sizeof one);
     return true;
@@ -159,6 +161,7 @@ class FakeDriver final : public V4l2Io {
   struct Filled {
     std::uint32_t index;
     std::size_t used;
+    std::uint32_t sequence;
   };
   static int fail(int err) {
     errno = err;
@@ -236,6 +239,33 @@ TEST(V4l2FakeDriver, RawBuffersAreLentUntilTheNextCall) {
   ASSERT_TRUE(driver->deliver(yuyv));
   ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
   EXPECT_EQ(src->corruptFrames(), 1u);
+}
+
+TEST(V4l2FakeDriver, FramesTheDriverHadNoBufferForAreCountedLost) {
+  auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_YUYV);
+  auto src = openFake(driver);
+  ASSERT_NE(src, nullptr);
+  const std::vector<std::uint8_t> yuyv(kWidth * 2 * kHeight, 60);
+  Frame f;
+  std::string err;
+  ASSERT_TRUE(driver->deliver(yuyv));
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;  // holds one buffer
+  // The capture thread falls behind: three frames fill the ring, two find no buffer.
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE(driver->deliver(yuyv));
+  EXPECT_FALSE(driver->deliver(yuyv));
+  EXPECT_FALSE(driver->deliver(yuyv));
+  for (int i = 0; i < 3; ++i) ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(src->lostFrames(), 0u);  // not known until a frame after them comes
+  ASSERT_TRUE(driver->deliver(yuyv));
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(src->sequenceGaps(), 2u);
+  EXPECT_EQ(src->lostFrames(), 2u);
+  EXPECT_EQ(f.index, 4);  // indices count the frames delivered
+  // A broken frame counts as lost too.
+  ASSERT_TRUE(driver->deliver(std::vector<std::uint8_t>(100, 1)));
+  ASSERT_TRUE(driver->deliver(yuyv));
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(src->lostFrames(), 3u);
 }
 
 TEST(V4l2FakeDriver, ALostDeviceIsReopenedAndIndicesContinue) {
