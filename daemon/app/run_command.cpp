@@ -594,6 +594,14 @@ int Daemon::run() {
                              << config_.camera.width << "x" << config_.camera.height
                              << " (the nearest size it offers)";
   }
+  // Nor does every camera reach the configured rate (a USB 2 webcam's uncompressed
+  // 1080p: 5 fps); the overlap between frames, and the keyframes, depend on it.
+  if (config_.camera.source != DaemonConfig::Source::File && info.fps > 0.0 &&
+      config_.camera.fps > 0.0 && info.fps < config_.camera.fps * 0.99) {
+    KF_LOG(Capture, Warning) << "the camera runs at " << info.fps
+                             << " fps, not the configured camera.fps " << config_.camera.fps
+                             << " (the fastest it offers at this size and format)";
+  }
   if (camera_) {
     if (const std::string w = camera_->aspectMismatch(info.width, info.height); !w.empty())
       KF_LOG(Tagging, Warning) << w;

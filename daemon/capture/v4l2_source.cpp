@@ -17,6 +17,7 @@
 #include <cstdio>
 #include <cstring>
 #include <ctime>
+#include <iterator>
 #include <numeric>
 
 #include "capture/plane_layout.h"
@@ -60,6 +61,38 @@ std::vector<std::uint32_t> enumFormats(V4l2Io& io, int fd, std::uint32_t type) {
     out.push_back(d.pixelformat);
   }
   return out;
+}
+
+// The highest frame rate the driver lists for `fourcc` at the size it would give
+// for width x height (0x0: its current size); 0 when it lists none (no
+// VIDIOC_ENUM_FRAMEINTERVALS, or no VIDIOC_TRY_FMT to learn the size).
+double maxFrameRate(V4l2Io& io, int fd, std::uint32_t fourcc, int width, int height) {
+  v4l2_format fmt{};
+  fmt.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  if (io.ioctl(fd, VIDIOC_G_FMT, &fmt) < 0) return 0.0;
+  fmt.fmt.pix.pixelformat = fourcc;
+  if (width > 0 && height > 0) {
+    fmt.fmt.pix.width = static_cast<std::uint32_t>(width);
+    fmt.fmt.pix.height = static_cast<std::uint32_t>(height);
+  }
+  fmt.fmt.pix.field = V4L2_FIELD_NONE;
+  fmt.fmt.pix.bytesperline = 0;
+  if (io.ioctl(fd, VIDIOC_TRY_FMT, &fmt) < 0 || fmt.fmt.pix.pixelformat != fourcc) return 0.0;
+  double best = 0.0;
+  for (std::uint32_t i = 0; i < 64; ++i) {
+    v4l2_frmivalenum e{};
+    e.index = i;
+    e.pixel_format = fourcc;
+    e.width = fmt.fmt.pix.width;
+    e.height = fmt.fmt.pix.height;
+    if (io.ioctl(fd, VIDIOC_ENUM_FRAMEINTERVALS, &e) < 0) break;
+    // Discrete intervals come one per index; a stepwise or continuous range once,
+    // its shortest interval being the fastest rate.
+    const v4l2_fract f = e.type == V4L2_FRMIVAL_TYPE_DISCRETE ? e.discrete : e.stepwise.min;
+    if (f.numerator > 0) best = std::max(best, static_cast<double>(f.denominator) / f.numerator);
+    if (e.type != V4L2_FRMIVAL_TYPE_DISCRETE) break;
+  }
+  return best;
 }
 
 std::string joinFormats(const std::vector<std::uint32_t>& codes) {
@@ -125,6 +158,29 @@ std::uint32_t V4l2Source::chooseFormat(const std::vector<std::uint32_t>& offered
     if (std::find(offered.begin(), offered.end(), want) != offered.end()) return want;
   }
   return 0;
+}
+
+std::uint32_t V4l2Source::chooseFormat(const std::vector<FormatRate>& offered, double wantFps) {
+  const auto rank = [](std::uint32_t fourcc) {
+    const auto* at = std::find(std::begin(kPreferred), std::end(kPreferred), fourcc);
+    return static_cast<int>(at - std::begin(kPreferred));  // past the end: not supported
+  };
+  const int unsupported = static_cast<int>(std::size(kPreferred));
+  const FormatRate* best = nullptr;  // preferred among those fast enough
+  const FormatRate* fastest = nullptr;
+  for (const FormatRate& f : offered) {
+    const int r = rank(f.fourcc);
+    if (r == unsupported) continue;
+    // 1 % slack: 29.97 fps cameras asked for 30.
+    const bool enough = wantFps <= 0.0 || f.maxFps <= 0.0 || f.maxFps >= wantFps * 0.99;
+    if (enough && (best == nullptr || r < rank(best->fourcc))) best = &f;
+    if (fastest == nullptr || f.maxFps > fastest->maxFps ||
+        (f.maxFps == fastest->maxFps && r < rank(fastest->fourcc))) {
+      fastest = &f;
+    }
+  }
+  if (best != nullptr) return best->fourcc;
+  return fastest != nullptr ? fastest->fourcc : 0;
 }
 
 std::string V4l2Source::pickDevice(const std::vector<V4l2DeviceInfo>& devices) {
@@ -321,7 +377,13 @@ bool V4l2Source::start(std::string& error) {
       return false;
     }
   } else {
-    want = chooseFormat(offered);
+    std::vector<FormatRate> rates;
+    for (std::uint32_t c : offered) {
+      rates.push_back({c, options_.fps > 0.0
+                              ? maxFrameRate(*io_, fd_, c, options_.width, options_.height)
+                              : 0.0});
+    }
+    want = chooseFormat(rates, options_.fps);
     if (want == 0) {
       error = who + " offers no supported pixel format (offers: " + joinFormats(offered) +
               "; supported: " + supportedList() + ")";
@@ -393,11 +455,9 @@ bool V4l2Source::start(std::string& error) {
     const std::uint32_t g = std::gcd(num, den);
     parm.parm.capture.timeperframe.numerator = num / g;
     parm.parm.capture.timeperframe.denominator = den / g;
-    if (io_->ioctl(fd_, VIDIOC_S_PARM, &parm) < 0) {
-      error = who + ": VIDIOC_S_PARM: " + errnoText(errno);
-      shutdown();
-      return false;
-    }
+    // A driver that cannot change its rate still streams at the one it has (read
+    // back below, and compared with the wish by the caller).
+    (void)io_->ioctl(fd_, VIDIOC_S_PARM, &parm);
   }
   info_.fps = 0.0;
   if (haveParm && io_->ioctl(fd_, VIDIOC_G_PARM, &parm) == 0 &&

@@ -124,6 +124,17 @@ class V4l2Source final : public FrameSource {
   static std::string fourccString(std::uint32_t fourcc);
   // Picks the preferred fourcc among those offered; 0 when none is supported.
   static std::uint32_t chooseFormat(const std::vector<std::uint32_t>& offered);
+  // A format offered and the highest frame rate the driver lists for it at the size
+  // it would deliver (VIDIOC_TRY_FMT, VIDIOC_ENUM_FRAMEINTERVALS); 0 when it lists none.
+  struct FormatRate {
+    std::uint32_t fourcc = 0;
+    double maxFps = 0.0;
+  };
+  // The preferred format that reaches `wantFps` (or whose rate is unknown); when none
+  // does, the fastest (a USB 2 webcam gives 1080p YUYV at 5 fps, MJPEG at 30): a
+  // luma plane without a copy is worth less than the frames themselves. 0 when none
+  // is supported.
+  static std::uint32_t chooseFormat(const std::vector<FormatRate>& offered, double wantFps);
   // Driver timeval on CLOCK_MONOTONIC to nanoseconds.
   static std::int64_t timevalToNs(long sec, long usec);
 

@@ -35,6 +35,25 @@ TEST(V4l2Source, PrefersPlanarYuvThenYuyvThenMjpeg) {
   EXPECT_EQ(V4l2Source::chooseFormat(V{V4L2_PIX_FMT_H264, V4L2_PIX_FMT_RGB565}), 0u);
 }
 
+TEST(V4l2Source, AFormatThatReachesTheFrameRateBeatsAPreferredSlowOne) {
+  using R = V4l2Source::FormatRate;
+  // A USB 2 webcam at 1080p: uncompressed YUYV at 5 fps, MJPEG at 30.
+  const std::vector<R> webcam{{V4L2_PIX_FMT_YUYV, 5.0}, {V4L2_PIX_FMT_MJPEG, 30.0}};
+  EXPECT_EQ(V4l2Source::chooseFormat(webcam, 30.0), V4L2_PIX_FMT_MJPEG);
+  EXPECT_EQ(V4l2Source::chooseFormat(webcam, 5.0), V4L2_PIX_FMT_YUYV);  // enough: no decode
+  // Fast enough (29.97 for 30): the preference order decides.
+  const std::vector<R> both{{V4L2_PIX_FMT_MJPEG, 30.0}, {V4L2_PIX_FMT_NV12, 29.97}};
+  EXPECT_EQ(V4l2Source::chooseFormat(both, 30.0), V4L2_PIX_FMT_NV12);
+  // None fast enough: the fastest, the preferred one among equals.
+  const std::vector<R> slow{
+      {V4L2_PIX_FMT_MJPEG, 15.0}, {V4L2_PIX_FMT_YUYV, 10.0}, {V4L2_PIX_FMT_NV12, 15.0}};
+  EXPECT_EQ(V4l2Source::chooseFormat(slow, 30.0), V4L2_PIX_FMT_NV12);
+  // A rate the driver does not list counts as enough (as before rates were asked).
+  const std::vector<R> unknown{{V4L2_PIX_FMT_MJPEG, 30.0}, {V4L2_PIX_FMT_YUYV, 0.0}};
+  EXPECT_EQ(V4l2Source::chooseFormat(unknown, 30.0), V4L2_PIX_FMT_YUYV);
+  EXPECT_EQ(V4l2Source::chooseFormat(std::vector<R>{{V4L2_PIX_FMT_H264, 60.0}}, 30.0), 0u);
+}
+
 TEST(V4l2Source, TimevalToNanoseconds) {
   EXPECT_EQ(V4l2Source::timevalToNs(0, 0), 0);
   EXPECT_EQ(V4l2Source::timevalToNs(12, 345678), 12'345'678'000LL);
