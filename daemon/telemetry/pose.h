@@ -22,6 +22,10 @@ struct GeoPosition {
   double lonDeg = 0.0;
   double altAmslM = 0.0;  // GLOBAL_POSITION_INT.alt (MSL)
   double altRelM = 0.0;   // above home (GLOBAL_POSITION_INT.relative_alt)
+  // Ground velocity, NED, m/s (GLOBAL_POSITION_INT.vx/vy/vz); NaN when unknown.
+  double velNorthMs = NAN;
+  double velEastMs = NAN;
+  double velDownMs = NAN;
 };
 
 // GPS quality carried with a position (GPS_RAW_INT). NaN where unknown.

@@ -153,6 +153,26 @@ double lerp(double a, double b, double t) {
   return a + (b - a) * t;
 }
 
+// Past the newest position (up to the hold, 150 ms): carried on at the velocity the
+// autopilot reported with it, rather than left where it was (2 m behind at 15 m/s).
+void extrapolate(GeoPosition& p, std::int64_t aheadNs) {
+  if (!std::isfinite(p.velNorthMs) || !std::isfinite(p.velEastMs) || !std::isfinite(p.velDownMs)) {
+    return;
+  }
+  constexpr double kEarthRadiusM = 6378137.0;  // WGS84 equatorial; metres over 150 ms
+  constexpr double kDeg = 180.0 / 3.14159265358979323846;
+  const double dt = static_cast<double>(aheadNs) / 1e9;
+  const double cosLat = std::cos(p.latDeg / kDeg);
+  p.latDeg += p.velNorthMs * dt / kEarthRadiusM * kDeg;
+  if (cosLat > 1e-6) {
+    p.lonDeg += p.velEastMs * dt / (kEarthRadiusM * cosLat) * kDeg;
+    if (p.lonDeg > 180.0) p.lonDeg -= 360.0;
+    if (p.lonDeg < -180.0) p.lonDeg += 360.0;
+  }
+  p.altAmslM -= p.velDownMs * dt;
+  p.altRelM -= p.velDownMs * dt;
+}
+
 }  // namespace
 
 Pose PoseStore::at(std::int64_t timeNs) const {
@@ -212,6 +232,10 @@ Pose PoseStore::at(std::int64_t timeNs) const {
     if (p.lonDeg < -180.0) p.lonDeg += 360.0;
     p.altAmslM = lerp(a.value.altAmslM, b.value.altAmslM, t);
     p.altRelM = lerp(a.value.altRelM, b.value.altRelM, t);
+    p.velNorthMs = lerp(a.value.velNorthMs, b.value.velNorthMs, t);
+    p.velEastMs = lerp(a.value.velEastMs, b.value.velEastMs, t);
+    p.velDownMs = lerp(a.value.velDownMs, b.value.velDownMs, t);
+    if (i0 == i1 && timeNs > a.timeNs) extrapolate(p, timeNs - a.timeNs);
     pose.position = p;
   } else {
     reasons.push_back(why);

@@ -197,6 +197,9 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       g.lonDeg = p.lon * 1e-7;
       g.altAmslM = p.alt * 1e-3;
       g.altRelM = p.relative_alt * 1e-3;
+      g.velNorthMs = p.vx * 1e-2;
+      g.velEastMs = p.vy * 1e-2;
+      g.velDownMs = p.vz * 1e-2;
       store_.addPosition(p.time_boot_ms * kMs, g);
       ++stats_.position;
       break;

@@ -108,6 +108,33 @@ TEST(PoseStore, InterpolatesAttitudeBySlerpAndPositionLinearly) {
   EXPECT_TRUE(p.staleReason.empty());
 }
 
+TEST(PoseStore, PastTheNewestPositionItMovesOnAtTheReportedVelocity) {
+  PoseStore::Config cfg;
+  PoseStore store(cfg);
+  GpsQuality fix;
+  fix.fixType = 3;
+  store.addGps(0, fix);
+  GeoPosition moving{51.0, 1.0, 100.0, 10.0};
+  moving.velNorthMs = 10.0;
+  moving.velEastMs = -5.0;
+  moving.velDownMs = -2.0;  // climbing
+  store.addPosition(1000 * kMs, moving);
+  const Pose p = store.at(1100 * kMs);  // 100 ms on, within the 150 ms hold
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  constexpr double kMPerDegLat = 6378137.0 * 3.14159265358979323846 / 180.0;
+  EXPECT_NEAR((p.position->latDeg - 51.0) * kMPerDegLat, 1.0, 1e-6);  // 10 m/s for 0.1 s
+  EXPECT_NEAR((p.position->lonDeg - 1.0) * kMPerDegLat * std::cos(51.0 * kDeg), -0.5, 1e-6);
+  EXPECT_NEAR(p.position->altAmslM, 100.2, 1e-9);
+  EXPECT_NEAR(p.position->altRelM, 10.2, 1e-9);
+  // Without a velocity it is held where it was; between samples nothing changes.
+  PoseStore still(cfg);
+  still.addGps(0, fix);
+  still.addPosition(1000 * kMs, {51.0, 1.0, 100.0, 10.0});
+  EXPECT_EQ(still.at(1100 * kMs).position->latDeg, 51.0);
+  store.addPosition(1200 * kMs, moving);
+  EXPECT_EQ(store.at(1100 * kMs).position->latDeg, 51.0);
+}
+
 TEST(PoseStore, SaysStaleInsteadOfInventingAPose) {
   PoseStore::Config cfg;
   PoseStore store(cfg);
