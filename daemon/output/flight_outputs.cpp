@@ -502,7 +502,7 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
     impl_->publisher->publishStatus(
         "{\"state\":\"" + state + "\",\"frames\":" + std::to_string(impl_->framesRead) +
             ",\"kept\":" + std::to_string(impl_->kept) + impl_->flightField() + "}",
-        ignored);
+        ignored, /*last=*/true);
     impl_->publisher.reset();
   }
   std::unique_ptr<McapRecorder> recorder;

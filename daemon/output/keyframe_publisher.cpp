@@ -213,6 +213,7 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
   };
   bool ok = declare(keyframes_, "/keyframe", Kind::Reliable) &&
             declare(status_, "/status", Kind::BestEffort) &&
+            declare(finalStatus_, "/status", Kind::Reliable) &&
             declare(preview_, "/preview", Kind::BestEffort) &&
             declare(telemetry_, "/telemetry", Kind::BestEffort);
   if (ok && !dir_.empty()) {
@@ -353,6 +354,7 @@ KeyframePublisher::~KeyframePublisher() {
   // keeps the session's runtime alive (LeakSanitizer reports it).
   keyframes_.reset();
   status_.reset();
+  finalStatus_.reset();
   preview_.reset();
   telemetry_.reset();
   session_.reset();
@@ -543,8 +545,8 @@ bool KeyframePublisher::publishTelemetry(const std::string& json, std::string& e
   return put(telemetry_, asBytes(json), {}, error);
 }
 
-bool KeyframePublisher::publishStatus(const std::string& json, std::string& error) {
-  return put(status_, asBytes(json), {}, error);
+bool KeyframePublisher::publishStatus(const std::string& json, std::string& error, bool last) {
+  return put(last ? finalStatus_ : status_, asBytes(json), {}, error);
 }
 
 }  // namespace keyframed

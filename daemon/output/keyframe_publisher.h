@@ -71,8 +71,10 @@ class KeyframePublisher {
                    const std::string& metadataJson);
   static constexpr std::size_t kUnsavedBytes = 64u << 20;
   [[nodiscard]] std::int64_t unsavedLetGo() const;
-  // Best effort.
-  bool publishStatus(const std::string& json, std::string& error);
+  // Best effort; `last` (the flight's final state, done or stopped): reliable and
+  // waiting rather than dropped, so that a receiver learns the flight's keyframe
+  // count and asks for what it missed.
+  bool publishStatus(const std::string& json, std::string& error, bool last = false);
   // Best effort, dropped under congestion: a low-rate JPEG of the live view.
   bool publishPreview(std::span<const std::uint8_t> jpeg, std::string& error);
   // Best effort: the vehicle's pose now (JSON).
@@ -122,6 +124,7 @@ class KeyframePublisher {
   std::unique_ptr<ZenohSession> session_;
   std::unique_ptr<ZenohPublisher> keyframes_;
   std::unique_ptr<ZenohPublisher> status_;
+  std::unique_ptr<ZenohPublisher> finalStatus_;  // the same key, reliable
   std::unique_ptr<ZenohPublisher> preview_;
   std::unique_ptr<ZenohPublisher> telemetry_;
   std::unique_ptr<ZenohQueryable> queryable_;
