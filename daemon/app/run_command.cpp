@@ -21,9 +21,12 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <map>
 #include <mutex>
 #include <optional>
+#include <sstream>
 #include <thread>
+#include <vector>
 
 #include <opencv2/core/utility.hpp>
 #include <opencv2/core/utils/logger.hpp>
@@ -77,6 +80,34 @@ Configuration: built-in defaults < DIR/keyframed.toml < DIR/conf.d/*.toml < --se
 // sysexits.h's EX_CONFIG: the unit's RestartPreventExitStatus. A typo in a file is
 // not fixed by starting again every two seconds, a camera that is not there yet is.
 constexpr int kExitConfig = 78;
+
+// "section.key" of every line of toToml() whose value differs between a and b.
+std::vector<std::string> changedKeys(const std::string& a, const std::string& b) {
+  const auto keyed = [](const std::string& text) {
+    std::map<std::string, std::string> out;
+    std::istringstream in(text);
+    std::string line, section;
+    while (std::getline(in, line)) {
+      if (line.starts_with("[")) {
+        section = line.substr(1, line.find(']') - 1);
+      } else if (const auto eq = line.find(" = ");
+                 eq != std::string::npos && !line.starts_with("#")) {
+        out[section + "." + line.substr(0, eq)] = line.substr(eq + 3);
+      }
+    }
+    return out;
+  };
+  const auto ka = keyed(a), kb = keyed(b);
+  std::vector<std::string> keys;
+  for (const auto& [k, v] : kb) {
+    const auto it = ka.find(k);
+    if (it == ka.end() || it->second != v) keys.push_back(k);
+  }
+  for (const auto& [k, v] : ka) {
+    if (!kb.contains(k)) keys.push_back(k);
+  }
+  return keys;
+}
 
 // CPU seconds spent decoding video (0 for cameras).
 double decodeCpuSeconds(const FrameSource& source) {
@@ -438,6 +469,18 @@ void Daemon::reload() {
   } else {
     logging::configure(r.config.log);
     std::lock_guard lock(reloadMutex_);
+    // Only [selection] and [log] change a running daemon; say which other keys
+    // changed and wait for a restart, rather than let an operator think they did.
+    DaemonConfig rest = r.config;
+    rest.selection = config_.selection;
+    rest.log = config_.log;
+    if (const auto keys = changedKeys(toToml(config_), toToml(rest)); !keys.empty()) {
+      std::string list;
+      for (const auto& k : keys) list += (list.empty() ? "" : ", ") + k;
+      KF_LOG(App, Warning) << "reload: " << list
+                           << " changed: only [selection] and [log] apply on reload, the rest "
+                              "on restart (systemctl restart keyframed)";
+    }
     const std::string settings = selectionOverrides(r.config.selection);
     if (settings == selectionOverrides(config_.selection)) {
       // A reload for [log], or none at all: the overlap chain goes on.

@@ -458,9 +458,10 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 0.8\n")
         proc.send_signal(signal.SIGHUP)
         time.sleep(1.5)
-        # the same selection settings again (a reload for [log], say): the chain goes on
+        # the same selection settings again (a reload for [log], say): the chain goes on;
+        # a changed key that only a restart applies is named
         (tmp_path / "etc" / "keyframed.toml").write_text(
-            '[selection]\ntarget = 0.8\n[log]\nlevel = "info"\n'
+            '[selection]\ntarget = 0.8\n[log]\nlevel = "info"\n[output]\nmcap_rotate_s = 60\n'
         )
         proc.send_signal(signal.SIGHUP)
         time.sleep(2.0)
@@ -482,6 +483,8 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
     assert "reload:" in stderr and "keeping the running settings" in stderr
     assert stderr.count("selection settings reloaded") == 1, stderr
     assert "selection settings unchanged" in stderr, stderr
+    restart = [ln for ln in stderr.splitlines() if "apply on reload" in ln]
+    assert len(restart) == 1 and "reload: output.mcap_rotate_s changed:" in restart[0], stderr
 
     # The decisions follow the reloaded target: a keyframe is kept for its overlap
     # once that falls to the target (lower when the frames there were blurry), so
