@@ -50,6 +50,9 @@
 #include "capture/file_source.h"
 #include "capture/v4l2_source.h"
 #include "output/flight_outputs.h"
+#if KEYFRAMED_HAVE_IO
+#include "output/mcap_repair.h"
+#endif
 #include "tagging/camera_model.h"
 #include "telemetry/telemetry_service.h"
 #ifdef KEYFRAMED_WITH_LIBCAMERA
@@ -240,6 +243,45 @@ double maxRssMb() {
   return 0.0;
 }
 
+// Earlier flights' records that a crash left unfinished, repaired on a thread of
+// the lowest priority while this flight runs; stopped (the file it was on left as
+// it was, for the next start) and joined when the daemon ends.
+class RecordRepair {
+ public:
+  RecordRepair() = default;
+  RecordRepair(const RecordRepair&) = delete;
+  RecordRepair& operator=(const RecordRepair&) = delete;
+  ~RecordRepair() {
+    stop_ = 1;
+    if (thread_.joinable()) thread_.join();
+  }
+  void start(const std::string& flightsDir, const std::string& currentFlight) {
+#if KEYFRAMED_HAVE_IO
+    thread_ = std::thread([this, flightsDir, currentFlight] {
+      setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), 19);
+      for (const McapRepair& r : repairFlightRecords(flightsDir, currentFlight, stop_)) {
+        if (r.error.empty()) {
+          KF_LOG(Output, Notice) << "flight record " << r.path
+                                 << " was left unfinished (a crash or power cut): rewritten "
+                                    "complete with the "
+                                 << r.messages << " messages that read back";
+        } else if (stop_.load() == 0) {
+          KF_LOG(Output, Warning) << "flight record " << r.path
+                                  << " is unfinished and could not be repaired: " << r.error;
+        }
+      }
+    });
+#else
+    (void)flightsDir;
+    (void)currentFlight;
+#endif
+  }
+
+ private:
+  std::atomic<int> stop_{0};
+  std::thread thread_;
+};
+
 class Daemon {
  public:
   Daemon(DaemonConfig config, ConfigSources sources)
@@ -275,6 +317,7 @@ class Daemon {
   [[nodiscard]] std::int64_t frameClockNowNs() const {
     return monotonicNowNs() + clockOffsetNs_.load();
   }
+  RecordRepair repair_;
   std::unique_ptr<FrameSource> source_;
   std::unique_ptr<FramePool> pool_;
   std::unique_ptr<FrameQueue> queue_;
@@ -656,6 +699,7 @@ int Daemon::run() {
     return 1;
   }
   KF_LOG(Output, Notice) << "flight directory " << flightDir_;
+  repair_.start(std::filesystem::path(flightDir_).parent_path().string(), flightDir_);
 
   if (!config_.telemetry.link.url.empty()) {
     CameraDescription cd;

@@ -39,6 +39,12 @@ int kfio_mcap_write(kfio_mcap* mcap, uint16_t channel_id, uint32_t sequence, uin
 int kfio_mcap_flush(kfio_mcap* mcap, int sync, char* err, size_t err_len);
 /* Writes summary and footer, closes the file, releases the handle (also on error). */
 int kfio_mcap_close(kfio_mcap* mcap, char* err, size_t err_len);
+/* Rewrites `src`, an MCAP file cut short, complete at `dst` (created): every message
+ * that reads back, compressed as `compression` ("zstd", "lz4", "none"; "same": as
+ * its first chunk), fsynced; *messages gets their count. A non-zero *stop (NULL:
+ * never) ends it early, with an error. 0 on success. */
+int kfio_mcap_recover(const char* src, const char* dst, const char* compression, uint64_t* messages,
+                      const int32_t* stop, char* err, size_t err_len);
 
 /* Reading (replay): the messages of `count` topics, streamed in file order (one chunk
  * in memory at a time). next() returns 1 with the topic's index in `topics`, the log

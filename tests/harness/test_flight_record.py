@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import shutil
+import signal
 import socket
 import struct
 import subprocess
@@ -498,6 +499,33 @@ def test_sigkill_of_the_daemon_loses_about_the_last_second(
         json.loads(m.data)["index"] for _, ch, m in recovered if ch.topic == "/keyframed/decision"
     )
     assert index == list(range(len(index))) and len(index) >= 60, index[:5]
+
+    # The next start repairs it in place, on its own: doctor-clean, a seeking reader
+    # reads it, with what pymcap-cli recovered.
+    again = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and again.poll() is None:
+            if mcap.read_bytes()[-8:] == b"\x89MCAP0\r\n":
+                break
+            time.sleep(0.1)
+        again.send_signal(signal.SIGTERM)
+        _, stderr = again.communicate(timeout=30)
+    finally:
+        if again.poll() is None:
+            again.kill()
+    assert again.returncode == 0, stderr
+    assert f"flight record {mcap} was left unfinished" in stderr, stderr
+    assert not list(mcap.parent.glob("*.recovering"))
+    assert_doctor_clean(mcap)
+    with mcap.open("rb") as fh:
+        reader = mcap_reader.make_reader(fh)
+        repaired = list(reader.iter_messages(log_time_order=False))
+        summary = reader.get_summary()
+    assert summary is not None
+    assert len(repaired) == len(recovered)
+    assert [m.data for _, _, m in repaired] == [m.data for _, _, m in recovered]
+    assert {c.topic for c in summary.channels.values()} == {ch.topic for _, ch, _ in recovered}
 
 
 @pytest.mark.skipif(shutil.which("strace") is None, reason="needs strace")

@@ -4,6 +4,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
@@ -27,6 +28,7 @@
 #include "output/io_ffi.h"
 #include "output/keyframe_publisher.h"
 #include "output/mcap_recorder.h"
+#include "output/mcap_repair.h"
 #include "output/mcap_replay.h"
 
 namespace keyframed {
@@ -165,6 +167,67 @@ TEST(McapReader, StreamsTheWantedTopicsAndReportsACut) {
             std::string::npos);
   std::ofstream(junk, std::ios::binary) << "hello";
   EXPECT_NE(readMcap(junk, {"/a"}).error.find("not an MCAP file"), std::string::npos);
+}
+
+TEST(McapRepair, AFileCutShortIsRewrittenCompleteWithWhatReadsBack) {
+  const std::string path = tempPath("flights/a/flight.mcap");
+  std::filesystem::create_directories(std::filesystem::path(path).parent_path());
+  std::string error;
+  auto w = McapWriter::open({path, "none", 2048}, error);
+  ASSERT_TRUE(w) << error;
+  std::uint16_t schema = 0, a = 0, b = 0;
+  ASSERT_TRUE(w->addSchema("s", "jsonschema", {}, schema, error)) << error;
+  ASSERT_TRUE(w->addChannel(schema, "/a", "json", {{"k", "v"}}, a, error)) << error;
+  ASSERT_TRUE(w->addChannel(schema, "/b", "json", {}, b, error)) << error;
+  for (std::uint32_t i = 0; i < 1000; ++i) {
+    const std::string msg = "message " + std::to_string(i) + std::string(i % 97, 'x');
+    ASSERT_TRUE(w->write(i % 3 == 0 ? b : a, i, 5000 + i, 5000 + i,
+                         {reinterpret_cast<const std::uint8_t*>(msg.data()), msg.size()}, error))
+        << error;
+  }
+  ASSERT_TRUE(w->close(error)) << error;
+  EXPECT_TRUE(mcapComplete(path));
+  const auto whole = readAll(path);
+  std::ofstream(path, std::ios::binary | std::ios::trunc)
+      .write(reinterpret_cast<const char*>(whole.data()), static_cast<long>(whole.size() / 2));
+  EXPECT_FALSE(mcapComplete(path));
+  const ReadBack cut = readMcap(path, {"/a", "/b"});
+  ASSERT_TRUE(cut.truncated);
+
+  // A stop set before it starts: nothing replaced, an error.
+  std::atomic<int> stop{1};
+  std::uint64_t n = 0;
+  EXPECT_FALSE(recoverMcap(path, path + ".x", n, error, &stop));
+  EXPECT_NE(error.find("stopped"), std::string::npos) << error;
+  EXPECT_FALSE(std::filesystem::exists(path + ".x"));
+
+  // The running flight (b) is left alone; a half-made .recovering file goes.
+  const std::string running = tempPath("flights/b/flight.mcap");
+  std::filesystem::create_directories(std::filesystem::path(running).parent_path());
+  std::filesystem::copy_file(path, running, std::filesystem::copy_options::overwrite_existing);
+  std::ofstream(path + ".recovering") << "half";
+  stop = 0;
+  const auto repaired = repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop);
+  ASSERT_EQ(repaired.size(), 1U);
+  EXPECT_EQ(repaired[0].path, path);
+  EXPECT_EQ(repaired[0].error, "");
+  EXPECT_EQ(repaired[0].messages, cut.messages.size());
+  EXPECT_TRUE(mcapComplete(path));
+  EXPECT_FALSE(mcapComplete(running));
+  EXPECT_FALSE(std::filesystem::exists(path + ".recovering"));
+  const ReadBack again = readMcap(path, {"/a", "/b"});
+  EXPECT_FALSE(again.truncated);
+  EXPECT_EQ(again.messages, cut.messages);
+  // Complete now: a second pass has nothing to do.
+  EXPECT_TRUE(repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop).empty());
+  // What is not an MCAP file stays as it is.
+  const std::string text = tempPath("flights/a/notes.mcap");
+  std::ofstream(text) << "not a record";
+  const auto refused = repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop);
+  ASSERT_EQ(refused.size(), 1U);
+  EXPECT_NE(refused[0].error.find("not an MCAP file"), std::string::npos) << refused[0].error;
+  EXPECT_EQ(readAll(text).size(), 12U);
+  std::filesystem::remove(text);
 }
 
 TEST(McapWriter, UnwritablePathIsAnError) {

@@ -531,6 +531,139 @@ pub unsafe extern "C" fn kfio_mcap_close(
     })
 }
 
+/// The compression of the first chunk of an MCAP file ("" for none), found by
+/// walking its records from the start (a file cut short has no summary to ask).
+fn first_chunk_compression(path: &str) -> Option<String> {
+    use std::io::Read;
+    let mut f = std::io::BufReader::new(File::open(path).ok()?);
+    let mut magic = [0u8; 8];
+    f.read_exact(&mut magic).ok()?;
+    for _ in 0..100_000 {
+        let mut head = [0u8; 9];
+        f.read_exact(&mut head).ok()?;
+        let len = u64::from_le_bytes(head[1..9].try_into().ok()?);
+        if head[0] == 0x06 {
+            // Chunk: start and end time, uncompressed size (u64 each), CRC (u32), then
+            // the compression as a u32-length string.
+            let mut fixed = [0u8; 32];
+            f.read_exact(&mut fixed).ok()?;
+            let n = u32::from_le_bytes(fixed[28..32].try_into().ok()?) as usize;
+            if n > 64 {
+                return None;
+            }
+            let mut name = vec![0u8; n];
+            f.read_exact(&mut name).ok()?;
+            return String::from_utf8(name).ok();
+        }
+        f.seek_relative(i64::try_from(len).ok()?).ok()?;
+    }
+    None
+}
+
+/// Rewrites an MCAP file that was cut short (SIGKILL, a power cut: no summary, no
+/// footer, perhaps half a chunk) as a complete file at `dst`: every message that
+/// reads back, in file order, with its channel and schema, chunked and compressed
+/// as `compression` ("zstd", "lz4", "none"; "same": as the file's first chunk, zstd
+/// without one), fsynced. *messages gets their count.
+/// `dst` is created (truncated); the caller renames it into place. A non-zero
+/// `*stop` (NULL: never), read between messages, ends it with an error.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
+#[no_mangle]
+pub unsafe extern "C" fn kfio_mcap_recover(
+    src: *const c_char,
+    dst: *const c_char,
+    compression: *const c_char,
+    messages: *mut u64,
+    stop: *const std::sync::atomic::AtomicI32,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        // SAFETY: NULL or a flag the caller keeps alive for the call.
+        let stop = unsafe { stop.as_ref() };
+        let src = cstr(src, "source")?;
+        let dst = cstr(dst, "destination")?;
+        let mut compression = opt_cstr(compression, "compression")?
+            .unwrap_or("")
+            .to_string();
+        if compression == "same" {
+            compression = first_chunk_compression(src).unwrap_or_else(|| "zstd".into());
+        }
+        let compression = match compression.as_str() {
+            "zstd" => Some(mcap::Compression::Zstd),
+            "lz4" => Some(mcap::Compression::Lz4),
+            "" | "none" => None,
+            other => {
+                return Err(format!(
+                    "unknown MCAP compression '{other}' (zstd, lz4, none)"
+                ))
+            }
+        };
+        let mut input = File::open(src).map_err(|e| format!("cannot read {src}: {e}"))?;
+        {
+            // Not an MCAP file (nor the start of one): left as it is.
+            use std::io::Read;
+            let mut magic = [0u8; 8];
+            if input.read_exact(&mut magic).is_err() || magic[..] != *mcap::MAGIC {
+                return Err(format!("{src}: not an MCAP file (no MCAP magic)"));
+            }
+            input
+                .seek(SeekFrom::Start(0))
+                .map_err(|e| format!("cannot read {src}: {e}"))?;
+        }
+        let size = input
+            .metadata()
+            .map_err(|e| format!("cannot read {src}: {e}"))?
+            .len();
+        // As for the replay reader: no record longer than the file (plus 256 MiB
+        // decompressed), so a corrupt length is the end, not a huge allocation.
+        let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
+        let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
+        let reader = mcap::io::MessageReader::new_with_options(
+            std::io::BufReader::with_capacity(1 << 20, input),
+            options,
+        );
+        let file = Arc::new(File::create(dst).map_err(|e| format!("cannot create {dst}: {e}"))?);
+        let mut writer = mcap::WriteOptions::new()
+            .compression(compression)
+            .chunk_size(Some(1 << 20))
+            .compression_threads(0)
+            .library(concat!(
+                "keyframed-io ",
+                env!("CARGO_PKG_VERSION"),
+                " (recovered)"
+            ))
+            .create(BufWriter::with_capacity(
+                1 << 20,
+                SharedFile(Arc::clone(&file)),
+            ))
+            .map_err(|e| format!("cannot start MCAP file {dst}: {e}"))?;
+        let mut count: u64 = 0;
+        for m in reader {
+            // The first record that does not read is where the file was cut.
+            let Ok(m) = m else { break };
+            if stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed) != 0) {
+                return Err(format!("{src}: recovery stopped"));
+            }
+            writer.write(&m).map_err(|e| format!("{dst}: {e}"))?;
+            count += 1;
+        }
+        writer.finish().map_err(|e| format!("{dst}: {e}"))?;
+        writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| format!("{dst}: {}", e.error()))?;
+        file.sync_all().map_err(|e| format!("{dst}: fsync: {e}"))?;
+        if !messages.is_null() {
+            // SAFETY: a valid out pointer.
+            unsafe { *messages = count };
+        }
+        Ok(0)
+    })
+}
+
 // ---------------------------------------------------------------------------------
 // Zenoh
 
