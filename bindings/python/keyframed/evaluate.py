@@ -29,7 +29,7 @@ class Evaluation:
     min_overlap: float = 1.0
     blurry_kept: int = 0
     blurry_kept_fraction: float = 0.0
-    hover_keyframes: int = 0  # keyframes inside a hover, after its first frame
+    hover_keyframes: int = 0  # redundant keyframes in a hover (see evaluate())
     band: tuple[float, float] = (0.60, 0.85)
 
 
@@ -65,13 +65,16 @@ def evaluate(
         ev.min_overlap = min(ev.pair_overlaps)
     ev.blurry_kept = sum(1 for k in keys if flight.blurry[k])
     ev.blurry_kept_fraction = ev.blurry_kept / len(keys) if keys else 0.0
-    # A hover may need one keyframe as the vehicle arrives; more is redundancy.
+    # A hover may need one keyframe as the vehicle arrives; more is redundancy: a
+    # keyframe in a hover counts when the one before it is in the same hover, or when
+    # it overlaps the one before it by more than the band's top (nothing new seen).
     hover = flight.hover
-    for k in keys:
-        if hover[k] and k > 0 and hover[k - 1]:
-            prev = [p for p in keys if p < k]
-            if prev and all(hover[i] for i in range(prev[-1], k + 1)):
-                ev.hover_keyframes += 1
+    for prev, k in zip(keys, keys[1:], strict=False):
+        if not hover[k]:
+            continue
+        same_hover = all(hover[i] for i in range(prev, k + 1))
+        if same_hover or flight.overlap(prev, k) > band[1]:
+            ev.hover_keyframes += 1
     return ev
 
 
