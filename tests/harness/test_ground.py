@@ -11,6 +11,8 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -59,7 +61,8 @@ def rows(out: Path) -> list[dict[str, str]]:
 
 class Vehicle:
     """Publishes keyframes and serves keyframed/<name>/keyframes/<seq> and the range
-    form keyframes/*?range=A..B from a folder, as the daemon does."""
+    form keyframes/*?range=A..B from a folder, as the daemon does; once given a flight
+    id, lists its flights on keyframed/<name>/flights as `keyframed run` does."""
 
     def __init__(self, name: str, folder: Path, port: int) -> None:
         conf = zenoh.Config()
@@ -72,6 +75,9 @@ class Vehicle:
         self.rows = rows(folder)
         self.queries: list[tuple[int, int]] = []  # (first, last) asked for
         self.flight_queries: list[tuple[str, int, int]] = []  # naming a flight
+        self.spans: list[tuple[float, float]] = []  # when each was being answered
+        self.reply_delay = 0.0  # seconds before each keyframe's reply: a slow link
+        self.catalogue_queries = 0
         self.stopped = threading.Event()
         self.unavailable: set[int] = set()
         self.garbled: set[int] = set()  # answered with an attachment that is no JSON
@@ -79,12 +85,17 @@ class Vehicle:
         # on request (flight=ID), as after a restart: the same folder here.
         self.flight = ""
         self.earlier_flights: set[str] = set()
+        self.published: dict[str, int] = {}  # keyframes published so far, by flight
+        self.unlisted: set[str] = set()  # earlier flights its list leaves out (state lost)
         self.status_thread: threading.Thread | None = None
         self.pub = self.session.declare_publisher(
             f"keyframed/{name}/keyframe", congestion_control=zenoh.CongestionControl.BLOCK
         )
         self.queryable = self.session.declare_queryable(
             f"keyframed/{name}/keyframes/*", self._serve
+        )
+        self.catalogue = self.session.declare_queryable(
+            f"keyframed/{name}/flights", self._serve_flights
         )
 
     def meta(self, row: dict[str, str]) -> dict[str, Any]:
@@ -118,7 +129,9 @@ class Vehicle:
             self.flight_queries.append((flight, first, final))
         else:
             self.queries.append((first, final))
+        start = time.monotonic()
         for seq in range(first, min(final, len(self.rows) - 1) + 1):
+            time.sleep(self.reply_delay)
             if seq in self.unavailable:
                 query.reply_err(b"not in the store")
                 continue
@@ -129,10 +142,35 @@ class Vehicle:
                 (self.folder / row["file"]).read_bytes(),
                 attachment=b"\xff{not json" if seq in self.garbled else meta,
             )
+        self.spans.append((start, time.monotonic()))
+
+    def _serve_flights(self, query: Any) -> None:
+        """The earlier flights, whole, and the current one as far as it was published
+        (`keyframed run` counts what it wrote); nothing without a flight id. Counted
+        once answered: a test may change the flights then without changing the answer."""
+        if self.flight:
+            self._reply_flights(query)
+        self.catalogue_queries += 1
+
+    def _reply_flights(self, query: Any) -> None:
+        flights = [
+            {"flight": f, "keyframes": len(self.rows), "age_s": 1.0, "current": False}
+            for f in sorted(self.earlier_flights - self.unlisted)
+        ]
+        flights.append(
+            {
+                "flight": self.flight,
+                "keyframes": self.published.get(self.flight, 0),
+                "age_s": 0.0,
+                "current": True,
+            }
+        )
+        query.reply(f"keyframed/{self.name}/flights", json.dumps({"flights": flights}).encode())
 
     def publish(self, seq: int, payload: bytes | None = None) -> None:
         row = self.rows[seq]
         data = (self.folder / row["file"]).read_bytes() if payload is None else payload
+        self.published[self.flight] = max(self.published.get(self.flight, 0), seq + 1)
         self.pub.put(data, attachment=json.dumps(self.meta(row)).encode())
 
     def status(self) -> None:
@@ -153,6 +191,7 @@ class Vehicle:
         if self.status_thread is not None:
             self.status_thread.join()
         self.queryable.undeclare()
+        self.catalogue.undeclare()
         self.pub.undeclare()
         self.session.close()
 
@@ -165,6 +204,13 @@ def ground(out: Path, port: int, *extra: str) -> subprocess.Popen[str]:
         stderr=subprocess.PIPE,
         text=True,
     )
+
+
+def wait_until(what: Any, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not what():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
 
 
 def wait_connected(vehicle: Vehicle, timeout: float = 10.0) -> None:
@@ -369,6 +415,64 @@ def test_a_restarted_vehicle_keeps_both_flights_apart(tagged: Path, tmp_path: Pa
     assert len((ds / "geo.txt").read_text().splitlines()) == 2 * n + 1
 
 
+@pytest.mark.parametrize("listed", [True, False], ids=["listed", "state-lost"])
+def test_the_end_of_a_flight_the_link_lost_is_fetched_or_reported(
+    tagged: Path, tmp_path: Path, listed: bool
+) -> None:
+    """The link drops at the end of a flight: its last two keyframes and its final
+    status never reach the station, which knows only the count of the last status it
+    heard, and had asked for the vehicle's flights while it flew. The daemon restarts:
+    hearing of a flight it had not known, the station asks for the list again, learns
+    the first flight's final count and fetches its end by query. A vehicle whose list
+    no longer has the first flight (its state directory lost) cannot tell how many
+    keyframes it ended with: the summary names the flight and the exit status is 3."""
+    port = free_port()
+    vehicle = Vehicle("uav5", tagged, port)
+    out = tmp_path / "dataset"
+    images = out / "uav5" / "images"
+    proc = ground(out, port)
+    n = len(vehicle.rows)
+    first, second = "20261202T101500Z", "20261202T102000Z"
+
+    def status(state: str, kept: int) -> None:
+        body = {"state": state, "frames": 100, "kept": kept, "flight": vehicle.flight}
+        vehicle.session.put("keyframed/uav5/status", json.dumps(body).encode())
+
+    try:
+        wait_connected(vehicle)
+        vehicle.flight = first
+        for seq in range(n - 2):
+            vehicle.publish(seq)
+        status("running", n - 2)
+        wait_until(lambda: vehicle.catalogue_queries >= 1)
+        wait_until(lambda: len(list(images.glob("*.jpg"))) == n - 2)
+        vehicle.earlier_flights = {first}
+        vehicle.unlisted = set() if listed else {first}
+        vehicle.flight = second
+        for seq in range(n):
+            vehicle.publish(seq)
+        status("done", n)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["duplicates_ignored"] == 0 and not summary["missing"], summary
+    names = sorted(p.name for p in images.glob("*.jpg"))
+    files = [r["file"] for r in vehicle.rows]
+    if listed:
+        assert proc.returncode == 0, stderr
+        assert summary["keyframes"] == 2 * n and not summary["flights_end_unknown"], summary
+        assert vehicle.flight_queries == [(first, n - 2, n - 1)], vehicle.flight_queries
+        assert names == sorted(files + [f"{second}_{f}" for f in files])
+    else:
+        assert proc.returncode == 3 and "still missing" in stderr, (stderr, json.dumps(summary))
+        assert summary["keyframes"] == 2 * n - 2, summary
+        assert summary["flights_end_unknown"] == [first], summary
+        assert names == sorted(files[: n - 2] + [f"{second}_{f}" for f in files])
+
+
 def test_a_flight_list_decides_what_is_fetched_and_a_resumed_dataset_keeps_its_names(
     tmp_path: Path,
 ) -> None:
@@ -405,6 +509,36 @@ def test_a_flight_list_decides_what_is_fetched_and_a_resumed_dataset_keeps_its_n
     assert (again.images / "000001.jpg").read_bytes() == b"b1"
     assert (again.images / "A_000001.jpg").read_bytes() == b"a1"
     assert (again.images / "000000.jpg").read_bytes() == b"b0"
+
+
+def test_which_flights_ended_with_their_count_unknown(tmp_path: Path) -> None:
+    """The flights the station saw followed by another, and whether it learned how
+    many keyframes they ended with: from a final status (which may overtake the next
+    flight's first keyframes) or from the vehicle's list naming them as not running.
+    A flight the last list did not name makes the station ask for the list again."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav9", None)
+    ds.note_running("A")
+    ds.note_end("B")  # B's final status before any of its keyframes
+    ds.note_running("B")
+    assert ds.end_unknown() == ["A"]
+    ds.note_running("C")
+    ds.note_running("A")  # a late message of A's: A stays behind C
+    assert ds.current == "C" and ds.end_unknown() == ["A"]
+    ds.catalogue_due = False
+    ds.note_catalogue(
+        [
+            {"flight": "A", "keyframes": 3, "age_s": 50.0, "current": False},
+            {"flight": "C", "keyframes": 1, "age_s": 0.5, "current": True},
+        ],
+        max_age_s=3600.0,
+    )
+    assert ds.end_unknown() == [] and not ds.catalogue_due
+    ds.note_running("C")
+    assert not ds.catalogue_due
+    ds.note_running("D")  # a restart the list did not name
+    assert ds.catalogue_due and ds.end_unknown() == ["C"]
 
 
 def test_a_keyframe_that_is_no_image_costs_only_itself(tagged: Path, tmp_path: Path) -> None:
@@ -796,6 +930,122 @@ def test_resume_computes_the_sift_features_an_earlier_run_did_not(
         lines = (ds / "features" / (row["file"] + ".txt")).read_text().splitlines()
         count, dim = (int(v) for v in lines[0].split())
         assert dim == 128 and count == len(lines) - 1 and count > 50, row["file"]
+
+
+def test_a_station_killed_leaves_dataset_files_for_the_images_it_holds(
+    tagged: Path, tmp_path: Path
+) -> None:
+    """The dataset's files are written while the station runs, not only when it stops:
+    killed (SIGKILL, no shutdown), it leaves keyframes.jsonl, cameras.txt,
+    cameras.json, pairs.txt and geo.txt that parse and name exactly the images it
+    holds, as they were after each batch of keyframes."""
+    port = free_port()
+    vehicle = Vehicle("uav7", tagged, port)
+    out = tmp_path / "dataset"
+    ds = out / "uav7"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--quiet"]
+        + ["--connect", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    n = len(vehicle.rows)
+    files = [r["file"] for r in vehicle.rows]
+
+    def geo_names() -> list[str]:
+        try:
+            return [line.split()[0] for line in (ds / "geo.txt").read_text().splitlines()[1:]]
+        except FileNotFoundError:
+            return []
+
+    try:
+        wait_connected(vehicle)
+        for seq in range(n // 2):
+            vehicle.publish(seq)
+        wait_until(lambda: geo_names() == files[: n // 2])
+        for seq in range(n // 2, n):
+            vehicle.publish(seq)
+        wait_until(lambda: geo_names() == files)
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == -signal.SIGKILL
+    held = sorted(p.name for p in (ds / "images").glob("*.jpg"))
+    assert held == sorted(files) and not list(ds.rglob("*.tmp"))
+
+    metas = [json.loads(line) for line in (ds / "keyframes.jsonl").read_text().splitlines()]
+    assert [(m["sequence"], m["file"]) for m in metas] == list(enumerate(files))
+
+    fl = flight("nadir", width=480, height=270, seconds=8.0)
+    intr = json.loads((fl / "intrinsics.json").read_text())
+    cam = (ds / "cameras.txt").read_text().splitlines()[-1].split()
+    assert cam[:4] == ["1", "OPENCV", "480", "270"]
+    assert float(cam[4]) == pytest.approx(intr["fx"], rel=1e-4)
+    odm = json.loads((ds / "cameras.json").read_text())
+    assert odm and all(c["projection_type"] == "brown" for c in odm.values())
+    assert all(c["focal_x"] * 480 == pytest.approx(float(cam[4]), rel=1e-9) for c in odm.values())
+
+    pairs = [tuple(line.split()) for line in (ds / "pairs.txt").read_text().splitlines()]
+    assert {name for pair in pairs for name in pair} == set(files)
+    assert all((a, b) in pairs for a, b in zip(files, files[1:], strict=False))
+
+    geo = (ds / "geo.txt").read_text().splitlines()
+    assert geo[0] == "EPSG:4326" and len(geo) == n + 1
+    for line, row in zip(geo[1:], vehicle.rows, strict=True):
+        lon, lat = (float(v) for v in line.split()[1:3])
+        assert (lat, lon) == pytest.approx((float(row["lat"]), float(row["lon"])), abs=1e-7)
+
+
+def test_a_long_gap_on_a_slow_link_is_asked_for_in_chunks_once_each(
+    tagged: Path, tmp_path: Path
+) -> None:
+    """A vehicle slow to answer (0.7 s a keyframe, as large keyframes over a slow
+    radio link) and a gap of 11 keyframes: the station asks for at most 8 in one
+    query, sends the next query only when the last has been answered, and asks for
+    none again while its answer is on the way, though the first chunk takes longer
+    than the 5 s a query used to be given."""
+    folder = tmp_path / "long"
+    folder.mkdir()
+    base = rows(tagged)
+    long_rows = []
+    for seq in range(12):
+        row = dict(base[seq % len(base)], sequence=str(seq), index=str(seq))
+        row["file"] = f"{seq:06d}.jpg"
+        shutil.copyfile(tagged / base[seq % len(base)]["file"], folder / row["file"])
+        long_rows.append(row)
+    with open(folder / "keyframes.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(base[0]))
+        writer.writeheader()
+        writer.writerows(long_rows)
+    port = free_port()
+    vehicle = Vehicle("uav8", folder, port)
+    vehicle.reply_delay = 0.7
+    out = tmp_path / "dataset"
+    proc = ground(out, port)
+    try:
+        wait_connected(vehicle)
+        vehicle.publish(0)
+        vehicle.status()  # "I have written 12"
+        stdout, stderr = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == 12 and summary["fetched_by_query"] == 11, summary
+    assert vehicle.queries == [(1, 8), (9, 11)], vehicle.queries
+    assert summary["gap_queries"] == 2 and summary["duplicates_ignored"] == 0, summary
+    (a_start, a_end), (b_start, _) = vehicle.spans
+    assert a_end - a_start > 5.0 and b_start >= a_end, vehicle.spans
+    for row in long_rows:
+        assert (out / "uav8" / "images" / row["file"]).read_bytes() == (
+            folder / row["file"]
+        ).read_bytes()
 
 
 @pytest.mark.parametrize("name", ["nadir", "orbit"])

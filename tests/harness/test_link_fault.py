@@ -1,10 +1,11 @@
 """The link between the daemon and the ground station fails: `keyframed run` on a
 sample flight with the fake autopilot, the real ground station stopped for part of
-the flight and started again on the same folder; the gap is filled from the
-daemon's queryable (its range form, one query per gap)."""
+the flight and started again on the same folder, or the link itself dropped while
+both run; the gap is filled from the daemon's queryable (its range form)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -12,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -274,3 +276,164 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
 def written_in(flight_dir: Path) -> list[dict[str, str]]:
     with open(flight_dir / "keyframes" / "keyframes.csv") as f:
         return list(csv.DictReader(f))
+
+
+class Relay:
+    """A TCP relay on loopback between the ground station and the vehicle's Zenoh
+    listener: the radio link. drop() closes every connection through it and refuses
+    new ones until restore()."""
+
+    def __init__(self, port: int, target: int) -> None:
+        self.target = target
+        self.server = socket.create_server(("127.0.0.1", port))
+        self.lock = threading.Lock()
+        self.up = True
+        self.open: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                down, _ = self.server.accept()
+            except OSError:
+                return  # closed
+            try:
+                up = socket.create_connection(("127.0.0.1", self.target), timeout=2.0)
+                up.settimeout(None)
+            except OSError:
+                down.close()  # the vehicle is not listening (yet)
+                continue
+            with self.lock:
+                if not self.up:
+                    down.close()
+                    up.close()
+                    continue
+                self.open += [down, up]
+            for a, b in ((down, up), (up, down)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(a: socket.socket, b: socket.socket) -> None:
+        try:
+            while data := a.recv(65536):
+                b.sendall(data)
+        except OSError:
+            pass
+        for sock in (a, b):
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+
+    def drop(self) -> None:
+        with self.lock:
+            self.up = False
+            for sock in self.open:
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_RDWR)
+            self.open.clear()
+
+    def restore(self) -> None:
+        with self.lock:
+            self.up = True
+
+    def close(self) -> None:
+        self.drop()
+        with contextlib.suppress(OSError):
+            self.server.shutdown(socket.SHUT_RDWR)
+        self.server.close()
+
+
+def test_the_end_of_a_flight_lost_on_the_link_is_fetched_after_the_daemon_restarts(
+    kf_bin: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The link drops near the end of a flight: the ground station, up all along,
+    misses its last keyframes and its final status, and knows only the count of the
+    last status it heard. The daemon then starts again (a new flight) and the link
+    comes back. Hearing of a flight it had not known, the station asks the vehicle
+    for its flights again, learns the first one's final count and fetches its end by
+    query: every keyframe of both flights once, byte for byte."""
+    fl = flight("nadir", width=960, height=540, seconds=20.0)
+    zport, lport = free_port(), free_port()
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
+    relay = Relay(lport, zport)
+    out = tmp_path / "dataset"
+    images = out / "uav7" / "images"
+    station = ground(out, lport, "--until-done", "--duration", "150")
+    flights: list[Path] = []
+    procs: list[subprocess.Popen[str]] = []
+
+    def fly() -> subprocess.Popen[str]:
+        """A run of the daemon on the same state directory: a new flight."""
+        mport = free_port(socket.SOCK_DGRAM)
+        procs.append(
+            start_run(
+                kf_bin,
+                tmp_path,
+                f"camera.path={fl / 'video.avi'}",
+                f"telemetry.url=udpin:127.0.0.1:{mport}",
+                "telemetry.start_wait_ms=30000",
+                f"tagging.calibration={fl / 'intrinsics.json'}",
+                "zenoh.enabled=true",
+                f"zenoh.config={zconf}",
+                "zenoh.vehicle=uav7",
+                "output.preview_width=240",
+            )
+        )
+        fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport)).start()
+        return procs[-1]
+
+    def land(proc: subprocess.Popen[str]) -> None:
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=30)
+        assert proc.returncode == 0, stderr
+        flights.append((tmp_path / "state" / "latest").resolve())
+
+    try:
+        # The station holds a couple of keyframes, then the link drops; the flight goes
+        # on for at least two more and ends, its final status lost too.
+        proc = fly()
+        wait_for(lambda: len(list(images.glob("*.jpg"))) >= 2, 60)
+        relay.drop()
+        at_drop = len(written(tmp_path))
+        wait_for(lambda: len(written(tmp_path)) >= at_drop + 2, 30)
+        land(proc)
+        held = len(list(images.glob("*.jpg")))
+        first = [r["file"] for r in written_in(flights[0])]
+        assert held < len(first), "the station saw the flight's end"
+
+        # The daemon starts again and the link comes back: the first flight's end
+        # arrives by query while the second goes on.
+        proc = fly()
+        relay.restore()
+        wait_for(lambda: all((images / f).exists() for f in first), 45)
+        wait_for(lambda: len(list(images.glob("*.jpg"))) >= len(first) + 2, 30)
+        land(proc)
+        g_out, g_err = station.communicate(timeout=60)
+    finally:
+        for p in [*procs, station]:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+        relay.close()
+    assert station.returncode == 0, g_err
+    assert flights[0] != flights[1]
+    rows = [written_in(f) for f in flights]
+    total = sum(len(r) for r in rows)
+    result = json.loads(g_out.strip().splitlines()[-1])
+    print(
+        f"link lost at the end of a flight: {len(rows[0])} + {len(rows[1])} keyframes, "
+        f"{held} of the first held when the link dropped; {result['fetched_by_query']} "
+        f"fetched by {result['gap_queries']} queries"
+    )
+    assert result["keyframes"] == total and not result["missing"], result
+    assert not result["flights_end_unknown"], result
+    assert result["fetched_by_query"] >= len(rows[0]) - held, result
+    metas = [json.loads(line) for line in (out / "uav7" / "keyframes.jsonl").open()]
+    assert [(m["flight"], m["sequence"]) for m in metas] == [
+        (f.name, s) for f, r in zip(flights, rows, strict=True) for s in range(len(r))
+    ]
+    # every keyframe once, byte for byte the daemon's; the second flight's renamed
+    assert len(list(images.glob("*.jpg"))) == total and not list(images.glob("*.tmp"))
+    for m in metas:
+        fd = flights[0] if m["flight"] == flights[0].name else flights[1]
+        source = fd / "keyframes" / m["file"].removeprefix(f"{fd.name}_")
+        assert (images / m["file"]).read_bytes() == source.read_bytes(), m["file"]

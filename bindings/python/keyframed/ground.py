@@ -6,15 +6,25 @@ dataset per vehicle that COLMAP and OpenDroneMap take as it is.
 Subscribes to ``keyframed/<vehicle>/keyframe`` (``*``: every vehicle). Each keyframe
 arrives as the tagged JPEG with its metadata (JSON) in the attachment; a gap in the
 sequence numbers, or a vehicle whose status says it has written more than we hold,
-is filled by one query per gap, ``keyframed/<vehicle>/keyframes/*?range=A..B``, which
-the vehicle answers from its on-disk store. Nothing is written twice; every file is written to a
-temporary name and renamed.
+is filled by query, ``keyframed/<vehicle>/keyframes/*?range=A..B``, which the vehicle
+answers from its on-disk store: at most 8 keyframes a query, one query at a time per
+vehicle, each waited for up to 5 s plus 5 s a keyframe; what it did not bring is asked
+for again 5 s later. Nothing is written twice; every file is written to a temporary
+name and renamed.
 
-When it first hears of a vehicle, the station asks it which flights it holds
+When it first hears of a vehicle, when a flight it had not listed appears (its daemon
+restarted) and once more at the end, the station asks it which flights it holds
 (``keyframed/<vehicle>/flights``: each run of the daemon is one flight) and fetches
 the keyframes of any earlier flight it lacks, e.g. one flown while the station was
-down before the daemon restarted; those older than ``--earlier-flights`` seconds
-(default an hour) are left alone and listed in the summary.
+down before the daemon restarted, or the last keyframes of a flight whose end the
+link lost; those older than ``--earlier-flights`` seconds (default an hour) are left
+alone and listed in the summary. A flight that was followed by another without the
+station learning how many keyframes it ended with is listed in the summary's
+``flights_end_unknown`` and makes the exit status 3, as missing keyframes do.
+
+The files below other than the images are rewritten while the station runs (at most
+every 5 s when keyframes arrived) and at the end, so a station that is killed leaves a
+dataset whose files describe the images it held at their last writing.
 
 ``DATASET/<vehicle>/`` holds:
 
@@ -67,6 +77,20 @@ KEY_PREFIX = "keyframed"
 FINAL_STATES = ("done", "stopped", "failed", "interrupted", "capture_failed")
 GAP_GRACE_S = 1.0  # how long a gap may last before it is filled by query
 MAX_FLIGHT_KEYFRAMES = 1_000_000  # a flight list claiming more is not believed
+# A gap is asked for in chunks of at most this many keyframes, one chunk at a time per
+# vehicle: on a slow link a chunk of 500 KB keyframes takes a while, and a query still
+# being answered is not sent again.
+GAP_CHUNK = 8
+# A chunk's query waits this long, plus this long per keyframe (500 KB keyframes need
+# a link of 800 kbit/s or more to arrive in time), before its answer counts as ended.
+GAP_QUERY_S = 5.0
+GAP_QUERY_PER_KEYFRAME_S = 5.0
+# What a query that ended did not bring is asked for again after this long.
+GAP_RETRY_S = 5.0
+# While the station runs, the dataset's files are rewritten at most this often, and at
+# least ten times as long apart as writing them took (pairs.txt grows faster than the
+# number of keyframes).
+FILES_EVERY_S = 5.0
 
 
 def keyframe_key(vehicle: str) -> str:
@@ -541,11 +565,24 @@ def image_pairs(
         poly = footprint((north, east), h, q, tags[i])
         if poly is not None:
             polys[i] = poly
-    have = sorted(polys)
-    for a_i, i in enumerate(have):
-        for j in have[a_i + 1 :]:
-            if footprint_overlap(polys[i], polys[j]) >= min_overlap:
-                pairs.add((i, j))
+    # Footprints whose bounding boxes do not meet share no ground: a sweep along the
+    # north axis compares each footprint only with those it may overlap. Every pair
+    # took 26 s for 2000 keyframes, and the station rewrites pairs.txt while it runs.
+    box = {
+        i: (min(n for n, _ in p), max(n for n, _ in p), min(e for _, e in p), max(e for _, e in p))
+        for i, p in polys.items()
+    }
+    order = sorted(polys, key=lambda i: box[i][0])
+    prune = min_overlap > 0.0  # with 0, footprints that share nothing are paired too
+    for a_i, i in enumerate(order):
+        for j in order[a_i + 1 :]:
+            if prune and box[j][0] > box[i][1]:
+                break
+            if prune and (box[j][2] > box[i][3] or box[i][2] > box[j][3]):
+                continue
+            a, b = min(i, j), max(i, j)
+            if footprint_overlap(polys[a], polys[b]) >= min_overlap:
+                pairs.add((a, b))
     return [(names[i], names[j]) for i, j in sorted(pairs)]
 
 
@@ -619,19 +656,37 @@ class VehicleDataset:
         self.flights: list[str] = []  # in the order first heard of
         self.duplicates = 0
         self.fetched = 0
-        self.queries = 0  # gap-filling queries sent (one per gap)
+        self.queries = 0  # gap-filling queries sent (one per chunk of a gap)
         self.announced: dict[str, int] = {}  # highest sequence each flight says it wrote
         self.missing_since: dict[Key, float] = {}
+        # Missing keyframes a query that ended did not bring, and when to ask again.
+        self.retry_at: dict[Key, float] = {}
+        self.asking: threading.Event | None = None  # set when the last gap query ended
         self.done = False  # the vehicle said its (latest) flight ended
         self.done_flight = ""
         self.done_at = 0.0
         self.first_time = time.monotonic()
-        # the vehicle's list of flights: asked for once it is heard (a daemon of a
-        # version without it does not answer: asked again a few times)
+        # The vehicle's list of flights is asked for once it is heard, and again when
+        # a flight the last list did not name appears: a daemon that restarted lists
+        # the flight before with its final count, which the link may have lost. A
+        # daemon of a version without the list does not answer: asked a few times.
+        self.catalogue_due = True
         self.catalogue_tries = 0
         self.catalogue_next = 0.0
-        self.catalogue_done = False
+        self.listed: set[str] = set()  # the flights the last list named
         self.skipped_flights: list[str] = []  # earlier flights too old to fetch
+        # The flight heard running last; those it followed that were heard running
+        # before it; and those whose final keyframe count is known (a final status, or
+        # a list naming them as not running). A followed flight whose count is not
+        # known may have lost its last keyframes unseen: the summary says so.
+        self.current: str | None = None
+        self.superseded: list[str] = []
+        self.ended: set[str] = set()
+        # The dataset's files (pairs.txt, geo.txt, ...): rewritten when keyframes
+        # arrived since, not before files_next; each image's tags read once.
+        self.changed = False
+        self.files_next = 0.0
+        self.tags: dict[str, ImageTags] = {}
         self.sift = sift
         self.sift_jobs: list[Future[int]] = []
         if sift is not None:
@@ -675,18 +730,53 @@ class VehicleDataset:
         """Notes a flight (under the lock); True for the dataset's first."""
         if flight not in self.flights:
             self.flights.append(flight)
+            if flight not in self.listed:
+                # A flight the vehicle's list did not name: ask for the list again.
+                self.catalogue_due = True
+                self.catalogue_tries = 0
+                self.catalogue_next = 0.0
         return self.flights[0] == flight
 
     def note_flight(self, flight: str) -> None:
         with self.lock:
             self._flight(flight)
 
+    def _follow(self, flight: str) -> None:
+        """``flight`` is the vehicle's latest (under the lock): the one heard before it,
+        if another, has ended. One already followed by another stays behind it."""
+        if flight == self.current or flight in self.superseded:
+            return
+        if self.current is not None:
+            self.superseded.append(self.current)
+        self.current = flight
+
+    def note_running(self, flight: str) -> None:
+        """The vehicle is flying ``flight``: a live keyframe or status said so."""
+        with self.lock:
+            self._flight(flight)
+            self._follow(flight)
+
+    def note_end(self, flight: str) -> None:
+        """``flight`` has ended and its final keyframe count is known: its final status
+        said so, which may overtake its last keyframes."""
+        with self.lock:
+            self._flight(flight)
+            self.ended.add(flight)
+            self._follow(flight)
+
+    def end_unknown(self) -> list[str]:
+        """Flights followed by another without their final keyframe count known."""
+        with self.lock:
+            return [f for f in self.superseded if f not in self.ended]
+
     def note_catalogue(self, flights: list[Any], max_age_s: float) -> None:
         """The vehicle's flights (keyframed/<vehicle>/flights): each one it is running,
         or we know of already, or that ended at most ``max_age_s`` ago is noted with
         its keyframe count, so that what we lack of it is fetched by query."""
+        running = None
         with self.lock:
             wanted = []
+            entries = []
             for f in flights:
                 try:
                     flight = os.path.basename(str(f.get("flight") or ""))
@@ -695,8 +785,15 @@ class VehicleDataset:
                     recent = age is not None and float(age) <= max_age_s
                 except (AttributeError, KeyError, TypeError, ValueError, OverflowError):
                     continue  # not a flight entry: the others still count
-                if not flight or not 0 <= n <= MAX_FLIGHT_KEYFRAMES:
-                    continue
+                if flight and 0 <= n <= MAX_FLIGHT_KEYFRAMES:
+                    entries.append((f, flight, n, recent))
+            # Named here, so hearing of them later is no reason to ask again.
+            self.listed = {flight for _, flight, _, _ in entries}
+            for f, flight, n, recent in entries:
+                if f.get("current"):
+                    running = flight
+                else:
+                    self.ended.add(flight)  # not running: its count is final
                 if f.get("current") or flight in self.flights or recent:
                     wanted.append(flight)
                     self.announced[flight] = max(self.announced.get(flight, -1), n - 1)
@@ -709,6 +806,8 @@ class VehicleDataset:
             else:
                 for flight in wanted:
                     self._flight(flight)
+        if running is not None:
+            self.note_running(running)
 
     def add(self, meta: dict[str, Any], jpeg: bytes, fetched: bool = False) -> bool:
         """Stores one keyframe; False when it was already there."""
@@ -727,6 +826,7 @@ class VehicleDataset:
             self.meta[(flight, seq)] = meta
             if fetched:
                 self.fetched += 1
+            self.changed = True
             with open(self.dir / "keyframes.jsonl", "a") as f:
                 f.write(json.dumps(meta, sort_keys=True) + "\n")
         self._queue_sift(name)
@@ -749,28 +849,75 @@ class VehicleDataset:
         gone = self.missing()
         with self.lock:
             self.missing_since = {s: self.missing_since.get(s, now) for s in gone}
+            self.retry_at = {s: t for s, t in self.retry_at.items() if s in self.missing_since}
             return [s for s in gone if now - self.missing_since[s] >= grace]
+
+    def next_chunk(
+        self, grace: float, skip: set[Key] | None = None, wait_retry: bool = True
+    ) -> tuple[str, int, int] | None:
+        """The keyframes to ask for in the next query, as (flight, first, last): the
+        first run of consecutive ones missing for ``grace`` seconds, at most GAP_CHUNK
+        of it, leaving out those in ``skip`` and (with ``wait_retry``) those a query
+        that ended lately did not bring."""
+        now = time.monotonic()
+        gone = self.overdue(grace)
+        with self.lock:
+            ready = [
+                k
+                for k in gone
+                if not (skip and k in skip) and not (wait_retry and self.retry_at.get(k, 0) > now)
+            ]
+        if not ready:
+            return None
+        flight = ready[0][0]
+        first, last = runs([s for f, s in ready if f == flight])[0]
+        return flight, first, min(last, first + GAP_CHUNK - 1)
+
+    def query_ended(self, flight: str, first: int, last: int) -> None:
+        """A gap query has ended: what it did not bring waits GAP_RETRY_S."""
+        at = time.monotonic() + GAP_RETRY_S
+        with self.lock:
+            for s in range(first, last + 1):
+                if (flight, s) not in self.meta:
+                    self.retry_at[(flight, s)] = at
 
     def count(self) -> int:
         with self.lock:
             return len(self.meta)
 
-    def finish(self) -> dict[str, Any]:
-        """Rewrites keyframes.jsonl in sequence order and writes the COLMAP/ODM files."""
-        sift_failed = 0
-        for job in self.sift_jobs:
-            try:
-                job.result()
-            except Exception as err:  # one bad image must not cost the dataset's files
-                sift_failed += 1
-                print(f"keyframed-ground: {self.vehicle}: SIFT failed: {err}", file=sys.stderr)
+    def refresh_files(self) -> None:
+        """Rewrites the dataset's files while the station runs, when keyframes arrived
+        since they were last written: at most every FILES_EVERY_S seconds, and ten
+        times as long apart as writing them took."""
+        now = time.monotonic()
+        if not self.changed or now < self.files_next:
+            return
+        self.files_next = now + FILES_EVERY_S  # after a failure too, not at every turn
+        try:
+            self.write_files()
+        except Exception:
+            self.changed = True  # tried again later
+            raise
+        took = time.monotonic() - now
+        self.files_next = now + took + max(FILES_EVERY_S, 10.0 * took)
+
+    def write_files(self) -> tuple[str | None, dict[str, Any] | None, int]:
+        """Rewrites keyframes.jsonl in sequence order and writes the COLMAP/ODM files,
+        each to a temporary name and renamed, for the keyframes stored so far; returns
+        the COLMAP camera, ODM's cameras and the number of pairs."""
         with self.lock:
             # flights by id, the UTC time each started: in the order they were flown
             metas = [self.meta[k] for k in sorted(self.meta)]
-        lines = "".join(json.dumps(m, sort_keys=True) + "\n" for m in metas)
-        _write_atomic(self.dir / "keyframes.jsonl", lines.encode())
+            self.changed = False
+            # Under the lock: a keyframe stored meanwhile appends its line to the file
+            # this one replaces, and would be left out of the index.
+            lines = "".join(json.dumps(m, sort_keys=True) + "\n" for m in metas)
+            _write_atomic(self.dir / "keyframes.jsonl", lines.encode())
         names = [m["file"] for m in metas]
-        tags = [read_tags((self.images / n).read_bytes()) for n in names]
+        for n in names:
+            if n not in self.tags:
+                self.tags[n] = read_tags((self.images / n).read_bytes())
+        tags = [self.tags[n] for n in names]
         # Only a calibration the tags carry: a camera made of EXIF's nominal focal length
         # (centred principal point, no distortion) would be taken for one. Without it
         # there is no cameras.txt or cameras.json (nor one an earlier run left).
@@ -796,9 +943,21 @@ class VehicleDataset:
             if row is not None:
                 geo.append(row)
         _write_atomic(self.dir / "geo.txt", ("\n".join(geo) + "\n").encode())
+        return camera, odm, len(pairs)
+
+    def finish(self) -> dict[str, Any]:
+        """Waits for the SIFT worker, writes the dataset's files and returns the summary."""
+        sift_failed = 0
+        for job in self.sift_jobs:
+            try:
+                job.result()
+            except Exception as err:  # one bad image must not cost the dataset's files
+                sift_failed += 1
+                print(f"keyframed-ground: {self.vehicle}: SIFT failed: {err}", file=sys.stderr)
+        camera, odm, pairs = self.write_files()
         return {
             "vehicle": self.vehicle,
-            "keyframes": len(metas),
+            "keyframes": self.count(),
             "fetched_by_query": self.fetched,
             "gap_queries": self.queries,
             "duplicates_ignored": self.duplicates,
@@ -808,7 +967,8 @@ class VehicleDataset:
             "missing": [
                 s if f == (self.flights or [""])[0] else f"{f}:{s}" for f, s in self.missing()
             ],
-            "pairs": len(pairs),
+            "flights_end_unknown": self.end_unknown(),
+            "pairs": pairs,
             "calibrated": camera is not None,  # else no cameras.txt, cameras.json
             "camera": camera,
             "odm_camera": next(iter(odm)) if odm else None,
@@ -916,6 +1076,7 @@ class GroundStation:
                 print("keyframed-ground: keyframe without a sequence number", file=sys.stderr)
                 return
             ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
+            ds.note_running(os.path.basename(str(meta.get("flight") or "")))
             ds.add(meta, sample.payload.to_bytes())
             self.last_arrival = time.monotonic()
             if ds.missing():
@@ -928,68 +1089,128 @@ class GroundStation:
             status = json.loads(sample.payload.to_bytes())
             ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
             flight = os.path.basename(str(status.get("flight") or ""))
+            final = status.get("state") in FINAL_STATES
+            n = status.get("keyframes", status.get("kept"))
             ds.note_flight(flight)
-            if status.get("state") in FINAL_STATES and not ds.done:
+            if n is not None:
+                with ds.lock:
+                    ds.announced[flight] = max(ds.announced.get(flight, -1), int(n) - 1)
+            if final and n is not None:
+                ds.note_end(flight)
+            elif not final:
+                ds.note_running(flight)
+            if final and not ds.done:
                 ds.done = True
                 ds.done_flight = flight
                 ds.done_at = time.monotonic()
                 self.wake.set()
             elif status.get("state") == "running" and ds.done and flight != ds.done_flight:
                 ds.done = False  # the daemon started again: a new flight
-            n = status.get("keyframes", status.get("kept"))
-            if n is None:
-                return
-            with ds.lock:
-                ds.announced[flight] = max(ds.announced.get(flight, -1), int(n) - 1)
             if ds.missing():
                 self.wake.set()
         except Exception as err:
             print(f"keyframed-ground: bad status message: {err}", file=sys.stderr)
 
-    def read_catalogues(self, timeout: float = 5.0) -> None:
-        """Asks each vehicle heard of, once, which flights it holds."""
+    def read_catalogues(self, timeout: float = 5.0, force: bool = False) -> None:
+        """Asks each vehicle which flights it holds: when first heard of, and again
+        when a flight its last list did not name appears; with ``force`` (at close)
+        each vehicle once more, whatever was asked before."""
         now = time.monotonic()
         for ds in list(self.datasets.values()):
-            if ds.catalogue_done or ds.catalogue_tries >= 3 or now < ds.catalogue_next:
-                continue
-            ds.catalogue_tries += 1
-            ds.catalogue_next = now + 5.0
+            with ds.lock:
+                wait = not ds.catalogue_due or ds.catalogue_tries >= 3 or now < ds.catalogue_next
+                if wait and not force:
+                    continue
+                ds.catalogue_due = False
+                ds.catalogue_tries += 1
+                ds.catalogue_next = now + 5.0
+            answered = False
             for reply in self.session.get(flights_key(ds.vehicle), timeout=timeout):
                 if reply.ok is None:
                     continue
                 try:
                     flights = json.loads(reply.ok.payload.to_bytes())["flights"]
                     ds.note_catalogue(list(flights), self.earlier_flights_s)
-                    ds.catalogue_done = True
+                    answered = True
                 except Exception as err:  # a bad reply must not stop the station
                     print(
                         f"keyframed-ground: {ds.vehicle}: bad list of flights: {err}",
                         file=sys.stderr,
                     )
+            if not answered:
+                with ds.lock:
+                    ds.catalogue_due = ds.catalogue_due or ds.catalogue_tries < 3
             if ds.missing():
                 self.wake.set()
 
-    def fill_gaps(self, grace: float = GAP_GRACE_S, timeout: float = 5.0) -> int:
-        """Queries every vehicle's store for the keyframes we have lacked for
-        ``grace`` seconds; returns how many arrived."""
-        got = 0
+    def fill_gaps(self, grace: float = GAP_GRACE_S) -> None:
+        """Asks each vehicle's store for the keyframes we have lacked for ``grace``
+        seconds, at most GAP_CHUNK in one query, and only once the vehicle's last
+        query has ended: on a slow link its answer may still be on the way, and a
+        query sent again would only compete with it."""
         for ds in list(self.datasets.values()):
-            overdue = ds.overdue(grace)
-            for flight in dict.fromkeys(f for f, _ in overdue):
-                seqs = [s for f, s in overdue if f == flight]
-                for first, last in runs(seqs):
-                    # One query per gap; each keyframe is one reply, keyed .../keyframes/<seq>.
-                    ds.queries += 1
-                    selector = range_selector(ds.vehicle, first, last, flight)
-                    for reply in self.session.get(selector, timeout=timeout):
-                        try:
-                            got += self._take_reply(ds, reply, first, last, flight)
-                        except Exception as err:  # a bad reply must not stop the station
-                            print(
-                                f"keyframed-ground: {ds.vehicle}: bad reply to {selector}: {err}",
-                                file=sys.stderr,
-                            )
-        return got
+            if ds.asking is not None and not ds.asking.is_set():
+                continue
+            chunk = ds.next_chunk(grace)
+            if chunk is not None:
+                self._ask(ds, *chunk)
+
+    def _ask(self, ds: VehicleDataset, flight: str, first: int, last: int) -> threading.Event:
+        """Sends one range query without waiting for it; each keyframe is one reply,
+        keyed .../keyframes/<seq>, stored as it arrives. The event returned is set when
+        the query has ended: answered, failed, or out of time."""
+        import zenoh
+
+        done = threading.Event()
+        selector = range_selector(ds.vehicle, first, last, flight)
+
+        def on_reply(reply: Any) -> None:
+            try:
+                self._take_reply(ds, reply, first, last, flight)
+            except Exception as err:  # a bad reply must not stop the station
+                print(
+                    f"keyframed-ground: {ds.vehicle}: bad reply to {selector}: {err}",
+                    file=sys.stderr,
+                )
+
+        def on_end() -> None:
+            ds.query_ended(flight, first, last)
+            done.set()
+            self.wake.set()
+
+        with ds.lock:
+            ds.asking = done
+            ds.queries += 1
+        timeout = GAP_QUERY_S + GAP_QUERY_PER_KEYFRAME_S * (last - first + 1)
+        try:
+            self.session.get(selector, zenoh.handlers.Callback(on_reply, on_end), timeout=timeout)
+        except Exception as err:
+            print(f"keyframed-ground: {ds.vehicle}: query {selector}: {err}", file=sys.stderr)
+            on_end()
+        return done
+
+    def drain(self) -> None:
+        """At close: waits for the gap queries under way, then asks once more for
+        every keyframe still missing, a chunk at a time per vehicle, and waits for
+        those answers too; what they do not bring is reported missing."""
+        asked: dict[str, set[Key]] = {}
+        limit = GAP_QUERY_S + GAP_QUERY_PER_KEYFRAME_S * GAP_CHUNK + 5.0
+        while True:
+            for ds in list(self.datasets.values()):
+                if ds.asking is not None:
+                    ds.asking.wait(limit)  # Zenoh ends it by its timeout at the latest
+            sent = False
+            for ds in list(self.datasets.values()):
+                skip = asked.setdefault(ds.vehicle, set())
+                chunk = ds.next_chunk(0.0, skip=skip, wait_retry=False)
+                if chunk is None:
+                    continue
+                flight, first, last = chunk
+                skip.update((flight, s) for s in range(first, last + 1))
+                self._ask(ds, flight, first, last)
+                sent = True
+            if not sent:
+                return
 
     def _take_reply(
         self, ds: VehicleDataset, reply: Any, first: int, last: int, flight: str
@@ -1040,6 +1261,14 @@ class GroundStation:
             self.wake.clear()
             self.read_catalogues()
             self.fill_gaps()
+            for ds in list(self.datasets.values()):
+                try:
+                    ds.refresh_files()
+                except Exception as err:  # e.g. a full disk: the keyframes still come
+                    print(
+                        f"keyframed-ground: {ds.vehicle}: cannot write the dataset's files: {err}",
+                        file=sys.stderr,
+                    )
             now = time.monotonic()
             if not self.quiet and now - last_print > 1.0:
                 print("\r" + self.progress() + "   ", end="", file=sys.stderr, flush=True)
@@ -1059,7 +1288,7 @@ class GroundStation:
                 and now - self.last_arrival > until_idle
             ):
                 # Idle: nothing arrived, by subscription or by query, for a while.
-                # What is still missing gets one last query at close() and is reported.
+                # What is still missing is asked for once more at close() and reported.
                 break
         if not self.quiet:
             print(file=sys.stderr)
@@ -1067,7 +1296,10 @@ class GroundStation:
     def close(self) -> list[dict[str, Any]]:
         for s in self.subs:
             s.undeclare()
-        self.fill_gaps(grace=0.0)
+        # The vehicles' lists once more: a flight's last keyframes, and its final
+        # status, may have been lost on the link with nothing after them to tell.
+        self.read_catalogues(force=True)
+        self.drain()
         results = [ds.finish() for ds in self.datasets.values()]
         if self.pool is not None:
             self.pool.shutdown()
@@ -1149,7 +1381,7 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
     for r in results:
         print(json.dumps(r, sort_keys=True))
-    incomplete = [r["vehicle"] for r in results if r["missing"]]
+    incomplete = [r["vehicle"] for r in results if r["missing"] or r["flights_end_unknown"]]
     if incomplete:
         print(f"keyframed-ground: keyframes still missing for {incomplete}", file=sys.stderr)
         return 3
