@@ -475,10 +475,21 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     return;
   }
   bool found = false;
+  int sent = 0;
   std::vector<std::uint8_t> jpeg;
   for (const StoredKeyframe& r : rows) {
     if (!all && r.sequence != wanted) continue;
     if (r.sequence < first || r.sequence > final) continue;
+    if (sent == kMaxRepliesPerQuery) {
+      // A whole flight in one answer would hold a radio link for minutes, past any
+      // querier's timeout, while it asked again: the rest is asked for by range.
+      std::string ignored;
+      reply.fail("at most " + std::to_string(kMaxRepliesPerQuery) +
+                     " keyframes a query: ask again with range=" + std::to_string(r.sequence) +
+                     "..",
+                 ignored);
+      return;
+    }
     found = true;
     if (const auto m = inMemory.find(r.sequence); m != inMemory.end()) {
       jpeg = m->second;
@@ -489,6 +500,7 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     }
     const std::string replyKey = prefix_ + "/keyframes/" + std::to_string(r.sequence);
     if (!reply.ok(replyKey, jpeg, asBytes(r.metadataJson), error)) return;
+    ++sent;
   }
   if (!found && !all) {
     std::string ignored;

@@ -53,6 +53,9 @@ class KeyframePublisher {
   // on the retry thread): a router that accepts and never answers holds it for Zenoh's
   // open_timeout (10 s); peer mode's scouting takes 0.5 s.
   static constexpr int kFirstAttemptWaitMs = 3000;
+  // A query is answered with at most this many keyframes (30 MB of 1080p JPEGs), then
+  // an error reply that says from which sequence number to ask again.
+  static constexpr int kMaxRepliesPerQuery = 64;
   ~KeyframePublisher();
   KeyframePublisher(const KeyframePublisher&) = delete;
   KeyframePublisher& operator=(const KeyframePublisher&) = delete;

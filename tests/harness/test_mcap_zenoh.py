@@ -301,6 +301,67 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
     assert status[-1]["kept"] == len(rows)
 
 
+def test_a_query_gets_at_most_64_keyframes_and_where_to_go_on(
+    kf_bin: Path, pan_video: Path, tmp_path: Path
+):
+    """A query for a whole flight (here an earlier one of 70 keyframes, served from its
+    directory) is answered with 64 keyframes and an error reply naming the range that
+    follows, which brings the rest."""
+    state = tmp_path / "state"
+    earlier = state / "flights" / "20260101T000000Z" / "keyframes"
+    earlier.mkdir(parents=True)
+    lines = ["sequence,index,time_ns,file"]
+    for i in range(70):
+        (earlier / f"{i:06d}.jpg").write_bytes(b"\xff\xd8 keyframe %d \xff\xd9" % i)
+        lines.append(f"{i},{10 * i},{1000 * i},{i:06d}.jpg")
+    (earlier / "keyframes.csv").write_text("\n".join(lines) + "\n")
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg = tmp_path / "zenoh.json5"
+    cfg.write_text(peer_config(connect=[endpoint]))
+    (tmp_path / "etc").mkdir()
+    args = [str(kf_bin), "run", "--config-dir", str(tmp_path / "etc")]
+    for s in (
+        f"output.state_dir={state}",
+        f"zenoh.config={cfg}",
+        "zenoh.vehicle=capped",
+        "telemetry.url=",
+        "camera.source=file",
+        f"camera.path={pan_video}",  # 3 s in real time: the queryable is up meanwhile
+        "output.mcap=false",
+    ):
+        args += ["--set", s]
+    session = zenoh.open(zenoh.Config.from_json5(peer_config(listen=[endpoint])))
+    p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        key = "keyframed/capped/keyframes/*"
+        replies: list[Any] = []
+        deadline = time.monotonic() + 20
+        while not replies and time.monotonic() < deadline and p.poll() is None:
+            replies = list(session.get(f"{key}?flight=20260101T000000Z", timeout=5.0))
+        # Zenoh's default consolidation may hand the replies over in any order.
+        ok = {str(r.ok.key_expr): r.ok for r in replies if r.ok is not None}
+        errors = [r.err.payload.to_string() for r in replies if r.err is not None]
+        assert sorted(ok) == sorted(f"keyframed/capped/keyframes/{i}" for i in range(64))
+        assert (
+            ok["keyframed/capped/keyframes/5"].payload.to_bytes()
+            == (earlier / "000005.jpg").read_bytes()
+        )
+        assert errors == ["at most 64 keyframes a query: ask again with range=64.."], errors
+        rest = list(session.get(f"{key}?flight=20260101T000000Z;range=64..", timeout=5.0))
+        assert sorted(str(r.ok.key_expr) for r in rest if r.ok is not None) == sorted(
+            f"keyframed/capped/keyframes/{i}" for i in range(64, 70)
+        )
+        assert not [r for r in rest if r.err is not None]
+        p.send_signal(signal.SIGTERM)
+        _, stderr = p.communicate(timeout=30)
+        assert p.returncode == 0, stderr
+    finally:
+        if p.poll() is None:
+            p.kill()
+        session.close()
+
+
 # ---- (d) bad input ---------------------------------------------------------------------
 
 
