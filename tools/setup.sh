@@ -23,6 +23,9 @@ APT_PACKAGES+=(openssl)
 # tests/harness/test_systemd.py: systemd-analyze verify/security on the unit;
 # tests/harness/test_flight_record.py: strace counts the record's fsyncs.
 APT_PACKAGES+=(systemd strace)
+# tests/harness/test_ground.py: COLMAP's own feature_importer and matches_importer
+# read the ground station's SIFT export and pairs list (Debian's COLMAP 3.8, CPU).
+APT_PACKAGES+=(colmap)
 
 # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu
 # (an x86-64 guest; on other architectures, e.g. a Pi, that test skips).

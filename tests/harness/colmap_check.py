@@ -73,3 +73,62 @@ def reconstruct(dataset: Path, work: Path) -> ColmapResult:
     registered = max((r.num_reg_images() for r in recs.values()), default=0)
     listed = len((dataset / "pairs.txt").read_text().splitlines())
     return ColmapResult(len(images), focal, priors, listed, verified, registered)
+
+
+@dataclass
+class ColmapCliResult:
+    keypoints: dict[str, int]  # image name -> keypoints COLMAP imported
+    pairs_matched: int  # pairs of pairs.txt COLMAP matched
+    pairs_verified: int  # of them, with a geometrically verified model
+    camera_model: int  # COLMAP's camera model id (4: OPENCV)
+    camera_params: list[float]
+
+
+def colmap_cli_import(dataset: Path, work: Path) -> ColmapCliResult:
+    """The dataset through COLMAP's own command line as docs/deploy.md runs it: the
+    SIFT features with ``colmap feature_importer`` and the camera of cameras.txt, the
+    pairs with ``colmap matches_importer --match_type pairs`` (on the CPU: no display
+    here); what its database then holds."""
+    import os
+    import sqlite3
+    import subprocess
+
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "colmap-cli.db"
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    camera = [ln for ln in (dataset / "cameras.txt").read_text().splitlines() if ln[:1] != "#"]
+    _, model, _, _, *params = camera[0].split()
+    commands = [
+        ["feature_importer", "--image_path", str(dataset / "images")]
+        + ["--import_path", str(dataset / "features"), "--ImageReader.single_camera", "1"]
+        + ["--ImageReader.camera_model", model, "--ImageReader.camera_params", ",".join(params)],
+        ["matches_importer", "--match_list_path", str(dataset / "pairs.txt")]
+        + ["--match_type", "pairs", "--SiftMatching.use_gpu", "0"],
+    ]
+    for args in commands:
+        r = subprocess.run(
+            ["colmap", args[0], "--database_path", str(db), *args[1:]],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    con = sqlite3.connect(db)
+    try:
+        keypoints = dict(
+            con.execute(
+                "SELECT images.name, keypoints.rows FROM images JOIN keypoints "
+                "ON images.image_id = keypoints.image_id"
+            ).fetchall()
+        )
+        matched = con.execute("SELECT COUNT(*) FROM matches WHERE rows > 0").fetchone()[0]
+        verified = con.execute(
+            "SELECT COUNT(*) FROM two_view_geometries WHERE rows > 0 AND config >= 2"
+        ).fetchone()[0]
+        cameras = con.execute("SELECT model, params FROM cameras").fetchall()
+    finally:
+        con.close()
+    assert len(cameras) == 1, cameras
+    values = np.frombuffer(cameras[0][1], dtype=np.float64).tolist()
+    return ColmapCliResult(keypoints, int(matched), int(verified), int(cameras[0][0]), values)

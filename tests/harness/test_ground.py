@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from colmap_check import colmap_cli_import
 from flights import flight
 from ports import free_port
 
@@ -369,6 +370,22 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
         assert np.allclose(np.sort(got[:, 1]), np.sort(lat_lon[:, 1]), atol=1e-7)
     finally:
         db.close()
+
+    # COLMAP's own command line (Debian's 3.8, installed by tools/setup.sh), as
+    # docs/deploy.md gives it: the camera of cameras.txt, the SIFT files as they are
+    # (every keypoint), the listed pairs matched; consecutive keyframes (60-85 %
+    # overlap) verify
+    assert shutil.which("colmap"), "COLMAP is installed by tools/setup.sh"
+    cli = colmap_cli_import(ds, tmp_path / "colmap-cli")
+    counts = {
+        f: int((ds / "features" / (f + ".txt")).read_text().split(maxsplit=1)[0]) for f in files
+    }
+    assert cli.keypoints == counts
+    assert cli.camera_model == 4  # OPENCV
+    assert cli.camera_params == pytest.approx([float(v) for v in cam[4:]], rel=1e-9)
+    assert cli.pairs_matched >= len(files) - 1
+    assert cli.pairs_verified >= len(files) - 1, cli
+    print(f"COLMAP 3.8 CLI: {len(pairs)} pairs listed, {cli.pairs_verified} verified")
 
 
 def test_a_restarted_vehicle_keeps_both_flights_apart(tagged: Path, tmp_path: Path) -> None:
