@@ -712,6 +712,9 @@ int Daemon::run() {
       cd.sensorWidthMm = static_cast<float>(camera_->sensorWidthMm);
       cd.sensorHeightMm = static_cast<float>(camera_->sensorHeightMm);
     }
+    // The autopilot's CAMERA_INFORMATION names the camera as the keyframes' EXIF does.
+    if (!config_.tagging.make.empty()) cd.vendor = config_.tagging.make;
+    if (!config_.tagging.model.empty()) cd.model = config_.tagging.model;
     telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
     telemetry_->setGimbalMount(config_.tagging.mountGimbal);  // ask for its attitude too
     logTelemetryEvents(*telemetry_);

@@ -227,6 +227,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       cd.sensorWidthMm = static_cast<float>(camera->sensorWidthMm);
       cd.sensorHeightMm = static_cast<float>(camera->sensorHeightMm);
     }
+    // CAMERA_INFORMATION names the camera as the keyframes' EXIF does (--make, --model).
+    if (!opts.make.empty()) cd.vendor = opts.make;
+    if (!opts.model.empty()) cd.model = opts.model;
     telemetry = std::make_unique<TelemetryService>(tc, cd);
     telemetry->setGimbalMount(opts.mountGimbal);  // a live link: ask for its attitude too
     logTelemetryEvents(*telemetry);

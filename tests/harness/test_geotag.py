@@ -705,7 +705,7 @@ def test_live_udp_autopilot_with_clock_offset(
         ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 1, 0)
         ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 500, 0)
 
-    out, log = live_run(kf_bin, short_nadir, tmp_path, ap, during=during)
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap, "--model", "Survey cam 2", during=during)
     errs = check_live_tags(short_nadir, out, ap)
     assert max(e[0] for e in errs) < LIVE_HORIZONTAL_M, errs
     assert max(e[1] for e in errs) < 0.1, errs
@@ -728,7 +728,11 @@ def test_live_udp_autopilot_with_clock_offset(
     assert info.focal_length == pytest.approx(intr["focal_length_mm"], rel=1e-5)
     assert info.sensor_size_h == pytest.approx(intr["sensor_width_mm"], rel=1e-5)
     assert info.resolution_h == 480
-    # it takes photographs on request (MAV_CMD_IMAGE_START_CAPTURE)
+    # named as the keyframes' EXIF names the camera (--model over the calibration's)
+    model_name = bytes(info.model_name).rstrip(b"\0").decode()
+    assert model_name == "Survey cam 2"
+    first = keyframes(out)[0]["file"]
+    assert exif([out / first])[first]["IFD0:Model"] == model_name
     assert info.flags & mav2.CAMERA_CAP_FLAGS_CAPTURE_IMAGE
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == 512]
     # CAMERA_INFORMATION and the resent capture accepted, the unknown one failed
