@@ -16,6 +16,7 @@ const char* toString(Reason reason) {
     case Reason::Lost: return "lost";
     case Reason::Featureless: return "featureless";
     case Reason::Commanded: return "commanded";
+    case Reason::Refocus: return "refocus";
   }
   return "unknown";
 }
@@ -68,6 +69,7 @@ void KeyframeSelector::reconfigure(const SelectorConfig& config) {
   overlap_ = OverlapEstimator::create(config.overlap);
   haveKeyframe_ = false;
   needAnchor_ = false;
+  firstInWarmup_ = false;
   clearCandidate();
 }
 
@@ -94,6 +96,8 @@ void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
   keyframeFeatures_ = d.features;
   chainTracked_ = false;
   needAnchor_ = false;
+  firstInWarmup_ = reason == Reason::First && keyframes_ == 0 && warmingUp_;
+  firstSharpness_ = d.sharpness;
   clearCandidate();
   ++keyframes_;
 }
@@ -144,6 +148,7 @@ Decision KeyframeSelector::process(const Frame& frame) {
   const GrayView gray = luma_.luma(frame);
   const std::int64_t t1 = now();
 
+  warmingUp_ = sharpness_.warmingUp();
   const SharpnessScorer::Result blur = sharpness_.evaluate(gray);
   d.sharpness = blur.score;
   d.threshold = blur.threshold;
@@ -208,6 +213,12 @@ Decision KeyframeSelector::process(const Frame& frame) {
       keepCurrent(d, Reason::First);
     else
       d.reason = Reason::Lost;
+  } else if (firstInWarmup_ && d.sharp && d.sharpness >= kRefocusRatio * firstSharpness_ &&
+             (paper ? ov.paperDistance < config_.overlap.paperThreshold
+                    : ov.overlap > config_.bandHigh)) {
+    // The view the first keyframe shows, now in focus: it becomes the reference (and
+    // a keyframe: the one before cannot be taken back).
+    keepCurrent(d, Reason::Refocus);
   } else if (paper) {
     if (!d.sharp)
       d.reason = Reason::Blurry;

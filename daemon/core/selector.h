@@ -35,6 +35,10 @@ enum class Reason {
   Commanded,      // kept: a capture was requested (MAVLink MAV_CMD_IMAGE_START_CAPTURE)
                   //   and this is the first sharp frame since (or, after
                   //   captureWaitMs, the first at the blur floor)
+  Refocus,        // kept: the stream's first keyframe was taken while the blur statistic
+                  //   was warming up (only the floor to judge by) and this frame of the
+                  //   same view is kRefocusRatio times as sharp: a camera that opened
+                  //   out of focus. It replaces that keyframe as the reference.
 };
 
 const char* toString(Reason reason);
@@ -125,6 +129,8 @@ class KeyframeSelector {
   // Thread-safe (the rest of the selector is not).
   bool requestCapture();
   static constexpr int kMaxCaptureRequests = 16;
+  // Reason::Refocus: how much sharper than a first keyframe taken in the warm-up.
+  static constexpr double kRefocusRatio = 2.0;
   [[nodiscard]] int pendingCaptures() const { return captureRequests_.load(); }
 
   [[nodiscard]] const SelectorConfig& config() const { return config_; }
@@ -155,6 +161,11 @@ class KeyframeSelector {
   // at a frame tracked from the one before it (needAnchor_), not at every sharp frame.
   bool chainTracked_ = false;
   bool needAnchor_ = false;
+  // The last keyframe is the stream's first and was judged sharp only against the
+  // blur floor (Reason::Refocus); its score.
+  bool firstInWarmup_ = false;
+  double firstSharpness_ = 0.0;
+  bool warmingUp_ = false;  // the frame being decided was judged in the warm-up
   std::int64_t keyframes_ = 0;
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;

@@ -172,6 +172,11 @@ double SharpnessScorer::threshold() const {
   return std::max(config_.floor, config_.ratio * history_.quantile(config_.quantile));
 }
 
+bool SharpnessScorer::warmingUp() const {
+  return config_.mode == BlurMode::Adaptive &&
+         history_.size() < static_cast<std::size_t>(std::max(1, config_.warmup));
+}
+
 void SharpnessScorer::observe(double s) {
   history_.push(s);
 }

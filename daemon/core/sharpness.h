@@ -68,6 +68,8 @@ class SharpnessScorer {
 
   // The threshold the next frame will be judged against.
   [[nodiscard]] double threshold() const;
+  // Adaptive mode, before `warmup` frames were seen: the threshold is only the floor.
+  [[nodiscard]] bool warmingUp() const;
 
   void reset();
   [[nodiscard]] const SharpnessConfig& config() const { return config_; }

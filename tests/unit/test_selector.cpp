@@ -60,6 +60,53 @@ TEST(Selector, FirstSharpFrameIsAKeyframe) {
   EXPECT_EQ(r.decisions[2].reason, Reason::First);
 }
 
+TEST(Selector, ACameraThatOpensOutOfFocusGetsASharpFirstKeyframeToo) {
+  // A camera's noise comes after its optics: defocus, then sensor noise. Such frames
+  // score far above the blur floor, so the first (taken while the statistic warms
+  // up) counts as sharp. Once the lens has focused, the same view in focus becomes
+  // the reference and a keyframe, once (Refocus; a defocus so strong that nothing
+  // tracks from it loses the chain and starts a new one there), and standing still
+  // adds nothing more.
+  const cv::Mat strip = test::photoStrip();
+  for (const auto& [sigma, reason] :
+       {std::pair{1.2, Reason::Refocus}, {2.0, Reason::Refocus}, {3.0, Reason::First}}) {
+    SCOPED_TRACE(sigma);
+    SelectorConfig cfg;
+    cfg.analysisWidth = 0;
+    KeyframeSelector sel(cfg);
+    cv::RNG rng(5);
+    std::vector<Decision> ds;
+    for (int i = 0; i < 60; ++i) {
+      cv::Mat v = test::viewAt(strip, 100.0);
+      if (i < 15) cv::GaussianBlur(v, v, cv::Size(), sigma);
+      cv::Mat noise(v.size(), CV_8UC1);
+      rng.fill(noise, cv::RNG::NORMAL, 0, 2.0);
+      cv::add(v, noise, v);
+      ds.push_back(sel.process(Frame::ofGray(v, i, i * 33'333'333LL)));
+    }
+    ASSERT_TRUE(ds[0].kept);
+    EXPECT_EQ(ds[0].reason, Reason::First);
+    EXPECT_GT(ds[0].sharpness, cfg.blur.floor);  // the floor alone cannot tell
+    std::vector<int> kept;
+    for (const Decision& d : ds)
+      if (d.kept) kept.push_back(static_cast<int>(d.index));
+    ASSERT_EQ(kept.size(), 2U);
+    EXPECT_EQ(kept[1], 15);
+    EXPECT_EQ(ds[15].reason, reason) << toString(ds[15].reason);
+    EXPECT_GE(ds[15].sharpness, KeyframeSelector::kRefocusRatio * ds[0].sharpness);
+  }
+  EXPECT_STREQ(toString(Reason::Refocus), "refocus");
+}
+
+TEST(Selector, ACameraSharpFromTheStartIsNeverRefocused) {
+  const PanRun r = pan(linear(120, 100, 8.0));
+  for (const Decision& d : r.decisions) EXPECT_NE(d.reason, Reason::Refocus) << d.index;
+  // A first keyframe after the warm-up (blurred frames at the start) neither.
+  const PanRun late = pan(linear(60, 100, 0.0),
+                          {{0, 5.0}, {1, 5.0}, {2, 5.0}, {3, 5.0}, {4, 5.0}, {5, 5.0}, {6, 5.0}});
+  for (const Decision& d : late.decisions) EXPECT_NE(d.reason, Reason::Refocus) << d.index;
+}
+
 TEST(Selector, KeepsFramesAtTheTargetOverlap) {
   // 8 px a frame over a 480 px view: 0.70 overlap every 18 frames.
   const PanRun r = pan(linear(120, 100, 8.0));
