@@ -45,8 +45,16 @@ void MavlinkParser::reset() {
 
 MavlinkEncoder::MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1)
     : systemId_(systemId), componentId_(componentId) {
-  if (mavlink1) status_.flags |= MAVLINK_STATUS_FLAG_OUT_MAVLINK1;
+  setMavlink1(mavlink1);
   out_.reserve(MAVLINK_MAX_PACKET_LEN);
+}
+
+void MavlinkEncoder::setMavlink1(bool mavlink1) {
+  if (mavlink1) {
+    status_.flags |= MAVLINK_STATUS_FLAG_OUT_MAVLINK1;
+  } else {
+    status_.flags &= static_cast<std::uint8_t>(~MAVLINK_STATUS_FLAG_OUT_MAVLINK1);
+  }
 }
 
 }  // namespace keyframed

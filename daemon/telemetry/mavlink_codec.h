@@ -74,6 +74,11 @@ class MavlinkParser {
 class MavlinkEncoder {
  public:
   MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1 = false);
+  // Frames from now on as MAVLink 1 (ids above 255 still as MAVLink 2) or 2.
+  void setMavlink1(bool mavlink1);
+  [[nodiscard]] bool mavlink1() const {
+    return (status_.flags & MAVLINK_STATUS_FLAG_OUT_MAVLINK1) != 0;
+  }
 
   // Fills `msg` via fn(systemId, componentId, status*, msg*) (a mavgen
   // *_encode_status/_pack_status function) and serialises it into `out`. In

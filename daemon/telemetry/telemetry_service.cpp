@@ -676,13 +676,18 @@ void TelemetryService::run() {
       sendTimesync(now);
     }
     requestMessageRates(now);
-    if (!config_.mavlink1 && !autopilotV2_ && !warnedV1_ && autopilotV1SinceNs_ != 0 &&
+    // An autopilot heard in MAVLink 1 only for 3 s does not read MAVLink 2 (TIMESYNC
+    // would go unanswered): answer in its version. Back to 2 once it speaks 2.
+    if (!config_.mavlink1 && !autopilotV2_ && !encoder_->mavlink1() && autopilotV1SinceNs_ != 0 &&
         now - autopilotV1SinceNs_ > 3 * kSecond) {
-      warnedV1_ = true;
-      log(TelemetryLogLevel::Warning,
-          "the autopilot speaks MAVLink 1 only, and we MAVLink 2: if the ground station never "
-          "sees this camera, set telemetry.mavlink1 = true (or the autopilot's port to "
-          "MAVLink 2, ArduPilot: SERIALn_PROTOCOL = 2)");
+      encoder_->setMavlink1(true);
+      log(TelemetryLogLevel::Notice,
+          "the autopilot speaks MAVLink 1 only: sending MAVLink 1 too (CAMERA_INFORMATION and "
+          "CAMERA_IMAGE_CAPTURED exist only in MAVLink 2: set the autopilot's port to "
+          "MAVLink 2, ArduPilot: SERIALn_PROTOCOL = 2, for the camera protocol)");
+    } else if (!config_.mavlink1 && autopilotV2_ && encoder_->mavlink1()) {
+      encoder_->setMavlink1(false);
+      log(TelemetryLogLevel::Notice, "the autopilot speaks MAVLink 2: sending MAVLink 2 again");
     }
     sendPendingCaptures(now);
     logClock(now);

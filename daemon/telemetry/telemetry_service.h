@@ -204,11 +204,10 @@ class TelemetryService {
   std::int64_t lastClockLogNs_ = 0;
   int loggedAutopilot_ = 0;
   std::uint64_t loggedReboots_ = 0;
-  // MAVLink 2 from the autopilot seen; when it has spoken MAVLink 1 only for a while
-  // and we send MAVLink 2, that is said once (telemetry.mavlink1).
+  // MAVLink 2 from the autopilot seen; when it has spoken MAVLink 1 only for a while,
+  // the encoder switches to MAVLink 1 (telemetry.mavlink1 does so from the start).
   bool autopilotV2_ = false;
   std::int64_t autopilotV1SinceNs_ = 0;
-  bool warnedV1_ = false;
   struct {
     int autopilot = 0;          // sysid << 8 | compid the requests went to
     std::uint64_t reboots = 0;  // its reboots then: another asks again

@@ -299,6 +299,7 @@ class FakeAutopilot:
         self.answer_timesync = answer_timesync
         self.rogue_timesync = rogue_timesync
         self.rogue_answers = 0  # TIMESYNC answers the rogue ground station sent
+        self.ignored_v2 = 0  # MAVLink 2 frames a MAVLink 1 autopilot could not read
         # MAV_CMD_SET_MESSAGE_INTERVAL asked of it: message id -> interval in us
         # (acknowledged as ArduPilot does; the replay's own rates stay).
         self.message_intervals: dict[int, int] = {}
@@ -653,6 +654,11 @@ class FakeAutopilot:
         with self._cond:
             self._received.append((now_ns, msg))
             self._cond.notify_all()
+        if self.mavlink1 and msg.get_msgbuf()[:1] == b"\xfd":
+            # A MAVLink 1 autopilot does not understand MAVLink 2 frames: recorded for
+            # the test, not answered.
+            self.ignored_v2 += 1
+            return
         if (
             msg.get_type() == "COMMAND_LONG"
             and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL

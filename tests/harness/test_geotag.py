@@ -824,13 +824,19 @@ def test_live_udp_autopilot_with_noise(
     ap = fake_autopilot(
         short_nadir / "flight.tlog", noise=noise, seed=4, mavlink1=True, boot_offset_ms=2_345_678
     )
-    out, _ = live_run(kf_bin, short_nadir, tmp_path, ap)
+    out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
     assert_at_noise_level(np.array(check_live_tags(short_nadir, out, ap)), noise, "noisy live")
     # Noise on the values, not on the clock: the mapping is as exact as without it.
     tel = json.loads((out / "summary.json").read_text())["telemetry"]
     error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
     print(f"noisy link: clock offset error {error_ms:.3f} ms ({tel['clock']})")
     assert abs(error_ms) < 5.0
+    # This autopilot reads MAVLink 1 only: the camera heard it, went over to MAVLink 1
+    # after 3 s, and its TIMESYNC requests were answered from then on.
+    assert "the autopilot speaks MAVLink 1 only: sending MAVLink 1 too" in log, log
+    assert ap.ignored_v2 > 0
+    assert tel["clock"] == "timesync"
+    assert ap.received("HEARTBEAT")[-1].get_msgbuf()[:1] == b"\xfe"
 
 
 def test_live_link_drop_garbage_and_return(
