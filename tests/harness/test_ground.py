@@ -132,7 +132,8 @@ class Vehicle:
             self.queries.append((first, final))
         start = time.monotonic()
         for seq in range(first, min(final, len(self.rows) - 1) + 1):
-            time.sleep(self.reply_delay)
+            if self.stopped.wait(self.reply_delay):
+                return  # closed while a slow link was still answering
             if seq in self.unavailable:
                 query.reply_err(b"not in the store")
                 continue
@@ -386,6 +387,44 @@ def test_gaps_are_filled_by_query_and_the_dataset_loads_in_colmap(
     assert cli.pairs_matched >= len(files) - 1
     assert cli.pairs_verified >= len(files) - 1, cli
     print(f"COLMAP 3.8 CLI: {len(pairs)} pairs listed, {cli.pairs_verified} verified")
+
+
+def test_a_signal_while_closing_stops_waiting_for_a_vehicle_that_does_not_answer(
+    tagged: Path, tmp_path: Path
+) -> None:
+    """The station ends (idle) with a gap whose query the vehicle never answers (a
+    link that carries nothing back): closing would wait out the query's timeout, 45 s
+    a chunk. SIGINT then stops the waiting at once: the dataset is written with what
+    arrived, the gap is reported missing, exit status 3."""
+    port = free_port()
+    vehicle = Vehicle("uav9", tagged, port)
+    vehicle.reply_delay = 120.0
+    out = tmp_path / "dataset"
+    proc = ground(out, port)
+    try:
+        wait_connected(vehicle)
+        n = len(vehicle.rows)
+        for seq in range(n):
+            if seq != 2:
+                vehicle.publish(seq)
+        vehicle.status()
+        wait_until(lambda: vehicle.queries, timeout=30)
+        time.sleep(3.0)  # idle by now: closing, waiting for the answer
+        assert proc.poll() is None
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert took < 5.0, took
+    assert proc.returncode == 3, stderr
+    assert "stopped without waiting for missing keyframes" in stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n - 1 and summary["missing"], summary
+    assert len((out / "uav9" / "geo.txt").read_text().splitlines()) == n  # header + n - 1
 
 
 def test_a_restarted_vehicle_keeps_both_flights_apart(tagged: Path, tmp_path: Path) -> None:

@@ -1040,6 +1040,9 @@ class GroundStation:
         self.lock = threading.Lock()
         self.last_arrival = 0.0
         self.wake = threading.Event()
+        # A second SIGINT/SIGTERM: close() stops waiting for and asking for keyframes
+        # (a vehicle that answers slowly, or never) and writes what it has.
+        self.hurry = threading.Event()
         # Not forked from this process: its Zenoh threads hold locks a fork would copy
         # held (the first job is submitted from a subscriber callback).
         self.pool = (
@@ -1195,10 +1198,19 @@ class GroundStation:
         those answers too; what they do not bring is reported missing."""
         asked: dict[str, set[Key]] = {}
         limit = GAP_QUERY_S + GAP_QUERY_PER_KEYFRAME_S * GAP_CHUNK + 5.0
-        while True:
+        while not self.hurry.is_set():
             for ds in list(self.datasets.values()):
-                if ds.asking is not None:
-                    ds.asking.wait(limit)  # Zenoh ends it by its timeout at the latest
+                asking = ds.asking
+                deadline = time.monotonic() + limit  # Zenoh ends it by its timeout
+                while (
+                    asking is not None
+                    and not asking.wait(0.2)
+                    and not self.hurry.is_set()
+                    and time.monotonic() < deadline
+                ):
+                    pass
+            if self.hurry.is_set():
+                return
             sent = False
             for ds in list(self.datasets.values()):
                 skip = asked.setdefault(ds.vehicle, set())
@@ -1298,7 +1310,8 @@ class GroundStation:
             s.undeclare()
         # The vehicles' lists once more: a flight's last keyframes, and its final
         # status, may have been lost on the link with nothing after them to tell.
-        self.read_catalogues(force=True)
+        if not self.hurry.is_set():
+            self.read_catalogues(force=True)
         self.drain()
         results = [ds.finish() for ds in self.datasets.values()]
         if self.pool is not None:
@@ -1369,16 +1382,30 @@ def main(argv: list[str] | None = None) -> int:
         print(f"keyframed-ground: cannot open the Zenoh session: {err}", file=sys.stderr)
         return 1
     stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     station = GroundStation(
         session, args.out, args.vehicle, args.sift, args.quiet, args.earlier_flights
     )
+
+    closing = threading.Event()
+
+    def on_signal(*_: Any) -> None:
+        # The first stops receiving and fetches what is missing; one while that goes on
+        # gives up on it and writes the dataset as it stands (what is missing is
+        # reported).
+        if stop.is_set() or closing.is_set():
+            station.hurry.set()
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     try:
         station.run(args.duration, args.until_idle, stop, args.until_done)
     finally:
+        closing.set()
         results = station.close()
         session.close()
+    if station.hurry.is_set():
+        print("keyframed-ground: stopped without waiting for missing keyframes", file=sys.stderr)
     for r in results:
         print(json.dumps(r, sort_keys=True))
     incomplete = [r["vehicle"] for r in results if r["missing"] or r["flights_end_unknown"]]
