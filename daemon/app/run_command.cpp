@@ -814,11 +814,14 @@ int Daemon::run() {
   // busy companion): frames past that are dropped, oldest first, and counted.
   // Sized for the largest frame a source delivers (BGR, 3 bytes a pixel).
   const SourceInfo& si = source_->info();
+  // A camera that does not say its rate (a V4L2 driver without VIDIOC_G_PARM) is
+  // taken to run at the configured one, not to need the smallest queue.
+  const double queueFps = si.fps > 0.0 ? si.fps : config_.camera.fps;
   const std::size_t queueFrames =
-      queueFramesFor(config_.camera.queueMs, si.fps,
+      queueFramesFor(config_.camera.queueMs, queueFps,
                      static_cast<std::size_t>(si.width) * static_cast<std::size_t>(si.height) * 3);
   KF_LOG(Capture, Info) << "frame queue: " << queueFrames << " frames (" << config_.camera.queueMs
-                        << " ms at " << si.fps << " fps, " << kQueueBudgetBytes / (1 << 20)
+                        << " ms at " << queueFps << " fps, " << kQueueBudgetBytes / (1 << 20)
                         << " MiB at most)";
   queue_ = std::make_unique<FrameQueue>(queueFrames);
   pool_ = std::make_unique<FramePool>(queueFrames + 3);  // + analysing, + capturing, + spare
