@@ -164,10 +164,50 @@ impl KfioMcap {
     }
 }
 
+type McapStream = mcap::io::MessageReader<std::io::BufReader<File>>;
+
+/// The messages of the MCAP file at `path` in file order, one chunk decompressed at a
+/// time; an error when it does not start with MCAP's magic.
+fn open_message_stream(path: &str) -> Res<McapStream> {
+    use std::io::Read;
+    let mut file = File::open(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+    let mut magic = [0u8; 8];
+    if file.read_exact(&mut magic).is_err() || magic[..] != *mcap::MAGIC {
+        return Err(format!("{path}: not an MCAP file (no MCAP magic)"));
+    }
+    file.seek(SeekFrom::Start(0))
+        .map_err(|e| format!("cannot read {path}: {e}"))?;
+    let size = file
+        .metadata()
+        .map_err(|e| format!("cannot read {path}: {e}"))?
+        .len();
+    // A corrupt record length must be an error, not a huge allocation: no record is
+    // longer than the file, or (decompressed, inside a chunk) than the file plus a
+    // generous 256 MiB.
+    let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
+    let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
+    Ok(mcap::io::MessageReader::new_with_options(
+        std::io::BufReader::with_capacity(1 << 20, file),
+        options,
+    ))
+}
+
+/// "zstd", "lz4", or no compression ("none", "").
+fn parse_compression(name: &str) -> Res<Option<mcap::Compression>> {
+    match name {
+        "zstd" => Ok(Some(mcap::Compression::Zstd)),
+        "lz4" => Ok(Some(mcap::Compression::Lz4)),
+        "" | "none" => Ok(None),
+        other => Err(format!(
+            "unknown MCAP compression '{other}' (zstd, lz4, none)"
+        )),
+    }
+}
+
 /// Messages of some topics of an MCAP file, streamed in file order (a replay source):
 /// one chunk is decompressed at a time, so memory does not grow with the file.
 pub struct KfioMcapReader {
-    stream: mcap::io::MessageReader<std::io::BufReader<std::fs::File>>,
+    stream: McapStream,
     wanted: Vec<String>,
     current: Vec<u8>, // the data handed out by the last next()
     truncated: bool,
@@ -189,7 +229,6 @@ pub unsafe extern "C" fn kfio_mcap_reader_open(
     err_len: usize,
 ) -> *mut KfioMcapReader {
     guard(err, err_len, std::ptr::null_mut(), || {
-        use std::io::Read;
         let path = cstr(path, "path")?;
         if count > 0 && topics.is_null() {
             return Err("topic array is NULL".into());
@@ -200,28 +239,7 @@ pub unsafe extern "C" fn kfio_mcap_reader_open(
             let t = unsafe { *topics.add(i) };
             wanted.push(cstr(t, "topic")?.to_string());
         }
-        let mut file = std::fs::File::open(path).map_err(|e| format!("cannot read {path}: {e}"))?;
-        let mut magic = [0u8; 8];
-        let n = file
-            .read(&mut magic)
-            .map_err(|e| format!("cannot read {path}: {e}"))?;
-        if n < magic.len() || magic[..] != *mcap::MAGIC {
-            return Err(format!("{path}: not an MCAP file (no MCAP magic)"));
-        }
-        let file = std::fs::File::open(path).map_err(|e| format!("cannot read {path}: {e}"))?;
-        let size = file
-            .metadata()
-            .map_err(|e| format!("cannot read {path}: {e}"))?
-            .len();
-        // A corrupt record length must be an error, not a huge allocation: no record is
-        // longer than the file, or (decompressed, inside a chunk) than the file plus a
-        // generous 256 MiB.
-        let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
-        let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
-        let stream = mcap::io::MessageReader::new_with_options(
-            std::io::BufReader::with_capacity(1 << 20, file),
-            options,
-        );
+        let stream = open_message_stream(path)?;
         Ok(Box::into_raw(Box::new(KfioMcapReader {
             stream,
             wanted,
@@ -334,16 +352,7 @@ pub unsafe extern "C" fn kfio_mcap_open(
 ) -> *mut KfioMcap {
     guard(err, err_len, std::ptr::null_mut(), || {
         let path = cstr(path, "path")?;
-        let compression = match opt_cstr(compression, "compression")?.unwrap_or("") {
-            "zstd" => Some(mcap::Compression::Zstd),
-            "lz4" => Some(mcap::Compression::Lz4),
-            "" | "none" => None,
-            other => {
-                return Err(format!(
-                    "unknown MCAP compression '{other}' (zstd, lz4, none)"
-                ))
-            }
-        };
+        let compression = parse_compression(opt_cstr(compression, "compression")?.unwrap_or(""))?;
         let file = Arc::new(File::create(path).map_err(|e| format!("cannot create {path}: {e}"))?);
         let chunk = if chunk_size == 0 {
             64 * 1024
@@ -591,40 +600,9 @@ pub unsafe extern "C" fn kfio_mcap_recover(
         if compression == "same" {
             compression = first_chunk_compression(src).unwrap_or_else(|| "zstd".into());
         }
-        let compression = match compression.as_str() {
-            "zstd" => Some(mcap::Compression::Zstd),
-            "lz4" => Some(mcap::Compression::Lz4),
-            "" | "none" => None,
-            other => {
-                return Err(format!(
-                    "unknown MCAP compression '{other}' (zstd, lz4, none)"
-                ))
-            }
-        };
-        let mut input = File::open(src).map_err(|e| format!("cannot read {src}: {e}"))?;
-        {
-            // Not an MCAP file (nor the start of one): left as it is.
-            use std::io::Read;
-            let mut magic = [0u8; 8];
-            if input.read_exact(&mut magic).is_err() || magic[..] != *mcap::MAGIC {
-                return Err(format!("{src}: not an MCAP file (no MCAP magic)"));
-            }
-            input
-                .seek(SeekFrom::Start(0))
-                .map_err(|e| format!("cannot read {src}: {e}"))?;
-        }
-        let size = input
-            .metadata()
-            .map_err(|e| format!("cannot read {src}: {e}"))?
-            .len();
-        // As for the replay reader: no record longer than the file (plus 256 MiB
-        // decompressed), so a corrupt length is the end, not a huge allocation.
-        let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
-        let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
-        let reader = mcap::io::MessageReader::new_with_options(
-            std::io::BufReader::with_capacity(1 << 20, input),
-            options,
-        );
+        let compression = parse_compression(&compression)?;
+        // Not an MCAP file (nor the start of one): an error, and left as it is.
+        let reader = open_message_stream(src)?;
         let file = Arc::new(File::create(dst).map_err(|e| format!("cannot create {dst}: {e}"))?);
         let mut writer = mcap::WriteOptions::new()
             .compression(compression)
