@@ -30,6 +30,23 @@ bool isStillImage(const std::string& path) {
          (is({'R', 'I', 'F', 'F'}) && is({'W', 'E', 'B', 'P'}, 8));
 }
 
+// An MPEG transport stream's packet size: 188 bytes (plain TS), 192 (M2TS, a 4-byte
+// time code first), or 0 when the file does not start as one (every packet starts
+// with the sync byte 0x47). A TS has no index to compare with, but a file cut at a
+// random byte almost always ends part-way through a packet.
+std::size_t transportPacketSize(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  unsigned char b[192 * 5] = {};
+  if (!in.read(reinterpret_cast<char*>(b), sizeof b)) return 0;
+  for (const std::size_t size : {std::size_t{188}, std::size_t{192}}) {
+    const std::size_t sync = size - 188;
+    bool all = true;
+    for (std::size_t i = 0; i < 5 && all; ++i) all = b[i * size + sync] == 0x47;
+    if (all) return size;
+  }
+  return 0;
+}
+
 }  // namespace
 
 std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::string& error) {
@@ -71,6 +88,11 @@ std::unique_ptr<FileSource> FileSource::open(const std::string& path, std::strin
     info.frameCount = -1;
   }
   info.description = "file:" + path;
+  if (std::filesystem::is_regular_file(path, ec)) {
+    src->packetSize_ = transportPacketSize(path);
+    if (src->packetSize_ > 0) src->fileSize_ = std::filesystem::file_size(path, ec);
+    if (ec) src->packetSize_ = 0;
+  }
   // FFmpeg reads a photograph as a one-frame video; say what it is instead. Only a
   // regular file can be a photograph here: a FIFO or device carrying MJPEG starts
   // with a JPEG's signature too. A concatenated MJPEG file does as well, so the
@@ -145,6 +167,15 @@ ReadStatus FileSource::next(Frame& frame, std::string& error) {
         truncated_ = true;
         failure_ = "video ended early: read " + std::to_string(index_) + " of " +
                    std::to_string(info_.frameCount) + " frames (truncated or corrupt): " + path_;
+        error = failure_;
+        return ReadStatus::Error;
+      }
+      if (packetSize_ > 0 && fileSize_ % packetSize_ != 0) {
+        truncated_ = true;
+        failure_ = "video ended early: read " + std::to_string(index_) +
+                   " frames, and the file stops part-way through a transport packet (" +
+                   std::to_string(fileSize_) + " bytes is not a multiple of " +
+                   std::to_string(packetSize_) + "; truncated): " + path_;
         error = failure_;
         return ReadStatus::Error;
       }

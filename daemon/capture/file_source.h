@@ -1,5 +1,7 @@
 #pragma once
 
+#include <cstddef>
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
@@ -47,6 +49,8 @@ class FileSource final : public FrameSource {
   std::int64_t index_ = 0;
   bool primed_ = false;  // bgr_ holds the first frame, read while probing
   bool truncated_ = false;
+  std::size_t packetSize_ = 0;  // MPEG-TS packet size (188, 192), 0 for other containers
+  std::uintmax_t fileSize_ = 0;
   std::string failure_;  // the permanent error, once there is one
 };
 

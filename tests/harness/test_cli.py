@@ -157,6 +157,25 @@ def test_streamed_containers_are_read_whole(any_bin: Path, tmp_path, suffix):
     assert summary["truncated"] is False
 
 
+def test_cut_transport_stream_is_truncated(any_bin: Path, tmp_path):
+    """An MPEG-TS has no index, but one cut at a random byte ends part-way through a
+    188-byte packet: the frames before the cut are read, and the run fails as
+    truncated."""
+    from conftest import write_pan_video
+
+    whole = write_pan_video(tmp_path / "whole.ts", frames=60, fourcc="mp4v")
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.ts"
+    cut.write_bytes(data[: (len(data) // 2 // 188) * 188 + 100])
+    out = tmp_path / "o"
+    p = run(any_bin, "select", cut, "--out", out)
+    assert p.returncode == 3, p.stderr
+    assert "transport packet" in p.stderr and "ended early" in p.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["truncated"] is True
+    assert 10 < summary["frames_read"] < 60
+
+
 @pytest.mark.parametrize(
     ("args", "needle"),
     [

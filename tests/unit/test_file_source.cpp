@@ -83,6 +83,48 @@ TEST(FileSource, TruncatedVideoEndsWithAnErrorAfterTheGoodFrames) {
   EXPECT_EQ(again, err);
 }
 
+// An MPEG-TS has no frame index; a cut is found by the last packet being partial.
+TEST(FileSource, TransportStreamCutMidPacketIsTruncated) {
+  const std::string whole = testing::TempDir() + "/whole.ts";
+  {
+    cv::VideoWriter w(whole, cv::VideoWriter::fourcc('m', 'p', '4', 'v'), 30.0, cv::Size(320, 180));
+    ASSERT_TRUE(w.isOpened());
+    const cv::Mat strip = test::photoStrip();
+    for (int i = 0; i < 40; ++i) {
+      cv::Mat bgr;
+      cv::cvtColor(test::viewAt(strip, 100 + 4 * i, 320, 180), bgr, cv::COLOR_GRAY2BGR);
+      w.write(bgr);
+    }
+  }
+  const auto size = std::filesystem::file_size(whole);
+  ASSERT_EQ(size % 188, 0U);
+  const auto readAll = [](const std::string& path, std::string& err) {
+    auto src = FileSource::open(path, err);
+    EXPECT_TRUE(src) << err;
+    if (!src) return std::make_pair(ReadStatus::Error, std::int64_t{0});
+    Frame f;
+    ReadStatus st;
+    std::int64_t n = 0;
+    while ((st = src->next(f, err)) == ReadStatus::Frame) ++n;
+    EXPECT_EQ(src->truncated(), st == ReadStatus::Error);
+    return std::make_pair(st, n);
+  };
+  std::string err;
+  const auto [wholeStatus, wholeFrames] = readAll(whole, err);
+  EXPECT_EQ(wholeStatus, ReadStatus::End) << err;
+  EXPECT_EQ(wholeFrames, 40);
+
+  const std::string cut = testing::TempDir() + "/cut.ts";
+  std::filesystem::copy_file(whole, cut, std::filesystem::copy_options::overwrite_existing);
+  std::filesystem::resize_file(cut, (size / 2 / 188) * 188 + 77);
+  err.clear();
+  const auto [cutStatus, cutFrames] = readAll(cut, err);
+  EXPECT_EQ(cutStatus, ReadStatus::Error);
+  EXPECT_GT(cutFrames, 5);
+  EXPECT_LT(cutFrames, 40);
+  EXPECT_NE(err.find("transport packet"), std::string::npos) << err;
+}
+
 TEST(FileSource, AWholeVideoHasNotFailed) {
   const std::string path = writeVideo("whole.avi", 10);
   std::string err;
