@@ -390,6 +390,9 @@ std::vector<Field> makeSchema() {
       "camera", "start_time", [](auto& c) -> auto& { return c.camera.startTime; }, checkUtcTime));
   f.push_back(integer(
       "camera", "queue_ms", [](auto& c) -> auto& { return c.camera.queueMs; }, R{0, 5000}));
+  f.push_back(real(
+      "camera", "time_offset_ms", [](auto& c) -> auto& { return c.camera.timeOffsetMs; },
+      limits::kTimeOffsetMs));
 
   // [selection]: the same settings as `keyframed select`'s options.
   const auto sel = "selection";

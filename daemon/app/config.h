@@ -42,6 +42,7 @@ struct DaemonConfig {
     bool realtime = true;              // camera.realtime (file: pace at the video's rate)
     std::string startTime;             // camera.start_time (file: UTC of frame 0)
     int queueMs = 300;                 // camera.queue_ms (frames waiting for analysis)
+    double timeOffsetMs = 0.0;         // camera.time_offset_ms (frame time -> exposure time)
   };
 
   struct Telemetry {

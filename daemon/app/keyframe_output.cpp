@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <optional>
 #include <thread>
 
@@ -11,13 +12,14 @@ namespace keyframed {
 
 KeyframeOutput::KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
                                TelemetryService* telemetry, int telemetryWaitMs,
-                               const PoseStore::Config& limits)
+                               const PoseStore::Config& limits, double timeOffsetMs)
     : writer_(writer),
       log_(log),
       outputs_(outputs),
       telemetry_(telemetry),
       telemetryWaitMs_(telemetryWaitMs),
-      limits_(limits) {}
+      limits_(limits),
+      timeOffsetNs_(static_cast<std::int64_t>(std::llround(timeOffsetMs * 1e6))) {}
 
 bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
   const TelemetryDecoder& d = telemetry_->decoder();
@@ -29,8 +31,12 @@ bool KeyframeOutput::linkDelivers(std::int64_t nowNs, bool gimbal) const {
   return d.hasAttitudeSince(nowNs - limits_.maxAttitudeGapNs - limits_.maxHoldNs);
 }
 
-bool KeyframeOutput::writeKeyframe(const Frame& frame, std::int64_t decidedNs, std::string& note,
+bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs, std::string& note,
                                    std::string& error) {
+  // The keyframe is tagged for its exposure: the camera's frame time moved by its
+  // latency (camera.time_offset_ms). A Frame is a view; the pixels stay where they are.
+  Frame frame = captured;
+  frame.timestampNs += timeOffsetNs_;
   std::optional<Pose> pose;
   if (telemetry_ != nullptr) {
     if (!telemetry_->isReplay()) {

@@ -22,10 +22,11 @@ class KeyframeOutput {
  public:
   // `limits`: the pose history's (telemetry.attitude_gap_ms, position_gap_ms,
   // stale_ms). A live link that has been quieter than they allow is silent, and
-  // keyframes do not wait for it.
+  // keyframes do not wait for it. `timeOffsetMs` (camera.time_offset_ms): a
+  // keyframe's pose, UTC time and recorded time are its frame time plus this.
   KeyframeOutput(KeyframeWriter& writer, DecisionLog& log, FlightOutputs& outputs,
                  TelemetryService* telemetry, int telemetryWaitMs,
-                 const PoseStore::Config& limits = {});
+                 const PoseStore::Config& limits = {}, double timeOffsetMs = 0.0);
 
   // False with a one-line error when a keyframe or the decision log cannot be
   // written (the keyframes written so far stay complete).
@@ -44,6 +45,7 @@ class KeyframeOutput {
   TelemetryService* telemetry_;
   int telemetryWaitMs_;
   PoseStore::Config limits_;
+  std::int64_t timeOffsetNs_;
 };
 
 }  // namespace keyframed

@@ -81,6 +81,9 @@ telemetry and tags:
                              pose at their time (a live link implies --realtime)
   --video-start TIME         UTC time of the video's first frame (ISO 8601 or unix
                              seconds); needed with a tlog
+  --time-offset MS           the camera's latency: each keyframe's pose and UTC time are
+                             taken MS after its frame time (negative: before; -2000..2000,
+                             default 0)
   --calibration FILE         camera intrinsics (OpenCV YAML/XML, TOML or JSON)
   --make TEXT, --model TEXT  EXIF Make and Model (default: the calibration file's;
                              without one, only these are tagged)
@@ -321,6 +324,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
                                        return {};
                                      }},
       {"--telemetry-wait", integer(o.telemetryWaitMs, limits::kTelemetryWaitMs)},
+      {"--time-offset", number(o.timeOffsetMs, limits::kTimeOffsetMs)},
       {"--telemetry-start-wait", integer(o.telemetryStartWaitMs, limits::kTelemetryStartWaitMs)},
       {"--autopilot",
        [&](const std::string& v)

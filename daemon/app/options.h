@@ -38,6 +38,7 @@ struct SelectOptions {
   bool mountGimbal = false;          // --mount gimbal
   bool realtime = false;             // --realtime: deliver frames at the video's rate
   int telemetryWaitMs = 1000;        // --telemetry-wait MS: wait for poses this long
+  double timeOffsetMs = 0.0;         // --time-offset MS: frame time -> exposure time
   int telemetryStartWaitMs = 10000;  // --telemetry-start-wait MS: first pose, live links
   int autopilotSystem = 0;           // --autopilot SYS[:COMP] (0: first autopilot)
   int autopilotComponent = 0;

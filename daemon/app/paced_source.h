@@ -33,6 +33,9 @@ class PacedSource final : public FrameSource {
   [[nodiscard]] const SourceInfo& info() const override { return inner_->info(); }
   ReadStatus next(Frame& frame, std::string& error) override;
   [[nodiscard]] bool failed() const override { return inner_->failed(); }
+  [[nodiscard]] TimestampOrigin timestampOrigin() const override {
+    return inner_->timestampOrigin();
+  }
   // Also ends a wait for a frame's presentation time.
   void interrupt() override {
     interrupter_.raise();

@@ -322,6 +322,7 @@ int probeV4l2Main(const std::vector<std::string>& args) {
        ",\"delta_ms_max\":" + jsonNumber(mx) +
        ",\"monotonic\":" + (stats.monotonic ? "true" : "false") +
        ",\"driver_timestamps\":" + (src->driverTimestamps() ? "true" : "false") +
+       ",\"timestamps\":" + jsonString(describe(src->timestampOrigin())) +
        ",\"first_ts_ns\":" + std::to_string(firstTs) + ",\"last_ts_ns\":" + std::to_string(lastTs) +
        ",\"monotonic_now_ns\":" + std::to_string(nowNs) +
        ",\"sequence_gaps\":" + std::to_string(src->sequenceGaps()) + ",\"corrupt\":" +

@@ -312,6 +312,9 @@ class Daemon {
   std::optional<MavlinkRecord> replayRecord_;
   std::size_t replayRecorded_ = 0;
   void recordReplayUpTo(std::int64_t timeNs);
+  // Once, at the first frame: what the camera's timestamps mark, and whether
+  // camera.time_offset_ms corrects for it.
+  void logTimestampOrigin() const;
   // The frame into the record's preview stream (and Zenoh's preview key).
   void preview(const Frame& frame);
   [[nodiscard]] std::int64_t frameClockNowNs() const {
@@ -479,6 +482,25 @@ void Daemon::outputLoop() {
   }
 }
 
+void Daemon::logTimestampOrigin() const {
+  const TimestampOrigin origin = source_->timestampOrigin();
+  const double offset = config_.camera.timeOffsetMs;
+  std::string line = std::string("frame timestamps mark the ") + describe(origin) +
+                     "; keyframes are tagged for that instant";
+  if (offset != 0.0) {
+    line += std::string(offset > 0.0 ? " plus " : " minus ") + formatFixed(std::fabs(offset), 1) +
+            " ms (camera.time_offset_ms)";
+  }
+  if (offset == 0.0 &&
+      (origin == TimestampOrigin::EndOfFrame || origin == TimestampOrigin::Arrival)) {
+    const double fps = source_->info().fps > 0.0 ? source_->info().fps : config_.camera.fps;
+    line += ", which comes up to a frame period (" + formatFixed(1000.0 / fps, 1) +
+            " ms) or more after the exposure: camera.time_offset_ms corrects the geotags of a "
+            "moving aircraft (docs/capture.md)";
+  }
+  KF_LOG(Capture, Info) << line;
+}
+
 // About once a second, keyframed/<vehicle>/telemetry: the pose a quarter second ago
 // (so that samples on both sides have arrived), or why there is none.
 void Daemon::publishPose() {
@@ -609,8 +631,12 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       seconds > 0 ? 100.0 * (cpu - decode) / seconds : 0.0, maxRssMb());
   // The source's description (a file's path, a V4L2 card's name) is any text: escaped,
   // and outside the fixed-size buffer.
+  char offset[64];
+  std::snprintf(offset, sizeof offset, "%.3f", config_.camera.timeOffsetMs);
   const std::string json = "{\n  \"state\": \"" + jsonEscape(state) + "\",\n  \"source\": \"" +
-                           jsonEscape(info.description) + "\",\n" + buf +
+                           jsonEscape(info.description) + "\",\n  \"frame_timestamps\": \"" +
+                           describe(source_->timestampOrigin()) +
+                           "\",\n  \"time_offset_ms\": " + offset + ",\n" + buf +
                            "  \"telemetry\": " + tel + "\n}\n";
   return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(json), error);
 }
@@ -807,9 +833,9 @@ int Daemon::run() {
   stage_ = std::make_unique<KeyframeStage>(
       throughLens(config_.selection), &clock,
       [this](KeyframeEvent&& ev) { events_.pushWait(std::move(ev)); });
-  output_ = std::make_unique<KeyframeOutput>(writer_, log_, outputs_, telemetry_.get(),
-                                             config_.telemetry.waitMs,
-                                             config_.telemetry.link.decoder.store);
+  output_ = std::make_unique<KeyframeOutput>(
+      writer_, log_, outputs_, telemetry_.get(), config_.telemetry.waitMs,
+      config_.telemetry.link.decoder.store, config_.camera.timeOffsetMs);
   // Room for camera.queue_ms of the analysis falling behind (a burst of keyframes, a
   // busy companion): frames past that are dropped, oldest first, and counted.
   // Sized for the largest frame a source delivers (BGR, 3 bytes a pixel).
@@ -892,6 +918,7 @@ int Daemon::run() {
       ready_ = true;  // the camera has delivered its first frame
       notifier_.ready("first frame received");
       KF_LOG(App, Notice) << "ready: first frame received";
+      logTimestampOrigin();
     }
     const auto now = std::chrono::steady_clock::now();
     if (framesArrive && now - lastPing >= ping) {

@@ -317,7 +317,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   outputs.settings(fo.liveClock ? monotonicNowNs() : fo.startNs, selectionOverrides(opts.selector));
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs,
-                        telemetrySettings.link.decoder.store);
+                        telemetrySettings.link.decoder.store, opts.timeOffsetMs);
   if (telemetry) recordLiveMavlink(*telemetry, outputs);
   bool outputFailed = false;
 

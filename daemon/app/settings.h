@@ -61,6 +61,8 @@ inline constexpr SettingRange<std::int64_t> kMavlinkId{1, 255};
 inline constexpr SettingRange<std::int64_t> kTelemetryWaitMs{0, 60000};
 inline constexpr SettingRange<std::int64_t> kTelemetryStartWaitMs{0, 600000};
 inline constexpr SettingRange<double> kMountAngleDeg{-360.0, 360.0};
+// camera.time_offset_ms / --time-offset: camera latency, either way, up to 2 s.
+inline constexpr SettingRange<double> kTimeOffsetMs{-2000.0, 2000.0};
 inline constexpr SettingRange<std::int64_t> kJpegQuality{1, 100};
 }  // namespace limits
 

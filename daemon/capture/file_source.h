@@ -26,6 +26,9 @@ class FileSource final : public FrameSource {
   // After a truncation or a change of frame size: every later next() repeats that
   // Error without reading.
   [[nodiscard]] bool failed() const override { return !failure_.empty(); }
+  [[nodiscard]] TimestampOrigin timestampOrigin() const override {
+    return TimestampOrigin::Container;
+  }
   // True when the stream ended before the frame count its header announced.
   [[nodiscard]] bool truncated() const { return truncated_; }
   [[nodiscard]] std::int64_t framesRead() const { return index_; }

@@ -17,6 +17,29 @@ struct SourceInfo {
 
 enum class ReadStatus { Frame, End, Error };
 
+// What instant a frame's timestamp marks. The pose a keyframe is tagged with is
+// looked up for that instant (moved by camera.time_offset_ms), so a timestamp taken
+// at the end of readout places a moving aircraft a frame period too far along.
+enum class TimestampOrigin {
+  Unknown,          // not said (yet)
+  StartOfExposure,  // the sensor's or driver's start of exposure (libcamera, V4L2 SOE)
+  EndOfFrame,       // the driver's time of the frame's last byte (V4L2 EOF)
+  Arrival,          // when the process received it: no driver time
+  Container,        // a video file's presentation time
+};
+
+// "start of exposure", "end of frame", ...
+inline const char* describe(TimestampOrigin o) {
+  switch (o) {
+    case TimestampOrigin::StartOfExposure: return "start of exposure";
+    case TimestampOrigin::EndOfFrame: return "end of frame";
+    case TimestampOrigin::Arrival: return "arrival";
+    case TimestampOrigin::Container: return "container time";
+    case TimestampOrigin::Unknown: break;
+  }
+  return "unknown";
+}
+
 // Where frames come from: cameras, files, replays. One small interface; each
 // backend lives in its own file.
 class FrameSource {
@@ -33,6 +56,8 @@ class FrameSource {
   // buffer for them (gaps in its sequence numbers), or they came broken and were
   // skipped. Counted by the source, read by any thread (STATUS, the summary).
   [[nodiscard]] virtual std::uint64_t lostFrames() const { return 0; }
+  // What the timestamps of the frames delivered so far mark; read by any thread.
+  [[nodiscard]] virtual TimestampOrigin timestampOrigin() const { return TimestampOrigin::Unknown; }
   // Called from another thread when the owner stops: a next() waiting for the
   // device returns at once (Error, "interrupted"), and so does every later one.
   // Sources whose next() never waits long (files) need not do anything.

@@ -316,6 +316,7 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
     const auto sensorTs =
         libcamera_compat::metadata(*request).get(libcamera::controls::SensorTimestamp);
     sensorTimestamps_ = sensorTs.has_value();
+    origin_.store(sensorTimestamps_ ? TimestampOrigin::StartOfExposure : TimestampOrigin::Unknown);
     std::string why;
     const std::uint8_t* data =
         contiguousFrame(d.format, d.stride, info_.height, d.planes.at(buffer), d.packed, why);

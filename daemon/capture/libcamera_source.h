@@ -58,6 +58,9 @@ class LibcameraSource final : public FrameSource {
   [[nodiscard]] std::uint64_t lostFrames() const override {
     return failedFrames_.load() + sequenceGaps_.load();
   }
+  // controls::SensorTimestamp: the start of the first line's exposure. Without it,
+  // the buffer's timestamp, whose meaning depends on the pipeline: Unknown.
+  [[nodiscard]] TimestampOrigin timestampOrigin() const override { return origin_.load(); }
 
  private:
   struct Impl;
@@ -67,6 +70,7 @@ class LibcameraSource final : public FrameSource {
   SourceInfo info_;
   std::string cameraId_;
   bool sensorTimestamps_ = false;
+  std::atomic<TimestampOrigin> origin_{TimestampOrigin::Unknown};
   std::atomic<std::uint64_t> failedFrames_{0};
   std::atomic<std::uint64_t> sequenceGaps_{0};
   std::uint32_t lastSequence_ = 0;

@@ -716,6 +716,10 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
     const bool monotonic =
         (buf.flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) == V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC;
     driverTimestamps_ = monotonic;
+    origin_.store(!monotonic ? TimestampOrigin::Arrival
+                  : (buf.flags & V4L2_BUF_FLAG_TSTAMP_SRC_MASK) == V4L2_BUF_FLAG_TSTAMP_SRC_SOE
+                      ? TimestampOrigin::StartOfExposure
+                      : TimestampOrigin::EndOfFrame);
     const std::int64_t ts =
         monotonic ? timevalToNs(buf.timestamp.tv_sec, buf.timestamp.tv_usec) : monotonicNowNs();
 

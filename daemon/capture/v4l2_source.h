@@ -116,6 +116,10 @@ class V4l2Source final : public FrameSource {
   [[nodiscard]] std::uint64_t lostFrames() const override {
     return sequenceGaps_.load() + corruptFrames_.load();
   }
+  // From the buffer flags: V4L2_BUF_FLAG_TSTAMP_SRC_SOE or _EOF on a monotonic
+  // timestamp (most drivers: EOF, which is also what a driver that says nothing
+  // means; uvcvideo and CSI-2 receivers: SOE), Arrival without one.
+  [[nodiscard]] TimestampOrigin timestampOrigin() const override { return origin_.load(); }
   [[nodiscard]] std::uint64_t reopenCount() const { return reopens_; }
 
   // Parses a format name ("NV12", "yuv420", "YU12", "MJPEG", ...) to a V4L2
@@ -186,6 +190,7 @@ class V4l2Source final : public FrameSource {
   int stride_ = 0;
   std::size_t sizeImage_ = 0;
   bool driverTimestamps_ = false;
+  std::atomic<TimestampOrigin> origin_{TimestampOrigin::Unknown};
   MjpegDecoder mjpeg_;
   Interrupter interrupter_;
   std::int64_t index_ = 0;

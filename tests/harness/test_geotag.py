@@ -174,7 +174,9 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
     assert summary["telemetry"]["truncated"] is False
 
 
-def tag_errors_with_tlog(kf_bin: Path, fl: Path, tlog: Path, out: Path) -> np.ndarray:
+def tag_errors_with_tlog(
+    kf_bin: Path, fl: Path, tlog: Path, out: Path, *extra: str, video_start: float | None = None
+) -> np.ndarray:
     """`select` on the flight's video with `tlog` as telemetry: every keyframe tagged
     (at least five); their tag errors against the ground truth (horizontal m,
     vertical m, attitude deg), one row each."""
@@ -185,9 +187,10 @@ def tag_errors_with_tlog(kf_bin: Path, fl: Path, tlog: Path, out: Path) -> np.nd
         "--telemetry",
         str(tlog),
         "--video-start",
-        str(synth.EPOCH_UNIX_S),
+        str(synth.EPOCH_UNIX_S if video_start is None else video_start),
         "--calibration",
         str(fl / "intrinsics.json"),
+        *extra,
     )
     assert r.returncode == 0, r.stderr
     kfs = keyframes(out)
@@ -212,6 +215,39 @@ def test_noisy_tlog_errors_stay_at_the_noise_level(
     out = tmp_path / "out"
     errs = tag_errors_with_tlog(kf_bin, short_nadir, tlog, out)
     assert_at_noise_level(errs, noise, "noisy tlog")
+
+
+@needs_exiftool
+def test_time_offset_corrects_a_late_camera(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """A camera that stamps its frames 120 ms after the exposure (an end-of-frame
+    timestamp and transfer): the geotags land that far along the track; with
+    --time-offset -120 (camera.time_offset_ms) they are back on the truth, and
+    keyframes.csv's time is the instant tagged."""
+    late_s = 0.12
+    tlog = short_nadir / "flight.tlog"
+    start = synth.EPOCH_UNIX_S + late_s
+    late = tag_errors_with_tlog(kf_bin, short_nadir, tlog, tmp_path / "late", video_start=start)
+    fixed = tag_errors_with_tlog(
+        kf_bin,
+        short_nadir,
+        tlog,
+        tmp_path / "fixed",
+        "--time-offset",
+        str(-late_s * 1000),
+        video_start=start,
+    )
+    print(
+        f"late camera, median horizontal error: {np.median(late[:, 0]):.3f} m uncorrected, "
+        f"{np.median(fixed[:, 0]):.4f} m with --time-offset"
+    )
+    # The survey flies at several m/s: 120 ms is tens of centimetres.
+    assert np.median(late[:, 0]) > 0.3
+    assert fixed[:, 0].max() < 0.1 and fixed[:, 1].max() < 0.1 and fixed[:, 2].max() < 0.2
+    frame_ns = {int(k["index"]): int(k["time_ns"]) for k in keyframes(tmp_path / "late")}
+    for k in keyframes(tmp_path / "fixed"):
+        assert int(k["time_ns"]) == frame_ns[int(k["index"])] - 120_000_000
 
 
 def with_a_long_tail(records: list[Any], tail_s: int, reboot_s: int) -> list[Any]:

@@ -92,15 +92,22 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
     video = short_nadir / "video.avi"
-    proc = start(kf_bin, tmp_path, f"camera.path={video}", "output.mcap=false")
+    # A camera latency of 40 ms moves the instant keyframes are tagged for, not the
+    # selection.
+    proc = start(
+        kf_bin, tmp_path, f"camera.path={video}", "output.mcap=false", "camera.time_offset_ms=-40"
+    )
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
+    assert "frame timestamps mark the container time" in stderr
     fd = flight_dir(tmp_path)
     summary = json.loads((fd / "summary.json").read_text())
     assert summary["state"] == "done"
     assert summary["frames_captured"] == 240
     assert summary["frames_dropped"] == 0, "30 fps in real time: nothing dropped"
     assert summary["frames_lost_in_camera"] == 0, summary  # a file loses nothing
+    assert summary["frame_timestamps"] == "container time"
+    assert summary["time_offset_ms"] == -40.0
     assert summary["frames_read"] == 240
     assert 28.0 < summary["frames_per_second"] < 31.0
 
@@ -119,7 +126,10 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
         assert float(a["sharpness"]) == pytest.approx(float(b["sharpness"]), rel=1e-9)
     live_jpgs = sorted(p.name for p in (fd / "keyframes").glob("*.jpg"))
     assert live_jpgs == sorted(p.name for p in offline.glob("*.jpg"))
-    assert len(rows(fd / "keyframes" / "keyframes.csv")) == len(live_jpgs) == summary["written"]
+    kfs = rows(fd / "keyframes" / "keyframes.csv")
+    assert len(kfs) == len(live_jpgs) == summary["written"]
+    frame_ns = {r["index"]: int(r["timestamp_ns"]) for r in live_rows}
+    assert all(int(k["time_ns"]) == frame_ns[k["index"]] - 40_000_000 for k in kfs)
 
 
 def test_system_clock_utc_dates_keyframes_without_telemetry(kf_bin: Path, tmp_path: Path) -> None:

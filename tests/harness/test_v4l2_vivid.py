@@ -432,6 +432,9 @@ def test_vivid_capture_format(vm_run: dict, fmt: str) -> None:
     (s,) = _events(sec, "summary")
     assert s["ok"] and s["frames"] == 45
     assert s["driver_timestamps"], "vivid stamps buffers on CLOCK_MONOTONIC"
+    # ... at the end of the frame (its "Timestamp Source" control's default), and says so
+    # in the buffer flags (V4L2_BUF_FLAG_TSTAMP_SRC_EOF)
+    assert s["timestamps"] == "end of frame"
     assert s["monotonic"]
     # Driver time is CLOCK_MONOTONIC: the last frame was stamped close to now
     # (vivid stamps the end of the frame period it schedules: up to a frame ahead).
@@ -550,6 +553,9 @@ def test_daemon_runs_on_vivid_and_stops_cleanly(vm_run: dict) -> None:
     assert s["state"] == "stopped", s
     assert s["source"] == "v4l2:/dev/video0 (vivid: vivid) NV12 640x360@30", s
     assert (s["width"], s["height"]) == (WIDTH, HEIGHT)
+    # vivid stamps the end of each frame; the daemon says what that means for geotags.
+    assert s["frame_timestamps"] == "end of frame", s
+    assert any("frame timestamps mark the end of frame" in x and "time_offset_ms" in x for x in log)
     # vivid delivers 30 fps; the emulated CPU cannot analyse them all, so the
     # analysis falls behind and the oldest frames are dropped at the capture queue:
     # counted, never a failure. Frames still queued at SIGTERM are neither.
