@@ -2,6 +2,7 @@
 
 #include <time.h>
 
+#include <algorithm>
 #include <chrono>
 
 #include "telemetry/link.h"
@@ -33,8 +34,19 @@ ReadStatus PacedSource::next(Frame& frame, std::string& error) {
     // The frame exists at its presentation time, counted from the first frame.
     const std::int64_t containerNs = frame.timestampNs;
     if (startNs_ < 0) startNs_ = monotonicNowNs() - frame.timestampNs;
-    const std::int64_t due = startNs_ + frame.timestampNs;
+    std::int64_t due = startNs_ + frame.timestampNs;
     const std::int64_t now = monotonicNowNs();
+    // A jump in the timestamps (files joined, a recorder's pause, an MPEG-TS clock
+    // reset) is neither waited out as dead air nor raced through: a camera would have
+    // gone on delivering. The pacing restarts at this frame, one frame period on.
+    const std::int64_t period =
+        inner_->info().fps > 0.0 ? static_cast<std::int64_t>(1e9 / inner_->info().fps) : 33'333'333;
+    if (lastDueNs_ >= 0 &&
+        (due > std::max(now, lastDueNs_) + kMaxGapNs || due < lastDueNs_ - kMaxGapNs)) {
+      due = std::max(now, lastDueNs_ + period);
+      startNs_ = due - frame.timestampNs;
+    }
+    lastDueNs_ = due;
     // A file's timestamps may jump (a gap, variable frame rate): stopping must not wait.
     const auto wait =
         std::chrono::ceil<std::chrono::milliseconds>(std::chrono::nanoseconds(due - now));

@@ -50,6 +50,9 @@ class PacedSource final : public FrameSource {
   bool realtime_;
   std::optional<std::int64_t> startUnixNs_;
   std::int64_t startNs_ = -1;
+  std::int64_t lastDueNs_ = -1;  // when the last frame was due (realtime)
+  // A jump in the timestamps larger than this restarts the pacing.
+  static constexpr std::int64_t kMaxGapNs = 2'000'000'000;
   std::atomic<std::int64_t> decodeCpuNs_{0};
   Interrupter interrupter_;
 };

@@ -88,8 +88,8 @@ int probeLibcameraMain(const std::vector<std::string>& args) {
       if (!value(v) || !probe::parseDouble(v, 0.1, 1000.0, opt.fps))
         return usage("--fps takes 0.1..1000");
     } else if (a == "--buffers") {
-      if (!value(v) || !probe::parseInt(v, 1, 32, opt.bufferCount))
-        return usage("--buffers takes 1..32");
+      if (!value(v) || !probe::parseInt(v, 2, 32, opt.bufferCount))
+        return usage("--buffers takes 2..32");
     } else if (a == "--timeout-ms") {
       if (!value(v) || !probe::parseInt(v, 1, 600'000, opt.timeoutMs))
         return usage("--timeout-ms takes 1..600000");

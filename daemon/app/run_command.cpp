@@ -322,6 +322,7 @@ class Daemon {
   }
   RecordRepair repair_;
   std::unique_ptr<FrameSource> source_;
+  double sourceFps_ = 0.0;  // source_->info().fps before the capture thread started
   std::unique_ptr<FramePool> pool_;
   std::unique_ptr<FrameQueue> queue_;
   std::unique_ptr<CaptureThread> capture_;
@@ -493,7 +494,8 @@ void Daemon::logTimestampOrigin() const {
   }
   if (offset == 0.0 &&
       (origin == TimestampOrigin::EndOfFrame || origin == TimestampOrigin::Arrival)) {
-    const double fps = source_->info().fps > 0.0 ? source_->info().fps : config_.camera.fps;
+    // The source's rate as it opened: info() is the capture thread's while it runs.
+    const double fps = sourceFps_ > 0.0 ? sourceFps_ : config_.camera.fps;
     line += ", which comes up to a frame period (" + formatFixed(1000.0 / fps, 1) +
             " ms) or more after the exposure: camera.time_offset_ms corrects the geotags of a "
             "moving aircraft (docs/capture.md)";
@@ -840,6 +842,7 @@ int Daemon::run() {
   // busy companion): frames past that are dropped, oldest first, and counted.
   // Sized for the largest frame a source delivers (BGR, 3 bytes a pixel).
   const SourceInfo& si = source_->info();
+  sourceFps_ = si.fps;
   // A camera that does not say its rate (a V4L2 driver without VIDIOC_G_PARM) is
   // taken to run at the configured one, not to need the smallest queue.
   const double queueFps = si.fps > 0.0 ? si.fps : config_.camera.fps;

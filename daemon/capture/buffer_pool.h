@@ -45,7 +45,15 @@ class BufferPool {
         return nullptr;
       }
     }
-    if (raw == nullptr) raw = state_->make().release();
+    if (raw == nullptr) {
+      try {
+        raw = state_->make().release();
+      } catch (...) {
+        std::lock_guard lock(state_->mutex);
+        --state_->created;  // the slot is free again for the next acquire()
+        throw;
+      }
+    }
     return std::shared_ptr<T>(raw, Returner{state_}, BlockAllocator<T>{state_});
   }
 

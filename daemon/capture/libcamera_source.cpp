@@ -109,8 +109,10 @@ std::vector<std::string> LibcameraSource::listCameras(std::string& error) {
 
 std::unique_ptr<LibcameraSource> LibcameraSource::open(const LibcameraOptions& options,
                                                        std::string& error) {
-  if (options.bufferCount < 1 || options.bufferCount > 32) {
-    error = "buffer count must be 1..32, got " + std::to_string(options.bufferCount);
+  // One buffer is lent to the caller between calls: with fewer than two, the camera
+  // would have no request queued while the analysis holds a frame.
+  if (options.bufferCount < 2 || options.bufferCount > 32) {
+    error = "buffer count must be 2..32, got " + std::to_string(options.bufferCount);
     return nullptr;
   }
   std::unique_ptr<LibcameraSource> src(new LibcameraSource());
@@ -266,13 +268,16 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
       return ReadStatus::Error;
     }
   }
+  // One deadline for the call: cancelled and failed requests do not restart it, so a
+  // camera that completes every request as failed is reported, not waited on forever.
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeoutMs_);
+  std::uint64_t failedInWait = 0;
   for (;;) {
     libcamera::Request* request = nullptr;
     {
       std::unique_lock lock(d.mutex);
-      const bool got = d.ready.wait_for(lock, std::chrono::milliseconds(timeoutMs_), [&] {
-        return !d.completed.empty() || d.disconnected || d.interrupted;
-      });
+      const bool got = d.ready.wait_until(
+          lock, deadline, [&] { return !d.completed.empty() || d.disconnected || d.interrupted; });
       if (d.interrupted) {
         error = "interrupted: waiting for a frame from camera " + cameraId_;
         return ReadStatus::Error;
@@ -283,7 +288,9 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
       }
       if (!got) {
         error = "timeout: no frame from camera " + cameraId_ + " within " +
-                std::to_string(timeoutMs_) + " ms";
+                std::to_string(timeoutMs_) + " ms" +
+                (failedInWait > 0 ? " (" + std::to_string(failedInWait) + " came back failed)"
+                                  : std::string());
         return ReadStatus::Error;
       }
       request = d.completed.front();
@@ -307,6 +314,7 @@ ReadStatus LibcameraSource::next(Frame& frame, std::string& error) {
     }
     if (buffer == nullptr || buffer->metadata().status != libcamera::FrameMetadata::FrameSuccess) {
       ++failedFrames_;
+      ++failedInWait;
       if (!requeue(request)) {
         error = "camera " + cameraId_ + ": queueing a request failed";
         return ReadStatus::Error;

@@ -7,6 +7,7 @@
 // without a camera.
 
 #include <algorithm>
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -23,21 +24,33 @@ struct PlaneSpan {
   std::size_t length = 0;  // bytes mapped for this plane (may include padding)
 };
 
+// Bytes of up to three planes, held in place: asked for every frame, so no heap.
+struct PlaneSizes {
+  std::array<std::size_t, 3> bytes{};
+  std::size_t count = 0;
+
+  [[nodiscard]] const std::size_t* begin() const { return bytes.data(); }
+  [[nodiscard]] const std::size_t* end() const { return bytes.data() + count; }
+  [[nodiscard]] std::size_t size() const { return count; }
+  std::size_t operator[](std::size_t i) const { return bytes[i]; }
+  [[nodiscard]] std::size_t total() const { return bytes[0] + bytes[1] + bytes[2]; }
+};
+
 // Bytes each plane of `format` holds at `stride` (the luma stride) and `height`:
 // NV12: Y, interleaved UV; YUV420: Y, U, V (chroma rows half as long); packed
 // formats: one plane.
-inline std::vector<std::size_t> planeSizes(PixelFormat format, int stride, int height) {
+inline PlaneSizes planeSizes(PixelFormat format, int stride, int height) {
   const auto s = static_cast<std::size_t>(stride);
   const auto h = static_cast<std::size_t>(height);
   const std::size_t ch = (h + 1) / 2;
   switch (format) {
-    case PixelFormat::NV12: return {s * h, s * ch};
-    case PixelFormat::YUV420: return {s * h, s / 2 * ch, s / 2 * ch};
+    case PixelFormat::NV12: return {{s * h, s * ch, 0}, 2};
+    case PixelFormat::YUV420: return {{s * h, s / 2 * ch, s / 2 * ch}, 3};
     case PixelFormat::Gray8:
     case PixelFormat::YUYV:
-    case PixelFormat::BGR24: return {s * h};
+    case PixelFormat::BGR24: break;
   }
-  return {s * h};
+  return {{s * h, 0, 0}, 1};
 }
 
 // The start of the frame laid out contiguously: the first plane itself when every
@@ -48,9 +61,8 @@ inline std::vector<std::size_t> planeSizes(PixelFormat format, int stride, int h
 inline const std::uint8_t* contiguousFrame(PixelFormat format, int stride, int height,
                                            std::span<const PlaneSpan> planes,
                                            std::vector<std::uint8_t>& packed, std::string& error) {
-  const std::vector<std::size_t> need = planeSizes(format, stride, height);
-  std::size_t total = 0;
-  for (std::size_t n : need) total += n;
+  const PlaneSizes need = planeSizes(format, stride, height);
+  const std::size_t total = need.total();
   if (planes.empty() || planes[0].data == nullptr) {
     error = "frame buffer has no planes";
     return nullptr;

@@ -435,13 +435,20 @@ bool V4l2Source::start(std::string& error) {
     case V4L2_PIX_FMT_GREY: pixelFormat_ = PixelFormat::Gray8; break;
     default: pixelFormat_ = PixelFormat::BGR24; break;  // MJPEG, decoded
   }
-  const int minStride = pixelFormat_ == PixelFormat::YUYV ? info_.width * 2 : info_.width;
-  stride_ = std::max(static_cast<int>(fmt.fmt.pix.bytesperline), minStride);
-  if (info_.width <= 0 || info_.height <= 0) {
-    error = who + " reported an empty frame size";
+  // Sizes from the driver are checked before any arithmetic on them: a frame over
+  // 16384 pixels a side, a row over 4 bytes a pixel plus 4 KiB of padding, is not a
+  // camera's (and its byte count could overflow a 32-bit size_t).
+  const std::uint32_t width = fmt.fmt.pix.width, height = fmt.fmt.pix.height;
+  const std::uint32_t bytesPerLine = fmt.fmt.pix.bytesperline;
+  if (width == 0 || height == 0 || width > 16384 || height > 16384 ||
+      bytesPerLine > 4 * width + 4096) {
+    error = who + " reported an unusable frame size: " + std::to_string(width) + "x" +
+            std::to_string(height) + ", " + std::to_string(bytesPerLine) + " bytes a row";
     shutdown();
     return false;
   }
+  const int minStride = pixelFormat_ == PixelFormat::YUYV ? info_.width * 2 : info_.width;
+  stride_ = std::max(static_cast<int>(bytesPerLine), minStride);
 
   // Frame rate: ask, then read back what the driver settled on.
   v4l2_streamparm parm{};
@@ -551,19 +558,35 @@ void V4l2Source::shutdown() {
 ReadStatus V4l2Source::lose(int err, const char* what, std::string& error) {
   lostReason_ = "device lost: " + options_.device + ": " + errnoText(err) + " (" + what + ")";
   shutdown();
-  reopenAttempts_ = 0;
   error = lostReason_;
   return ReadStatus::Error;
 }
 
 bool V4l2Source::reopen(std::string& error) {
+  // The frames after a reopen must be laid out as before: the pool's buffers and the
+  // analysis were sized for them (another camera on the same node, a driver that
+  // settles differently, is an error until the right one is back).
+  const SourceInfo before = info_;
+  const int stride = stride_;
+  const std::string fourcc = fourcc_;
   shutdown();
   if (!start(error)) {
     shutdown();
+    info_ = before;
+    return false;
+  }
+  if (info_.width != before.width || info_.height != before.height || stride_ != stride ||
+      fourcc_ != fourcc) {
+    error = "came back as " + fourcc_ + " " + std::to_string(info_.width) + "x" +
+            std::to_string(info_.height) + " (stride " + std::to_string(stride_) + "), not " +
+            fourcc + " " + std::to_string(before.width) + "x" + std::to_string(before.height) +
+            " (stride " + std::to_string(stride) + ")";
+    shutdown();
+    info_ = before;
+    stride_ = stride;
     return false;
   }
   ++reopens_;
-  reopenAttempts_ = 0;
   return true;
 }
 
@@ -618,6 +641,7 @@ V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const s
   };
   if ((flags & V4L2_BUF_FLAG_ERROR) != 0) return corrupt("the driver flagged the buffer ERROR");
   if (data == nullptr) return corrupt("no buffer memory");
+  if (used == 0) return corrupt("empty buffer (bytesused 0)");
   frame = Frame{};
   frame.width = layout.width;
   frame.height = layout.height;
@@ -634,8 +658,7 @@ V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const s
     frame.stride = mjpeg.stride();
     return BufferUse::Frame;
   }
-  std::size_t need = 0;
-  for (std::size_t n : planeSizes(layout.format, layout.stride, layout.height)) need += n;
+  const std::size_t need = planeSizes(layout.format, layout.stride, layout.height).total();
   // A short frame is skipped rather than read past the picture.
   if (used < need || length < need) {
     return corrupt("short frame: " + std::to_string(std::min(used, length)) + " of " +
@@ -724,7 +747,9 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
         monotonic ? timevalToNs(buf.timestamp.tv_sec, buf.timestamp.tv_usec) : monotonicNowNs();
 
     const auto* data = static_cast<const std::uint8_t*>(buffers_[buf.index].start);
-    const std::size_t used = buf.bytesused > 0 ? buf.bytesused : buffers_[buf.index].length;
+    // bytesused 0: the driver put nothing in it (a UVC payload lost on the bus); the
+    // buffer still holds an older picture, which must not pass for a new one.
+    const std::size_t used = buf.bytesused;
     const StreamLayout layout{fourccCode_, pixelFormat_, info_.width, info_.height, stride_};
     const BufferUse use = readBuffer(layout, data, used, buffers_[buf.index].length, buf.flags,
                                      mjpeg_, frame, &skipReason);
@@ -739,6 +764,9 @@ ReadStatus V4l2Source::next(Frame& frame, std::string& error) {
       continue;
     }
     stalledWaits_ = 0;
+    // Only a frame ends an outage: a device that opens and then fails at once keeps
+    // counting towards maxReopenAttempts.
+    reopenAttempts_ = 0;
     frame.timestampNs = ts;
     frame.index = index_++;
     return ReadStatus::Frame;

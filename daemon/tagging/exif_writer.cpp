@@ -210,9 +210,16 @@ void buildTags(Exiv2::Image& image, const TagSet& tags) {
   if (tags.position) writeGps(exif, xmp, *tags.position, tags.gps);
   if (tags.cameraToNed) {
     const Pix4dAngles a = pix4dAngles(*tags.cameraToNed);
-    xmp["Xmp.Camera.Yaw"] = format("%.6f", a.yawDeg);
-    xmp["Xmp.Camera.Pitch"] = format("%.6f", a.pitchDeg);
-    xmp["Xmp.Camera.Roll"] = format("%.6f", a.rollDeg);
+    // Rounded to the micro-degree written, then into range: a yaw of 359.99999995
+    // is "0.000000", not "360.000000", and a roll of -179.9999996 is "180.000000".
+    const auto micro = [](double deg) { return std::round(deg * 1e6) / 1e6; };
+    double yaw = std::fmod(micro(a.yawDeg), 360.0);
+    if (yaw < 0.0) yaw += 360.0;
+    double roll = micro(a.rollDeg);
+    if (roll <= -180.0) roll += 360.0;
+    xmp["Xmp.Camera.Yaw"] = format("%.6f", yaw + 0.0);  // + 0.0: never "-0.000000"
+    xmp["Xmp.Camera.Pitch"] = format("%.6f", micro(a.pitchDeg) + 0.0);
+    xmp["Xmp.Camera.Roll"] = format("%.6f", roll + 0.0);
   }
 }
 

@@ -46,7 +46,11 @@ void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::i
 }
 
 void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) {
-  if (unixUs == 0) return;  // autopilot without GPS time yet
+  // 0: an autopilot without GPS time yet. Outside 2000-2100: not a time at all (and
+  // its microseconds times 1000 would overflow).
+  constexpr std::uint64_t kYear2000Us = 946'684'800'000'000ULL;
+  constexpr std::uint64_t kYear2100Us = 4'102'444'800'000'000ULL;
+  if (unixUs < kYear2000Us || unixUs >= kYear2100Us) return;
   utcMinusBootUs_ = static_cast<std::int64_t>(unixUs) - static_cast<std::int64_t>(bootMs) * 1000;
 }
 

@@ -330,7 +330,8 @@ bool TelemetryService::sendCapture(const CaptureReport& r) {
   const std::uint64_t utc = r.pose.utcUs ? static_cast<std::uint64_t>(*r.pose.utcUs) : 0;
   // time_boot_ms is the autopilot's clock where the mapping is known.
   std::uint32_t boot = bootMs();
-  if (const auto off = decoder_.clockOffsetNs()) {
+  // A frame from before the autopilot's boot (queued across a reboot) keeps bootMs().
+  if (const auto off = decoder_.clockOffsetNs(); off && r.timeNs >= *off) {
     boot = static_cast<std::uint32_t>((r.timeNs - *off) / 1'000'000);
   }
   return send(

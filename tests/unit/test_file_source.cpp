@@ -3,6 +3,7 @@
 #include <fstream>
 #include <memory>
 #include <thread>
+#include <vector>
 
 #include <gtest/gtest.h>
 #include <opencv2/imgproc.hpp>
@@ -209,25 +210,31 @@ TEST(FileSource, CameraFormatsAVideoCannotBeDeliveredInAreRefused) {
   EXPECT_TRUE(odd->setOutputFormat(PixelFormat::BGR24, err)) << err;
 }
 
-// Two frames 5 s apart in the file's time, as after a gap in a recording.
+// Frames at the given times in the file (ns), as after gaps in a recording.
 class GapSource final : public FrameSource {
  public:
+  explicit GapSource(std::vector<std::int64_t> times) : times_(std::move(times)) {
+    info_.fps = 30.0;
+  }
   const SourceInfo& info() const override { return info_; }
   ReadStatus next(Frame& f, std::string&) override {
-    if (n_ >= 2) return ReadStatus::End;
-    f = Frame{PixelFormat::Gray8, pixel_, 1, 1, 1, n_ * 5'000'000'000LL, n_};
+    if (n_ >= static_cast<std::int64_t>(times_.size())) return ReadStatus::End;
+    f = Frame{PixelFormat::Gray8, pixel_, 1, 1, 1, times_[static_cast<std::size_t>(n_)], n_};
     ++n_;
     return ReadStatus::Frame;
   }
 
  private:
   SourceInfo info_;
+  std::vector<std::int64_t> times_;
   std::uint8_t pixel_[1] = {0};
-  int n_ = 0;
+  std::int64_t n_ = 0;
 };
 
 TEST(PacedSource, InterruptEndsTheWaitForAFramesTime) {
-  PacedSource src(std::make_unique<GapSource>(), /*realtime=*/true, std::nullopt);
+  // The second frame 1.5 s on: a wait, not a jump.
+  PacedSource src(std::make_unique<GapSource>(std::vector<std::int64_t>{0, 1'500'000'000}),
+                  /*realtime=*/true, std::nullopt);
   Frame f;
   std::string err;
   ASSERT_EQ(src.next(f, err), ReadStatus::Frame);
@@ -236,11 +243,34 @@ TEST(PacedSource, InterruptEndsTheWaitForAFramesTime) {
     src.interrupt();
   });
   const auto t0 = std::chrono::steady_clock::now();
-  EXPECT_EQ(src.next(f, err), ReadStatus::Error);  // due in 5 s
+  EXPECT_EQ(src.next(f, err), ReadStatus::Error);  // due in 1.5 s
   const auto took = std::chrono::steady_clock::now() - t0;
   stopper.join();
   EXPECT_LT(took, std::chrono::milliseconds(1000));
   EXPECT_EQ(err, "interrupted: waiting for a frame's time");
+}
+
+// A jump of a minute forward, then of a minute back (files joined, a clock reset):
+// delivered a frame period apart, neither waited out nor raced through.
+TEST(PacedSource, AJumpInTheTimestampsRestartsThePacing) {
+  const std::int64_t ms = 1'000'000;
+  PacedSource src(std::make_unique<GapSource>(std::vector<std::int64_t>{
+                      0, 33 * ms, 60'000 * ms, 60'033 * ms, 66 * ms, 99 * ms, 132 * ms}),
+                  /*realtime=*/true, std::nullopt);
+  Frame f;
+  std::string err;
+  std::vector<std::int64_t> at;
+  const auto t0 = std::chrono::steady_clock::now();
+  while (src.next(f, err) == ReadStatus::Frame) at.push_back(f.timestampNs);
+  const auto took = std::chrono::steady_clock::now() - t0;
+  ASSERT_EQ(at.size(), 7U) << err;
+  EXPECT_LT(took, std::chrono::milliseconds(1000));
+  // Paced, not raced: seven frames take six periods (the restarts one period each).
+  EXPECT_GT(took, std::chrono::milliseconds(150));
+  for (std::size_t i = 1; i < at.size(); ++i) {
+    EXPECT_GT(at[i] - at[i - 1], 20 * ms) << i;
+    EXPECT_LT(at[i] - at[i - 1], 80 * ms) << i;
+  }
 }
 
 }  // namespace

@@ -21,11 +21,15 @@ std::vector<std::uint8_t> plane(int i, std::size_t bytes) {
   return p;
 }
 
+std::vector<std::size_t> sizes(const PlaneSizes& p) {
+  return {p.begin(), p.end()};
+}
+
 TEST(PlaneLayout, SizesPerFormat) {
-  EXPECT_EQ(planeSizes(PixelFormat::NV12, 8, 4), (std::vector<std::size_t>{32, 16}));
-  EXPECT_EQ(planeSizes(PixelFormat::YUV420, 8, 4), (std::vector<std::size_t>{32, 8, 8}));
-  EXPECT_EQ(planeSizes(PixelFormat::YUV420, 8, 5), (std::vector<std::size_t>{40, 12, 12}));
-  EXPECT_EQ(planeSizes(PixelFormat::YUYV, 16, 4), (std::vector<std::size_t>{64}));
+  EXPECT_EQ(sizes(planeSizes(PixelFormat::NV12, 8, 4)), (std::vector<std::size_t>{32, 16}));
+  EXPECT_EQ(sizes(planeSizes(PixelFormat::YUV420, 8, 4)), (std::vector<std::size_t>{32, 8, 8}));
+  EXPECT_EQ(sizes(planeSizes(PixelFormat::YUV420, 8, 5)), (std::vector<std::size_t>{40, 12, 12}));
+  EXPECT_EQ(sizes(planeSizes(PixelFormat::YUYV, 16, 4)), (std::vector<std::size_t>{64}));
 }
 
 TEST(PlaneLayout, BackToBackPlanesAreUsedInPlace) {

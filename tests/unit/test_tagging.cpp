@@ -16,6 +16,7 @@
 #include "tagging/camera_mount.h"
 #include "tagging/exif_writer.h"
 #include "tagging/jpeg_encoder.h"
+#include "telemetry/pose_store.h"
 
 namespace keyframed {
 namespace {
@@ -260,6 +261,28 @@ TEST_F(TaggingTest, Exiv2ReadsTheTagsBack) {
   const auto yaw = xmp.findKey(Exiv2::XmpKey("Xmp.Camera.Yaw"));
   ASSERT_NE(yaw, xmp.end());
   EXPECT_NEAR(std::stod(yaw->toString()), 0.0, 1e-6);
+}
+
+// An angle a hair under its wrap point is written in range: a yaw of 359.99999995
+// (heading 5e-8 degrees west of north) is "0.000000", never "360.000000".
+TEST_F(TaggingTest, AnglesAtTheWrapAreWrittenInRange) {
+  const double tiny = 5e-8 * std::numbers::pi / 180.0;
+  TagSet t;
+  t.cameraToNed = cameraToNed(quaternionFromEuler(0, 0, -tiny), CameraMount{});
+  const Pix4dAngles raw = pix4dAngles(*t.cameraToNed);
+  ASSERT_GT(raw.yawDeg, 359.9999999);  // the case: 360 once printed with 6 decimals
+  std::string error;
+  ASSERT_TRUE(writeTags(jpeg_, t, error)) << error;
+  auto image = Exiv2::ImageFactory::open(jpeg_.data(), static_cast<long>(jpeg_.size()));
+  image->readMetadata();
+  const Exiv2::XmpData& xmp = image->xmpData();
+  const auto text = [&](const char* key) {
+    const auto it = xmp.findKey(Exiv2::XmpKey(key));
+    return it == xmp.end() ? std::string("missing") : it->toString();
+  };
+  EXPECT_EQ(text("Xmp.Camera.Yaw"), "0.000000");
+  EXPECT_EQ(text("Xmp.Camera.Pitch"), "0.000000");
+  EXPECT_EQ(text("Xmp.Camera.Roll"), "0.000000");
 }
 
 TEST_F(TaggingTest, IntrinsicsFollowAScaledJpeg) {

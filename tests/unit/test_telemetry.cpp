@@ -500,6 +500,19 @@ TEST(ClockMapper, SettlesAfterHalfASecondOfArrivalsOrOnTimesync) {
   EXPECT_NEAR(static_cast<double>(*synced.offsetNs() - offset), 0.0, 1e3);
 }
 
+// A SYSTEM_TIME that is no time (a corrupt field, a CRC-valid garbage packet) is not
+// taken: its microseconds would overflow as nanoseconds and date keyframes anywhere.
+TEST(ClockMapper, ASystemTimeOutsideThisCenturyIsIgnored) {
+  ClockMapper clock;
+  clock.observeArrival(1000, 1000 * kMs);
+  clock.observeSystemTime(0xFFFFFFFFFFFFFFFFULL, 1000);
+  clock.observeSystemTime(123, 1000);  // 1970
+  EXPECT_FALSE(clock.utcUs(1000 * kMs).has_value());
+  clock.observeSystemTime(1'780'000'000'000'000ULL, 1000);
+  ASSERT_TRUE(clock.utcUs(1000 * kMs).has_value());
+  EXPECT_EQ(*clock.utcUs(1000 * kMs), 1'780'000'000'000'000LL);
+}
+
 TEST(ClockMapper, TimesyncWinsAndUtcFollows) {
   ClockMapper clock;
   const std::int64_t trueOffset = 777 * kMs;                       // local = autopilot + offset

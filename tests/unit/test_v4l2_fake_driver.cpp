@@ -55,7 +55,9 @@ class FakeDriver final : public V4l2Io {
     if (fd_ >= 0) ::close(fd_);
   }
 
-  bool present = true;                   // false: unplugged (open fails, DQBUF says ENODEV)
+  bool present = true;           // false: unplugged (open fails, DQBUF says ENODEV)
+  std::uint32_t width = kWidth;  // the frame size S_FMT settles on
+  std::uint32_t height = kHeight;
   std::vector<std::uint8_t> onStreamOn;  // a frame delivered when streaming starts
 
   bool exists(const std::string&) override { return present; }
@@ -93,10 +95,10 @@ class FakeDriver final : public V4l2Io {
       case VIDIOC_S_FMT: {
         auto& pix = static_cast<v4l2_format*>(arg)->fmt.pix;
         pix.pixelformat = fourcc_;
-        pix.width = kWidth;
-        pix.height = kHeight;
+        pix.width = width;
+        pix.height = height;
         pix.field = V4L2_FIELD_NONE;
-        pix.bytesperline = fourcc_ == V4L2_PIX_FMT_YUYV ? kWidth * 2 : 0;
+        pix.bytesperline = fourcc_ == V4L2_PIX_FMT_YUYV ? width * 2 : 0;
         pix.sizeimage = kBufferBytes;
         return 0;
       }
@@ -239,6 +241,26 @@ TEST(V4l2FakeDriver, RawBuffersAreLentUntilTheNextCall) {
   ASSERT_TRUE(driver->deliver(yuyv));
   ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
   EXPECT_EQ(src->corruptFrames(), 1u);
+  // An empty buffer (bytesused 0: a payload lost on the bus) still holds an older
+  // picture; it is skipped and counted, not delivered as a new frame.
+  ASSERT_TRUE(driver->deliver(std::vector<std::uint8_t>(yuyv.size(), 11)));
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  for (int i = 0; i < 2; ++i) ASSERT_TRUE(driver->deliver({}));
+  ASSERT_TRUE(driver->deliver(std::vector<std::uint8_t>(yuyv.size(), 22)));
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(f.data[0], 22);
+  EXPECT_EQ(src->corruptFrames(), 3u);
+}
+
+TEST(V4l2FakeDriver, AnImplausibleFrameSizeIsRefused) {
+  auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_YUYV);
+  driver->width = 70000;  // its byte count would overflow a 32-bit size_t
+  V4l2Options o;
+  o.device = "/dev/video-fake";
+  o.io = driver;
+  std::string err;
+  EXPECT_EQ(V4l2Source::open(o, err), nullptr);
+  EXPECT_NE(err.find("unusable frame size: 70000x48"), std::string::npos) << err;
 }
 
 TEST(V4l2FakeDriver, FramesTheDriverHadNoBufferForAreCountedLost) {
@@ -293,6 +315,30 @@ TEST(V4l2FakeDriver, ALostDeviceIsReopenedAndIndicesContinue) {
   EXPECT_EQ(driver->opens, 2);
   EXPECT_EQ(f.index, 1);
   EXPECT_EQ(src->reopenCount(), 1u);
+}
+
+TEST(V4l2FakeDriver, ADeviceThatComesBackAtAnotherSizeIsNotUsed) {
+  auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_MJPEG);
+  auto src = openFake(driver, /*autoReopen=*/true);
+  ASSERT_NE(src, nullptr);
+  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
+  Frame f;
+  std::string err;
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  driver->present = false;
+  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);  // lost
+  // Another camera on the node: the frames downstream were sized for the first.
+  driver->present = true;
+  driver->width = 32;
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+  EXPECT_NE(err.find("came back as MJPG 32x48"), std::string::npos) << err;
+  EXPECT_EQ(src->info().width, kWidth);
+  // The right one back: frames again.
+  driver->width = kWidth;
+  driver->onStreamOn = jpegOf(kWidth, kHeight, 90);
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(f.width, kWidth);
 }
 
 TEST(V4l2FakeDriver, AStreamThatStallsOrSendsOnlyGarbageIsRestartedAndSaysWhy) {
