@@ -23,6 +23,9 @@ APT_PACKAGES+=(openssl)
 # tests/harness/test_systemd.py: systemd-analyze verify/security on the unit;
 # tests/harness/test_flight_record.py: strace counts the record's fsyncs.
 APT_PACKAGES+=(systemd strace)
+# tests/harness/test_package.py: CPack's DEB generator needs file(1) and
+# dpkg-shlibdeps (dpkg-dev) for the package's Depends (a fresh Debian 12 lacks file).
+APT_PACKAGES+=(file dpkg-dev)
 # tests/harness/test_ground.py: COLMAP's own feature_importer and matches_importer
 # read the ground station's SIFT export and pairs list (Debian's COLMAP 3.8, CPU).
 APT_PACKAGES+=(colmap)
