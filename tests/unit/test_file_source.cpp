@@ -264,13 +264,13 @@ TEST(PacedSource, AJumpInTheTimestampsRestartsThePacing) {
   while (src.next(f, err) == ReadStatus::Frame) at.push_back(f.timestampNs);
   const auto took = std::chrono::steady_clock::now() - t0;
   ASSERT_EQ(at.size(), 7U) << err;
-  EXPECT_LT(took, std::chrono::milliseconds(1000));
-  // Paced, not raced: seven frames take six periods (the restarts one period each).
-  EXPECT_GT(took, std::chrono::milliseconds(150));
-  for (std::size_t i = 1; i < at.size(); ++i) {
-    EXPECT_GT(at[i] - at[i - 1], 20 * ms) << i;
-    EXPECT_LT(at[i] - at[i - 1], 80 * ms) << i;
-  }
+  // Not waited out: a minute forward took no minute.
+  EXPECT_LT(took, std::chrono::milliseconds(1500));
+  // Not raced through: each frame is due a period after the one before, the jumps
+  // included, so the last is due six periods after the first (delivered then or,
+  // on a busy machine, later; never earlier). Racing through the jump back would
+  // deliver the last three at once, three periods (100 ms) sooner.
+  EXPECT_GE(at.back() - at.front(), 180 * ms);  // six periods: 200 ms
 }
 
 }  // namespace
