@@ -12,7 +12,7 @@ constexpr std::int64_t kMs = 1'000'000;
 TelemetryDecoder::TelemetryDecoder(TelemetryConfig config)
     : config_(config),
       clock_(config.clock),
-      store_(config.store),
+      store_(std::make_shared<PoseStore>(config.store)),
       system_(config.autopilotSystem),
       component_(config.autopilotComponent) {}
 
@@ -70,7 +70,8 @@ bool TelemetryDecoder::accept(const mavlink_message_t& msg) {
 void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localNs) {
   // A clock that jumps back by more than a few seconds means the autopilot rebooted.
   if (lastBootMs_ >= 0 && static_cast<std::int64_t>(bootMs) + 5000 < lastBootMs_) {
-    store_.clear();
+    previous_ = PreviousBoot{store_, clock_, localNs};
+    store_ = std::make_shared<PoseStore>(config_.store);
     clock_ = ClockMapper(config_.clock);
     clock_.setLocalIsUtc(localClockIsUtc_);
     quaternions_ = {};
@@ -136,7 +137,7 @@ void TelemetryDecoder::handleGimbal(const mavlink_message_t& msg, std::int64_t l
     if (!offset) return;
     t = localNs - *offset;
   }
-  store_.addGimbal(t, q, earth);
+  store_->addGimbal(t, q, earth);
   ++stats_.accepted;
   ++stats_.gimbal;
 }
@@ -162,7 +163,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       mavlink_msg_attitude_quaternion_decode(&msg, &a);
       observeBootTime(a.time_boot_ms, localNs);
       // Normalising a zero or NaN quaternion would make it level, facing north.
-      if (!store_.addAttitude(a.time_boot_ms * kMs, {a.q1, a.q2, a.q3, a.q4})) {
+      if (!store_->addAttitude(a.time_boot_ms * kMs, {a.q1, a.q2, a.q3, a.q4})) {
         ++stats_.badAttitudes;
         break;
       }
@@ -180,7 +181,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       }
       euler_.observe(a.time_boot_ms);
       if (quaternionsStandFor(a.time_boot_ms)) break;
-      store_.addAttitude(a.time_boot_ms * kMs, quaternionFromEuler(a.roll, a.pitch, a.yaw));
+      store_->addAttitude(a.time_boot_ms * kMs, quaternionFromEuler(a.roll, a.pitch, a.yaw));
       ++stats_.attitude;
       break;
     }
@@ -200,7 +201,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       g.velNorthMs = p.vx * 1e-2;
       g.velEastMs = p.vy * 1e-2;
       g.velDownMs = p.vz * 1e-2;
-      store_.addPosition(p.time_boot_ms * kMs, g);
+      store_->addPosition(p.time_boot_ms * kMs, g);
       ++stats_.position;
       break;
     }
@@ -218,7 +219,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       // time_usec is UTC or boot time depending on the autopilot: stamp GPS state
       // with the newest boot time instead, it changes slowly.
       const std::int64_t t = lastBootMs_ >= 0 ? lastBootMs_ * kMs : 0;
-      store_.addGps(t, q);
+      store_->addGps(t, q);
       ++stats_.gps;
       break;
     }
@@ -244,57 +245,59 @@ void TelemetryDecoder::handleTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, st
   clock_.observeTimesync(tc1Ns, ts1Ns, nowNs);
 }
 
-Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
-  std::optional<std::int64_t> offset;
-  std::optional<std::int64_t> utc;
-  {
-    std::lock_guard lock(mutex_);
-    offset = clock_.offsetNs();
-    utc = clock_.utcUs(localNs);
-    if (!utc && localClockIsUtc_) {
-      // The tlog's record times: the recording station's clock, not the autopilot's
-      // GPS time, hence only without SYSTEM_TIME.
-      utc = localNs >= 0 ? (localNs + 500) / 1000 : -((-localNs + 500) / 1000);
-    }
+TelemetryDecoder::Lookup TelemetryDecoder::lookup(std::int64_t localNs) const {
+  std::lock_guard lock(mutex_);
+  Lookup l;
+  const bool before = previous_ && localNs < previous_->rebootLocalNs;
+  const ClockMapper& clock = before ? previous_->clock : clock_;
+  l.store = before ? previous_->store : store_;
+  l.previousBoot = before;
+  l.offset = clock.offsetNs();
+  l.utcUs = clock.utcUs(localNs);
+  if (!l.utcUs && localClockIsUtc_) {
+    // The tlog's record times: the recording station's clock, not the autopilot's
+    // GPS time, hence only without SYSTEM_TIME.
+    l.utcUs = localNs >= 0 ? (localNs + 500) / 1000 : -((-localNs + 500) / 1000);
   }
-  if (!offset) {
+  return l;
+}
+
+Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
+  const Lookup l = lookup(localNs);
+  if (!l.offset) {
     Pose p;
     p.timeNs = localNs;
-    p.utcUs = utc;
+    p.utcUs = l.utcUs;
     p.staleReason = "no telemetry";
     return p;
   }
-  Pose p = store_.at(localNs - *offset);
+  Pose p = l.store->at(localNs - *l.offset);
   p.timeNs = localNs;
-  p.utcUs = utc;
+  p.utcUs = l.utcUs;
   return p;
 }
 
 bool TelemetryDecoder::covers(std::int64_t localNs, bool gimbal) const {
-  std::optional<std::int64_t> offset;
-  {
-    std::lock_guard lock(mutex_);
-    offset = clock_.offsetNs();
-  }
-  return offset && store_.covers(localNs - *offset, gimbal);
+  const Lookup l = lookup(localNs);
+  // The boot before a reboot has said all it will: nothing newer is worth waiting for.
+  if (l.previousBoot) return true;
+  return l.offset && l.store->covers(localNs - *l.offset, gimbal);
 }
 
 bool TelemetryDecoder::hasAttitudeSince(std::int64_t localNs) const {
-  std::optional<std::int64_t> offset;
-  {
-    std::lock_guard lock(mutex_);
-    offset = clock_.offsetNs();
-  }
-  return offset && store_.hasAttitudeSince(localNs - *offset);
+  const Lookup l = lookup(localNs);
+  return l.offset && l.store->hasAttitudeSince(localNs - *l.offset);
 }
 
 bool TelemetryDecoder::hasPose() const {
   bool mapped = false;
+  std::shared_ptr<const PoseStore> store;
   {
     std::lock_guard lock(mutex_);
     mapped = clock_.offsetNs().has_value();
+    store = store_;
   }
-  return mapped && store_.covers(std::numeric_limits<std::int64_t>::min());
+  return mapped && store->covers(std::numeric_limits<std::int64_t>::min());
 }
 
 TelemetryStats TelemetryDecoder::stats() const {

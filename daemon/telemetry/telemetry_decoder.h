@@ -2,7 +2,9 @@
 
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 
 #include "telemetry/clock_mapper.h"
@@ -91,11 +93,29 @@ class TelemetryDecoder {
   void handleGimbal(const mavlink_message_t& msg, std::int64_t localNs);
   void observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
   [[nodiscard]] bool quaternionsStandFor(std::int64_t attitudeMs) const;
+  // The boot whose history answers for localNs (the previous one before a reboot),
+  // its clock's offset and UTC there. Takes mutex_.
+  struct Lookup {
+    std::shared_ptr<const PoseStore> store;
+    std::optional<std::int64_t> offset;
+    std::optional<std::int64_t> utcUs;
+    bool previousBoot = false;
+  };
+  [[nodiscard]] Lookup lookup(std::int64_t localNs) const;
 
   TelemetryConfig config_;
-  mutable std::mutex mutex_;  // guards everything but store_ (which has its own)
+  mutable std::mutex mutex_;  // guards everything but *store_ (which has its own lock)
   ClockMapper clock_;
-  PoseStore store_;
+  std::shared_ptr<PoseStore> store_;  // this boot's history (replaced at a reboot)
+  // The boot before the last reboot: frames from before it (a replay feeds telemetry
+  // ahead of its frames; a live keyframe may wait across it) are tagged from its
+  // history on its clock, not left untagged.
+  struct PreviousBoot {
+    std::shared_ptr<const PoseStore> store;
+    ClockMapper clock;
+    std::int64_t rebootLocalNs = 0;  // the local time the new boot was first heard
+  };
+  std::optional<PreviousBoot> previous_;
   TelemetryStats stats_;
   int system_ = 0;
   int component_ = 0;

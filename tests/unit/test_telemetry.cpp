@@ -276,6 +276,43 @@ TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   EXPECT_EQ(dec.stats().badPositions, 6U);
 }
 
+// The autopilot reboots (time_boot_ms from 600 s back to 1 s). A frame from before the
+// reboot that is looked up after it (a replay feeds telemetry 2 s ahead of its
+// frames; a live keyframe may wait across it) is tagged from the old boot's history
+// on the old boot's clock; frames after it from the new boot's.
+TEST(TelemetryDecoder, FramesFromBeforeARebootAreTaggedFromTheBootBefore) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  Feeder push{dec};
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  const Quaternion before = quaternionFromEuler(0, 0, 30 * kDeg);
+  const Quaternion after = quaternionFromEuler(0, 0, 120 * kDeg);
+  for (int i = 0; i <= 20; ++i) {  // local 10.0-12.0 s, boot 600.0-602.0 s
+    push.now = (10'000 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(600'000 + i * 100);
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, boot, before));
+    push(position(ap, boot, 10.0, 20.0, 50.0));
+  }
+  for (int i = 0; i <= 20; ++i) {  // rebooted: local 12.5-14.5 s, boot 1.0-3.0 s
+    push.now = (12'500 + i * 100) * kMs;
+    const auto boot = static_cast<std::uint32_t>(1'000 + i * 100);
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, boot, after));
+    push(position(ap, boot, 11.0, 20.0, 50.0));
+  }
+  EXPECT_EQ(dec.stats().reboots, 1U);
+  const Pose old = dec.poseAt(11'500 * kMs);
+  ASSERT_TRUE(old.attitude && old.position) << old.staleReason;
+  EXPECT_NEAR(angleBetween(*old.attitude, before), 0.0, 1e-6);
+  EXPECT_NEAR(old.position->latDeg, 10.0, 1e-9);
+  EXPECT_TRUE(dec.covers(11'500 * kMs));  // nothing more to wait for from that boot
+  const Pose now = dec.poseAt(13'500 * kMs);
+  ASSERT_TRUE(now.attitude && now.position) << now.staleReason;
+  EXPECT_NEAR(angleBetween(*now.attitude, after), 0.0, 1e-6);
+  EXPECT_NEAR(now.position->latDeg, 11.0, 1e-9);
+}
+
 TEST(TelemetryDecoder, ASlowQuaternionStreamDoesNotHideAFastEulerOne) {
   // ATTITUDE at 20 Hz (what the daemon asks for) and ATTITUDE_QUATERNION at 1 Hz
   // (another ground station on a shared router asked for it): the quaternions alone
