@@ -624,6 +624,35 @@ def test_a_keyframe_that_is_no_image_costs_only_itself(tagged: Path, tmp_path: P
     assert len(list((ds / "features").glob("*.txt"))) == n - 1
 
 
+def test_hostile_metadata_costs_only_itself(tagged: Path, tmp_path: Path) -> None:
+    """Keyframe metadata no daemon sends (a sequence number or count past any flight,
+    a camera quaternion that is no quaternion) is refused or left out, and the
+    dataset's files are still written for the rest."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav8", None)
+    jpegs = sorted(tagged.glob("*.jpg"))[:4]
+    bad_q: list[Any] = ["not a quaternion", [1.0, 2.0], [float("nan"), 0.0, 0.0, 1.0]]
+    for seq, (jpeg, q) in enumerate(zip(jpegs, [*bad_q, [1.0, 0.0, 0.0, 0.0]], strict=True)):
+        assert ds.add({"sequence": seq, "file": jpeg.name, "cam_q": q}, jpeg.read_bytes())
+    with pytest.raises(ValueError, match="not believed"):  # would make missing() endless
+        ds.add({"sequence": 10**12, "file": "x.jpg"}, jpegs[0].read_bytes())
+    summary = ds.finish()
+    assert summary["keyframes"] == 4 and summary["missing"] == [], summary
+    assert summary["pairs"] >= 3 and (ds.dir / "geo.txt").read_text().count("\n") == 5
+
+
+def test_the_sift_worker_leaves_ctrl_c_to_the_station() -> None:
+    """Ctrl-C reaches the whole process group; a SIFT worker that died of it would
+    break the pool for every keyframe after it and the station's close."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from keyframed.ground import _sift_worker_init
+
+    with ProcessPoolExecutor(1, initializer=_sift_worker_init) as pool:
+        assert pool.submit(signal.getsignal, signal.SIGINT).result() == signal.SIG_IGN
+
+
 def test_bad_command_lines(tmp_path: Path) -> None:
     def run(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(

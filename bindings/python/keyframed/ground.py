@@ -176,6 +176,8 @@ def read_tags(jpeg: bytes) -> ImageTags:
         return _read_tags(jpeg)
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
         return ImageTags()
+    except Exception:  # tags of unexpected types (a GPS field that is no triple)
+        return ImageTags()
 
 
 def _read_tags(jpeg: bytes) -> ImageTags:
@@ -590,6 +592,10 @@ def image_pairs(
 
 
 def _sift_worker_init() -> None:
+    # Ctrl-C reaches the whole process group: the station stops its worker itself,
+    # after the features it has been given (a worker killed mid-job would break the
+    # pool and every keyframe after it).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         os.nice(10)
     except OSError:
@@ -724,7 +730,12 @@ class VehicleDataset:
         """Has the worker write the SIFT features of ``images/<name>``."""
         if self.sift is not None:
             out = str(self.dir / "features" / (name + ".txt"))
-            self.sift_jobs.append(self.sift.submit(sift_to_colmap, str(self.images / name), out))
+            try:
+                job = self.sift.submit(sift_to_colmap, str(self.images / name), out)
+            except Exception as err:  # a broken pool: the keyframe is stored all the same
+                print(f"keyframed-ground: {self.vehicle}: SIFT not queued: {err}", file=sys.stderr)
+                return
+            self.sift_jobs.append(job)
 
     def _flight(self, flight: str) -> bool:
         """Notes a flight (under the lock); True for the dataset's first."""
@@ -812,6 +823,8 @@ class VehicleDataset:
     def add(self, meta: dict[str, Any], jpeg: bytes, fetched: bool = False) -> bool:
         """Stores one keyframe; False when it was already there."""
         seq = int(meta["sequence"])
+        if not 0 <= seq < MAX_FLIGHT_KEYFRAMES:
+            raise ValueError(f"sequence number {seq} is not believed")
         flight = os.path.basename(str(meta.get("flight") or ""))
         name = meta.get("file") or f"{int(meta.get('frame_index', seq)):06d}.jpg"
         name = os.path.basename(str(name))
@@ -934,7 +947,7 @@ class VehicleDataset:
         else:
             (self.dir / "cameras.json").unlink(missing_ok=True)
         rel = [_float_or_none(m.get("alt_rel")) for m in metas]
-        quats = [m.get("cam_q") if isinstance(m.get("cam_q"), list) else None for m in metas]
+        quats = [_quaternion_or_none(m.get("cam_q")) for m in metas]
         pairs = image_pairs(names, tags, alt_above_ground=rel, cam_q=quats)
         _write_atomic(self.dir / "pairs.txt", "".join(f"{a} {b}\n" for a, b in pairs).encode())
         geo = ["EPSG:4326"]
@@ -951,7 +964,7 @@ class VehicleDataset:
         for job in self.sift_jobs:
             try:
                 job.result()
-            except Exception as err:  # one bad image must not cost the dataset's files
+            except BaseException as err:  # one bad image must not cost the dataset's files
                 sift_failed += 1
                 print(f"keyframed-ground: {self.vehicle}: SIFT failed: {err}", file=sys.stderr)
         camera, odm, pairs = self.write_files()
@@ -980,6 +993,17 @@ def _float_or_none(v: Any) -> float | None:
         return float(v) if v not in (None, "") else None
     except (TypeError, ValueError):
         return None
+
+
+def _quaternion_or_none(v: Any) -> list[float] | None:
+    """A keyframe's ``cam_q`` as four finite numbers, not all zero; else None."""
+    if not isinstance(v, list | tuple) or len(v) != 4:
+        return None
+    q = [_float_or_none(x) for x in v]
+    if any(x is None or not math.isfinite(x) for x in q):
+        return None
+    out = [float(x) for x in q if x is not None]
+    return out if any(out) else None
 
 
 def attitude(meta: dict[str, Any], tags: ImageTags) -> tuple[float, float, float] | None:
@@ -1095,6 +1119,8 @@ class GroundStation:
             final = status.get("state") in FINAL_STATES
             n = status.get("keyframes", status.get("kept"))
             ds.note_flight(flight)
+            if n is not None and not 0 <= int(n) <= MAX_FLIGHT_KEYFRAMES:
+                raise ValueError(f"a keyframe count of {n} is not believed")
             if n is not None:
                 with ds.lock:
                     ds.announced[flight] = max(ds.announced.get(flight, -1), int(n) - 1)
@@ -1247,15 +1273,16 @@ class GroundStation:
 
     def progress(self) -> str:
         parts = []
-        for ds in self.datasets.values():
+        for ds in list(self.datasets.values()):  # a vehicle may be heard meanwhile
             n = ds.count()
             rate = n / max(1e-3, time.monotonic() - ds.first_time)
             last = ""
             with ds.lock:
                 if ds.meta:
                     m = list(ds.meta.values())[-1]
-                    if m.get("lat") not in (None, ""):
-                        last = f" at {float(m['lat']):.6f},{float(m['lon']):.6f}"
+                    lat, lon = _float_or_none(m.get("lat")), _float_or_none(m.get("lon"))
+                    if lat is not None and lon is not None:
+                        last = f" at {lat:.6f},{lon:.6f}"
             parts.append(f"{ds.vehicle}: {n} keyframes, {rate * 60:.0f}/min{last}")
         return "; ".join(parts) or "waiting for keyframes"
 
@@ -1313,7 +1340,13 @@ class GroundStation:
         if not self.hurry.is_set():
             self.read_catalogues(force=True)
         self.drain()
-        results = [ds.finish() for ds in self.datasets.values()]
+        results = []
+        for ds in list(self.datasets.values()):
+            try:
+                results.append(ds.finish())
+            except Exception as err:  # one vehicle's failure must not cost the others'
+                print(f"keyframed-ground: {ds.vehicle}: {err}", file=sys.stderr)
+                results.append({"vehicle": ds.vehicle, "keyframes": ds.count(), "error": str(err)})
         if self.pool is not None:
             self.pool.shutdown()
         return results
@@ -1408,7 +1441,11 @@ def main(argv: list[str] | None = None) -> int:
         print("keyframed-ground: stopped without waiting for missing keyframes", file=sys.stderr)
     for r in results:
         print(json.dumps(r, sort_keys=True))
-    incomplete = [r["vehicle"] for r in results if r["missing"] or r["flights_end_unknown"]]
+    incomplete = [
+        r["vehicle"]
+        for r in results
+        if r.get("error") or r.get("missing") or r.get("flights_end_unknown")
+    ]
     if incomplete:
         print(f"keyframed-ground: keyframes still missing for {incomplete}", file=sys.stderr)
         return 3
