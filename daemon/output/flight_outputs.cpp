@@ -503,7 +503,6 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
         "{\"state\":\"" + state + "\",\"frames\":" + std::to_string(impl_->framesRead) +
             ",\"kept\":" + std::to_string(impl_->kept) + impl_->flightField() + "}",
         ignored, /*last=*/true);
-    impl_->publisher.reset();
   }
   std::unique_ptr<McapRecorder> recorder;
   {
@@ -518,6 +517,9 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
                   "rather than stall)");
     }
   }
+  // The publisher last: closing its queryable answers the queries already queued,
+  // which on a slow link can take long, and the record is complete by then.
+  impl_->publisher.reset();
   return ok;
 }
 

@@ -417,7 +417,10 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     char* end = nullptr;
     errno = 0;
     wanted = std::strtoll(last.c_str(), &end, 10);
-    if (last.empty() || errno != 0 || *end != '\0' || wanted < 0) {
+    // Canonical digits only: "05", "+5" or "-0" parse, but a reply on keyframes/5
+    // would not match the query's key, and it would get no answer at all.
+    if (last.empty() || errno != 0 || *end != '\0' || wanted < 0 ||
+        std::to_string(wanted) != last) {
       reply.fail("not a keyframe sequence number: '" + last + "'", error);
       return;
     }
@@ -496,6 +499,7 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     } else if (!readFile(dir + "/" + r.file, jpeg, error)) {
       std::string ignored;
       reply.fail(error, ignored);
+      ++sent;  // an error reply counts towards the cap too
       continue;
     }
     const std::string replyKey = prefix_ + "/keyframes/" + std::to_string(r.sequence);

@@ -308,7 +308,10 @@ void McapRecorder::run() {
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;
     batch.clear();
-    if (!failed_.load() && dirty && (closing || Clock::now() >= nextFlush)) {
+    // One reading of the clock for both: a deadline passing between two readings
+    // would re-arm the timer without the flush, leaving two intervals unsynced.
+    const auto now = Clock::now();
+    if (!failed_.load() && dirty && (closing || now >= nextFlush)) {
       if (!writer_->flush(options_.fsync, error)) {
         fail(error);
       } else {
@@ -317,7 +320,7 @@ void McapRecorder::run() {
         ++stats_.flushes;
       }
     }
-    if (Clock::now() >= nextFlush) nextFlush = Clock::now() + interval;
+    if (now >= nextFlush) nextFlush = now + interval;
     {
       std::lock_guard lock(mutex_);
       stats_.written += written;

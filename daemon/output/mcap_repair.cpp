@@ -49,7 +49,8 @@ bool recoverMcap(const std::string& src, const std::string& dst, std::uint64_t& 
 
 std::vector<McapRepair> repairFlightRecords(const std::string& flightsDir,
                                             const std::string& skipDir,
-                                            const std::atomic<int>& stop) {
+                                            const std::atomic<int>& stop,
+                                            std::uint64_t reserveBytes) {
   std::vector<McapRepair> out;
   std::error_code ec;
   std::vector<fs::path> files;
@@ -73,6 +74,16 @@ std::vector<McapRepair> repairFlightRecords(const std::string& flightsDir,
     McapRepair r;
     r.path = p.string();
     const std::string tmp = r.path + ".recovering";
+    std::error_code e1;
+    const std::uint64_t size = fs::file_size(p, e1);
+    const fs::space_info room = fs::space(p.parent_path(), e1);
+    if (!e1 && (room.available < reserveBytes || room.available - reserveBytes < size)) {
+      r.error = "not repaired now: its copy needs " + std::to_string(size >> 20) + " MiB and " +
+                std::to_string(reserveBytes >> 20) + " MiB to spare, the disk has " +
+                std::to_string(room.available >> 20) + " MiB free";
+      out.push_back(std::move(r));
+      continue;
+    }
     if (recoverMcap(r.path, tmp, r.messages, r.error, &stop)) {
       std::error_code e2;
       fs::rename(tmp, p, e2);

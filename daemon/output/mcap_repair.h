@@ -30,9 +30,14 @@ struct McapRepair {
 // `skipDir`, the running flight's) rewritten complete in place, through
 // <file>.recovering renamed over it; a .recovering left by an interrupted repair is
 // removed first. Stops once `stop` is set (non-zero), leaving the file it was on as
-// it was. Files it could not repair keep their content.
+// it was. Files it could not repair keep their content. A file is repaired only
+// while the disk has room for its copy and `reserveBytes` more: the running flight
+// records on the same disk, and a record cut short by a full disk must not fill it
+// again (it waits, named in the result, for a start with more room).
+inline constexpr std::uint64_t kRepairReserveBytes = 256ULL << 20;
 std::vector<McapRepair> repairFlightRecords(const std::string& flightsDir,
                                             const std::string& skipDir,
-                                            const std::atomic<int>& stop);
+                                            const std::atomic<int>& stop,
+                                            std::uint64_t reserveBytes = kRepairReserveBytes);
 
 }  // namespace keyframed

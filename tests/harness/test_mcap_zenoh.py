@@ -275,6 +275,11 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
         missing = list(session.get("keyframed/test1/keyframes/999999", timeout=5.0))
         assert missing and missing[0].err is not None
         assert "no keyframe" in missing[0].err.payload.to_string()
+        # "00" parses as 0, but a reply on keyframes/0 would not match the query's key
+        # and it would go unanswered: refused, saying why.
+        odd = list(session.get("keyframed/test1/keyframes/00", timeout=5.0))
+        assert odd and odd[0].err is not None
+        assert "not a keyframe sequence number: '00'" in odd[0].err.payload.to_string()
         stdout, stderr = p.communicate(timeout=60)
         assert p.returncode == 0, stderr
         time.sleep(0.2)

@@ -201,6 +201,12 @@ TEST(McapRepair, AFileCutShortIsRewrittenCompleteWithWhatReadsBack) {
   std::filesystem::copy_file(path, running, std::filesystem::copy_options::overwrite_existing);
   std::ofstream(path + ".recovering") << "half";
   stop = 0;
+  // No room for the copy and the reserve: left as it is, and said why.
+  const auto noRoom =
+      repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop, std::uint64_t{1} << 62);
+  ASSERT_EQ(noRoom.size(), 1U);
+  EXPECT_NE(noRoom[0].error.find("not repaired now"), std::string::npos) << noRoom[0].error;
+  EXPECT_FALSE(mcapComplete(path));
   const auto repaired = repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop);
   ASSERT_EQ(repaired.size(), 1U);
   EXPECT_EQ(repaired[0].path, path);
