@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <charconv>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -311,9 +312,28 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
     if (!f) continue;
     std::size_t lines = 0;
     char buf[16384];
+    // The last complete row's sequence number, from the last bytes read: a keyframe a
+    // full disk kept out of the index still took its number, so the count is the
+    // last number + 1 where that is more than the rows.
+    std::string tail;
     while (f.read(buf, sizeof buf) || f.gcount() > 0) {
-      lines += static_cast<std::size_t>(std::count(buf, buf + f.gcount(), '\n'));
+      const auto got = static_cast<std::size_t>(f.gcount());
+      lines += static_cast<std::size_t>(std::count(buf, buf + got, '\n'));
+      tail = (tail + std::string(buf, got))
+                 .substr(std::max<std::size_t>(tail.size() + got, sizeof buf) - sizeof buf);
       if (!f) break;
+    }
+    std::size_t count = lines > 0 ? lines - 1 : 0;
+    if (const auto end = tail.rfind('\n'); lines > 1 && end != std::string::npos && end > 0) {
+      const auto start = tail.rfind('\n', end - 1);
+      if (start != std::string::npos) {
+        std::size_t seq = 0;
+        const char* first = tail.data() + start + 1;
+        const auto parsed = std::from_chars(first, tail.data() + end, seq);
+        if (parsed.ec == std::errc() && parsed.ptr != first && *parsed.ptr == ',' &&
+            seq + 1 > count)
+          count = seq + 1;
+      }
     }
     std::error_code e2;
     const auto changed = fs::last_write_time(index, e2);
@@ -323,8 +343,8 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
                     std::max(0.0, std::chrono::duration<double>(now - changed).count()));
     }
     char item[112];
-    std::snprintf(item, sizeof item, ",\"keyframes\":%zu,\"age_s\":%s,\"current\":%s}",
-                  lines > 0 ? lines - 1 : 0, age, name == current ? "true" : "false");
+    std::snprintf(item, sizeof item, ",\"keyframes\":%zu,\"age_s\":%s,\"current\":%s}", count, age,
+                  name == current ? "true" : "false");
     json += (firstItem ? "{\"flight\":" : ",{\"flight\":") + jsonString(name) + item;
     firstItem = false;
   }

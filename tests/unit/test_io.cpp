@@ -449,6 +449,17 @@ TEST(KeyframeIndex, FlightCatalogueListsTheFlightsOnDiskByName) {
   EXPECT_NE(json.find("\"current\":true", c), std::string::npos);
   EXPECT_EQ(json.substr(0, 12), "{\"flights\":[");
   EXPECT_EQ(flightCatalogue(root + "/missing", ""), "{\"flights\":[]}");
+
+  // A keyframe a full disk kept out of the index (sequence 1 here) still took its
+  // number: the count is the last row's number + 1, not the rows (and a row cut
+  // short at the end does not count).
+  {
+    std::ofstream f(root + "/20261202T102000Z/keyframes/keyframes.csv");
+    f << "sequence,index,file,time_ns\n0,0,0.jpg,0\n2,20,2.jpg,0\n3,30,3.jpg,0\n4,4";
+  }
+  const std::string gap = flightCatalogue(root, "");
+  EXPECT_NE(gap.find("{\"flight\":\"20261202T102000Z\",\"keyframes\":4,"), std::string::npos)
+      << gap;
 }
 
 TEST(KeyframeIndex, QueryParameters) {
