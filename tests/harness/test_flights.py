@@ -130,3 +130,17 @@ def write_report() -> str:
     text = "\n".join(lines) + "\n"
     (ROWS.parent / "flight_quality.md").write_text(text)
     return text
+
+
+def test_the_evaluation_counts_promotions_written_after_their_row(tmp_path: Path) -> None:
+    """A candidate whose row was written before it was promoted (a wait over 900
+    rows) is a keyframe all the same: the evaluation reads it from the promoting
+    row, and an end-of-stream promotion from keyframes.csv."""
+    from keyframed.evaluate import kept_frames
+
+    head = "index,timestamp_ns,kept,reason,candidate,promoted\n"
+    rows = ["0,0,1,first,0,", "1,1,0,overlap,1,", "2,2,0,overlap,0,", "3,3,1,gap_fill,0,1"]
+    (tmp_path / "decisions.csv").write_text(head + "\n".join(rows) + "\n")
+    assert kept_frames(tmp_path) == [0, 1, 3]
+    (tmp_path / "keyframes.csv").write_text("sequence,index,file\n0,0,a\n1,1,b\n2,3,c\n3,2,d\n")
+    assert kept_frames(tmp_path) == [0, 1, 2, 3]

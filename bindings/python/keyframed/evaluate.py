@@ -49,7 +49,22 @@ def read_decisions(out_dir: Path) -> list[dict[str, str]]:
 
 
 def kept_frames(out_dir: Path) -> list[int]:
-    return sorted(int(r["index"]) for r in read_decisions(out_dir) if r["kept"] == "1")
+    """The keyframes' frame indices: the rows kept, the candidates a later row promoted
+    (after a long wait a candidate's row is written before it is promoted, and shows
+    as kept only in the promoting row's ``promoted`` column), and whatever the
+    keyframe index lists (``keyframes.csv``, beside the decisions for ``select``, in
+    ``keyframes/`` for a daemon's flight: the promotions at the end of the stream)."""
+    keys: set[int] = set()
+    for r in read_decisions(out_dir):
+        if r["kept"] == "1":
+            keys.add(int(r["index"]))
+        if r.get("promoted") not in (None, "", "None"):
+            keys.add(int(str(r["promoted"])))
+    for index in (out_dir / "keyframes.csv", out_dir / "keyframes" / "keyframes.csv"):
+        if index.exists():
+            with index.open(newline="") as f:
+                keys.update(int(row["index"]) for row in csv.DictReader(f))
+    return sorted(keys)
 
 
 def evaluate(
