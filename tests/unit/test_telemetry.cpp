@@ -287,20 +287,18 @@ TEST(TelemetryDecoder, FramesFromBeforeARebootAreTaggedFromTheBootBefore) {
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   const Quaternion before = quaternionFromEuler(0, 0, 30 * kDeg);
   const Quaternion after = quaternionFromEuler(0, 0, 120 * kDeg);
-  for (int i = 0; i <= 20; ++i) {  // local 10.0-12.0 s, boot 600.0-602.0 s
-    push.now = (10'000 + i * 100) * kMs;
-    const auto boot = static_cast<std::uint32_t>(600'000 + i * 100);
-    push(gpsRaw(ap, 3));
-    push(attitudeQ(ap, boot, before));
-    push(position(ap, boot, 10.0, 20.0, 50.0));
-  }
-  for (int i = 0; i <= 20; ++i) {  // rebooted: local 12.5-14.5 s, boot 1.0-3.0 s
-    push.now = (12'500 + i * 100) * kMs;
-    const auto boot = static_cast<std::uint32_t>(1'000 + i * 100);
-    push(gpsRaw(ap, 3));
-    push(attitudeQ(ap, boot, after));
-    push(position(ap, boot, 11.0, 20.0, 50.0));
-  }
+  // Two seconds at 10 Hz from `localMs` on the companion clock, `bootMs` on the autopilot's.
+  const auto fly = [&](std::int64_t localMs, std::uint32_t bootMs, const Quaternion& q,
+                       double lat) {
+    for (std::uint32_t i = 0; i <= 20; ++i) {
+      push.now = (localMs + i * 100) * kMs;
+      push(gpsRaw(ap, 3));
+      push(attitudeQ(ap, bootMs + i * 100, q));
+      push(position(ap, bootMs + i * 100, lat, 20.0, 50.0));
+    }
+  };
+  fly(10'000, 600'000, before, 10.0);
+  fly(12'500, 1'000, after, 11.0);  // rebooted: the boot clock starts again
   EXPECT_EQ(dec.stats().reboots, 1U);
   const Pose old = dec.poseAt(11'500 * kMs);
   ASSERT_TRUE(old.attitude && old.position) << old.staleReason;
