@@ -492,7 +492,11 @@ def test_the_end_of_a_flight_the_link_lost_is_fetched_or_reported(
 
     def status(state: str, kept: int) -> None:
         body = {"state": state, "frames": 100, "kept": kept, "flight": vehicle.flight}
-        vehicle.session.put("keyframed/uav5/status", json.dumps(body).encode())
+        vehicle.session.put(  # sent once, so never dropped under congestion
+            "keyframed/uav5/status",
+            json.dumps(body).encode(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
 
     try:
         wait_connected(vehicle)
@@ -920,6 +924,9 @@ def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path)
             "keyframed/../keyframe",
             (tagged / row["file"]).read_bytes(),
             attachment=json.dumps(vehicle.meta(row)).encode(),
+            # put's default is to drop under congestion: the keyframes just sent may
+            # still fill the queue on a loaded machine
+            congestion_control=zenoh.CongestionControl.BLOCK,
         )
         stdout, stderr = proc.communicate(timeout=60)
     finally:
