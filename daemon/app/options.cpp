@@ -79,8 +79,9 @@ telemetry and tags:
   --telemetry SRC            MAVLink source: FILE.tlog, udpin:HOST:PORT, udpout:HOST:PORT
                              or serial:DEVICE[:BAUD]; keyframes are geotagged with the
                              pose at their time (a live link implies --realtime)
-  --video-start TIME         UTC time of the video's first frame (ISO 8601 or unix
-                             seconds); needed with a tlog
+  --video-start TIME|auto    UTC time of the video's first frame (ISO 8601 or unix
+                             seconds); needed with a tlog. auto: found by lining up
+                             the camera's turns in the video with the tlog's attitude
   --time-offset MS           the camera's latency: each keyframe's pose and UTC time are
                              taken MS after its frame time (negative: before; -2000..2000,
                              default 0)
@@ -291,9 +292,16 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       {"--video-start",
        [&](const std::string& v) -> std::string {
          std::int64_t ns = 0;
+         if (v == "auto") {
+           o.videoStartAuto = true;
+           o.videoStartUnixNs.reset();
+           return {};
+         }
          if (!parseUtcTime(v, ns))
-           return "expected a UTC time like 2026-06-01T10:00:00Z or unix seconds, got '" + v + "'";
+           return "expected a UTC time like 2026-06-01T10:00:00Z, unix seconds or auto, got '" + v +
+                  "'";
          o.videoStartUnixNs = ns;
+         o.videoStartAuto = false;
          return {};
        }},
       {"--mount",
@@ -442,13 +450,15 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     const bool replay =
         o.telemetry.starts_with("tlog:") ||
         (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
-    if (replay && !o.videoStartUnixNs)
-      return fail("--video-start TIME is needed to align the video with the tlog");
-    if (!replay && o.videoStartUnixNs)
+    if (replay && !o.videoStartUnixNs && !o.videoStartAuto)
+      return fail("--video-start TIME (or auto) is needed to align the video with the tlog");
+    if (!replay && (o.videoStartUnixNs || o.videoStartAuto))
       return fail(
           "--video-start aligns a video with a tlog; a live link's frames are "
           "stamped as they arrive");
     if (!replay) o.realtime = true;  // a live link runs on the real clock
+  } else if (o.videoStartAuto) {
+    return fail("--video-start auto lines the video up with a tlog: give --telemetry FILE.tlog");
   }
   r.ok = true;
   return r;

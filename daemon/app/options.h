@@ -32,7 +32,8 @@ struct SelectOptions {
   std::string make;                              // --make TEXT (EXIF Make)
   std::string model;                             // --model TEXT (EXIF Model)
   std::optional<std::int64_t> videoStartUnixNs;  // --video-start ISO8601|UNIX_SECONDS
-  double mountRollDeg = 0.0;                     // --mount ROLL,PITCH,YAW (degrees, body FRD)
+  bool videoStartAuto = false;  // --video-start auto: found from the motion (app/video_sync.h)
+  double mountRollDeg = 0.0;    // --mount ROLL,PITCH,YAW (degrees, body FRD)
   double mountPitchDeg = -90.0;
   double mountYawDeg = 0.0;
   bool mountGimbal = false;          // --mount gimbal

@@ -23,6 +23,7 @@
 #include "app/paced_source.h"
 #include "app/telemetry_log.h"
 #include "app/text_io.h"
+#include "app/video_sync.h"
 #include "capture/file_source.h"
 #include "output/flight_outputs.h"
 #include "output/mcap_replay.h"
@@ -71,6 +72,22 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
                   static_cast<unsigned long long>(s.telemetry.reconnects),
                   s.telemetry.truncated ? "true" : "false");
   }
+  char start[512] = "null";
+  if (!s.videoStart.method.empty()) {
+    const std::int64_t ns = s.videoStart.unixNs;
+    const long long sec = ns >= 0 ? ns / 1'000'000'000 : -((-ns + 999'999'999) / 1'000'000'000);
+    const long long frac = ns - sec * 1'000'000'000LL;
+    if (s.videoStart.method == "motion") {
+      std::snprintf(start, sizeof start,
+                    "{\"method\": \"motion\", \"unix_s\": %lld.%09lld, \"correlation\": %.3f, "
+                    "\"runner_up\": %.3f, \"seconds\": %.3f}",
+                    sec, frac, s.videoStart.correlation, s.videoStart.runnerUp,
+                    s.videoStart.seconds);
+    } else {
+      std::snprintf(start, sizeof start, "{\"method\": \"given\", \"unix_s\": %lld.%09lld}", sec,
+                    frac);
+    }
+  }
   const SelectorConfig& c = o.selector;
   char buf[8192];
   std::snprintf(
@@ -80,6 +97,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       "  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n  \"seconds\": %.3f,\n"
       "  \"frames_per_second\": %.2f,\n  \"analysis_ms_mean\": %.3f,\n  \"truncated\": %s,\n"
       "  \"interrupted\": %s,\n  \"error\": \"%s\",\n  \"telemetry\": %s,\n"
+      "  \"video_start\": %s,\n"
       "  \"settings\": {\n    \"mode\": \"%s\",\n"
       "    \"target\": %.3f,\n    \"band\": [%.3f, %.3f],\n    \"analysis_width\": %d,\n"
       "    \"blur_mode\": \"%s\",\n    \"blur_threshold\": %.3f,\n    \"blur_floor\": %.3f,\n"
@@ -91,7 +109,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
       static_cast<long long>(s.promoted), s.seconds, s.framesPerSecond, s.analysisMsMean,
       s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(),
-      tel, toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
+      tel, start, toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
       c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
       c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
       c.blur.analysisWidth, c.overlap.orbFeatures, c.overlap.paperThreshold);
@@ -115,6 +133,52 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   std::unique_ptr<FrameSource> source;
   FileSource* file = nullptr;
   McapReplaySource* replay = nullptr;
+  if (opts.videoStartAuto && !isMcapFile(opts.video)) {
+    // Where the video sits in the tlog, from the motion both recorded: a pass over the
+    // video first.
+    VideoSyncRequest req;
+    req.video = opts.video;
+    req.link = loadOverrides(opts.telemetrySets).config.telemetry.link;
+    req.link.url = opts.telemetry;
+    req.link.decoder.autopilotSystem = opts.autopilotSystem;
+    req.link.decoder.autopilotComponent = opts.autopilotComponent;
+    req.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg, opts.mountGimbal};
+    req.analysisWidth = opts.selector.analysisWidth;
+    if (!opts.calibration.empty()) {
+      CameraModel model;
+      if (!loadCameraModel(opts.calibration, model, error)) {
+        s.error = error;
+        return s;
+      }
+      req.camera = model;
+    }
+    if (!opts.quiet)
+      std::fprintf(stderr, "placing the video in %s by its motion...\n", opts.telemetry.c_str());
+    const VideoSync sync = syncVideoWithTlog(req, stop);
+    if (!sync.ok) {
+      s.error = sync.error;
+      return s;
+    }
+    // The motion places the frames where they were exposed: the camera's latency
+    // (--time-offset), added again at tagging, is taken out here.
+    opts.videoStartUnixNs =
+        sync.videoStartUnixNs - static_cast<std::int64_t>(std::llround(opts.timeOffsetMs * 1e6));
+    s.videoStart.method = "motion";
+    s.videoStart.correlation = sync.match.correlation;
+    s.videoStart.runnerUp = sync.match.runnerUp;
+    s.videoStart.seconds = sync.seconds;
+    if (!opts.quiet)
+      std::fprintf(stderr,
+                   "video start %s UTC (unix %.3f): correlation %.2f, next best %.2f, "
+                   "%lld of %lld frames turned measurably, %.1f s\n",
+                   formatUtcIso(sync.videoStartUnixNs).c_str(),
+                   static_cast<double>(sync.videoStartUnixNs) / 1e9, sync.match.correlation,
+                   sync.match.runnerUp, static_cast<long long>(sync.turnsKnown),
+                   static_cast<long long>(sync.frames), sync.seconds);
+  } else if (opts.videoStartUnixNs) {
+    s.videoStart.method = "given";
+  }
+  if (opts.videoStartUnixNs) s.videoStart.unixNs = *opts.videoStartUnixNs;
   if (isMcapFile(opts.video)) {
     auto r = McapReplaySource::open(opts.video, error);
     replay = r.get();
@@ -156,7 +220,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       }
     }
   }
-  if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs)) {
+  if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs || opts.videoStartAuto)) {
     s.error =
         "a flight record replays on its own recorded clock: no --realtime, "
         "--video-start or live --telemetry with it";

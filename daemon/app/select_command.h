@@ -45,6 +45,15 @@ struct SelectSummary {
     std::uint64_t reconnects = 0;
     bool truncated = false;
   } telemetry;
+  // Where the video sits on the tlog's clock: given (--video-start TIME) or found from
+  // the motion (--video-start auto).
+  struct VideoStart {
+    std::string method;  // "", "given", "motion"
+    std::int64_t unixNs = 0;
+    double correlation = 0.0;  // motion: at the lag found, and the best elsewhere
+    double runnerUp = 0.0;
+    double seconds = 0.0;  // motion: wall time of the pass
+  } videoStart;
   std::string summaryPath;
   std::string decisionsPath;
 };

@@ -5,8 +5,23 @@
 
 #include <cerrno>
 #include <cstring>
+#include <ctime>
 
 namespace keyframed {
+
+std::string formatUtcIso(std::int64_t unixNs) {
+  // Milliseconds, rounded down (floor, also before 1970).
+  const std::int64_t ms = unixNs >= 0 ? unixNs / 1'000'000 : -((-unixNs + 999'999) / 1'000'000);
+  std::int64_t sec = ms >= 0 ? ms / 1000 : -((-ms + 999) / 1000);
+  const auto rest = static_cast<int>(ms - sec * 1000);
+  const auto t = static_cast<std::time_t>(sec);
+  std::tm tm{};
+  if (gmtime_r(&t, &tm) == nullptr) return "?";
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%04d-%02d-%02dT%02d:%02d:%02d.%03dZ", tm.tm_year + 1900,
+                tm.tm_mon + 1, tm.tm_mday, tm.tm_hour, tm.tm_min, tm.tm_sec, rest);
+  return buf;
+}
 
 bool writeFileAtomically(const std::string& path, std::span<const std::uint8_t> bytes,
                          std::string& error) {

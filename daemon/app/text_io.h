@@ -35,6 +35,9 @@ inline std::string jsonEscape(std::string_view s) {
   return out;
 }
 
+// "2026-06-01T10:00:00.012Z": a unix time in ns as ISO 8601 UTC, to the millisecond.
+std::string formatUtcIso(std::int64_t unixNs);
+
 // Writes path.tmp, syncs it to the disk and renames it to path (syncing the
 // directory too), so a reader never sees a partial file, nor a power cut an empty
 // one. False with a one-line error.

@@ -53,6 +53,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
 
   bool tracked = false;
   lastMotion_ = std::numeric_limits<double>::quiet_NaN();
+  lastRotation_ = std::numeric_limits<double>::quiet_NaN();
   lastTracked_ = 0;
   lastInliers_ = 0;
   curPts_.clear();
@@ -99,6 +100,7 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
         lastInliers_ = static_cast<int>(curPts_.size());
         if (lastInliers_ >= config_.minInliers) {
           lastMotion_ = stepMotion(fit.h);
+          lastRotation_ = rotationAtCentre(fit.h);
           refToCur_ = fit.h * refToCur_;
           refToCur_ *= 1.0 / refToCur_(2, 2);
           tracked = true;
@@ -124,7 +126,25 @@ OverlapResult GeometricOverlap::observe(GrayView gray) {
   r.matches = lastTracked_;
   r.inliers = lastInliers_;
   r.motionPx = lastMotion_;
+  r.stepRotationRad = lastRotation_;
   return r;
+}
+
+double GeometricOverlap::rotationAtCentre(const cv::Matx33d& h) const {
+  // The homography's Jacobian at the optical axis (the principal point, which is its
+  // own ideal pixel; the image centre without a lens), and the rotation of its nearest
+  // similarity.
+  const cv::Point2d c = lens_.active() ? cv::Point2d(lens_.cx, lens_.cy)
+                                       : cv::Point2d(0.5 * size_.width, 0.5 * size_.height);
+  const double w = h(2, 0) * c.x + h(2, 1) * c.y + h(2, 2);
+  if (!(std::abs(w) > 1e-12)) return std::numeric_limits<double>::quiet_NaN();
+  const double u = (h(0, 0) * c.x + h(0, 1) * c.y + h(0, 2)) / w;
+  const double v = (h(1, 0) * c.x + h(1, 1) * c.y + h(1, 2)) / w;
+  const double j00 = (h(0, 0) - u * h(2, 0)) / w;
+  const double j01 = (h(0, 1) - u * h(2, 1)) / w;
+  const double j10 = (h(1, 0) - v * h(2, 0)) / w;
+  const double j11 = (h(1, 1) - v * h(2, 1)) / w;
+  return std::atan2(j10 - j01, j00 + j11);
 }
 
 OverlapResult GeometricOverlap::overlapNow() const {

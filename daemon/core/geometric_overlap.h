@@ -35,6 +35,8 @@ class GeometricOverlap final : public OverlapEstimator {
   void prepareLens();
   // How far the image moved in a step, in image pixels.
   double stepMotion(const cv::Matx33d& h) const;
+  // The in-plane rotation of a step's homography about the image centre, radians.
+  double rotationAtCentre(const cv::Matx33d& h) const;
   double lensVisibleFraction(const cv::Matx33d& refToCur) const;
 
   OverlapConfig config_;
@@ -68,6 +70,7 @@ class GeometricOverlap final : public OverlapEstimator {
   int lastTracked_ = 0;
   int lastInliers_ = 0;
   double lastMotion_ = 0.0;
+  double lastRotation_ = 0.0;
 };
 
 }  // namespace keyframed

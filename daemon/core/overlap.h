@@ -49,6 +49,10 @@ struct OverlapResult {
   // Geometric: how far the image moved since the previous frame, the largest
   // displacement of its corners and centre, in analysis pixels (NaN if unknown).
   double motionPx = std::numeric_limits<double>::quiet_NaN();
+  // Geometric: how far the image turned about the optical axis (the principal point
+  // with a lens, else the image centre) since the previous frame, radians; positive
+  // takes +x toward +y (x right, y down: clockwise on screen). NaN if unknown.
+  double stepRotationRad = std::numeric_limits<double>::quiet_NaN();
 };
 
 // Measures how much of the last keyframe the current frame still shows.

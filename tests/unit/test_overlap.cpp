@@ -1,4 +1,6 @@
 #include <gtest/gtest.h>
+
+#include <cmath>
 #include <opencv2/imgproc.hpp>
 
 #include "core/overlap.h"
@@ -76,6 +78,32 @@ TEST(GeometricOverlap, LosesTrackingOnAFeaturelessFrame) {
   const cv::Mat flat(270, 480, CV_8UC1, cv::Scalar(90));
   const OverlapResult r = est->observe(GrayView::of(flat));
   EXPECT_FALSE(r.valid);
+}
+
+TEST(GeometricOverlap, MeasuresHowFarTheImageTurnsEachStep) {
+  // A view of a real photo turned about its centre a little more each frame, as a
+  // nadir camera yawing would see it; each step's turn is reported, sign included.
+  const cv::Mat strip = test::photoStrip();
+  const cv::Mat view = test::viewAt(strip, 700, 640, 480);
+  const cv::Rect inner(80, 60, 480, 360);  // inside every turned copy: no black corners
+  auto est = OverlapEstimator::create(geometric());
+  double angle = 0.0;
+  for (int i = 0; i <= 12; ++i) {
+    const double stepDeg = i % 2 == 0 ? 1.5 : -0.7;
+    if (i > 0) angle += stepDeg;
+    // getRotationMatrix2D turns by +angle anticlockwise on screen (y down), which
+    // takes +x toward -y: the opposite of stepRotationRad's positive sense.
+    cv::Mat turned;
+    cv::warpAffine(view, turned, cv::getRotationMatrix2D(cv::Point2f(320, 240), angle, 1.0),
+                   view.size(), cv::INTER_LINEAR);
+    const OverlapResult r = est->observe(GrayView::of(turned(inner).clone()));
+    if (i == 0) {
+      EXPECT_TRUE(std::isnan(r.stepRotationRad));
+      continue;
+    }
+    ASSERT_FALSE(std::isnan(r.stepRotationRad)) << "frame " << i;
+    EXPECT_NEAR(r.stepRotationRad * 180.0 / M_PI, -stepDeg, 0.03) << "frame " << i;
+  }
 }
 
 TEST(PaperOverlap, DistanceGrowsAsTheViewsPart) {

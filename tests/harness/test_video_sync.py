@@ -1,0 +1,170 @@
+"""`select --video-start auto`: a video placed in a tlog by the motion both recorded
+(the camera's turns seen in the images against the attitude the autopilot logged)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from flights import flight
+from keyframed import synth
+from test_geotag import Truth, exif, keyframes, needs_exiftool, tag_errors
+
+CLIP_FIRST = 150  # the clip starts 5 s into the flight (30 fps) ...
+CLIP_FRAMES = 600  # ... and lasts 20 s, over the survey's U-turn
+
+
+@pytest.fixture(scope="module")
+def nadir() -> Path:
+    return flight("nadir", width=480, height=270)
+
+
+def cut(video: Path, out: Path, first: int, count: int) -> Path:
+    """Frames first .. first + count - 1 of video as a video of their own (container
+    time 0 at `first`), as a camera started after the tlog would have recorded."""
+    cap = cv2.VideoCapture(str(video))
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+    writer = cv2.VideoWriter(str(out), cv2.VideoWriter.fourcc(*"MJPG"), fps, size)
+    i = 0
+    while True:
+        ok, frame = cap.read()
+        if not ok or i >= first + count:
+            break
+        if i >= first:
+            writer.write(frame)
+        i += 1
+    writer.release()
+    assert i == first + count, f"{video} has {i} frames"
+    return out
+
+
+def select_auto(kf_bin: Path, video: Path, fl: Path, out: Path, *extra: str) -> Any:
+    cmd = [str(kf_bin), "select", str(video), "--out", str(out), "--telemetry"]
+    cmd += [str(fl / "flight.tlog"), "--video-start", "auto", *extra]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+
+
+@pytest.fixture(scope="module")
+def clip(nadir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return cut(
+        nadir / "video.avi", tmp_path_factory.mktemp("clip") / "clip.avi", CLIP_FIRST, CLIP_FRAMES
+    )
+
+
+def video_start(out: Path) -> dict[str, Any]:
+    start = json.loads((out / "summary.json").read_text())["video_start"]
+    assert start["method"] == "motion"
+    return start
+
+
+@needs_exiftool
+def test_a_clip_is_placed_in_its_tlog_and_tagged_as_the_truth(
+    kf_bin: Path, nadir: Path, clip: Path, tmp_path: Path
+) -> None:
+    """A video that starts 5 s into the tlog, with nothing to say so: the motion
+    places it within 5 ms (a sixth of a frame), and its keyframes carry the pose the
+    ground truth has for their frames, as with --video-start given exactly."""
+    out = tmp_path / "out"
+    r = select_auto(kf_bin, clip, nadir, out, "--calibration", str(nadir / "intrinsics.json"))
+    assert r.returncode == 0, r.stderr
+    start = video_start(out)
+    expected = synth.EPOCH_UNIX_S + CLIP_FIRST / 30.0
+    print(
+        f"clip placed {1e3 * (start['unix_s'] - expected):+.2f} ms from the truth, "
+        f"correlation {start['correlation']}, next best {start['runner_up']}, "
+        f"{start['seconds']} s"
+    )
+    assert abs(start["unix_s"] - expected) < 0.005
+    assert start["correlation"] > 0.9 and start["runner_up"] < 0.8 * start["correlation"]
+    assert "video start 2026-06-01T10:00:0" in r.stderr
+    kfs = keyframes(out)
+    assert len(kfs) >= 5 and all(k["geotag"] == "ok" for k in kfs)
+    tags = exif([out / k["file"] for k in kfs])
+    truth = Truth(nadir)
+    errs = np.array(
+        [tag_errors(tags[k["file"]], truth.at((int(k["index"]) + CLIP_FIRST) / 30.0)) for k in kfs]
+    )
+    assert errs[:, 0].max() < 0.1 and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2, errs
+
+
+def test_a_camera_latency_is_measured_with_the_motion(
+    kf_bin: Path, nadir: Path, clip: Path, tmp_path: Path
+) -> None:
+    """--time-offset adds a latency to the frame times at tagging; the motion measured
+    where the frames really were, so the start is moved back by it and the tagged
+    instants (keyframes.csv's time_ns) stay where the motion put them."""
+    plain, late = tmp_path / "plain", tmp_path / "late"
+    assert select_auto(kf_bin, clip, nadir, plain, "--quiet").returncode == 0
+    r = select_auto(kf_bin, clip, nadir, late, "--quiet", "--time-offset", "80")
+    assert r.returncode == 0, r.stderr
+    shift = video_start(plain)["unix_s"] - video_start(late)["unix_s"]
+    assert shift == pytest.approx(0.080, abs=1e-6)
+    tagged = {k["index"]: int(k["time_ns"]) for k in keyframes(plain)}
+    for k in keyframes(late):
+        if k["index"] in tagged:
+            assert abs(int(k["time_ns"]) - tagged[k["index"]]) <= 1000
+
+
+def test_an_oblique_orbit_is_placed_through_its_mount(kf_bin: Path, tmp_path: Path) -> None:
+    """The orbit's camera looks 55 degrees down: its turn about the optical axis mixes
+    the vehicle's yaw, pitch and roll rates through the mount."""
+    orbit = flight("orbit", width=480, height=270)
+    out = tmp_path / "out"
+    r = select_auto(
+        kf_bin,
+        orbit / "video.avi",
+        orbit,
+        out,
+        "--calibration",
+        str(orbit / "intrinsics.json"),
+        "--mount",
+        "0,-55,0",
+    )
+    assert r.returncode == 0, r.stderr
+    start = video_start(out)
+    assert abs(start["unix_s"] - synth.EPOCH_UNIX_S) < 0.005, start
+
+
+def test_a_video_that_hardly_turns_is_not_placed(any_bin: Path, tmp_path: Path) -> None:
+    """Three seconds of straight survey: no turn to line up. A clear error, exit 3,
+    no keyframes, never a guess."""
+    short = flight("nadir", width=320, height=180, seconds=3.0)
+    out = tmp_path / "out"
+    r = select_auto(any_bin, short / "video.avi", short, out)
+    assert r.returncode == 3, r.stderr
+    assert "cannot place the video in the tlog by its motion" in r.stderr
+    assert "--video-start TIME" in r.stderr and "Traceback" not in r.stderr
+    assert not list(out.glob("*.jpg"))
+
+
+def test_another_flights_tlog_is_not_matched(any_bin: Path, clip: Path, tmp_path: Path) -> None:
+    """The nadir clip against the orbit's tlog: its U-turn has no counterpart there
+    (the orbit turns steadily), so no lag is accepted."""
+    orbit = flight("orbit", width=480, height=270)
+    r = select_auto(any_bin, clip, orbit, tmp_path / "out")
+    assert r.returncode == 3, r.stderr
+    assert "cannot place the video" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--video-start", "auto"], "give --telemetry FILE.tlog"),
+        (
+            ["--video-start", "auto", "--telemetry", "udpin:127.0.0.1:9"],
+            "--video-start aligns a video with a tlog",
+        ),
+    ],
+)
+def test_auto_needs_a_tlog(
+    any_bin: Path, nadir: Path, tmp_path: Path, args: list[str], message: str
+) -> None:
+    cmd = [str(any_bin), "select", str(nadir / "video.avi"), "--out", str(tmp_path / "o"), *args]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
