@@ -254,10 +254,11 @@ std::string checkPixelFormat(const std::string& s) {
          quote(s) + ")";
 }
 
-std::string checkUtcTime(const std::string& s) {
+std::string checkStartTime(const std::string& s) {
   std::int64_t ns = 0;
-  if (s.empty() || parseUtcTime(s, ns)) return {};
-  return "expected a UTC time like \"2026-06-01T10:00:00Z\" or unix seconds (got " + quote(s) + ")";
+  if (s.empty() || s == "auto" || parseUtcTime(s, ns)) return {};
+  return "expected a UTC time like \"2026-06-01T10:00:00Z\", unix seconds or \"auto\" (got " +
+         quote(s) + ")";
 }
 
 std::string checkMavlinkUrl(const std::string& s) {
@@ -387,7 +388,7 @@ std::vector<Field> makeSchema() {
   f.push_back(boolean(
       "camera", "realtime", [](auto& c) -> auto& { return c.camera.realtime; }));
   f.push_back(text(
-      "camera", "start_time", [](auto& c) -> auto& { return c.camera.startTime; }, checkUtcTime));
+      "camera", "start_time", [](auto& c) -> auto& { return c.camera.startTime; }, checkStartTime));
   f.push_back(integer(
       "camera", "queue_ms", [](auto& c) -> auto& { return c.camera.queueMs; }, R{0, 5000}));
   f.push_back(real(
@@ -880,6 +881,10 @@ class Loader {
             {"telemetry.url", "camera.source", "camera.start_time"},
             "a tlog replays a recorded flight: it needs camera.source = \"file\" and "
             "camera.start_time");
+    require(c.camera.startTime != "auto" || (c.camera.source == Source::File && isTlogUrl(url)),
+            {"camera.start_time", "camera.source", "telemetry.url"},
+            "camera.start_time = \"auto\" places a video in its tlog by their motion: it needs "
+            "camera.source = \"file\" and a tlog as telemetry.url");
     // Frames read as fast as they decode carry the video's time, which a live link's
     // poses have nothing to do with: every keyframe would be tagged wrong or not at all.
     require(c.camera.source != Source::File || c.camera.realtime || url.empty() || isTlogUrl(url),

@@ -46,6 +46,7 @@
 #include "app/settings.h"
 #include "app/telemetry_log.h"
 #include "app/text_io.h"
+#include "app/video_sync.h"
 #include "capture/capture_thread.h"
 #include "capture/file_source.h"
 #include "capture/v4l2_source.h"
@@ -289,6 +290,9 @@ class Daemon {
   int run();
 
  private:
+  // camera.start_time = "auto": where the video starts in its tlog (app/video_sync.h),
+  // answering signals meanwhile. False on failure (logged); stopped: a signal came.
+  bool placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, bool& stopped);
   void analysisLoop();
   void outputLoop();
   void reload();
@@ -643,6 +647,54 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(json), error);
 }
 
+bool Daemon::placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, bool& stopped) {
+  VideoSyncRequest req;
+  req.video = config_.camera.path;
+  req.link = config_.telemetry.link;
+  req.camera = camera_;
+  req.mount = {config_.tagging.mountRollDeg, config_.tagging.mountPitchDeg,
+               config_.tagging.mountYawDeg, config_.tagging.mountGimbal};
+  req.analysisWidth = config_.selection.analysisWidth;
+  req.hint = "set camera.start_time to the video's start";
+  KF_LOG(App, Notice) << "camera.start_time = auto: placing " << req.video << " in " << req.link.url
+                      << " by their motion";
+  // The pass runs beside this thread, which keeps answering signals.
+  std::atomic<bool> stop{false};
+  std::atomic<bool> done{false};
+  VideoSync sync;
+  std::thread worker([&] {
+    sync = syncVideoWithTlog(req, &stop);
+    done.store(true);
+  });
+  while (!done.load()) {
+    timespec wait{0, 50'000'000};
+    const int sig = sigtimedwait(&sigs, nullptr, &wait);
+    if (sig == SIGINT || sig == SIGTERM) {
+      KF_LOG(App, Notice) << (sig == SIGINT ? "SIGINT" : "SIGTERM")
+                          << ": stopping before the video was placed";
+      stop.store(true);
+      stopped = true;
+    }
+    if (sig == SIGHUP) KF_LOG(App, Notice) << "SIGHUP: nothing to reload before the camera starts";
+  }
+  worker.join();
+  if (stopped) return true;
+  if (!sync.ok) {
+    KF_LOG(App, Error) << "camera.start_time = auto: " << sync.error;
+    return false;
+  }
+  // The motion places the frames where they were exposed: camera.time_offset_ms, added
+  // again at tagging, is taken out here.
+  startNs = sync.videoStartUnixNs -
+            static_cast<std::int64_t>(std::llround(config_.camera.timeOffsetMs * 1e6));
+  KF_LOG(App, Notice) << "video start " << formatUtcIso(sync.videoStartUnixNs) << " (correlation "
+                      << formatFixed(sync.match.correlation, 2) << ", next best "
+                      << formatFixed(sync.match.runnerUp, 2) << ", " << sync.turnsKnown << " of "
+                      << sync.frames << " frames turned measurably, "
+                      << formatFixed(sync.seconds, 1) << " s)";
+  return true;
+}
+
 int Daemon::run() {
   std::string error;
   // Signals are taken by the main thread alone (sigtimedwait below): block them
@@ -666,6 +718,15 @@ int Daemon::run() {
   } else {
     KF_LOG(Tagging, Warning)
         << "no tagging.calibration or [tagging.camera]: keyframes carry no intrinsics";
+  }
+  if (config_.camera.source == DaemonConfig::Source::File && config_.camera.startTime == "auto") {
+    std::int64_t startNs = 0;
+    bool stopped = false;
+    if (!placeVideoByMotion(sigs, startNs, stopped)) return 1;
+    if (stopped) return 0;
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%.9f", static_cast<double>(startNs) / 1e9);
+    config_.camera.startTime = buf;  // as if given: the frames' clock from here on
   }
   // Frames on the video's own clock: a file replayed with its tlog (camera.start_time
   // + container time, the tlog's unix times), or read as fast as it decodes (container

@@ -175,8 +175,8 @@ VideoSync syncVideoWithTlog(const VideoSyncRequest& req, const std::atomic<bool>
   const RateSeries tel = resampleRates(times, rates, req.stepS, 2.5 * req.stepS);
   out.match = findMotionLag(video, tel, req.match);
   if (!out.match.ok) {
-    out.error = "cannot place the video in the tlog by its motion: " + out.match.error +
-                "; give --video-start TIME";
+    out.error =
+        "cannot place the video in the tlog by its motion: " + out.match.error + "; " + req.hint;
     return finish();
   }
   // Telemetry time t0 + lag is video (container) time 0.

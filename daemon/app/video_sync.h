@@ -26,6 +26,7 @@ struct VideoSyncRequest {
   int analysisWidth = 640;
   double stepS = 0.02;  // both rates are compared on this grid
   MotionSyncConfig match;
+  std::string hint = "give --video-start TIME";  // ends the error when the motion fails
 };
 
 struct VideoSync {

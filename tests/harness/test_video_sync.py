@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ import pytest
 from flights import flight
 from keyframed import synth
 from test_geotag import Truth, exif, keyframes, needs_exiftool, tag_errors
+from test_run import flight_dir, rows, sigterm, start
 
 CLIP_FIRST = 150  # the clip starts 5 s into the flight (30 fps) ...
 CLIP_FRAMES = 600  # ... and lasts 20 s, over the survey's U-turn
@@ -168,3 +170,74 @@ def test_auto_needs_a_tlog(
     cmd = [str(any_bin), "select", str(nadir / "video.avi"), "--out", str(tmp_path / "o"), *args]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr, r.stderr
+
+
+def test_the_daemon_places_a_replayed_video_by_its_motion(
+    kf_bin: Path, nadir: Path, clip: Path, tmp_path: Path
+) -> None:
+    """`keyframed run` on the clip with its tlog and camera.start_time = "auto": the
+    video is placed before the camera starts, and every keyframe is tagged with the
+    position the ground truth has for its frame."""
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={clip}",
+        "camera.start_time=auto",
+        "camera.realtime=false",
+        f"telemetry.url=tlog:{nadir / 'flight.tlog'}",
+        f"tagging.calibration={nadir / 'intrinsics.json'}",
+    )
+    _, stderr = proc.communicate(timeout=180)
+    assert proc.returncode == 0, stderr
+    assert "video start 2026-06-01T10:00:0" in stderr, stderr
+    kfs = rows(flight_dir(tmp_path) / "keyframes" / "keyframes.csv")
+    assert len(kfs) >= 5 and all(k["geotag"] == "ok" for k in kfs), kfs
+    truth = Truth(nadir)
+    for k in kfs:
+        lat, lon, alt, _ = truth.at((int(k["index"]) + CLIP_FIRST) / 30.0)
+        d_n = (float(k["lat"]) - lat) * 111_320.0
+        d_e = (float(k["lon"]) - lon) * 111_320.0 * np.cos(np.radians(lat))
+        assert np.hypot(d_n, d_e) < 0.1 and abs(float(k["alt_amsl"]) - alt) < 0.1, k
+
+
+def test_the_daemon_answers_sigterm_while_placing_the_video(kf_bin: Path, tmp_path: Path) -> None:
+    """The pass over a long video comes before the camera starts: SIGTERM ends it
+    within a second, cleanly."""
+    big = flight("nadir")  # 960x540, 30 s: a pass of several seconds
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={big / 'video.avi'}",
+        "camera.start_time=auto",
+        f"telemetry.url=tlog:{big / 'flight.tlog'}",
+    )
+    time.sleep(1.0)
+    assert proc.poll() is None
+    stderr, took = sigterm(proc)
+    assert proc.returncode == 0, stderr
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    assert "stopping before the video was placed" in stderr, stderr
+
+
+def test_the_daemon_refuses_auto_without_a_tlog(kf_bin: Path, clip: Path, tmp_path: Path) -> None:
+    proc = start(kf_bin, tmp_path, f"camera.path={clip}", "camera.start_time=auto")
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 78, stderr
+    assert "camera.start_time" in stderr and "a tlog as telemetry.url" in stderr, stderr
+
+
+def test_the_daemon_exits_when_the_motion_cannot_place_the_video(
+    kf_bin: Path, tmp_path: Path
+) -> None:
+    short = flight("nadir", width=320, height=180, seconds=3.0)
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short / 'video.avi'}",
+        "camera.start_time=auto",
+        f"telemetry.url=tlog:{short / 'flight.tlog'}",
+    )
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1, stderr
+    assert "camera.start_time = auto: cannot place the video" in stderr, stderr
+    assert "set camera.start_time to the video's start" in stderr

@@ -376,6 +376,17 @@ TEST(Config, CrossChecksNameTheLastKeySet) {
                  "4: camera.realtime: a live telemetry link needs camera.realtime = true (a file "
                  "read as fast as it decodes is on the video's clock; replay its tlog instead, or "
                  "set telemetry.url = \"\")");
+  // The video placed by its motion: only a file with its tlog.
+  expectOneError(dir, "[camera]\nsource = \"file\"\npath = \"f.avi\"\nstart_time = \"auto\"\n",
+                 "4: camera.start_time: camera.start_time = \"auto\" places a video in its tlog by "
+                 "their motion: it needs camera.source = \"file\" and a tlog as telemetry.url");
+  EXPECT_TRUE(loadText(dir,
+                       "[camera]\nsource = \"file\"\npath = \"f.avi\"\nstart_time = \"auto\"\n"
+                       "[telemetry]\nurl = \"tlog:f.tlog\"\n")
+                  .ok());
+  expectOneError(dir, "[camera]\nstart_time = \"soon\"\n",
+                 "2: camera.start_time: expected a UTC time like \"2026-06-01T10:00:00Z\", unix "
+                 "seconds or \"auto\" (got \"soon\")");
 }
 
 TEST(Config, ZeroOrAtLeastSettingsNameTheirOwnKeyAndLine) {
