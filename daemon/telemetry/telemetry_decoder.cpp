@@ -68,8 +68,14 @@ bool TelemetryDecoder::accept(const mavlink_message_t& msg) {
 }
 
 void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localNs) {
-  // A clock that jumps back by more than a few seconds means the autopilot rebooted.
-  if (lastBootMs_ >= 0 && static_cast<std::int64_t>(bootMs) + 5000 < lastBootMs_) {
+  // A boot clock that goes back means the autopilot rebooted when it goes back by more
+  // than a few seconds, or when it lags the time that passed here by more than two
+  // (an autopilot that reboots seconds after it started: a reboot takes a second or
+  // more). A datagram that overtook another goes back by no more than the jitter.
+  const std::int64_t back = lastBootMs_ - static_cast<std::int64_t>(bootMs);
+  const std::int64_t expected = lastBootMs_ + (localNs - lastBootLocalNs_) / kMs;
+  if (lastBootMs_ >= 0 && back > 0 &&
+      (back > 5000 || expected - static_cast<std::int64_t>(bootMs) > 2000)) {
     previous_ = PreviousBoot{store_, clock_, localNs};
     store_ = std::make_shared<PoseStore>(config_.store);
     clock_ = ClockMapper(config_.clock);
@@ -79,6 +85,7 @@ void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
     ++stats_.reboots;
   }
   lastBootMs_ = bootMs;
+  lastBootLocalNs_ = localNs;
   clock_.observeArrival(bootMs, localNs);
 }
 

@@ -123,8 +123,9 @@ class TelemetryDecoder {
   int gimbalComponent_ = -1;  // the first gimbal heard (component, device id) is used
   int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;
-  StreamTiming quaternions_;  // ATTITUDE_QUATERNION
-  StreamTiming euler_;        // ATTITUDE
+  std::int64_t lastBootLocalNs_ = 0;  // when lastBootMs_ arrived
+  StreamTiming quaternions_;          // ATTITUDE_QUATERNION
+  StreamTiming euler_;                // ATTITUDE
   bool localClockIsUtc_ = false;
 };
 

@@ -311,6 +311,36 @@ TEST(TelemetryDecoder, FramesFromBeforeARebootAreTaggedFromTheBootBefore) {
   EXPECT_NEAR(now.position->latDeg, 11.0, 1e-9);
 }
 
+// An autopilot rebooted two seconds after it started (a power glitch on the bench, a
+// parameter reboot): its boot clock goes back by less than the 5 s that marks a reboot
+// on its own, but it lags the time that passed here. Datagrams that overtook each
+// other (a boot time 80 ms behind the last one) are no reboot.
+TEST(TelemetryDecoder, AnAutopilotRebootedSecondsAfterItStartedIsSeen) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  Feeder push{dec};
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  const Quaternion before = quaternionFromEuler(0, 0, 30 * kDeg);
+  const Quaternion after = quaternionFromEuler(0, 0, 120 * kDeg);
+  const auto fly = [&](std::int64_t localMs, std::uint32_t bootMs, const Quaternion& q) {
+    for (std::uint32_t i = 0; i <= 20; ++i) {
+      push.now = (localMs + i * 100) * kMs;
+      push(attitudeQ(ap, bootMs + i * 100, q));
+      if (i == 10) push(attitudeQ(ap, bootMs + i * 100 - 80, q));  // overtaken
+    }
+  };
+  fly(10'000, 1'500, before);  // boot time 1.5 .. 3.5 s
+  EXPECT_EQ(dec.stats().reboots, 0U);
+  fly(13'000, 400, after);  // back by 3.1 s, 4.1 s behind the 1 s that passed here
+  EXPECT_EQ(dec.stats().reboots, 1U);
+  const Pose old = dec.poseAt(11'000 * kMs);
+  ASSERT_TRUE(old.attitude) << old.staleReason;
+  EXPECT_NEAR(angleBetween(*old.attitude, before), 0.0, 1e-6);
+  const Pose now = dec.poseAt(14'000 * kMs);
+  ASSERT_TRUE(now.attitude) << now.staleReason;
+  EXPECT_NEAR(angleBetween(*now.attitude, after), 0.0, 1e-6);
+}
+
 TEST(TelemetryDecoder, ASlowQuaternionStreamDoesNotHideAFastEulerOne) {
   // ATTITUDE at 20 Hz (what the daemon asks for) and ATTITUDE_QUATERNION at 1 Hz
   // (another ground station on a shared router asked for it): the quaternions alone
