@@ -6,6 +6,7 @@
 #include <cmath>
 #include <csignal>
 #include <cstdio>
+#include <ctime>
 #include <filesystem>
 #include <optional>
 #include <thread>
@@ -116,6 +117,20 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
   return writeFileAtomically(path, std::string_view(buf), error);
 }
 
+// "20261203T142500.123Z": this run's start.
+std::string selectFlightId() {
+  const auto now = std::chrono::system_clock::now();
+  const std::time_t t = std::chrono::system_clock::to_time_t(now);
+  const auto ms =
+      std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()).count() % 1000;
+  std::tm tm{};
+  gmtime_r(&t, &tm);
+  char buf[40];
+  const std::size_t n = std::strftime(buf, sizeof buf, "%Y%m%dT%H%M%S", &tm);
+  std::snprintf(buf + n, sizeof buf - n, ".%03dZ", static_cast<int>(ms));
+  return buf;
+}
+
 std::atomic<bool> gStop{false};
 extern "C" void onSignal(int) {
   gStop.store(true);
@@ -155,6 +170,10 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     if (!opts.quiet)
       std::fprintf(stderr, "placing the video in %s by its motion...\n", opts.telemetry.c_str());
     const VideoSync sync = syncVideoWithTlog(req, stop);
+    if (stop != nullptr && stop->load()) {  // Ctrl-C: interrupted, not failed
+      s.interrupted = true;
+      return s;
+    }
     if (!sync.ok) {
       s.error = sync.error;
       return s;
@@ -167,7 +186,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.videoStart.correlation = sync.match.correlation;
     s.videoStart.runnerUp = sync.match.runnerUp;
     s.videoStart.seconds = sync.seconds;
-    if (!opts.quiet)
+    if (!opts.quiet) {
       std::fprintf(stderr,
                    "video start %s UTC (unix %.3f): correlation %.2f, next best %.2f, "
                    "%lld of %lld frames turned measurably, %.1f s\n",
@@ -175,6 +194,10 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                    static_cast<double>(sync.videoStartUnixNs) / 1e9, sync.match.correlation,
                    sync.match.runnerUp, static_cast<long long>(sync.turnsKnown),
                    static_cast<long long>(sync.frames), sync.seconds);
+      if (*opts.videoStartUnixNs != sync.videoStartUnixNs)
+        std::fprintf(stderr, "container time 0 at %s on the camera's clock (--time-offset)\n",
+                     formatUtcIso(*opts.videoStartUnixNs).c_str());
+    }
   } else if (opts.videoStartUnixNs) {
     s.videoStart.method = "given";
   }
@@ -351,6 +374,10 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   fo.mcapCompression = replay != nullptr ? "none" : "zstd";
   fo.zenohConfig = opts.zenohConfig;
   fo.vehicle = opts.vehicle;
+  // A flight id of its own (the run's start, UTC to the ms): sequence numbers start at
+  // 0 in every run, and a ground station that heard an earlier run of this vehicle
+  // keeps the two apart rather than taking this one's keyframes for duplicates.
+  fo.flight = selectFlightId();
   fo.keyframeDir = opts.outDir;
   fo.offline = !opts.realtime;
   // The record's log times in unix time: --video-start times (with a tlog, paced in

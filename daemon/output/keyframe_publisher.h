@@ -22,10 +22,10 @@ struct KeyframePublisherOptions {
   std::vector<std::pair<std::string, std::string>> overrides;  // key -> JSON5 value
   std::string vehicle = "uav";  // one key chunk: keyframed/<vehicle>/...
   std::string keyframeDir;      // served by the queryable (keyframes.csv + JPEGs)
-  // The run's flight (its directory's name under flightsDir), in every keyframe's
-  // metadata: sequence numbers start again at 0 in each run of the daemon. Earlier
-  // flights' keyframes are served too when a query names them (flight=ID), from
-  // flightsDir/ID/keyframes. Empty: no flight id (an offline run), only this run's.
+  // The run's flight (`run`: its directory's name under flightsDir; `select`: its
+  // start), in every keyframe's metadata: sequence numbers start again at 0 in each
+  // run. Earlier flights' keyframes are served too when a query names them
+  // (flight=ID), from flightsDir/ID/keyframes. Empty: no flight id, only this run's.
   std::string flight;
   std::string flightsDir;
   // A session that cannot open (a client whose router is not up yet, a refused

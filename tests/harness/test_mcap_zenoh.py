@@ -306,6 +306,58 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
     assert status[-1]["kept"] == len(rows)
 
 
+def test_two_select_runs_of_one_vehicle_reach_a_ground_station_apart(
+    kf_bin: Path, pan_video: Path, tmp_path: Path
+) -> None:
+    """Every `select` run numbers its keyframes from 0. Each names a flight of its own
+    (its start, UTC to the ms), so a ground station that stored the first run keeps the
+    second's as another flight instead of dropping them as duplicates."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg = tmp_path / "zenoh.json5"
+    cfg.write_text(peer_config(connect=[endpoint]))
+    dataset = tmp_path / "dataset"
+    ground = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(dataset), "--quiet"]
+        + ["--listen", endpoint, "--until-idle", "4", "--vehicle", "uav9"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while True:  # until the station listens
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            assert ground.poll() is None and time.monotonic() < deadline, "no ground station"
+            time.sleep(0.1)
+        runs = []
+        for n in (1, 2):
+            out = tmp_path / f"run{n}"
+            r = select(
+                kf_bin, pan_video, out, "--realtime", "--zenoh-config", str(cfg),
+                "--vehicle", "uav9", timeout=60,
+            )  # fmt: skip
+            assert r.returncode == 0, r.stderr
+            runs.append(out)
+        stdout, stderr = ground.communicate(timeout=60)
+    finally:
+        if ground.poll() is None:
+            ground.kill()
+            ground.communicate()
+    assert ground.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    sent = [(out / row["file"]).read_bytes() for out in runs for row in keyframe_rows(out)]
+    assert len(keyframe_rows(runs[0])) >= 2 and len(keyframe_rows(runs[1])) >= 2
+    assert summary["keyframes"] == len(sent) and summary["missing"] == [], summary
+    stored = [p.read_bytes() for p in (dataset / "uav9" / "images").glob("*.jpg")]
+    assert sorted(stored) == sorted(sent)
+    with (dataset / "uav9" / "keyframes.jsonl").open() as fh:
+        flights = [json.loads(line)["flight"] for line in fh]
+    assert len(set(flights)) == 2 and all(f and f.endswith("Z") for f in flights), flights
+
+
 def test_a_query_gets_at_most_64_keyframes_and_where_to_go_on(
     kf_bin: Path, pan_video: Path, tmp_path: Path
 ):
