@@ -158,7 +158,9 @@ bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& e
 
 // `videoClock`: a file replayed with its tlog, its frames stamped on the recorded
 // flight's clock (camera.start_time + container time) even when paced in real time.
+// `placedStartNs`: camera.start_time = "auto", resolved (Daemon::placeVideoByMotion).
 std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, bool videoClock,
+                                        std::optional<std::int64_t> placedStartNs,
                                         std::string& error) {
   switch (c.source) {
     case DaemonConfig::Source::File: {
@@ -170,8 +172,8 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, bool vide
                                  error)) {
         return nullptr;
       }
-      std::optional<std::int64_t> start;
-      if (!c.startTime.empty()) {
+      std::optional<std::int64_t> start = placedStartNs;
+      if (!start && !c.startTime.empty()) {
         std::int64_t ns = 0;
         if (!parseUtcTime(c.startTime, ns)) {
           error = "camera.start_time: not an ISO 8601 UTC time or unix seconds: " + c.startTime;
@@ -663,10 +665,23 @@ bool Daemon::placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, boo
   std::atomic<bool> done{false};
   VideoSync sync;
   std::thread worker([&] {
-    sync = syncVideoWithTlog(req, &stop);
+    try {
+      sync = syncVideoWithTlog(req, &stop);
+    } catch (const std::exception& e) {  // never std::terminate from a worker
+      sync = VideoSync{};
+      sync.error = std::string("the pass over the video failed: ") + e.what();
+    }
     done.store(true);
   });
+  // Not ready before the camera starts: under systemd (Type=notify) a long pass would
+  // run into TimeoutStartSec, so the start timeout is pushed on while it runs.
+  auto lastExtend = std::chrono::steady_clock::now() - std::chrono::hours(1);
   while (!done.load()) {
+    if (std::chrono::steady_clock::now() - lastExtend > std::chrono::seconds(10)) {
+      notifier_.extendTimeout(std::chrono::seconds(30));
+      notifier_.status("placing the video in its tlog by their motion");
+      lastExtend = std::chrono::steady_clock::now();
+    }
     timespec wait{0, 50'000'000};
     const int sig = sigtimedwait(&sigs, nullptr, &wait);
     if (sig == SIGINT || sig == SIGTERM) {
@@ -687,10 +702,14 @@ bool Daemon::placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, boo
   // again at tagging, is taken out here.
   startNs = sync.videoStartUnixNs -
             static_cast<std::int64_t>(std::llround(config_.camera.timeOffsetMs * 1e6));
-  KF_LOG(App, Notice) << "video start " << formatUtcIso(sync.videoStartUnixNs) << " (correlation "
-                      << formatFixed(sync.match.correlation, 2) << ", next best "
-                      << formatFixed(sync.match.runnerUp, 2) << ", " << sync.turnsKnown << " of "
-                      << sync.frames << " frames turned measurably, "
+  KF_LOG(App, Notice) << "video start " << formatUtcIso(sync.videoStartUnixNs)
+                      << (startNs != sync.videoStartUnixNs
+                              ? " (container time 0 at " + formatUtcIso(startNs) +
+                                    " on the camera's clock: camera.time_offset_ms taken out)"
+                              : std::string())
+                      << " (correlation " << formatFixed(sync.match.correlation, 2)
+                      << ", next best " << formatFixed(sync.match.runnerUp, 2) << ", "
+                      << sync.turnsKnown << " of " << sync.frames << " frames turned measurably, "
                       << formatFixed(sync.seconds, 1) << " s)";
   return true;
 }
@@ -719,14 +738,14 @@ int Daemon::run() {
     KF_LOG(Tagging, Warning)
         << "no tagging.calibration or [tagging.camera]: keyframes carry no intrinsics";
   }
+  // camera.start_time = "auto" resolved; the setting stays "auto" (a reload compares it).
+  std::optional<std::int64_t> placedStartNs;
   if (config_.camera.source == DaemonConfig::Source::File && config_.camera.startTime == "auto") {
     std::int64_t startNs = 0;
     bool stopped = false;
     if (!placeVideoByMotion(sigs, startNs, stopped)) return 1;
     if (stopped) return 0;
-    char buf[64];
-    std::snprintf(buf, sizeof buf, "%.9f", static_cast<double>(startNs) / 1e9);
-    config_.camera.startTime = buf;  // as if given: the frames' clock from here on
+    placedStartNs = startNs;
   }
   // Frames on the video's own clock: a file replayed with its tlog (camera.start_time
   // + container time, the tlog's unix times), or read as fast as it decodes (container
@@ -736,7 +755,9 @@ int Daemon::run() {
   if (config_.camera.source == DaemonConfig::Source::File &&
       (isTlogUrl(config_.telemetry.link.url) || !config_.camera.realtime)) {
     std::int64_t ns = 0;
-    if (!config_.camera.startTime.empty() && parseUtcTime(config_.camera.startTime, ns)) {
+    if (placedStartNs) {
+      videoStartNs = placedStartNs;
+    } else if (!config_.camera.startTime.empty() && parseUtcTime(config_.camera.startTime, ns)) {
       videoStartNs = ns;  // checked at load; a tlog requires it
     } else {
       videoStartNs = 0;
@@ -747,7 +768,7 @@ int Daemon::run() {
   }
   videoClock_ = videoStartNs.has_value();
   if (videoStartNs) clockOffsetNs_.store(*videoStartNs - monotonicNowNs());  // until a frame
-  source_ = openSource(config_.camera, videoClock_, error);
+  source_ = openSource(config_.camera, videoClock_, placedStartNs, error);
   if (!source_) {
     KF_LOG(Capture, Error) << toString(config_.camera.source) << ": " << error;
     return 1;

@@ -1,5 +1,6 @@
 #include "app/video_sync.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -13,6 +14,8 @@ namespace keyframed {
 namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+// Longest tlog searched: a day at 20 ms is 4.3 million samples.
+constexpr std::int64_t kMaxSpanNs = 24LL * 3600 * 1'000'000'000;
 
 // The turn from attitude a to attitude b (camera -> NED) about the camera's own
 // optical axis (z), radians: the z part of the rotation vector of conj(a) * b.
@@ -80,7 +83,8 @@ VideoTurns measureVideoTurns(const VideoSyncRequest& req, const std::atomic<bool
     prevNs = frame.timestampNs;
     havePrev = true;
   }
-  if (out.frames < 2) out.error = req.video + ": too few frames to measure the camera's turns";
+  if (out.frames < 2 && (stop == nullptr || !stop->load()))
+    out.error = req.video + ": too few frames to measure the camera's turns";
   return out;
 }
 
@@ -117,21 +121,33 @@ VideoSync syncVideoWithTlog(const VideoSyncRequest& req, const std::atomic<bool>
       out.error = req.link.url + ": no MAVLink packets";
       return finish();
     }
+    // The span of the record times (a station's clock may step: not front and back).
     firstNs = packets.front().timeNs;
-    lastNs = packets.back().timeNs;
+    lastNs = firstNs;
+    for (const TimedPacket& p : packets) {
+      firstNs = std::min(firstNs, p.timeNs);
+      lastNs = std::max(lastNs, p.timeNs);
+    }
+    if (lastNs - firstNs > kMaxSpanNs) {
+      out.error = req.link.url +
+                  ": its record times span more than a day (a clock that stepped?): too long "
+                  "to search";
+      return finish();
+    }
     probe.stop();  // feeds the rest
     aheadNs = probe.decoder().recordClockAheadNs().value_or(0);
   }
 
+  const auto stopped = [stop] { return stop != nullptr && stop->load(); };
   VideoTurns turns = measureVideoTurns(req, stop);
   out.frames = turns.frames;
   out.turnsKnown = turns.known;
-  if (!turns.error.empty()) {
-    out.error = turns.error;
+  if (stopped()) {
+    out.error = "interrupted";
     return finish();
   }
-  if (stop != nullptr && stop->load()) {
-    out.error = "interrupted";
+  if (!turns.error.empty()) {
+    out.error = turns.error;
     return finish();
   }
 
@@ -148,6 +164,10 @@ VideoSync syncVideoWithTlog(const VideoSyncRequest& req, const std::atomic<bool>
   std::vector<double> rates;
   std::optional<Quaternion> prev;
   for (std::int64_t t = t0; t <= t1; t += stepNs) {
+    if ((t - t0) % (1000 * stepNs) == 0 && stopped()) {
+      out.error = "interrupted";
+      return finish();
+    }
     svc.advanceReplay(t);
     const Pose p = svc.decoder().poseAt(t);
     std::optional<Quaternion> cam;

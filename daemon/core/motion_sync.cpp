@@ -117,9 +117,16 @@ RateSeries resampleRates(const std::vector<double>& timesS, const std::vector<do
   return out;
 }
 
-MotionSyncResult findMotionLag(const RateSeries& video, const RateSeries& telemetry,
+MotionSyncResult findMotionLag(const RateSeries& videoIn, const RateSeries& telemetryIn,
                                const MotionSyncConfig& config) {
   MotionSyncResult r;
+  const auto plausible = [&](RateSeries s) {
+    for (double& v : s.values)
+      if (!(std::abs(v) <= config.maxRate)) v = kNaN;
+    return s;
+  };
+  const RateSeries video = plausible(videoIn);
+  const RateSeries telemetry = plausible(telemetryIn);
   const double step = video.stepS;
   if (!(step > 0) || std::abs(telemetry.stepS - step) > 1e-9 * step) {
     r.error = "the video's and the log's rates are not on one time step";

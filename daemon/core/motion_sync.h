@@ -35,6 +35,10 @@ struct MotionSyncConfig {
   // The video's rate must vary at least this much (standard deviation, rad/s, about
   // half a degree/s): a camera that never turned cannot be placed by its turns.
   double minRateStd = 0.0087;
+  // Rates beyond this (rad/s, about 570 degrees/s) are no turn a camera made: a step
+  // homography fitted to the wrong corners, an attitude estimate reset. Left out of
+  // both series, since one such spike would spoil the correlation at every lag near it.
+  double maxRate = 10.0;
 };
 
 struct MotionSyncResult {

@@ -109,7 +109,12 @@ void TelemetryService::advanceReplay(std::int64_t localNs) {
     if (now == ahead) break;
     ahead = now;
     const std::int64_t lead = kReplayLeadNs + std::min<std::int64_t>(ahead, kMax / 4);
-    const std::int64_t until = localNs > kMax - lead ? kMax : localNs + lead;
+    // Until SYSTEM_TIME says how far ahead the record times run, a frame time before
+    // the first record feeds the records' start: a station clock further ahead than
+    // the lead would otherwise never let the first SYSTEM_TIME through.
+    const std::int64_t base =
+        replayPackets_.empty() ? localNs : std::max(localNs, replayPackets_.front().timeNs);
+    const std::int64_t until = base > kMax - lead ? kMax : base + lead;
     for (; replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until;
          ++replayFed_) {
       const TimedPacket& p = replayPackets_[replayFed_];

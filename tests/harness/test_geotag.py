@@ -374,7 +374,7 @@ def test_tlog_without_system_time_takes_utc_from_its_records(
 
 
 @needs_exiftool
-@pytest.mark.parametrize("station_ahead_s", [2.0, -3.5])
+@pytest.mark.parametrize("station_ahead_s", [2.0, -3.5, 40.0])
 def test_a_tlog_recorded_on_a_wrong_clock_is_placed_by_gps_time(
     kf_bin: Path, short_nadir: Path, tmp_path: Path, station_ahead_s: float
 ) -> None:

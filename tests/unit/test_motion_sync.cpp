@@ -69,17 +69,52 @@ TEST(ResampleRates, InterpolatesAndLeavesGapsUnknown) {
 
 TEST(MotionLag, FindsWhereAClipSitsInALongLog) {
   RateSeries log = flightRates(90.0, 1);
-  log.startS = 1000.0;        // the log's own clock
-  const double from = 23.37;  // not a whole step: the parabola gets the rest
+  log.startS = 1000.0;  // the log's own clock
   RateSeries video = videoOf(log, 23.36, 40.0, 0.05, 2);
   video.startS = 0.01;  // the first rate lies between the first two frames
   const MotionSyncResult r = findMotionLag(video, log);
   ASSERT_TRUE(r.ok) << r.error;
   // video time 0.01 is log time 1000 + 23.36, so video time 0 is 1000 + 23.35
-  EXPECT_NEAR(r.lagS, 1000.0 + from - 0.02, 0.004);
+  EXPECT_NEAR(r.lagS, 1000.0 + 23.35, 0.004);
   EXPECT_GT(r.correlation, 0.9);
   EXPECT_LT(r.runnerUp, 0.5);
   EXPECT_GT(r.pairs, 1800);
+}
+
+TEST(MotionLag, PlacesAClipBetweenTwoSamplesOfTheLog) {
+  // The clip's samples fall 0.4 of a step after the log's: the lag found is a whole
+  // number of steps plus the parabola's fraction, within a tenth of a step.
+  const RateSeries log = flightRates(90.0, 14);
+  RateSeries video;
+  video.stepS = kStep;
+  const double from = 30.0 + 0.4 * kStep;
+  for (int i = 0; i < 1500; ++i) {
+    const double x = (from + i * kStep) / kStep;
+    const auto k = static_cast<std::size_t>(x);
+    const double w = x - static_cast<double>(k);
+    video.values.push_back(log.values[k] * (1.0 - w) + log.values[k + 1] * w);
+  }
+  const MotionSyncResult r = findMotionLag(video, log);
+  ASSERT_TRUE(r.ok) << r.error;
+  EXPECT_NEAR(r.lagS, from, 0.1 * kStep);
+  EXPECT_GT(std::abs(r.lagS - std::round(r.lagS / kStep) * kStep), 0.1 * kStep)
+      << "a whole step: the parabola did nothing";
+}
+
+TEST(MotionLag, ASpikeInEitherSeriesIsLeftOut) {
+  // A step homography fitted to the wrong corners (a half turn in a frame) and an
+  // attitude estimate reset: no camera turns at 50 rad/s; without the limit these
+  // two samples would outweigh the whole flight's turns.
+  RateSeries log = flightRates(90.0, 15);
+  RateSeries video = videoOf(log, 40.0, 30.0, 0.05, 16);
+  video.values[700] = 150.0;
+  log.values[1000] = -50.0;
+  const MotionSyncResult r = findMotionLag(video, log);
+  ASSERT_TRUE(r.ok) << r.error;
+  EXPECT_NEAR(r.lagS, 40.0, 0.004);
+  MotionSyncConfig unlimited;
+  unlimited.maxRate = 1e9;
+  EXPECT_FALSE(findMotionLag(video, log, unlimited).ok);
 }
 
 TEST(MotionLag, ToleratesAVideoStartingBeforeTheLog) {
@@ -134,6 +169,9 @@ TEST(MotionLag, RefusesAnotherFlightsLog) {
                           : video.values[i] + std::sin(static_cast<double>(i) * 0.011);
   const MotionSyncResult r = findMotionLag(video, log);
   EXPECT_FALSE(r.ok) << "placed at " << r.lagS << " with " << r.correlation;
+  EXPECT_TRUE(r.error.find("no lag lines") != std::string::npos ||
+              r.error.find("about as well") != std::string::npos)
+      << r.error;
 }
 
 TEST(MotionLag, RefusesAVideoLongerThanTheLog) {
