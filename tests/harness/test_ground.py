@@ -980,6 +980,29 @@ def test_resume_after_a_kill_mid_write(tagged: Path, tmp_path: Path) -> None:
     assert seqs == list(range(n))
 
 
+def test_a_line_cut_short_by_a_kill_costs_no_later_keyframe(tagged: Path, tmp_path: Path) -> None:
+    """Killed mid-line, resumed, killed again before the index was rewritten: the line
+    the second run appended does not run on from the cut one, so a third run still
+    knows every keyframe stored."""
+    from keyframed.ground import VehicleDataset
+
+    rows_ = rows(tagged)
+    jpeg = [(tagged / r["file"]).read_bytes() for r in rows_[:3]]
+    meta = [{"sequence": i, "file": r["file"]} for i, r in enumerate(rows_[:3])]
+    ds = VehicleDataset(tmp_path / "dataset", "uav6", None)
+    ds.add(meta[0], jpeg[0])
+    ds.add(meta[1], jpeg[1])
+    index = ds.dir / "keyframes.jsonl"
+    text = index.read_text()
+    index.write_text(text[: len(text) - 10])  # the kill: keyframe 1's line cut short
+    again = VehicleDataset(tmp_path / "dataset", "uav6", None)  # resumed
+    assert sorted(again.meta) == [("", 0)]
+    assert index.read_text().endswith("\n")
+    again.add(meta[2], jpeg[2])  # appended; killed again before finish()
+    third = VehicleDataset(tmp_path / "dataset", "uav6", None)
+    assert sorted(third.meta) == [("", 0), ("", 2)]  # 1 is fetched again by query
+
+
 def test_resume_computes_the_sift_features_an_earlier_run_did_not(
     tagged: Path, tmp_path: Path
 ) -> None:

@@ -703,7 +703,14 @@ class VehicleDataset:
             tmp.unlink(missing_ok=True)
         index = self.dir / "keyframes.jsonl"
         if index.exists():
-            for line in index.read_text().splitlines():
+            text = index.read_text()
+            if text and not text.endswith("\n"):
+                # A line cut short by a kill: dropped from the file, not only skipped,
+                # so that the next line appended does not run on from it (and be lost
+                # to the next resume).
+                text = text[: text.rfind("\n") + 1]
+                _write_atomic(index, text.encode())
+            for line in text.splitlines():
                 try:
                     m = json.loads(line)
                     if (self.images / m["file"]).exists():
