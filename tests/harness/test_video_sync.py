@@ -216,8 +216,9 @@ def test_the_daemon_answers_sigterm_while_placing_the_video(kf_bin: Path, tmp_pa
         f"telemetry.url=tlog:{big / 'flight.tlog'}",
     )
     lines: list[str] = []
-    assert proc.stderr is not None
-    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    err = proc.stderr
+    assert err is not None
+    reader = threading.Thread(target=lambda: lines.extend(err), daemon=True)
     reader.start()
     deadline = time.monotonic() + 30
     while not any("by their motion" in line for line in lines):
