@@ -119,15 +119,6 @@ double decodeCpuSeconds(const FrameSource& source) {
   return paced != nullptr ? paced->decodeCpuSeconds() : 0.0;
 }
 
-std::string utcStamp() {
-  const std::time_t t = std::time(nullptr);
-  std::tm tm{};
-  gmtime_r(&t, &tm);
-  char buf[32];
-  std::strftime(buf, sizeof buf, "%Y%m%dT%H%M%SZ", &tm);
-  return buf;
-}
-
 // <state_dir>/flights/<stamp>[-N], and <state_dir>/latest -> it.
 bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& error) {
   namespace fs = std::filesystem;
@@ -138,7 +129,7 @@ bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& e
     error = "cannot create " + flights.string() + ": " + ec.message();
     return false;
   }
-  const std::string stamp = utcStamp();
+  const std::string stamp = formatUtcCompact(unixNowNs(), false);
   fs::path p = flights / stamp;
   for (int n = 1; fs::exists(p); ++n) p = flights / (stamp + "-" + std::to_string(n));
   fs::create_directories(p / "keyframes", ec);

@@ -6,7 +6,6 @@
 #include <cmath>
 #include <csignal>
 #include <cstdio>
-#include <ctime>
 #include <filesystem>
 #include <optional>
 #include <thread>
@@ -117,20 +116,6 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
   return writeFileAtomically(path, std::string_view(buf), error);
 }
 
-// "20261203T142500.123Z": this run's start.
-std::string selectFlightId() {
-  const auto now = std::chrono::system_clock::now();
-  const std::time_t t = std::chrono::system_clock::to_time_t(now);
-  const auto ms =
-      std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()).count() % 1000;
-  std::tm tm{};
-  gmtime_r(&t, &tm);
-  char buf[40];
-  const std::size_t n = std::strftime(buf, sizeof buf, "%Y%m%dT%H%M%S", &tm);
-  std::snprintf(buf + n, sizeof buf - n, ".%03dZ", static_cast<int>(ms));
-  return buf;
-}
-
 std::atomic<bool> gStop{false};
 extern "C" void onSignal(int) {
   gStop.store(true);
@@ -148,6 +133,15 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   std::unique_ptr<FrameSource> source;
   FileSource* file = nullptr;
   McapReplaySource* replay = nullptr;
+  std::optional<CameraModel> calibrated;  // --calibration, read once for both passes
+  if (!opts.calibration.empty()) {
+    CameraModel model;
+    if (!loadCameraModel(opts.calibration, model, error)) {
+      s.error = error;
+      return s;
+    }
+    calibrated = model;
+  }
   if (opts.videoStartAuto && !isMcapFile(opts.video)) {
     // Where the video sits in the tlog, from the motion both recorded: a pass over the
     // video first.
@@ -159,14 +153,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     req.link.decoder.autopilotComponent = opts.autopilotComponent;
     req.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg, opts.mountGimbal};
     req.analysisWidth = opts.selector.analysisWidth;
-    if (!opts.calibration.empty()) {
-      CameraModel model;
-      if (!loadCameraModel(opts.calibration, model, error)) {
-        s.error = error;
-        return s;
-      }
-      req.camera = model;
-    }
+    req.camera = calibrated;
     if (!opts.quiet)
       std::fprintf(stderr, "placing the video in %s by its motion...\n", opts.telemetry.c_str());
     const VideoSync sync = syncVideoWithTlog(req, stop);
@@ -250,13 +237,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     return s;
   }
   std::optional<CameraModel> camera;
-  if (!opts.calibration.empty()) {
-    CameraModel model;
-    if (!loadCameraModel(opts.calibration, model, error)) {
-      s.error = error;
-      return s;
-    }
-    camera = model;
+  if (calibrated) {
+    camera = calibrated;
   } else if (replay != nullptr && replay->calibration()) {
     camera = replay->calibration();  // the intrinsics the flight was recorded with
   } else if (!opts.telemetry.empty()) {
@@ -377,7 +359,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   // A flight id of its own (the run's start, UTC to the ms): sequence numbers start at
   // 0 in every run, and a ground station that heard an earlier run of this vehicle
   // keeps the two apart rather than taking this one's keyframes for duplicates.
-  fo.flight = selectFlightId();
+  fo.flight = formatUtcCompact(unixNowNs(), true);
   fo.keyframeDir = opts.outDir;
   fo.offline = !opts.realtime;
   // The record's log times in unix time: --video-start times (with a tlog, paced in
@@ -392,9 +374,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     fo.unixOffsetNs = replay->unixOffsetNs();
     fo.startNs = replay->firstTimeNs();
   } else {
-    fo.unixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                          std::chrono::system_clock::now().time_since_epoch())
-                          .count();
+    fo.unixOffsetNs = unixNowNs();
   }
   fo.warn = [](const std::string& m) { KF_LOG(Output, Warning) << m; };
   fo.error = [](const std::string& m) { KF_LOG(Output, Error) << m; };

@@ -4,23 +4,45 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cstring>
 #include <ctime>
 
 namespace keyframed {
 
-std::string formatUtcIso(std::int64_t unixNs) {
+namespace {
+
+// `format` (strftime) of unixNs in UTC, then ".mmm" when millis, then "Z".
+std::string formatUtc(std::int64_t unixNs, const char* format, bool millis) {
   // Milliseconds, rounded down (floor, also before 1970).
   const std::int64_t ms = unixNs >= 0 ? unixNs / 1'000'000 : -((-unixNs + 999'999) / 1'000'000);
-  std::int64_t sec = ms >= 0 ? ms / 1000 : -((-ms + 999) / 1000);
-  const auto rest = static_cast<int>(ms - sec * 1000);
+  const std::int64_t sec = ms >= 0 ? ms / 1000 : -((-ms + 999) / 1000);
   const auto t = static_cast<std::time_t>(sec);
   std::tm tm{};
   if (gmtime_r(&t, &tm) == nullptr) return "?";
   char buf[64];
-  std::snprintf(buf, sizeof buf, "%04d-%02d-%02dT%02d:%02d:%02d.%03dZ", tm.tm_year + 1900,
-                tm.tm_mon + 1, tm.tm_mday, tm.tm_hour, tm.tm_min, tm.tm_sec, rest);
+  std::size_t n = std::strftime(buf, sizeof buf, format, &tm);
+  if (millis)
+    n += static_cast<std::size_t>(
+        std::snprintf(buf + n, sizeof buf - n, ".%03d", static_cast<int>(ms - sec * 1000)));
+  std::snprintf(buf + n, sizeof buf - n, "Z");
   return buf;
+}
+
+}  // namespace
+
+std::string formatUtcIso(std::int64_t unixNs) {
+  return formatUtc(unixNs, "%Y-%m-%dT%H:%M:%S", true);
+}
+
+std::string formatUtcCompact(std::int64_t unixNs, bool millis) {
+  return formatUtc(unixNs, "%Y%m%dT%H%M%S", millis);
+}
+
+std::int64_t unixNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
 }
 
 bool writeFileAtomically(const std::string& path, std::span<const std::uint8_t> bytes,

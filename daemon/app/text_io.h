@@ -37,6 +37,11 @@ inline std::string jsonEscape(std::string_view s) {
 
 // "2026-06-01T10:00:00.012Z": a unix time in ns as ISO 8601 UTC, to the millisecond.
 std::string formatUtcIso(std::int64_t unixNs);
+// "20260601T100000Z" (or "20260601T100000.012Z" with millis): the same, as flight ids
+// and file names have it.
+std::string formatUtcCompact(std::int64_t unixNs, bool millis);
+// The system clock now, unix ns.
+std::int64_t unixNowNs();
 
 // Writes path.tmp, syncs it to the disk and renames it to path (syncing the
 // directory too), so a reader never sees a partial file, nor a power cut an empty

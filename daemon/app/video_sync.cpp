@@ -63,22 +63,15 @@ VideoTurns measureVideoTurns(const VideoSyncRequest& req, const std::atomic<bool
       continue;
     }
     ++out.frames;
-    GrayView gray = luma.luma(frame);
-    if (req.analysisWidth > 0 && gray.width > req.analysisWidth) {
-      const int h = std::max(1, static_cast<int>(std::lround(static_cast<double>(gray.height) *
-                                                             req.analysisWidth / gray.width)));
-      gray = scaler.scale(gray, req.analysisWidth, h);
-    }
-    const OverlapResult r = estimator->observe(gray);
+    const OverlapResult r =
+        estimator->observe(scaler.scaleToWidth(luma.luma(frame), req.analysisWidth));
     const std::int64_t dtNs = frame.timestampNs - prevNs;
-    if (havePrev && dtNs > 0 && std::isfinite(r.stepRotationRad)) {
+    if (havePrev) {
+      const bool turned = dtNs > 0 && std::isfinite(r.stepRotationRad);
+      out.timesS.push_back((static_cast<double>(prevNs) + 0.5 * static_cast<double>(dtNs)) / 1e9);
       // A camera turning by +a about its optical axis turns the scene on its image by -a.
-      out.timesS.push_back((static_cast<double>(prevNs) + 0.5 * static_cast<double>(dtNs)) / 1e9);
-      out.rates.push_back(-r.stepRotationRad / (static_cast<double>(dtNs) / 1e9));
-      ++out.known;
-    } else if (havePrev) {
-      out.timesS.push_back((static_cast<double>(prevNs) + 0.5 * static_cast<double>(dtNs)) / 1e9);
-      out.rates.push_back(kNaN);
+      out.rates.push_back(turned ? -r.stepRotationRad / (static_cast<double>(dtNs) / 1e9) : kNaN);
+      if (turned) ++out.known;
     }
     prevNs = frame.timestampNs;
     havePrev = true;
@@ -104,6 +97,7 @@ VideoSync syncVideoWithTlog(const VideoSyncRequest& req, const std::atomic<bool>
   tc.camera = false;
   tc.timesync = false;
   std::int64_t firstNs = 0, lastNs = 0, aheadNs = 0;
+  std::vector<TimedPacket> packets;  // read once, replayed twice
   {
     TelemetryService probe(tc, CameraDescription{});
     std::string error;
@@ -116,7 +110,7 @@ VideoSync syncVideoWithTlog(const VideoSyncRequest& req, const std::atomic<bool>
           "--video-start auto needs a tlog: a live link's frames are stamped as they arrive";
       return finish();
     }
-    const auto& packets = probe.replayPackets();
+    packets = probe.replayPackets();
     if (packets.empty()) {
       out.error = req.link.url + ": no MAVLink packets";
       return finish();
@@ -152,11 +146,7 @@ VideoSync syncVideoWithTlog(const VideoSyncRequest& req, const std::atomic<bool>
   }
 
   TelemetryService svc(tc, CameraDescription{});
-  std::string error;
-  if (!svc.start(error)) {
-    out.error = error;
-    return finish();
-  }
+  svc.startFromPackets(std::move(packets), true);  // unix record times, as start() reads them
   const auto stepNs = static_cast<std::int64_t>(std::llround(req.stepS * 1e9));
   const std::int64_t t0 = firstNs - aheadNs;
   const std::int64_t t1 = lastNs - aheadNs;

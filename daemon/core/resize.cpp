@@ -156,6 +156,14 @@ void BilinearResizer::resize(GrayView src, cv::Size size, cv::Mat& dst) {
   }
 }
 
+GrayView DownScaler::scaleToWidth(GrayView src, int width) {
+  if (width <= 0 || src.width <= width) return src;
+  // At least a row (a 1920x1 frame would round to none).
+  const int h = std::max(
+      1, static_cast<int>(std::lround(static_cast<double>(src.height) * width / src.width)));
+  return scale(src, width, h);
+}
+
 GrayView DownScaler::scale(GrayView src, int width, int height) {
   if (src.width <= width) return src;
   std::size_t level = 0;

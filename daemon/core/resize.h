@@ -48,6 +48,8 @@ class DownScaler {
   // `src` scaled to width x height, or `src` itself when it is no wider than
   // `width`. The view stays valid until the next call.
   GrayView scale(GrayView src, int width, int height);
+  // `src` at `width` (0: as it is), the height in proportion (at least a row).
+  GrayView scaleToWidth(GrayView src, int width);
 
  private:
   std::vector<cv::Mat> halves_;

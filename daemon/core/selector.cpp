@@ -155,16 +155,10 @@ Decision KeyframeSelector::process(const Frame& frame) {
   d.sharp = blur.sharp;
   const std::int64_t t2 = now();
 
-  GrayView analysis = gray;
-  if (config_.analysisWidth > 0 && gray.width > config_.analysisWidth) {
-    // At least a row (a 1920x1 frame would round to none).
-    const int h = std::max(1, static_cast<int>(std::lround(static_cast<double>(gray.height) *
-                                                           config_.analysisWidth / gray.width)));
-    // Halve (2x2 average) while that stays above the target, then one
-    // bilinear step: 1920 -> 640 in a fraction of a direct INTER_AREA resize by
-    // 3, and no allocation once the sizes are known.
-    analysis = scaler_.scale(gray, config_.analysisWidth, h);
-  }
+  // Halve (2x2 average) while that stays above the target, then one bilinear step:
+  // 1920 -> 640 in a fraction of a direct INTER_AREA resize by 3, and no allocation
+  // once the sizes are known.
+  const GrayView analysis = scaler_.scaleToWidth(gray, config_.analysisWidth);
   const std::int64_t t3 = now();
 
   OverlapResult ov = overlap_->observe(analysis);
