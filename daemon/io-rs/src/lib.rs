@@ -16,6 +16,7 @@ use std::ffi::{c_char, c_int, c_void, CStr};
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
@@ -656,6 +657,8 @@ pub struct KfioPublisher {
 pub struct KfioQueryable {
     queryable: Option<zenoh::query::Queryable<()>>,
     worker: Option<JoinHandle<()>>,
+    // Set at undeclare: queries still waiting are dropped unanswered, not served.
+    stopping: Arc<AtomicBool>,
 }
 
 /// What a query callback answers with (valid only during the callback).
@@ -839,9 +842,19 @@ struct UserData(*mut c_void);
 // queryable's thread (documented in io_ffi.h).
 unsafe impl Send for UserData {}
 
-fn serve_queries(rx: Receiver<zenoh::query::Query>, f: KfioQueryFn, user: UserData) {
+fn serve_queries(
+    rx: Receiver<zenoh::query::Query>,
+    f: KfioQueryFn,
+    user: UserData,
+    stopping: Arc<AtomicBool>,
+) {
     let Some(f) = f else { return };
     while let Ok(query) = rx.recv() {
+        if stopping.load(Ordering::Acquire) {
+            // Undeclared: the rest of the queue is dropped, and zenoh ends each of
+            // those queries with no reply (the querier asks again elsewhere or later).
+            continue;
+        }
         let user = user.0;
         let _ = catch_unwind(AssertUnwindSafe(|| {
             let key = std::ffi::CString::new(query.key_expr().as_str()).unwrap_or_default();
@@ -891,19 +904,23 @@ pub unsafe extern "C" fn kfio_queryable_declare(
             .wait()
             .map_err(|e| format!("cannot declare queryable on '{key}': {e}"))?;
         let user = UserData(user);
+        let stopping = Arc::new(AtomicBool::new(false));
+        let worker_stopping = Arc::clone(&stopping);
         let worker = std::thread::Builder::new()
             .name("kfio-queryable".into())
-            .spawn(move || serve_queries(rx, callback, user))
+            .spawn(move || serve_queries(rx, callback, user, worker_stopping))
             .map_err(|e| format!("cannot start queryable thread: {e}"))?;
         Ok(Box::into_raw(Box::new(KfioQueryable {
             queryable: Some(queryable),
             worker: Some(worker),
+            stopping,
         })))
     })
 }
 
-/// Undeclares the queryable, waits for a callback in progress to return, and
-/// releases the handle: the callback is not called after this returns.
+/// Undeclares the queryable, drops the queries still waiting (unanswered), waits for
+/// a callback in progress to return, and releases the handle: the callback is not
+/// called after this returns.
 ///
 /// # Safety
 /// Pointer arguments follow the ABI rules at the top of this file.
@@ -915,6 +932,7 @@ pub unsafe extern "C" fn kfio_queryable_undeclare(queryable: *mut KfioQueryable)
     // SAFETY: made by kfio_queryable_declare, released only here.
     let mut q = unsafe { Box::from_raw(queryable) };
     guard_void(move || {
+        q.stopping.store(true, Ordering::Release);
         if let Some(qq) = q.queryable.take() {
             // Undeclaring drops the callback and with it the channel's sender.
             let _ = qq.undeclare().wait();
