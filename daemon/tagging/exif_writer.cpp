@@ -104,10 +104,14 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
                              ? cam.sensorHeightMm
                              : cam.sensorWidthMm * cam.height / std::max(cam.width, 1);
   if (sensorKnown) {
-    // Pixels per centimetre (FocalPlaneResolutionUnit 3).
-    exif["Exif.Photo.FocalPlaneXResolution"] = rational(cam.width / (cam.sensorWidthMm / 10), 1000);
-    exif["Exif.Photo.FocalPlaneYResolution"] = rational(cam.height / (sensorH / 10), 1000);
-    exif["Exif.Photo.FocalPlaneResolutionUnit"] = std::uint16_t{3};
+    // Pixels per millimetre (FocalPlaneResolutionUnit 4): COLMAP, OpenSfM/ODM and
+    // exiftool convert any unit, but the readers of Pix4D's PrincipalPoint (mm) that
+    // multispectral cameras ship take this value as pixels per mm whatever the unit.
+    // To 1e-6 px/mm (1 um pixels: 1000 px/mm, 1e9 of the 4.3e9 a rational holds), so
+    // that the principal point and focal length in pixels come back to 1e-8.
+    exif["Exif.Photo.FocalPlaneXResolution"] = rational(cam.width / cam.sensorWidthMm, 1000000);
+    exif["Exif.Photo.FocalPlaneYResolution"] = rational(cam.height / sensorH, 1000000);
+    exif["Exif.Photo.FocalPlaneResolutionUnit"] = std::uint16_t{4};
   }
   if (!cam.calibrated()) return;  // no fabricated intrinsics
   const bool fisheye = cam.lens == CameraModel::Lens::Fisheye;
@@ -121,6 +125,8 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
         format("%.6f", (cam.cx + 0.5) * pitchX) + "," + format("%.6f", (cam.cy + 0.5) * pitchY);
     xmp[fisheye ? "Xmp.Keyframed.FisheyeFocalLength" : "Xmp.Camera.PerspectiveFocalLength"] =
         format("%.6f", cam.fx * pitchX);
+    // Readers that also accept pixels look for the unit (MicaSense's writes it too).
+    if (!fisheye) xmp["Xmp.Camera.PerspectiveFocalLengthUnits"] = "mm";
   }
   const auto d = [&](std::size_t i) { return i < cam.distortion.size() ? cam.distortion[i] : 0.0; };
   std::string dist;
@@ -145,10 +151,15 @@ void writeTime(Exiv2::ExifData& exif, std::int64_t utcUs, bool gps) {
   gmtime_r(&t, &tm);
   char buf[32];
   std::strftime(buf, sizeof buf, "%Y:%m:%d %H:%M:%S", &tm);
+  // The JPEG is made on board at the capture: its DateTime is the same instant, and
+  // some readers (OpenDroneMap's) take the milliseconds from SubSecTime alone.
   exif["Exif.Photo.DateTimeOriginal"] = std::string(buf);
+  exif["Exif.Image.DateTime"] = std::string(buf);
   std::snprintf(buf, sizeof buf, "%03d", static_cast<int>(micros / 1000));
   exif["Exif.Photo.SubSecTimeOriginal"] = std::string(buf);
+  exif["Exif.Photo.SubSecTime"] = std::string(buf);
   exif["Exif.Photo.OffsetTimeOriginal"] = std::string("+00:00");
+  exif["Exif.Photo.OffsetTime"] = std::string("+00:00");
   if (!gps) return;
   Exiv2::URationalValue v;
   v.value_.push_back({static_cast<std::uint32_t>(tm.tm_hour), 1});

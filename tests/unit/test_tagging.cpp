@@ -142,11 +142,15 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   EXPECT_EQ(field(j, "ExifIFD:DateTimeOriginal"), "2026:06:01 10:00:00");
   EXPECT_EQ(field(j, "ExifIFD:SubSecTimeOriginal"), "123");
   EXPECT_EQ(field(j, "ExifIFD:OffsetTimeOriginal"), "+00:00");
+  EXPECT_EQ(field(j, "IFD0:ModifyDate"), "2026:06:01 10:00:00");
+  EXPECT_EQ(field(j, "ExifIFD:SubSecTime"), "123");
+  EXPECT_EQ(field(j, "ExifIFD:OffsetTime"), "+00:00");
   EXPECT_NEAR(number(j, "ExifIFD:FocalLength"), 6.0, 1e-9);
   EXPECT_EQ(field(j, "ExifIFD:FocalLengthIn35mmFormat"), "34");  // 300 * 36 / 320 = 33.75
-  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneXResolution"), 320 / 0.64, 1e-3);
-  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneYResolution"), 240 / 0.48, 1e-3);
-  EXPECT_EQ(field(j, "ExifIFD:FocalPlaneResolutionUnit"), "3");
+  // Pixels per mm (unit 4): 320 px over a 6.4 mm wide sensor.
+  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneXResolution"), 320 / 6.4, 1e-3);
+  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneYResolution"), 240 / 4.8, 1e-3);
+  EXPECT_EQ(field(j, "ExifIFD:FocalPlaneResolutionUnit"), "4");
   EXPECT_EQ(field(j, "ExifIFD:ExifImageWidth"), "320");
 
   EXPECT_NEAR(number(j, "XMP-Camera:Yaw"), 123.4567, 1e-3);
@@ -158,6 +162,10 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   EXPECT_EQ(field(j, "XMP-Camera:PerspectiveDistortion"), "-0.11,0.05,0.021,0.0012,-0.0034");
   EXPECT_EQ(field(j, "XMP-Camera:PrincipalPoint"), "3.200000,2.400000");
   EXPECT_NEAR(number(j, "XMP-Camera:PerspectiveFocalLength"), 6.0, 1e-6);
+  EXPECT_EQ(field(j, "XMP-Camera:PerspectiveFocalLengthUnits"), "mm");
+  // The principal point in mm times FocalPlaneXResolution is OpenCV's cx + 0.5, as a
+  // reader that takes the resolution as pixels per mm computes it.
+  EXPECT_NEAR(3.2 * number(j, "ExifIFD:FocalPlaneXResolution"), 160.0, 1e-3);
 }
 
 TEST_F(TaggingTest, FisheyeLensReadByExiftool) {
@@ -177,6 +185,7 @@ TEST_F(TaggingTest, FisheyeLensReadByExiftool) {
   EXPECT_NEAR(number(j, "XMP-Keyframed:FisheyeFocalLength"), 120.0 * 6.4 / 320, 1e-6);
   EXPECT_EQ(field(j, "XMP-Camera:PrincipalPoint"), "3.200000,2.400000");
   EXPECT_EQ(field(j, "XMP-Camera:PerspectiveFocalLength"), "");
+  EXPECT_EQ(field(j, "XMP-Camera:PerspectiveFocalLengthUnits"), "");
   EXPECT_EQ(field(j, "XMP-Camera:PerspectiveDistortion"), "");
   const std::string bytes(jpeg_.begin(), jpeg_.end());
   EXPECT_NE(bytes.find("xmlns:Keyframed=\"https://github.com/keyframed/keyframed/xmp/1.0/\""),
@@ -204,6 +213,8 @@ TEST_F(TaggingTest, SouthWestAndBelowSeaLevel) {
   EXPECT_EQ(field(j, "XMP-Camera:GPSZAccuracy"), "");  // no VDOP either
   // No camera, no time: none of their tags.
   EXPECT_EQ(field(j, "ExifIFD:DateTimeOriginal"), "");
+  EXPECT_EQ(field(j, "IFD0:ModifyDate"), "");
+  EXPECT_EQ(field(j, "ExifIFD:SubSecTime"), "");
   EXPECT_EQ(field(j, "GPS:GPSTimeStamp"), "");
   EXPECT_EQ(field(j, "IFD0:Make"), "");
 }
