@@ -77,21 +77,23 @@ bool parseUrl(const std::string& url, Url& out, std::string& error) {
   if (out.scheme == "serial") {
     out.host = rest;
     out.port = 57600;
+    // DEVICE:BAUD, where the baud rate is digits only: stable device names have
+    // colons of their own (/dev/serial/by-path/...-usb-0:1.3:1.0-port0).
     const auto c2 = rest.rfind(':');
-    if (c2 != std::string::npos) {
+    if (c2 != std::string::npos && c2 + 1 < rest.size() &&
+        rest.find_first_not_of("0123456789", c2 + 1) == std::string::npos) {
       const std::string baud = rest.substr(c2 + 1);
+      if (baud.size() > 8) return bad("baud rate '" + baud + "' is out of range");
       out.host = rest.substr(0, c2);
-      try {
-        out.port = std::stoi(baud);
-      } catch (...) {
-        return bad("baud rate '" + baud + "' is not a number");
-      }
+      out.port = std::stoi(baud);
     }
     static const int kBauds[] = {9600,   19200,  38400,  57600,  115200,
                                  230400, 460800, 500000, 921600, 1500000};
     bool ok = false;
     for (int b : kBauds) ok = ok || b == out.port;
-    if (!ok) return bad("unsupported baud rate " + std::to_string(out.port));
+    if (!ok)
+      return bad("unsupported baud rate " + std::to_string(out.port) +
+                 " (a device whose name ends in :N is given with its baud rate: DEVICE:57600)");
     if (out.host.empty()) return bad("no device");
     return true;
   }
@@ -247,9 +249,12 @@ class SerialLink final : public MavlinkLink {
   bool open(std::string& error) {
     fd_ = ::open(url_.host.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
     if (fd_ < 0) {
+      absent_ = errno == ENOENT || errno == ENODEV || errno == ENXIO;
       error = errnoText("cannot open serial port " + url_.host);
+      openError_ = error;
       return false;
     }
+    openError_.clear();
     termios tio{};
     if (tcgetattr(fd_, &tio) == 0) {  // not a tty (a pipe in tests): use as is
       cfmakeraw(&tio);
@@ -269,7 +274,7 @@ class SerialLink final : public MavlinkLink {
   Status read(std::uint8_t* buffer, std::size_t capacity, std::size_t& size, std::int64_t& timeNs,
               int timeoutMs, std::string& error) override {
     if (fd_ < 0) {
-      error = "serial port " + url_.host + " is closed";
+      error = openError_.empty() ? "serial port " + url_.host + " is closed" : openError_;
       return Status::Error;
     }
     // The rest of a frame cut short goes out as soon as there is room, not only
@@ -323,6 +328,8 @@ class SerialLink final : public MavlinkLink {
   [[nodiscard]] std::string describe() const override {
     return "serial:" + url_.host + ":" + std::to_string(url_.port);
   }
+  // The last open() failed because the device is not there.
+  [[nodiscard]] bool absent() const { return absent_; }
 
  private:
   void closeFd() {
@@ -346,6 +353,8 @@ class SerialLink final : public MavlinkLink {
 
   Url url_;
   int fd_ = -1;
+  bool absent_ = false;
+  std::string openError_;             // why the last open() failed
   std::vector<std::uint8_t> unsent_;  // the rest of a frame that a write cut short
 };
 
@@ -387,7 +396,8 @@ bool parseMavlinkUrl(const std::string& url, std::string& error) {
   return parseUrl(url, u, error);
 }
 
-std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string& error) {
+std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string& error,
+                                             bool serialMayBeAbsent) {
   Url u;
   if (!parseUrl(url, u, error)) return nullptr;
   if (u.scheme == "udpin" || u.scheme == "udpout") {
@@ -397,7 +407,7 @@ std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string
   }
   if (u.scheme == "serial") {
     auto link = std::make_unique<SerialLink>(u);
-    if (!link->open(error)) return nullptr;
+    if (!link->open(error) && !(serialMayBeAbsent && link->absent())) return nullptr;
     return link;
   }
   auto link = std::make_unique<TlogLink>(u);

@@ -45,7 +45,11 @@ class MavlinkLink {
 //   serial:DEVICE[:BAUD]  e.g. serial:/dev/ttyAMA0:921600 (default 57600)
 //   tlog:PATH             a MAVLink tlog, replayed with its recorded timestamps
 // (a bare path ending in .tlog means tlog:PATH, a bare /dev/... means serial).
-std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string& error);
+// `serialMayBeAbsent`: a serial device that is not there (yet: a USB autopilot powered
+// after the companion) is no failure: the link comes back unopened with `error` saying
+// why, its reads fail with that reason, and reopen() opens it once it appears.
+std::unique_ptr<MavlinkLink> openMavlinkLink(const std::string& url, std::string& error,
+                                             bool serialMayBeAbsent = false);
 
 // Validates a link URL without opening it (configuration checks).
 bool parseMavlinkUrl(const std::string& url, std::string& error);

@@ -53,8 +53,14 @@ TelemetryService::~TelemetryService() {
 }
 
 bool TelemetryService::start(std::string& error) {
-  auto link = openMavlinkLink(config_.url, error);
+  auto link = openMavlinkLink(config_.url, error, config_.waitForSerialDevice);
   if (!link) return false;
+  if (!error.empty()) {  // the device is not there yet
+    log(TelemetryLogLevel::Warning,
+        error + ": going on without telemetry; opened when it appears (tried every second)");
+    error.clear();
+    startUnopened_ = true;
+  }
   return start(std::move(link), error);
 }
 
@@ -643,8 +649,8 @@ void TelemetryService::run() {
   std::int64_t lastHeartbeat = 0;
   std::int64_t lastTimesync = 0;
   std::int64_t lastData = monotonicNowNs();
-  std::int64_t nextReopen = 0;
-  bool broken = false;
+  std::int64_t nextReopen = monotonicNowNs() + kSecond;
+  bool broken = startUnopened_;  // said at start(): reopened quietly until it is there
   bool silent = false;
   const std::string name = link_->describe();
   while (!stop_) {

@@ -62,6 +62,9 @@ struct TelemetryServiceConfig {
   double messageRateHz = 20.0;
   std::size_t maxPendingCaptures = 256;  // unsent CAMERA_IMAGE_CAPTURED kept for the link
   std::size_t captureHistory = 1024;     // sent ones kept for MAV_CMD_REQUEST_MESSAGE
+  // A serial device not there at start() (a USB autopilot powered after the
+  // companion) is no failure: said, and opened once it appears (tried every second).
+  bool waitForSerialDevice = false;
   TelemetryConfig decoder;
 };
 
@@ -187,6 +190,7 @@ class TelemetryService {
   std::unique_ptr<MavlinkEncoder> encoder_;
   std::thread thread_;
   std::atomic<bool> stop_{false};
+  bool startUnopened_ = false;  // the link's device was not there at start()
   std::mutex sinkMutex_;
   RawSink sink_;
   std::mutex logMutex_;

@@ -150,8 +150,9 @@ TEST(Config, SchemaCoversEveryMember) {
             keysIn("selection"));
   // [telemetry] is TelemetryServiceConfig (its decoder: TelemetryConfig, with a
   // PoseStore::Config and a ClockMapper::Config) plus two waits; telemetry.autopilot
-  // sets both the system and the component.
-  EXPECT_EQ(memberCount<DaemonConfig::Telemetry>() - 1 + memberCount<TelemetryServiceConfig>() - 1 +
+  // sets both the system and the component; waitForSerialDevice is no key (`run` waits
+  // for a serial device, `select` does not).
+  EXPECT_EQ(memberCount<DaemonConfig::Telemetry>() - 1 + memberCount<TelemetryServiceConfig>() - 2 +
                 memberCount<TelemetryConfig>() - 2 + memberCount<PoseStore::Config>() +
                 memberCount<ClockMapper::Config>() - 1,
             keysIn("telemetry"));

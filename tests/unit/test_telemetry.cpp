@@ -1128,6 +1128,16 @@ TEST(MavlinkLink, RejectsBadUrls) {
   EXPECT_FALSE(parseMavlinkUrl("tcp:1.2.3.4:5760", error));
   EXPECT_FALSE(openMavlinkLink("serial:/dev/does-not-exist:57600", error));
   EXPECT_NE(error.find("does-not-exist"), std::string::npos);
+  // A stable serial name has colons of its own: the whole of it is the device.
+  const std::string byPath = "/dev/serial/by-path/platform-xhci-usb-0:1.3:1.0-port0";
+  EXPECT_TRUE(parseMavlinkUrl(byPath, error)) << error;
+  EXPECT_FALSE(openMavlinkLink(byPath, error));
+  EXPECT_NE(error.find(byPath), std::string::npos) << error;
+  EXPECT_EQ(error.find("baud"), std::string::npos) << error;
+  EXPECT_FALSE(openMavlinkLink("serial:" + byPath + ":921600", error));
+  EXPECT_NE(error.find(byPath), std::string::npos) << error;
+  EXPECT_FALSE(parseMavlinkUrl("serial:/dev/ttyS0:99999999999", error));
+  EXPECT_NE(error.find("baud"), std::string::npos) << error;
 }
 
 }  // namespace

@@ -2,6 +2,7 @@
 // (CAMERA_IMAGE_CAPTURED, re-requests), MAVLink 1 framing, its log, and where udpin
 // replies go. Driven through an in-memory link (or real UDP sockets for udpin).
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <poll.h>
@@ -14,6 +15,7 @@
 #include <cmath>
 #include <condition_variable>
 #include <deque>
+#include <filesystem>
 #include <functional>
 #include <memory>
 #include <mutex>
@@ -662,6 +664,54 @@ TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
   EXPECT_EQ(svc.stats().reconnects, 1U);
   svc.stop();
   EXPECT_EQ(logged.count("autopilot clock"), 1);
+}
+
+TEST(TelemetryService, ASerialDeviceThatAppearsLaterIsOpenedThen) {
+  // A USB autopilot powered after the companion: its device is not there at start.
+  // The service starts anyway, says so once, and reads it once it appears (a
+  // pseudo-terminal, linked to the configured name).
+  const std::string dir = ::testing::TempDir() + "kf_serial_later_" + std::to_string(::getpid());
+  std::filesystem::create_directories(dir);
+  const std::string device = dir + "/ttyACM-autopilot";
+  std::filesystem::remove(device);
+  TelemetryServiceConfig cfg;
+  cfg.url = "serial:" + device + ":115200";
+  cfg.waitForSerialDevice = true;
+  TelemetryService svc(cfg, CameraDescription{});
+  LogCollector logged;
+  logged.attach(svc);
+  std::string error;
+  ASSERT_TRUE(svc.start(error)) << error;
+  EXPECT_EQ(logged.count("going on without telemetry"), 1) << logged.all();
+  const int master = ::posix_openpt(O_RDWR | O_NOCTTY);
+  char name[128] = {};
+  if (master < 0 || ::grantpt(master) != 0 || ::unlockpt(master) != 0 ||
+      ::ptsname_r(master, name, sizeof name) != 0) {
+    svc.stop();
+    GTEST_SKIP() << "no pseudo-terminal";
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(1200));  // a reopen or two fail
+  std::filesystem::create_symlink(name, device);
+  ASSERT_TRUE(eventually([&] { return svc.stats().reconnects == 1; }, 4000)) << logged.all();
+  MavlinkEncoder ap(1, 1);
+  const auto hb = quadHeartbeat(ap);
+  ASSERT_EQ(::write(master, hb.data(), hb.size()), static_cast<ssize_t>(hb.size()));
+  EXPECT_TRUE(eventually([&] { return svc.decoder().autopilotSystem() == 1; }, 3000));
+  svc.stop();
+  ::close(master);
+  // The failed attempts before it appeared were not each a warning.
+  EXPECT_EQ(logged.count("cannot open serial port"), 1) << logged.all();
+  EXPECT_EQ(svc.stats().linkErrors, 0U);
+  std::filesystem::remove_all(dir);
+}
+
+TEST(TelemetryService, ASerialDeviceMissingAtStartFailsWithoutWaitForSerialDevice) {
+  TelemetryServiceConfig cfg;
+  cfg.url = "serial:/dev/kf-no-such-autopilot:57600";
+  TelemetryService svc(cfg, CameraDescription{});
+  std::string error;
+  EXPECT_FALSE(svc.start(error));
+  EXPECT_NE(error.find("kf-no-such-autopilot"), std::string::npos) << error;
 }
 
 TEST(TelemetryService, AFrameCutShortBeforeAReopenDoesNotSwallowTheNext) {
