@@ -147,6 +147,29 @@ bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& e
   return true;
 }
 
+constexpr int kStateDirPermanent = 2;
+
+// 0 when stateDir/flights exists (made if need be) and may be written; else the error
+// and 2 when restarting will not help (read-only, not permitted), 1 when it may (a
+// full disk, an I/O error).
+int checkStateDir(const std::string& stateDir, std::string& error) {
+  namespace fs = std::filesystem;
+  const fs::path flights = fs::path(stateDir) / "flights";
+  std::error_code ec;
+  fs::create_directories(flights, ec);
+  int err = ec ? ec.value() : 0;
+  if (err == 0 && ::access(flights.c_str(), W_OK) != 0) err = errno;
+  if (err == 0) return 0;
+  error = "cannot write " + flights.string() + ": " + std::strerror(err);
+  if (err == EROFS || err == EACCES || err == EPERM) {
+    error +=
+        " (under systemd only the unit's StateDirectory, /var/lib/keyframed, is writable: "
+        "add the directory with ReadWritePaths= in a drop-in, docs/deploy.md)";
+    return kStateDirPermanent;
+  }
+  return 1;
+}
+
 // `videoClock`: a file replayed with its tlog, its frames stamped on the recorded
 // flight's clock (camera.start_time + container time) even when paced in real time.
 // `placedStartNs`: camera.start_time = "auto", resolved (Daemon::placeVideoByMotion).
@@ -291,12 +314,20 @@ class Daemon {
   void reload();
   void publishPose();
   bool writeSummary(double seconds, const std::string& state, std::string& error);
+  // Frames the camera could not deliver since the capture started (not those it could
+  // not deliver while its buffers held stale frames, before it).
+  [[nodiscard]] std::uint64_t lostInCamera() const {
+    const std::uint64_t lost = source_->lostFrames();
+    const std::uint64_t before = capture_ ? capture_->stats().lostBeforeStart : 0;
+    return lost > before ? lost - before : 0;
+  }
 
   DaemonConfig config_;
   ConfigSources sources_;
   Notifier notifier_;
   std::string flightDir_;
-  bool ready_ = false;  // READY=1 sent (the first frame arrived); main thread
+  bool ready_ = false;          // READY=1 sent (the first frame arrived); main thread
+  bool reloadPending_ = false;  // SIGHUP before the outputs were open; main thread
   // Frames on a recorded flight's clock (a file with its tlog) instead of CLOCK_MONOTONIC:
   // "now" on that clock is CLOCK_MONOTONIC + the offset found at the first frame.
   bool videoClock_ = false;
@@ -505,23 +536,23 @@ void Daemon::logTimestampOrigin() const {
 void Daemon::publishPose() {
   const std::int64_t t = frameClockNowNs() - 250'000'000;
   const Pose p = telemetry_->decoder().poseAt(t);
-  char buf[512];
+  std::string text;
   if (p.position && p.attitude) {
     const auto& g = *p.position;
     const auto& q = *p.attitude;
-    std::snprintf(buf, sizeof buf,
-                  "{\"time_ns\":%lld,\"lat\":%.9f,\"lon\":%.9f,\"alt_amsl\":%.3f,"
-                  "\"alt_rel\":%.3f,\"q\":[%.6f,%.6f,%.6f,%.6f],\"fix_type\":%d,"
-                  "\"keyframes\":%lld}",
-                  static_cast<long long>(t), g.latDeg, g.lonDeg, g.altAmslM, g.altRelM, q.w, q.x,
-                  q.y, q.z, p.gps.fixType, static_cast<long long>(stats_.written.load()));
+    text = formatText(
+        "{\"time_ns\":%lld,\"lat\":%.9f,\"lon\":%.9f,\"alt_amsl\":%.3f,"
+        "\"alt_rel\":%.3f,\"q\":[%.6f,%.6f,%.6f,%.6f],\"fix_type\":%d,"
+        "\"keyframes\":%lld}",
+        static_cast<long long>(t), g.latDeg, g.lonDeg, g.altAmslM, g.altRelM, q.w, q.x, q.y, q.z,
+        p.gps.fixType, static_cast<long long>(stats_.written.load()));
   } else {
     const std::string why = jsonEscape(p.staleReason);
-    std::snprintf(buf, sizeof buf, "{\"time_ns\":%lld,\"stale\":\"%s\",\"keyframes\":%lld}",
-                  static_cast<long long>(t), why.c_str(),
-                  static_cast<long long>(stats_.written.load()));
+    text = formatText("{\"time_ns\":%lld,\"stale\":\"%s\",\"keyframes\":%lld}",
+                      static_cast<long long>(t), why.c_str(),
+                      static_cast<long long>(stats_.written.load()));
   }
-  outputs_.telemetry(buf);
+  outputs_.telemetry(text);
 }
 
 void Daemon::reload() {
@@ -564,14 +595,12 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   const CaptureThread::Stats cs = capture_->stats();
   const StageCounts& c = finalCounts_;
   const std::uint64_t dropped = queue_->dropped() + cs.noBuffer;
-  const std::uint64_t lost = source_->lostFrames();
+  const std::uint64_t lost = lostInCamera();
   std::string tel = "null";
   if (telemetry_) {
     const TelemetryServiceStats ts = telemetry_->stats();
-    char b[1024];
     const auto off = telemetry_->decoder().clockOffsetNs();
-    std::snprintf(
-        b, sizeof b,
+    const std::string b = formatText(
         "\"geotagged\": %lld, \"clock\": \"%s\", "
         "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
         "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
@@ -604,12 +633,11 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   const SourceInfo& info = source_->info();
   const double cpu = cpuSeconds();
   const double decode = decodeCpuSeconds(*source_);
-  char buf[2048];
-  std::snprintf(
-      buf, sizeof buf,
+  const std::string counts = formatText(
       "  \"width\": %d,\n  \"height\": %d,\n"
       "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n"
-      "  \"frames_lost_in_camera\": %llu,\n  \"frames_read\": %lld,\n"
+      "  \"frames_lost_in_camera\": %llu,\n  \"frames_stale_at_start\": %llu,\n"
+      "  \"frames_read\": %lld,\n"
       "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"write_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
       "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
@@ -618,8 +646,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       "  \"max_rss_mb\": %.1f,\n",
       info.width, info.height, static_cast<unsigned long long>(cs.captured),
       static_cast<unsigned long long>(dropped), static_cast<unsigned long long>(lost),
-      static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
-      static_cast<long long>(writer_.saved()),
+      static_cast<unsigned long long>(cs.stale), static_cast<long long>(c.framesRead),
+      static_cast<long long>(c.kept), static_cast<long long>(writer_.saved()),
       static_cast<long long>(writer_.count() - writer_.saved()),
       static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
       static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
@@ -628,14 +656,12 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       c.framesRead > 0 ? c.analysisNs / static_cast<double>(c.framesRead) / 1e6 : 0.0, cpu,
       seconds > 0 ? 100.0 * cpu / seconds : 0.0, decode,
       seconds > 0 ? 100.0 * (cpu - decode) / seconds : 0.0, maxRssMb());
-  // The source's description (a file's path, a V4L2 card's name) is any text: escaped,
-  // and outside the fixed-size buffer.
-  char offset[64];
-  std::snprintf(offset, sizeof offset, "%.3f", config_.camera.timeOffsetMs);
+  // The source's description (a file's path, a V4L2 card's name) is any text: escaped.
+  const std::string offset = formatText("%.3f", config_.camera.timeOffsetMs);
   const std::string json = "{\n  \"state\": \"" + jsonEscape(state) + "\",\n  \"source\": \"" +
                            jsonEscape(info.description) + "\",\n  \"frame_timestamps\": \"" +
                            describe(source_->timestampOrigin()) +
-                           "\",\n  \"time_offset_ms\": " + offset + ",\n" + buf +
+                           "\",\n  \"time_offset_ms\": " + offset + ",\n" + counts +
                            "  \"telemetry\": " + tel + "\n}\n";
   return writeFileAtomically(flightDir_ + "/summary.json", std::string_view(json), error);
 }
@@ -681,7 +707,11 @@ bool Daemon::placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, boo
       stop.store(true);
       stopped = true;
     }
-    if (sig == SIGHUP) KF_LOG(App, Notice) << "SIGHUP: nothing to reload before the camera starts";
+    if (sig == SIGHUP) {
+      // Taken once the outputs are open (the record notes the new settings), not lost.
+      KF_LOG(App, Notice) << "SIGHUP: the configuration is reloaded once the video is placed";
+      reloadPending_ = true;
+    }
   }
   worker.join();
   if (stopped) return true;
@@ -716,6 +746,20 @@ int Daemon::run() {
   sigaddset(&sigs, SIGHUP);
   pthread_sigmask(SIG_BLOCK, &sigs, nullptr);
 
+  // A state directory the daemon may not write (read-only under the unit's
+  // ProtectSystem=strict, outside its StateDirectory) will not become writable by
+  // restarting: a configuration error, said before the camera is opened.
+  if (const int rc = checkStateDir(config_.output.stateDir, error); rc != 0) {
+    KF_LOG(Output, Error) << "output.state_dir: " << error;
+    return rc == kStateDirPermanent ? kExitConfig : 1;
+  }
+#ifndef KEYFRAMED_WITH_LIBCAMERA
+  if (config_.camera.source == DaemonConfig::Source::Libcamera) {
+    KF_LOG(Capture, Error) << "camera.source = \"libcamera\": this keyframed was built without "
+                              "libcamera (use \"v4l2\", or build with libcamera-dev installed)";
+    return kExitConfig;
+  }
+#endif
   if (!config_.tagging.calibration.empty()) {
     CameraModel m;
     if (!loadCameraModel(config_.tagging.calibration, m, error)) {
@@ -816,7 +860,11 @@ int Daemon::run() {
     // The autopilot's CAMERA_INFORMATION names the camera as the keyframes' EXIF does.
     if (!config_.tagging.make.empty()) cd.vendor = config_.tagging.make;
     if (!config_.tagging.model.empty()) cd.model = config_.tagging.model;
-    telemetry_ = std::make_unique<TelemetryService>(config_.telemetry.link, cd);
+    // An autopilot on USB may be powered after the companion: its serial device
+    // appears later, and the camera need not wait for it (nor restart for it).
+    TelemetryServiceConfig tc = config_.telemetry.link;
+    tc.waitForSerialDevice = true;
+    telemetry_ = std::make_unique<TelemetryService>(tc, cd);
     telemetry_->setGimbalMount(config_.tagging.mountGimbal);  // ask for its attitude too
     logTelemetryEvents(*telemetry_);
     // MAV_CMD_IMAGE_START_CAPTURE: the next sharp frame is a keyframe.
@@ -934,6 +982,10 @@ int Daemon::run() {
       *source_, *pool_, *queue_,
       config_.camera.source == DaemonConfig::Source::File ? kFileMaxErrors : 0);
 
+  if (reloadPending_) {  // a SIGHUP while the video was being placed
+    reloadPending_ = false;
+    reload();
+  }
   bool stopNow = false;  // a signal while waiting for telemetry: stop the usual way
   if (telemetry_ && !telemetry_->isReplay() && config_.telemetry.startWaitMs > 0) {
     // Keyframes taken before the autopilot is heard would go untagged: give the link
@@ -968,6 +1020,14 @@ int Daemon::run() {
   std::string state = "done";
   if (stopNow) {
     state = "stopped";
+  } else if (config_.camera.source != DaemonConfig::Source::File) {
+    // The camera has streamed since it opened: what its buffers hold now is from
+    // before the waits above (Zenoh, telemetry), and the first of it would become the
+    // first keyframe, out of date and before any pose. Frames exposed more than a
+    // frame period and a half before now are thrown away.
+    const double fps = sourceFps_ > 0.0 ? sourceFps_ : config_.camera.fps;
+    const auto period = static_cast<std::int64_t>(1.5e9 / (fps > 0.0 ? fps : 30.0));
+    capture_->start(monotonicNowNs() - period);
   } else {
     capture_->start();
   }
@@ -1011,7 +1071,7 @@ int Daemon::run() {
                     static_cast<double>(analysed - lastAnalysed) / el,
                     static_cast<long long>(stats_.written.load()),
                     static_cast<unsigned long long>(queue_->dropped() + capture_->stats().noBuffer +
-                                                    source_->lostFrames()),
+                                                    lostInCamera()),
                     framesArrive || !ready_ ? "" : ", no frames");
       notifier_.status(buf);
       lastStatus = now;
@@ -1076,7 +1136,7 @@ int Daemon::run() {
   }
   const CaptureThread::Stats cs = capture_->stats();
   KF_LOG(App, Notice) << "stopped (" << state << "): " << cs.captured << " frames captured, "
-                      << queue_->dropped() + cs.noBuffer << " dropped, " << source_->lostFrames()
+                      << queue_->dropped() + cs.noBuffer << " dropped, " << lostInCamera()
                       << " lost in the camera, " << writer_.count() << " keyframes in "
                       << flightDir_;
   const int rc = !ok || state == "capture_failed" || state == "failed" ? 1 : 0;

@@ -70,8 +70,9 @@ CaptureThread::~CaptureThread() {
   stop();
 }
 
-void CaptureThread::start() {
+void CaptureThread::start(std::int64_t discardBeforeNs) {
   if (thread_.joinable()) return;
+  discardBeforeNs_ = discardBeforeNs;
   stop_ = false;
   {
     std::lock_guard lock(stopMutex_);
@@ -147,6 +148,7 @@ void CaptureThread::loop() {
   std::chrono::nanoseconds backoff = kFirstBackoff;
   ErrorLog log;
   std::string error;
+  bool fresh = discardBeforeNs_ == std::numeric_limits<std::int64_t>::min();
   while (!stop_) {
     Frame frame;
     const auto called = Clock::now();
@@ -176,6 +178,16 @@ void CaptureThread::loop() {
     consecutiveErrors = 0;
     backoff = kFirstBackoff;
     log.frame();
+    if (!fresh) {
+      // Only until the first fresh frame: later timestamps are the stream's own.
+      std::lock_guard lock(mutex_);
+      if (frame.timestampNs < discardBeforeNs_) {
+        ++stats_.stale;
+        continue;
+      }
+      fresh = true;
+      stats_.lostBeforeStart = source_.lostFrames();
+    }
     FramePtr buffer = pool_.acquire();
     {
       std::lock_guard lock(mutex_);

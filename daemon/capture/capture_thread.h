@@ -4,6 +4,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -31,6 +32,12 @@ class CaptureThread {
     std::uint64_t captured = 0;  // frames read from the source
     std::uint64_t noBuffer = 0;  // frames dropped because every pooled buffer was in use
     std::uint64_t errors = 0;    // Error results from the source
+    // Frames the camera held from before start(discardBeforeNs): read and thrown away,
+    // not part of the stream (neither captured nor dropped).
+    std::uint64_t stale = 0;
+    // The source's lostFrames() at the first frame kept: what the camera could not
+    // deliver while nobody read it (its buffers full of stale frames), before start.
+    std::uint64_t lostBeforeStart = 0;
   };
 
   // `maxConsecutiveErrors`: 0 means never give up on a source that may recover
@@ -41,7 +48,11 @@ class CaptureThread {
   CaptureThread(const CaptureThread&) = delete;
   CaptureThread& operator=(const CaptureThread&) = delete;
 
-  void start();
+  // `discardBeforeNs`: a camera streams from its open(), and the frames its buffers
+  // hold when the capture starts (seconds later, after the telemetry wait) show the
+  // past: until the first frame stamped at or after this instant (the source's
+  // clock), frames are thrown away. The default keeps every frame.
+  void start(std::int64_t discardBeforeNs = std::numeric_limits<std::int64_t>::min());
   // Stops the thread and joins it: interrupts the source's next() (a camera
   // waiting for a frame returns at once; see FrameSource::interrupt, which is for
   // good) and any back-off wait.
@@ -71,6 +82,7 @@ class CaptureThread {
   FramePool& pool_;
   FrameQueue& queue_;
   int maxConsecutiveErrors_;
+  std::int64_t discardBeforeNs_ = std::numeric_limits<std::int64_t>::min();
   std::thread thread_;
   std::atomic<bool> stop_{false};
   std::atomic<bool> running_{false};

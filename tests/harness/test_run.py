@@ -665,6 +665,14 @@ def test_sigterm_while_a_silent_pipe_blocks_the_read_still_flushes(
         (["camera.nonsense=1"], "camera.nonsense", 78),
         (["tagging.calibration=/nonexistent/cal.yaml"], "cal.yaml", 78),
         (["zenoh.config=/nonexistent/zenoh.json5"], "zenoh.config", 78),
+        # a state directory it may not write (read-only under the unit's
+        # ProtectSystem=strict; here sysfs, which even root may not write): not restarted
+        # (said before the camera is opened: the missing video is not reached)
+        (
+            ["output.state_dir=/sys/keyframed-test", "camera.path=/nonexistent/flight.avi"],
+            "output.state_dir",
+            78,
+        ),
     ],
 )
 def test_bad_input_is_a_clear_error(

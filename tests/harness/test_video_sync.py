@@ -237,6 +237,49 @@ def test_the_daemon_answers_sigterm_while_placing_the_video(kf_bin: Path, tmp_pa
     assert "stopping before the video was placed" in stderr, stderr
 
 
+def test_a_sighup_while_placing_the_video_is_taken_once_it_is_placed(
+    kf_bin: Path, tmp_path: Path
+) -> None:
+    """A reload asked for during the pass is not lost: it runs once the outputs are open."""
+    big = flight("nadir")
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={big / 'video.avi'}",
+        "camera.start_time=auto",
+        f"telemetry.url=tlog:{big / 'flight.tlog'}",
+    )
+    lines: list[str] = []
+    err = proc.stderr
+    assert err is not None
+    reader = threading.Thread(target=lambda: lines.extend(err), daemon=True)
+    reader.start()
+
+    def wait_for(text: str, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while not any(text in line for line in lines):
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
+            time.sleep(0.05)
+
+    try:
+        wait_for("by their motion", 30)
+        time.sleep(0.3)  # into the pass over the video
+        proc.send_signal(signal.SIGHUP)
+        wait_for("reloaded once the video is placed", 10)
+        wait_for("reload: selection settings unchanged", 120)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    reader.join(timeout=5)
+    stderr = "".join(lines)
+    assert proc.returncode == 0, stderr
+    placed = stderr.index("video start 2026-06-01T10:00:0")
+    assert stderr.index("reload: selection settings unchanged") > placed, stderr
+
+
 def test_the_daemon_refuses_auto_without_a_tlog(kf_bin: Path, clip: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, f"camera.path={clip}", "camera.start_time=auto")
     _, stderr = proc.communicate(timeout=60)

@@ -297,6 +297,64 @@ TEST(CaptureThread, DeliversCopiesInOrderAndClosesAtEnd) {
   EXPECT_LE(pool.created(), 8u);
 }
 
+TEST(CaptureThread, FramesHeldFromBeforeTheStartAreThrownAway) {
+  // A camera streaming since its open: its 4 buffers hold frames of t = 1..4 s, it
+  // could not deliver 96 more while nobody read, then frames come from t = 10 s on.
+  class HeldFrames final : public FrameSource {
+   public:
+    HeldFrames() {
+      info_.width = 16;
+      info_.height = 8;
+      pixels_.assign(16 * 8, 0);
+    }
+    const SourceInfo& info() const override { return info_; }
+    ReadStatus next(Frame& f, std::string&) override {
+      if (n_ >= 20) return ReadStatus::End;
+      std::int64_t ts = n_ < 4 ? (1 + n_) * 1'000'000'000LL : 10'000'000'000LL + n_ * 33'000'000LL;
+      if (n_ == 12) ts = 5'000'000'000LL;  // a clock step later on: the stream's own business
+      if (n_ == 4) lost_ = 96;
+      f = Frame{PixelFormat::Gray8, pixels_.data(), 16, 8, 16, ts, n_};
+      ++n_;
+      return ReadStatus::Frame;
+    }
+    std::uint64_t lostFrames() const override { return lost_; }
+
+   private:
+    SourceInfo info_;
+    std::vector<std::uint8_t> pixels_;
+    int n_ = 0;
+    std::atomic<std::uint64_t> lost_{0};
+  };
+  HeldFrames src;
+  FramePool pool(32);
+  FrameQueue q(32);
+  CaptureThread capture(src, pool, q);
+  capture.start(10'000'000'000LL - 50'000'000LL);
+  std::vector<std::int64_t> seen;
+  while (auto f = q.pop()) seen.push_back((*f)->frame.index);
+  capture.stop();
+  std::vector<std::int64_t> expected;
+  for (std::int64_t i = 4; i < 20; ++i) expected.push_back(i);
+  EXPECT_EQ(seen, expected);
+  const auto st = capture.stats();
+  EXPECT_EQ(st.stale, 4u);
+  EXPECT_EQ(st.captured, 16u);
+  EXPECT_EQ(st.lostBeforeStart, 96u);
+}
+
+TEST(CaptureThread, KeepsEveryFrameByDefault) {
+  CountingSource src(50);
+  FramePool pool(64);
+  FrameQueue q(64);
+  CaptureThread capture(src, pool, q);
+  capture.start();  // CountingSource stamps frames from 0 ns: none is "stale"
+  std::size_t n = 0;
+  while (q.pop()) ++n;
+  capture.stop();
+  EXPECT_EQ(n, 50u);
+  EXPECT_EQ(capture.stats().stale, 0u);
+}
+
 TEST(CaptureThread, GivesUpAfterConsecutiveErrors) {
   class Failing final : public FrameSource {
    public:
