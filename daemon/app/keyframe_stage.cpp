@@ -39,8 +39,10 @@ void KeyframeStage::process(const Frame& frame) {
     --(candidateBlur_ ? counts_.rejectedBlur : counts_.rejectedOverlap);
     candidateIndex_ = -1;
   }
-  // Featureless frames count with the redundant ones: nothing new to measure.
-  const bool blur = d.reason == Reason::Blurry || d.reason == Reason::Lost;
+  // Featureless frames count with the redundant ones: nothing new to measure. A frame
+  // dropped while tracking is lost counts as blurred only when it is: a sharp one was
+  // turned down by the overlap stage (no chain to measure it against yet).
+  const bool blur = d.reason == Reason::Blurry || (d.reason == Reason::Lost && !d.sharp);
   if (d.kept) {
     ev.keyframe = copyOf(frame);
     ++counts_.kept;

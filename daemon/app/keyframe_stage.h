@@ -23,7 +23,7 @@ struct KeyframeEvent {
 struct StageCounts {
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
-  std::int64_t rejectedBlur = 0;     // Reason::Blurry or Lost, never promoted
+  std::int64_t rejectedBlur = 0;     // Reason::Blurry, or Lost and not sharp; never promoted
   std::int64_t rejectedOverlap = 0;  // Reason::Redundant, never promoted
   std::int64_t promoted = 0;         // kept later as gap fills (included in kept)
   double analysisNs = 0.0;           // selector time, summed

@@ -35,63 +35,59 @@ namespace {
 
 bool writeSummary(const std::string& path, const SelectOptions& o, const SourceInfo& info,
                   const SelectSummary& s, std::string& error) {
-  char tel[2048] = "null";
+  std::string tel = "null";
   if (!s.telemetry.source.empty()) {
-    std::snprintf(tel, sizeof tel,
-                  "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
-                  "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
-                  "    \"record_clock_ahead_ms\": %s,\n"
-                  "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
-                  "    \"unknown_ids\": %llu,\n"
-                  "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
-                  "    \"gimbal_messages\": %llu,\n    \"bad_samples\": %llu,\n"
-                  "    \"autopilot_reboots\": %llu,\n"
-                  "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
-                  "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
-                  "    \"captures_requested\": %llu,\n    \"captures_refused\": %llu,\n"
-                  "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
-                  "    \"truncated\": %s\n  }",
-                  jsonEscape(s.telemetry.source).c_str(),
-                  static_cast<long long>(s.telemetry.geotagged), s.telemetry.clock.c_str(),
-                  s.telemetry.clockOffsetMs.c_str(), s.telemetry.recordClockAheadMs.c_str(),
-                  static_cast<unsigned long long>(s.telemetry.messages),
-                  static_cast<unsigned long long>(s.telemetry.rejected),
-                  static_cast<unsigned long long>(s.telemetry.unknownIds),
-                  static_cast<unsigned long long>(s.telemetry.skippedBytes),
-                  static_cast<unsigned long long>(s.telemetry.otherSources),
-                  static_cast<unsigned long long>(s.telemetry.gimbal),
-                  static_cast<unsigned long long>(s.telemetry.badSamples),
-                  static_cast<unsigned long long>(s.telemetry.reboots),
-                  static_cast<unsigned long long>(s.telemetry.capturesSent),
-                  static_cast<unsigned long long>(s.telemetry.capturesPending),
-                  static_cast<unsigned long long>(s.telemetry.capturesDropped),
-                  static_cast<unsigned long long>(s.telemetry.capturesResent),
-                  static_cast<unsigned long long>(s.telemetry.capturesRequested),
-                  static_cast<unsigned long long>(s.telemetry.capturesRefused),
-                  static_cast<unsigned long long>(s.telemetry.linkErrors),
-                  static_cast<unsigned long long>(s.telemetry.reconnects),
-                  s.telemetry.truncated ? "true" : "false");
+    tel = formatText(
+        "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
+        "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
+        "    \"record_clock_ahead_ms\": %s,\n"
+        "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
+        "    \"unknown_ids\": %llu,\n"
+        "    \"skipped_bytes\": %llu,\n    \"other_sources\": %llu,\n"
+        "    \"gimbal_messages\": %llu,\n    \"bad_samples\": %llu,\n"
+        "    \"autopilot_reboots\": %llu,\n"
+        "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
+        "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
+        "    \"captures_requested\": %llu,\n    \"captures_refused\": %llu,\n"
+        "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
+        "    \"truncated\": %s\n  }",
+        jsonEscape(s.telemetry.source).c_str(), static_cast<long long>(s.telemetry.geotagged),
+        s.telemetry.clock.c_str(), s.telemetry.clockOffsetMs.c_str(),
+        s.telemetry.recordClockAheadMs.c_str(),
+        static_cast<unsigned long long>(s.telemetry.messages),
+        static_cast<unsigned long long>(s.telemetry.rejected),
+        static_cast<unsigned long long>(s.telemetry.unknownIds),
+        static_cast<unsigned long long>(s.telemetry.skippedBytes),
+        static_cast<unsigned long long>(s.telemetry.otherSources),
+        static_cast<unsigned long long>(s.telemetry.gimbal),
+        static_cast<unsigned long long>(s.telemetry.badSamples),
+        static_cast<unsigned long long>(s.telemetry.reboots),
+        static_cast<unsigned long long>(s.telemetry.capturesSent),
+        static_cast<unsigned long long>(s.telemetry.capturesPending),
+        static_cast<unsigned long long>(s.telemetry.capturesDropped),
+        static_cast<unsigned long long>(s.telemetry.capturesResent),
+        static_cast<unsigned long long>(s.telemetry.capturesRequested),
+        static_cast<unsigned long long>(s.telemetry.capturesRefused),
+        static_cast<unsigned long long>(s.telemetry.linkErrors),
+        static_cast<unsigned long long>(s.telemetry.reconnects),
+        s.telemetry.truncated ? "true" : "false");
   }
-  char start[512] = "null";
+  std::string start = "null";
   if (!s.videoStart.method.empty()) {
     const std::int64_t ns = s.videoStart.unixNs;
     const long long sec = ns >= 0 ? ns / 1'000'000'000 : -((-ns + 999'999'999) / 1'000'000'000);
     const long long frac = ns - sec * 1'000'000'000LL;
     if (s.videoStart.method == "motion") {
-      std::snprintf(start, sizeof start,
-                    "{\"method\": \"motion\", \"unix_s\": %lld.%09lld, \"correlation\": %.3f, "
-                    "\"runner_up\": %.3f, \"seconds\": %.3f}",
-                    sec, frac, s.videoStart.correlation, s.videoStart.runnerUp,
-                    s.videoStart.seconds);
+      start = formatText(
+          "{\"method\": \"motion\", \"unix_s\": %lld.%09lld, \"correlation\": %.3f, "
+          "\"runner_up\": %.3f, \"seconds\": %.3f}",
+          sec, frac, s.videoStart.correlation, s.videoStart.runnerUp, s.videoStart.seconds);
     } else {
-      std::snprintf(start, sizeof start, "{\"method\": \"given\", \"unix_s\": %lld.%09lld}", sec,
-                    frac);
+      start = formatText("{\"method\": \"given\", \"unix_s\": %lld.%09lld}", sec, frac);
     }
   }
   const SelectorConfig& c = o.selector;
-  char buf[8192];
-  std::snprintf(
-      buf, sizeof buf,
+  const std::string text = formatText(
       "{\n  \"video\": \"%s\",\n  \"width\": %d,\n  \"height\": %d,\n  \"source_fps\": %.3f,\n"
       "  \"frames_read\": %lld,\n  \"kept\": %lld,\n  \"rejected_blur\": %lld,\n"
       "  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n  \"seconds\": %.3f,\n"
@@ -109,11 +105,12 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
       static_cast<long long>(s.promoted), s.seconds, s.framesPerSecond, s.analysisMsMean,
       s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(),
-      tel, start, toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh, c.analysisWidth,
-      c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
-      c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
-      c.blur.analysisWidth, c.overlap.orbFeatures, c.overlap.paperThreshold);
-  return writeFileAtomically(path, std::string_view(buf), error);
+      tel.c_str(), start.c_str(), toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh,
+      c.analysisWidth, c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute",
+      c.blur.absoluteThreshold, c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window,
+      c.blur.rowStep, c.blur.colStep, c.blur.analysisWidth, c.overlap.orbFeatures,
+      c.overlap.paperThreshold);
+  return writeFileAtomically(path, std::string_view(text), error);
 }
 
 std::atomic<bool> gStop{false};
@@ -419,6 +416,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   };
   const auto start = std::chrono::steady_clock::now();
   auto lastProgress = start;
+  std::optional<std::int64_t> firstFrameNs;
+  std::int64_t lastFrameNs = 0;
   Frame frame;
   while (true) {
     if (stop != nullptr && stop->load()) {
@@ -436,6 +435,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       s.truncated = file != nullptr && file->truncated();
       break;
     }
+    if (!firstFrameNs) firstFrameNs = frame.timestampNs;
+    lastFrameNs = frame.timestampNs;
     rerecordMavlink(frame.timestampNs);
     if (replay != nullptr && outputs.recording())
       outputs.preview(frame.timestampNs, replay->encoded(), replay->format().c_str());
@@ -521,6 +522,28 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.telemetry.linkErrors = ts.linkErrors;
     s.telemetry.reconnects = ts.reconnects;
     s.telemetry.truncated = ts.truncated;
+    // A tlog that does not cover the video at all: a wrong --video-start (local time
+    // taken for UTC, another day), or another flight's log. Every keyframe is written,
+    // none could be tagged: a failure of what was asked for, said with the two spans.
+    const auto& packets = telemetry->replayPackets();
+    if (replay == nullptr && telemetry->isReplay() && firstFrameNs && !packets.empty() &&
+        s.kept > 0 && s.telemetry.geotagged == 0 && s.error.empty()) {
+      const std::int64_t ahead = telemetry->decoder().recordClockAheadNs().value_or(0);
+      const std::int64_t tlogFirst = packets.front().timeNs - ahead;
+      const std::int64_t tlogLast = packets.back().timeNs - ahead;
+      if (lastFrameNs < tlogFirst || *firstFrameNs > tlogLast) {
+        s.error = "no keyframe could be geotagged: the video (" + formatUtcIso(*firstFrameNs) +
+                  " to " + formatUtcIso(lastFrameNs) + ") lies outside the tlog's telemetry (" +
+                  formatUtcIso(tlogFirst) + " to " + formatUtcIso(tlogLast) +
+                  "): check --video-start (UTC; a time without a zone is taken as UTC), or "
+                  "use --video-start auto";
+      } else {
+        std::fprintf(stderr,
+                     "keyframed select: warning: none of the %lld keyframes was geotagged; why: "
+                     "the geotag column of %s/keyframes.csv\n",
+                     static_cast<long long>(s.kept), opts.outDir.c_str());
+      }
+    }
   }
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;

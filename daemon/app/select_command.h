@@ -12,7 +12,7 @@ namespace keyframed {
 struct SelectSummary {
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
-  std::int64_t rejectedBlur = 0;     // Reason::Blurry or Lost, never promoted
+  std::int64_t rejectedBlur = 0;     // Reason::Blurry, or Lost and not sharp; never promoted
   std::int64_t rejectedOverlap = 0;  // Reason::Redundant, never promoted
   std::int64_t promoted = 0;         // kept later as gap fills (included in kept)
   double seconds = 0.0;              // wall time of the run

@@ -5,6 +5,7 @@
 
 #include <cerrno>
 #include <chrono>
+#include <cstdarg>
 #include <cstring>
 #include <ctime>
 
@@ -37,6 +38,22 @@ std::string formatUtcIso(std::int64_t unixNs) {
 
 std::string formatUtcCompact(std::int64_t unixNs, bool millis) {
   return formatUtc(unixNs, "%Y%m%dT%H%M%S", millis);
+}
+
+std::string formatText(const char* format, ...) {
+  va_list args;
+  va_start(args, format);
+  va_list again;
+  va_copy(again, args);
+  const int n = std::vsnprintf(nullptr, 0, format, args);
+  va_end(args);
+  std::string out;
+  if (n > 0) {
+    out.resize(static_cast<std::size_t>(n));
+    std::vsnprintf(out.data(), out.size() + 1, format, again);
+  }
+  va_end(again);
+  return out;
 }
 
 std::int64_t unixNowNs() {

@@ -35,6 +35,10 @@ inline std::string jsonEscape(std::string_view s) {
   return out;
 }
 
+// printf into a std::string of whatever length it takes (no fixed buffer to cut a
+// long path short).
+std::string formatText(const char* format, ...) __attribute__((format(printf, 1, 2)));
+
 // "2026-06-01T10:00:00.012Z": a unix time in ns as ISO 8601 UTC, to the millisecond.
 std::string formatUtcIso(std::int64_t unixNs);
 // "20260601T100000Z" (or "20260601T100000.012Z" with millis): the same, as flight ids

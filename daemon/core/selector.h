@@ -28,7 +28,8 @@ enum class Reason {
                   //   the band's lower edge even though it is not sharp
   Blurry,         // dropped: sharpness under the threshold
   Redundant,      // dropped: overlap still above the target (or distance under t)
-  Lost,           // dropped: tracking lost and the frame is not sharp
+  Lost,           // dropped: tracking was lost and this frame cannot start a new chain
+                  //   (blurry, or not yet tracked from the frame before it)
   Featureless,    // dropped: the last keyframe had too little texture to track (water,
                   //   sky, a uniform field), and so has this frame: no overlap to
                   //   measure, and no reason to keep it over the keyframe

@@ -44,7 +44,12 @@ def test_select_writes_keyframes_decisions_and_summary(kf_bin: Path, pan_video: 
         summary["kept"] + summary["rejected_blur"] + summary["rejected_overlap"]
         == summary["frames_read"]
     )
-    blur = [r for r in rows if r["kept"] == "0" and r["reason"] in ("blurry", "lost")]
+    blur = [
+        r
+        for r in rows
+        if r["kept"] == "0"
+        and (r["reason"] == "blurry" or (r["reason"] == "lost" and r["sharp"] == "0"))
+    ]
     assert summary["rejected_blur"] == len(blur)
     assert summary["frames_per_second"] > 0
     assert "keyframes:" in p.stdout and str(out) in p.stdout

@@ -521,6 +521,44 @@ def test_truncated_tlog_tags_what_it_covers(
     assert all(k["lat"] == "" for k in stale)
 
 
+def test_a_video_start_outside_the_tlog_is_an_error(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """Local time given for UTC (here two hours off): the tlog does not cover the video,
+    no keyframe can be tagged. The keyframes are written all the same, and the run
+    fails naming both spans, rather than exit 0 with nothing geotagged."""
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        str(short_nadir / "flight.tlog"),
+        "--video-start",
+        "2026-06-01T12:00:00",
+    )
+    assert r.returncode == 3, r.stderr
+    assert "lies outside the tlog's telemetry" in r.stderr, r.stderr
+    assert "(2026-06-01T12:00:00.000Z to" in r.stderr, r.stderr
+    kfs = keyframes(out)
+    assert kfs and all(k["geotag"] != "ok" for k in kfs)
+    assert all((out / k["file"]).is_file() for k in kfs)
+    summary = json.loads((out / "summary.json").read_text())
+    assert "outside the tlog" in summary["error"]
+    # The right start: the same command tags them.
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        tmp_path / "right",
+        "--telemetry",
+        str(short_nadir / "flight.tlog"),
+        "--video-start",
+        "2026-06-01T10:00:00",
+    )
+    assert r.returncode == 0, r.stderr
+    assert all(k["geotag"] == "ok" for k in keyframes(tmp_path / "right"))
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

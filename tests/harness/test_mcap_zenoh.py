@@ -351,6 +351,8 @@ def test_two_select_runs_of_one_vehicle_reach_a_ground_station_apart(
     sent = [(out / row["file"]).read_bytes() for out in runs for row in keyframe_rows(out)]
     assert len(keyframe_rows(runs[0])) >= 2 and len(keyframe_rows(runs[1])) >= 2
     assert summary["keyframes"] == len(sent) and summary["missing"] == [], summary
+    assert summary["last_flight_ended"] is True, summary  # the second run's final status
+    assert "has not ended" not in stderr, stderr
     stored = [p.read_bytes() for p in (dataset / "uav9" / "images").glob("*.jpg")]
     assert sorted(stored) == sorted(sent)
     with (dataset / "uav9" / "keyframes.jsonl").open() as fh:

@@ -232,6 +232,38 @@ TEST(CaptureRequests, OneLimitForThoseOnTheirWayAndThoseWaitingAndIntervalTicksW
   EXPECT_FALSE(requests.add(/*onlyIfIdle=*/true));
 }
 
+TEST(KeyframeStage, SharpFramesDroppedWhileTrackingIsLostAreNotCountedAsBlurred) {
+  // A keyframe, then views that jump across the strip every frame: nothing can be
+  // tracked, so each sharp frame is dropped as `lost` (no chain to start from) until
+  // the camera moves smoothly again. Those frames were sharp: the summary must not
+  // call them blurred.
+  std::vector<Decision> decisions;
+  KeyframeStage stage({}, nullptr, [&](KeyframeEvent&& ev) {
+    if (!ev.endOfStream) decisions.push_back(ev.decision);
+  });
+  const cv::Mat strip = test::photoStrip();
+  ASSERT_FALSE(strip.empty());
+  std::vector<double> xs = {100, 1700, 500, 2100, 900, 1300};
+  for (int i = 0; i < 10; ++i) xs.push_back(1300 + 2.0 * i);
+  for (std::size_t i = 0; i < xs.size(); ++i) {
+    const cv::Mat view = test::viewAt(strip, xs[i]);
+    stage.process(
+        Frame::ofGray(view, static_cast<std::int64_t>(i), static_cast<std::int64_t>(i) * 33333333));
+  }
+  ASSERT_EQ(decisions.size(), xs.size());
+  std::int64_t blurred = 0, sharpLost = 0;
+  for (const Decision& d : decisions) {
+    if (d.kept) continue;
+    if (d.reason == Reason::Blurry || (d.reason == Reason::Lost && !d.sharp)) ++blurred;
+    if (d.reason == Reason::Lost && d.sharp) ++sharpLost;
+  }
+  ASSERT_GE(sharpLost, 1) << "the jumps should leave sharp frames without a chain";
+  const StageCounts& c = stage.counts();
+  EXPECT_EQ(c.rejectedBlur, blurred);
+  EXPECT_EQ(c.kept + c.rejectedBlur + c.rejectedOverlap, c.framesRead);
+  EXPECT_EQ(c.framesRead, static_cast<std::int64_t>(xs.size()));
+}
+
 TEST(Selector, BlurryFramesAreNeverKept) {
   std::map<int, double> blur;
   for (int i = 10; i < 120; i += 4) blur[i] = 3.0;

@@ -20,7 +20,9 @@ down before the daemon restarted, or the last keyframes of a flight whose end th
 link lost; those older than ``--earlier-flights`` seconds (default an hour) are left
 alone and listed in the summary. A flight that was followed by another without the
 station learning how many keyframes it ended with is listed in the summary's
-``flights_end_unknown`` and makes the exit status 3, as missing keyframes do.
+``flights_end_unknown`` and makes the exit status 3, as missing keyframes do. The
+latest flight's end not heard (``last_flight_ended``: false) is said on stderr only:
+the station may be stopped while the vehicle flies.
 
 The files below other than the images are rewritten while the station runs (at most
 every 5 s when keyframes arrived) and at the end, so a station that is killed leaves a
@@ -787,6 +789,12 @@ class VehicleDataset:
         with self.lock:
             return [f for f in self.superseded if f not in self.ended]
 
+    def last_flight_end_heard(self) -> bool | None:
+        """Whether the latest flight's final status (its keyframe count) was heard; None
+        with no flight. Not heard: it still flies, or its end was lost with the link."""
+        with self.lock:
+            return None if self.current is None else self.current in self.ended
+
     def note_catalogue(self, flights: list[Any], max_age_s: float) -> None:
         """The vehicle's flights (keyframed/<vehicle>/flights): each one it is running,
         or we know of already, or that ended at most ``max_age_s`` ago is noted with
@@ -988,6 +996,8 @@ class VehicleDataset:
                 s if f == (self.flights or [""])[0] else f"{f}:{s}" for f, s in self.missing()
             ],
             "flights_end_unknown": self.end_unknown(),
+            "last_flight": self.current,
+            "last_flight_ended": self.last_flight_end_heard(),
             "pairs": pairs,
             "calibrated": camera is not None,  # else no cameras.txt, cameras.json
             "camera": camera,
@@ -1448,6 +1458,18 @@ def main(argv: list[str] | None = None) -> int:
         print("keyframed-ground: stopped without waiting for missing keyframes", file=sys.stderr)
     for r in results:
         print(json.dumps(r, sort_keys=True))
+    for r in results:
+        if r.get("last_flight_ended") is False:
+            # Not an error (the station may be stopped while the vehicle flies), but the
+            # dataset need not be complete: keyframes after its last status are unknown.
+            flight = r["last_flight"] or "(no id)"
+            print(
+                f"keyframed-ground: {r['vehicle']}: flight {flight} has not ended "
+                f"as far as the station knows ({r['keyframes']} keyframes held): keyframes "
+                "taken after the last status heard may be missing; run the station again "
+                "once the vehicle is in reach to fetch them",
+                file=sys.stderr,
+            )
     incomplete = [
         r["vehicle"]
         for r in results
