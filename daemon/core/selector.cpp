@@ -107,6 +107,20 @@ int KeyframeSelector::minTrackable() const {
                                                     : config_.overlap.minInliers;
 }
 
+void KeyframeSelector::noteCandidate(Decision& d) {
+  // The fallback: a sharp frame beats a blurry one, then the higher score wins.
+  // Scores are compared among neighbours rather than against the threshold, which a
+  // drop in ground texture can leave out of reach.
+  const bool better = candidateIndex_ < 0 || (d.sharp && !candidateSharp_) ||
+                      (d.sharp == candidateSharp_ && d.sharpness > candidateSharpness_);
+  if (d.sharpness < config_.blur.floor || !better) return;
+  candidateIndex_ = d.index;
+  candidateSharpness_ = d.sharpness;
+  candidateSharp_ = d.sharp;
+  d.candidate = true;
+  overlap_->markCandidate();
+}
+
 bool KeyframeSelector::promoteCandidate(Decision& d) {
   if (candidateIndex_ < 0) return false;
   d.promotedIndex = candidateIndex_;
@@ -214,12 +228,29 @@ Decision KeyframeSelector::process(const Frame& frame) {
     // a keyframe: the one before cannot be taken back).
     keepCurrent(d, Reason::Refocus);
   } else if (paper) {
-    if (!d.sharp)
-      d.reason = Reason::Blurry;
-    else if (ov.paperDistance >= config_.overlap.paperThreshold)
+    const bool reached = ov.paperDistance >= config_.overlap.paperThreshold;
+    if (d.sharp && reached) {
       keepCurrent(d, Reason::PaperDistance);
-    else
-      d.reason = Reason::Redundant;
+    } else if (reached) {
+      // t reached on a blurred frame: the paper's rule would wait for the next sharp
+      // one, however far on (a blurred turn, a gap). A sharp frame seen before it,
+      // under t, is kept instead; with none, the wait goes on (and a loss of the
+      // matches falls back to the best frame there was, above).
+      d.reason = Reason::Blurry;
+      if (candidateSharp_) {
+        promoteCandidate(d);
+        const OverlapResult again = overlap_->setReferenceToCandidate();
+        d.paperDistance = again.paperDistance;
+        d.tracking = again.valid;
+        if (!again.valid) {
+          haveKeyframe_ = false;
+          overlap_->reset();
+        }
+      }
+    } else {
+      d.reason = d.sharp ? Reason::Redundant : Reason::Blurry;
+      noteCandidate(d);
+    }
   } else {
     const double o = ov.overlap;
     if (d.sharp && o <= config_.target) {
@@ -246,19 +277,7 @@ Decision KeyframeSelector::process(const Frame& frame) {
       }
     } else {
       d.reason = d.sharp ? Reason::Redundant : Reason::Blurry;
-      // The fallback: a sharp frame beats a blurry one, then the higher score
-      // wins. Scores are compared among neighbours rather than against the
-      // threshold, which a drop in ground texture can leave out of reach.
-      const bool better = candidateIndex_ < 0 || (d.sharp && !candidateSharp_) ||
-                          (d.sharp == candidateSharp_ && d.sharpness > candidateSharpness_);
-      if (o <= config_.bandHigh && o >= config_.minOverlap && d.sharpness >= config_.blur.floor &&
-          better) {
-        candidateIndex_ = d.index;
-        candidateSharpness_ = d.sharpness;
-        candidateSharp_ = d.sharp;
-        d.candidate = true;
-        overlap_->markCandidate();
-      }
+      if (o <= config_.bandHigh && o >= config_.minOverlap) noteCandidate(d);
     }
   }
 

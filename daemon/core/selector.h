@@ -24,7 +24,8 @@ enum class Reason {
   PaperDistance,  // kept: paper mode, match distance reached the threshold t
   GapFill,        // kept as a fallback: the sharpest frame in the band since the last
                   //   keyframe, promoted later because overlap was about to leave the
-                  //   band or tracking was lost; or, with no such frame, the frame at
+                  //   band (paper mode: t was reached on a blurred frame) or tracking
+                  //   was lost; or, with no such frame, the frame at
                   //   the band's lower edge even though it is not sharp
   Blurry,         // dropped: sharpness under the threshold
   Redundant,      // dropped: overlap still above the target (or distance under t)
@@ -142,6 +143,9 @@ class KeyframeSelector {
   [[nodiscard]] std::int64_t now() const { return clock_ ? clock_->nowNs() : 0; }
   void keepCurrent(Decision& d, Reason reason);
   bool promoteCandidate(Decision& d);
+  // This frame, not kept, becomes the fallback candidate if it is the best since the
+  // last keyframe (and not under the blur floor).
+  void noteCandidate(Decision& d);
   void clearCandidate();
   void serveCaptureRequest(Decision& d);
   bool motionTooFast(double motionPx, int analysisWidth);

@@ -294,6 +294,29 @@ TEST(Selector, BlurAroundTheTargetFallsBackToTheSharpestCandidate) {
   for (std::int64_t k : r.keyframes) EXPECT_EQ(blur.count(static_cast<int>(k)), 0u);
 }
 
+TEST(Selector, PaperModeFallsBackToASharpFrameWhenTIsReachedOnABlurredOne) {
+  // Where a steady pan reaches t, frames are blurred from just before it for over a
+  // second: the paper's rule alone would wait for the next sharp frame, far past t (a
+  // gap). The sharpest frame seen before the blur is kept instead.
+  SelectorConfig c;
+  c.overlap.mode = OverlapMode::Paper;
+  c.overlap.orbFeatures = 800;
+  const PanRun clean = pan(linear(100, 100, 8.0), {}, c);
+  ASSERT_GE(clean.keyframes.size(), 2u);
+  const int reached = static_cast<int>(clean.keyframes[1]);
+  ASSERT_GE(reached, 8);
+  std::map<int, double> blur;
+  for (int i = reached - 2; i <= reached + 40 && i < 100; ++i) blur[i] = 3.0;
+  const PanRun r = pan(linear(100, 100, 8.0), blur, c);
+  ASSERT_GE(r.keyframes.size(), 2u);
+  const std::int64_t second = r.keyframes[1];
+  EXPECT_LT(second, reached - 2) << "t reached at " << reached << " without blur";
+  bool promoted = false;
+  for (const Decision& d : r.decisions) promoted |= d.promotedIndex == second;
+  EXPECT_TRUE(promoted);
+  for (std::int64_t k : r.keyframes) EXPECT_EQ(blur.count(static_cast<int>(k)), 0u) << k;
+}
+
 TEST(Selector, PaperModeKeepsFramesAsTheDistanceGrows) {
   SelectorConfig c;
   c.overlap.mode = OverlapMode::Paper;
