@@ -277,6 +277,11 @@ Pose PoseStore::at(std::int64_t timeNs) const {
   return pose;
 }
 
+bool PoseStore::hasGpsStatus() const {
+  std::lock_guard lock(mutex_);
+  return config_.minFixType <= 0 || !gps_.empty();
+}
+
 bool PoseStore::covers(std::int64_t timeNs, bool gimbal) const {
   std::lock_guard lock(mutex_);
   const bool att = !attitude_.empty() && attitude_.back().timeNs >= timeNs;

@@ -62,6 +62,9 @@ class PoseStore {
   [[nodiscard]] std::optional<std::int64_t> newestNs() const;
   // True when an attitude sample at or after timeNs has arrived.
   [[nodiscard]] bool hasAttitudeSince(std::int64_t timeNs) const;
+  // True when the receiver's status (GPS_RAW_INT) has been heard, or none is needed
+  // (minFixType 0): without it no position is tagged.
+  [[nodiscard]] bool hasGpsStatus() const;
   [[nodiscard]] std::size_t size() const;
 
  private:

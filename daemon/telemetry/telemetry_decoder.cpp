@@ -304,7 +304,10 @@ bool TelemetryDecoder::hasPose() const {
     mapped = clock_.offsetNs().has_value();
     store = store_;
   }
-  return mapped && store->covers(std::numeric_limits<std::int64_t>::min());
+  // The receiver's status too: a camera started on attitude and position alone takes
+  // its first keyframe before the GPS status arrives (a slower stream, a jittery
+  // radio), and tags it with no position.
+  return mapped && store->covers(std::numeric_limits<std::int64_t>::min()) && store->hasGpsStatus();
 }
 
 TelemetryStats TelemetryDecoder::stats() const {

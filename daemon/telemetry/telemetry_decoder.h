@@ -62,7 +62,8 @@ class TelemetryDecoder {
   [[nodiscard]] bool covers(std::int64_t localNs, bool gimbal = false) const;
   // An attitude sample at or after localNs has arrived (false before the clock is mapped).
   [[nodiscard]] bool hasAttitudeSince(std::int64_t localNs) const;
-  // True once the clock is mapped and both attitude and position have arrived.
+  // True once the clock is mapped and attitude, position and (when a fix is required) the
+  // GPS status have arrived.
   [[nodiscard]] bool hasPose() const;
 
   [[nodiscard]] TelemetryStats stats() const;

@@ -23,6 +23,9 @@ would stream it to a companion computer:
   TIMESYNC traffic would deliver it.
 * Messages from the daemon are recorded (``received``, ``wait_for``); the autopilot can
   send ``request_message`` (COMMAND_LONG MAV_CMD_REQUEST_MESSAGE) or any message.
+* ``latency_ms=(lo, hi)``: a radio's delay, each datagram held for a uniform random
+  time in that range (deterministic for a ``seed``), so datagrams also overtake one
+  another; the send times recorded (``sent``) stay those of the replay.
 * Link faults: ``inject_garbage`` and ``pause``/``resume`` (a dropped radio link:
   nothing is sent or heard, the messages due meanwhile are lost but still use up
   sequence numbers, so the receiver sees the gap a real link drop leaves).
@@ -36,6 +39,7 @@ there from the start (the daemon listens with ``udpin``).
 from __future__ import annotations
 
 import copy
+import heapq
 import math
 import select
 import socket
@@ -283,6 +287,7 @@ class FakeAutopilot:
         start_delay_s: float = 0.0,
         answer_timesync: bool = True,
         rogue_timesync: bool = False,
+        latency_ms: tuple[float, float] | None = None,
     ) -> None:
         if speed <= 0.0:
             raise ValueError("speed must be positive")
@@ -298,6 +303,15 @@ class FakeAutopilot:
         self.start_delay_s = float(start_delay_s)
         self.answer_timesync = answer_timesync
         self.rogue_timesync = rogue_timesync
+        if latency_ms is not None and not 0.0 <= latency_ms[0] <= latency_ms[1]:
+            raise ValueError("latency_ms must be (lo, hi) with 0 <= lo <= hi")
+        self.latency_ms = latency_ms
+        self._latency_rng = np.random.default_rng([seed, 2])
+        # Datagrams held back by the radio's delay: (due monotonic ns, order, bytes).
+        self._delayed: list[tuple[int, int, bytes]] = []
+        self._delayed_count = 0
+        self._radio_cond = threading.Condition()
+        self._radio: threading.Thread | None = None
         self.rogue_answers = 0  # TIMESYNC answers the rogue ground station sent
         self.ignored_v2 = 0  # MAVLink 2 frames a MAVLink 1 autopilot could not read
         # MAV_CMD_SET_MESSAGE_INTERVAL asked of it: message id -> interval in us
@@ -433,6 +447,11 @@ class FakeAutopilot:
             target=self._run, name=f"fake-autopilot-{self.port}", daemon=True
         )
         self._thread.start()
+        if self.latency_ms is not None:
+            self._radio = threading.Thread(
+                target=self._deliver_delayed, name=f"fake-radio-{self.port}", daemon=True
+            )
+            self._radio.start()
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
@@ -441,6 +460,10 @@ class FakeAutopilot:
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout)
+        with self._radio_cond:
+            self._radio_cond.notify_all()
+        if self._radio is not None and self._radio is not threading.current_thread():
+            self._radio.join(timeout)
         if not self._closed:
             self._closed = True
             with self._send_lock:
@@ -520,10 +543,41 @@ class FakeAutopilot:
 
     def _sendto(self, data: bytes) -> None:
         assert self._peer is not None
+        if self.latency_ms is not None:
+            lo, hi = self.latency_ms
+            delay_ns = int(float(self._latency_rng.uniform(lo, hi)) * 1e6)
+            with self._radio_cond:
+                self._delayed_count += 1
+                heapq.heappush(
+                    self._delayed, (time.monotonic_ns() + delay_ns, self._delayed_count, data)
+                )
+                self._radio_cond.notify_all()
+            return
+        self._send_now(data)
+
+    def _send_now(self, data: bytes) -> None:
+        assert self._peer is not None
         try:
             self._sock.sendto(data, self._peer)
         except OSError:
             pass  # nobody listening (ICMP port unreachable): UDP loses it, like a radio
+
+    def _deliver_delayed(self) -> None:
+        """The radio: each held datagram goes out when its delay is over."""
+        while not self._stop.is_set():
+            with self._radio_cond:
+                if not self._delayed:
+                    self._radio_cond.wait(0.05)
+                    continue
+                due, _, data = self._delayed[0]
+                wait_ns = due - time.monotonic_ns()
+                if wait_ns > 0:
+                    self._radio_cond.wait(min(wait_ns / 1e9, 0.05))
+                    continue
+                heapq.heappop(self._delayed)
+            with self._send_lock:
+                if not self._closed:
+                    self._send_now(data)
 
     def _encoder(self, component: int | None) -> mavlink.MAVLink:
         """The autopilot's encoder, or that of another component of its system (a
