@@ -328,6 +328,7 @@ class Daemon {
   std::string flightDir_;
   bool ready_ = false;          // READY=1 sent (the first frame arrived); main thread
   bool reloadPending_ = false;  // SIGHUP before the outputs were open; main thread
+  std::size_t leftAtStop_ = 0;  // frames still queued when the analysis stopped
   // Frames on a recorded flight's clock (a file with its tlog) instead of CLOCK_MONOTONIC:
   // "now" on that clock is CLOCK_MONOTONIC + the offset found at the first frame.
   bool videoClock_ = false;
@@ -637,6 +638,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       "  \"width\": %d,\n  \"height\": %d,\n"
       "  \"frames_captured\": %llu,\n  \"frames_dropped\": %llu,\n"
       "  \"frames_lost_in_camera\": %llu,\n  \"frames_stale_at_start\": %llu,\n"
+      "  \"frames_left_at_stop\": %llu,\n"
       "  \"frames_read\": %lld,\n"
       "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"write_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
@@ -646,8 +648,9 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       "  \"max_rss_mb\": %.1f,\n",
       info.width, info.height, static_cast<unsigned long long>(cs.captured),
       static_cast<unsigned long long>(dropped), static_cast<unsigned long long>(lost),
-      static_cast<unsigned long long>(cs.stale), static_cast<long long>(c.framesRead),
-      static_cast<long long>(c.kept), static_cast<long long>(writer_.saved()),
+      static_cast<unsigned long long>(cs.stale), static_cast<unsigned long long>(leftAtStop_),
+      static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
+      static_cast<long long>(writer_.saved()),
       static_cast<long long>(writer_.count() - writer_.saved()),
       static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
       static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
@@ -796,9 +799,7 @@ int Daemon::run() {
       videoStartNs = ns;  // checked at load; a tlog requires it
     } else {
       videoStartNs = 0;
-      videoUnixOffsetNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                              std::chrono::system_clock::now().time_since_epoch())
-                              .count();
+      videoUnixOffsetNs = unixNowNs();
     }
   }
   videoClock_ = videoStartNs.has_value();
@@ -887,10 +888,7 @@ int Daemon::run() {
   } else if (config_.tagging.systemClockUtc) {
     // Frames are stamped on CLOCK_MONOTONIC: the companion's UTC at that instant.
     wc.utcFallback = [](std::int64_t monoNs) -> std::optional<std::int64_t> {
-      const std::int64_t unixNowNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                         std::chrono::system_clock::now().time_since_epoch())
-                                         .count();
-      return (unixNowNs - (monotonicNowNs() - monoNs)) / 1000;
+      return (unixNowNs() - (monotonicNowNs() - monoNs)) / 1000;
     };
   }
   wc.make = config_.tagging.make;
@@ -1105,6 +1103,7 @@ int Daemon::run() {
   if (state == "stopped") stopAnalysis_.store(true);
   analysis.join();
   output.join();
+  leftAtStop_ = queue_->size();  // a stop does not wait for them: counted, not analysed
   if (analysisFailed_.load()) state = "failed";  // it may have failed while flushing
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

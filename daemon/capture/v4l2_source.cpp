@@ -184,14 +184,19 @@ std::uint32_t V4l2Source::chooseFormat(const std::vector<FormatRate>& offered, d
 }
 
 std::string V4l2Source::pickDevice(const std::vector<V4l2DeviceInfo>& devices) {
+  // A multi-planar node (an ISP's output on a Pi 5, a codec) is passed over while
+  // another will do: open() refuses it.
   for (const V4l2DeviceInfo& d : devices) {
-    if (!d.capture || !d.streaming) continue;
+    if (!d.capture || !d.streaming || d.multiplanar) continue;
     std::vector<std::uint32_t> offered;
     for (const std::string& f : d.formats) offered.push_back(parseFormat(f));
     if (chooseFormat(offered) != 0) return d.path;
   }
   for (const V4l2DeviceInfo& d : devices) {
-    if (d.capture) return d.path;
+    if (d.capture && !d.multiplanar) return d.path;
+  }
+  for (const V4l2DeviceInfo& d : devices) {
+    if (d.capture) return d.path;  // whose open() then says why not
   }
   // A node that could not be opened to look at (no permission, busy): open() then
   // says why, rather than "no camera".
@@ -266,6 +271,7 @@ bool V4l2Source::describe(const std::string& path, V4l2DeviceInfo& out, std::str
   out.busInfo = cString(cap.bus_info, sizeof(cap.bus_info));
   const std::uint32_t caps = deviceCaps(cap);
   out.capture = (caps & (V4L2_CAP_VIDEO_CAPTURE | V4L2_CAP_VIDEO_CAPTURE_MPLANE)) != 0;
+  out.multiplanar = (caps & V4L2_CAP_VIDEO_CAPTURE) == 0 && out.capture;
   out.streaming = (caps & V4L2_CAP_STREAMING) != 0;
   if (out.capture) {
     const std::uint32_t type = (caps & V4L2_CAP_VIDEO_CAPTURE) != 0

@@ -23,6 +23,7 @@ struct V4l2DeviceInfo {
   bool capture = false;              // single- or multi-planar video capture
   bool streaming = false;            // supports mmap streaming I/O
   std::vector<std::string> formats;  // fourccs the capture queue offers ("YUYV", "NV12", ...)
+  bool multiplanar = false;  // capture through the multi-planar API only (not supported yet)
 };
 
 // The system calls V4l2Source makes on its device node, behind one interface so

@@ -114,6 +114,12 @@ def test_select_video_from_python(pan_video: Path, tmp_path):
     assert s["frames_read"] == 90 and s["kept"] >= 3 and s["error"] == ""
     with pytest.raises(RuntimeError, match="no such file"):
         keyframed.select_video(str(tmp_path / "missing.avi"), str(tmp_path / "o2"))
+    # An output that fails part-way (the first keyframe's name taken by a directory):
+    # raised, not a summary that reads like success.
+    blocked = tmp_path / "o3"
+    (blocked / "000000.jpg").mkdir(parents=True)
+    with pytest.raises(RuntimeError, match="000000"):
+        keyframed.select_video(str(pan_video), str(blocked))
 
 
 def test_overlap_estimator_measures_a_pan():

@@ -300,6 +300,9 @@ def test_sigterm_stops_within_a_second_with_everything_flushed(
     assert summary["state"] == "stopped"
     assert 60 < summary["frames_read"] < 240
     assert len(rows(fd / "decisions.csv")) == summary["frames_read"]
+    # every frame captured is analysed, dropped, or still queued at the stop
+    left = summary["frames_left_at_stop"]
+    assert summary["frames_captured"] == summary["frames_read"] + summary["frames_dropped"] + left
     jpgs = list((fd / "keyframes").glob("*.jpg"))
     assert len(jpgs) == summary["written"] == len(rows(fd / "keyframes" / "keyframes.csv"))
     assert not list(fd.rglob("*.tmp"))
@@ -402,6 +405,7 @@ def test_overload_drops_frames_counts_them_and_stays_flat(kf_bin: Path, tmp_path
     assert s["frames_captured"] > 300, s  # well past warm-up: 20+ frames a second
     assert s["frames_dropped"] > s["frames_read"], s  # most are dropped, every one counted
     assert s["frames_read"] + s["frames_dropped"] == s["frames_captured"]
+    assert s["frames_left_at_stop"] == 0, s  # the end of the video: every one analysed
     assert len(rows(flight_dir(tmp_path) / "decisions.csv")) == s["frames_read"]
     # Flat: after a 3 s warm-up, the last third of the run peaks within 8 MB of the
     # first third. 4 queued + 3 pooled 1080p BGR frames are 44 MB; OpenCV and the

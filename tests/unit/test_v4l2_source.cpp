@@ -131,6 +131,12 @@ TEST(V4l2Devices, TheFirstNodeWithAReadableFormatIsPicked) {
   V4l2DeviceInfo locked{"/dev/video3", "", "", "", false, false, {}};
   EXPECT_EQ(V4l2Source::pickDevice({meta, locked}), "/dev/video3");
   EXPECT_EQ(V4l2Source::pickDevice({locked, usb}), "/dev/video2");
+  // A multi-planar node with a format we read is passed over for a single-planar
+  // camera (open() refuses multi-planar), and picked only when nothing else captures.
+  V4l2DeviceInfo mplane{"/dev/video4", "pispbe", "isp", "", true, true, {"NV12"}, true};
+  EXPECT_EQ(V4l2Source::pickDevice({mplane, usb}), "/dev/video2");
+  EXPECT_EQ(V4l2Source::pickDevice({mplane, bayer}), "/dev/video0");
+  EXPECT_EQ(V4l2Source::pickDevice({meta, mplane}), "/dev/video4");
 }
 
 TEST(MjpegDecoder, DecodesToBgr) {

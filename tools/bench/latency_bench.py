@@ -12,8 +12,13 @@ keyframe's metadata carries two stamps of the daemon's:
 
 Also prints the MCAP file's size and the keyframes' sizes.
 
+With ``--telemetry``, the flight's telemetry streams from the tests' fake autopilot
+over UDP as in flight: each keyframe then also waits for a position sample newer
+than its frame (``telemetry.wait_ms``), at the autopilot's rate (the sample flights'
+tlogs hold GLOBAL_POSITION_INT at 10 Hz; the daemon asks a real autopilot for 20 Hz).
+
     .venv/bin/python tools/bench/latency_bench.py [--flight nadir] [--width 1920 --height 1080]
-        [--runs 8]
+        [--runs 8] [--telemetry]
 
 A 20 s flight gives 10-13 keyframes, so the flight is flown ``--runs`` times and the
 keyframes of all runs pooled: the p99 is then a percentile, not the maximum.
@@ -36,8 +41,11 @@ import zenoh
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def fly(fl: Path, port: int) -> tuple[dict, float]:
+def fly(fl: Path, port: int, telemetry: bool) -> tuple[dict, float]:
     """One `keyframed run` of the flight, publishing to the subscriber on ``port``."""
+    from fake_autopilot import FakeAutopilot  # the tests' (tests/harness)
+
+    autopilot = FakeAutopilot(fl / "flight.tlog", boot_offset_ms=1_234_567) if telemetry else None
     with tempfile.TemporaryDirectory() as tmp:
         zconf = Path(tmp) / "zenoh.json5"
         zconf.write_text(
@@ -54,14 +62,20 @@ def fly(fl: Path, port: int) -> tuple[dict, float]:
             "camera.source=file",
             f"camera.path={fl / 'video.avi'}",
             f"output.state_dir={tmp}/state",
-            "telemetry.url=",
+            f"telemetry.url=udpout:127.0.0.1:{autopilot.port}" if autopilot else "telemetry.url=",
             f"zenoh.config={zconf}",
             "zenoh.vehicle=bench",
         ]
         cmd = [str(ROOT / "build/release/daemon/keyframed"), "run", "--config-dir", f"{tmp}/etc"]
         for s in sets:
             cmd += ["--set", s]
-        subprocess.run(cmd, check=True, stderr=subprocess.DEVNULL)
+        if autopilot is not None:
+            autopilot.start()
+        try:
+            subprocess.run(cmd, check=True, stderr=subprocess.DEVNULL)
+        finally:
+            if autopilot is not None:
+                autopilot.stop()
         time.sleep(0.5)
         state = Path(tmp) / "state" / "latest"
         summary = json.loads((state / "summary.json").read_text())
@@ -85,6 +99,9 @@ def main() -> int:
     p.add_argument("--height", type=int, default=1080)
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--runs", type=int, default=8, help="flights flown, keyframes pooled")
+    p.add_argument(
+        "--telemetry", action="store_true", help="the flight's telemetry from a fake autopilot"
+    )
     args = p.parse_args()
     sys.path.insert(0, str(ROOT / "tests" / "harness"))
     from flights import flight  # the tests' cached sample flights
@@ -106,11 +123,12 @@ def main() -> int:
     conf.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(conf)
     sub = session.declare_subscriber("keyframed/*/keyframe", on_keyframe)
-    written = frames = 0
+    written = frames = geotagged = 0
     mcap_mb = 0.0
     for _ in range(args.runs):
-        summary, size = fly(fl, port)
+        summary, size = fly(fl, port, args.telemetry)
         written += summary["written"]
+        geotagged += (summary.get("telemetry") or {}).get("geotagged", 0)
         frames += summary["frames_read"]
         mcap_mb = size
     sub.undeclare()
@@ -128,9 +146,11 @@ def main() -> int:
         return 1
     print(
         f"keyframed run, {args.width}x{args.height} {args.flight} flight, {args.seconds:.0f} s, "
-        f"{args.runs} runs"
+        f"{args.runs} runs" + (", telemetry from the fake autopilot" if args.telemetry else "")
     )
     print(f"  keyframes received      {len(arrivals)} of {written} written")
+    if args.telemetry:
+        print(f"  geotagged               {geotagged} of {written}")
     print(f"  decision to receipt     {stats(decided)}, every keyframe")
     print(f"  capture to receipt      {stats(own)}, gap fills excluded")
     print(f"  keyframe size           {statistics.mean(n for _, _, n in arrivals) / 1e3:.0f} KB")

@@ -288,7 +288,10 @@ NB_MODULE(_core, m) {
           nb::gil_scoped_release release;
           s = runSelection(o);
         }
-        if (!s.error.empty() && s.framesRead == 0) throw std::runtime_error(s.error);
+        // Failures raise; only a video that breaks off part-way returns (what came
+        // before the break was selected and written).
+        if (!s.error.empty() && (s.framesRead == 0 || !s.truncated))
+          throw std::runtime_error(s.error);
         nb::dict r;
         r["frames_read"] = s.framesRead;
         r["kept"] = s.kept;
@@ -310,6 +313,7 @@ NB_MODULE(_core, m) {
       "calibration: a camera calibration file (as `keyframed select --calibration`): its\n"
       "intrinsics go into the keyframes' tags, and a fisheye or distorting lens is the one\n"
       "the overlap is measured through.\n"
-      "Raises RuntimeError when the video cannot be read at all; a video that breaks off\n"
-      "part-way returns the summary with 'error' and 'truncated' set.");
+      "Raises RuntimeError when the video cannot be read at all or an output cannot be\n"
+      "written (a full disk); a video that breaks off part-way returns the summary with\n"
+      "'error' and 'truncated' set.");
 }
