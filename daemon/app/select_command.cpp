@@ -485,16 +485,11 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     const TelemetryServiceStats ts = telemetry->stats();
     s.telemetry.geotagged = writer.geotagged();
     s.telemetry.clock = toString(telemetry->decoder().clockSource());
-    if (const auto off = telemetry->decoder().clockOffsetNs()) {
-      char b[64];
-      std::snprintf(b, sizeof b, "%.3f", static_cast<double>(*off) / 1e6);
-      s.telemetry.clockOffsetMs = b;
-    }
+    if (const auto off = telemetry->decoder().clockOffsetNs())
+      s.telemetry.clockOffsetMs = formatText("%.3f", static_cast<double>(*off) / 1e6);
     if (const auto ahead = telemetry->decoder().recordClockAheadNs()) {
       const double ms = static_cast<double>(*ahead) / 1e6;
-      char b[64];
-      std::snprintf(b, sizeof b, "%.3f", ms);
-      s.telemetry.recordClockAheadMs = b;
+      s.telemetry.recordClockAheadMs = formatText("%.3f", ms);
       // Radio latency is tens of ms; beyond half a second the recording station's
       // clock was off, and the frames were placed by the autopilot's GPS time.
       if (std::fabs(ms) > 500.0) {

@@ -121,6 +121,19 @@ void KeyframeSelector::noteCandidate(Decision& d) {
   overlap_->markCandidate();
 }
 
+void KeyframeSelector::fallBackToCandidate(Decision& d) {
+  promoteCandidate(d);
+  // The candidate is the reference now: this frame's overlap is measured against it.
+  const OverlapResult again = overlap_->setReferenceToCandidate();
+  d.overlap = again.overlap;
+  d.paperDistance = again.paperDistance;
+  d.tracking = again.valid;
+  if (!again.valid) {
+    haveKeyframe_ = false;
+    overlap_->reset();
+  }
+}
+
 bool KeyframeSelector::promoteCandidate(Decision& d) {
   if (candidateIndex_ < 0) return false;
   d.promotedIndex = candidateIndex_;
@@ -237,16 +250,7 @@ Decision KeyframeSelector::process(const Frame& frame) {
       // under t, is kept instead; with none, the wait goes on (and a loss of the
       // matches falls back to the best frame there was, above).
       d.reason = Reason::Blurry;
-      if (candidateSharp_) {
-        promoteCandidate(d);
-        const OverlapResult again = overlap_->setReferenceToCandidate();
-        d.paperDistance = again.paperDistance;
-        d.tracking = again.valid;
-        if (!again.valid) {
-          haveKeyframe_ = false;
-          overlap_->reset();
-        }
-      }
+      if (candidateSharp_) fallBackToCandidate(d);
     } else {
       d.reason = d.sharp ? Reason::Redundant : Reason::Blurry;
       noteCandidate(d);
@@ -262,14 +266,7 @@ Decision KeyframeSelector::process(const Frame& frame) {
       // still come, e.g. when a yaw turn blurs a few frames and ends.
       d.reason = Reason::Blurry;  // a sharp frame here was kept by the branch above
       if (candidateIndex_ >= 0) {
-        promoteCandidate(d);
-        const OverlapResult again = overlap_->setReferenceToCandidate();
-        d.overlap = again.overlap;
-        d.tracking = again.valid;
-        if (!again.valid) {
-          haveKeyframe_ = false;
-          overlap_->reset();
-        }
+        fallBackToCandidate(d);
       } else if (d.sharpness >= config_.blur.floor) {
         // Nothing in the band to fall back on: this frame is the last one that
         // still overlaps by the floor. Waiting longer would open a gap.

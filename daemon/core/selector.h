@@ -143,6 +143,8 @@ class KeyframeSelector {
   [[nodiscard]] std::int64_t now() const { return clock_ ? clock_->nowNs() : 0; }
   void keepCurrent(Decision& d, Reason reason);
   bool promoteCandidate(Decision& d);
+  // The candidate becomes a keyframe (promoted with this decision) and the reference.
+  void fallBackToCandidate(Decision& d);
   // This frame, not kept, becomes the fallback candidate if it is the best since the
   // last keyframe (and not under the blur floor).
   void noteCandidate(Decision& d);

@@ -23,11 +23,6 @@ void ClockMapper::observeArrival(std::uint32_t bootMs, std::int64_t localNs) {
 void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
   const std::int64_t rtt = nowNs - ts1Ns;
   if (rtt < 0 || tc1Ns <= 0) return;
-  // An answer, even one too slow to use, says the autopilot still answers: on a
-  // jittery radio most are, and the estimate from the quick ones stays the best there
-  // is (the arrival times are no better). Only silence for the timeout starts afresh.
-  const bool silent = !timesyncOffsetNs_ || nowNs - timesyncHeardNs_ > config_.timesyncTimeoutNs;
-  timesyncHeardNs_ = nowNs;
   // Forget the best round trip slowly, so a link that got slower is still used.
   const bool best = bestRttNs_ < 0 || rtt <= bestRttNs_;
   if (best) {
@@ -35,13 +30,9 @@ void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::i
   } else {
     bestRttNs_ += (rtt - bestRttNs_) / 64;
   }
-  if (rtt * 2 > bestRttNs_ * 3 + 1'000'000) {
-    if (silent) restartPending_ = true;  // the next usable answer starts afresh
-    return;
-  }
+  if (rtt * 2 > bestRttNs_ * 3 + 1'000'000) return;
   const std::int64_t offset = ts1Ns + rtt / 2 - tc1Ns;
-  const bool restart = silent || restartPending_;
-  restartPending_ = false;
+  const bool restart = !timesyncOffsetNs_ || nowNs - timesyncAtNs_ > config_.timesyncTimeoutNs;
   if (restart) timesyncSamples_ = 0;
   // The shortest round trip is the least asymmetric: a first answer that waited in a
   // queue must not linger in the average.
@@ -50,6 +41,7 @@ void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::i
   } else {
     timesyncOffsetNs_ = *timesyncOffsetNs_ + (offset - *timesyncOffsetNs_) / 4;
   }
+  timesyncAtNs_ = nowNs;
   ++timesyncSamples_;
 }
 
@@ -64,13 +56,8 @@ void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) 
 
 ClockMapper::Source ClockMapper::source() const {
   if (localIsUtc_ && utcMinusBootUs_) return Source::SystemTime;
-  if (timesyncOffsetNs_ && !restartPending_ &&
-      lastArrivalNs_ - timesyncHeardNs_ <= config_.timesyncTimeoutNs) {
-    // Until three usable answers (a few seconds on a jittery radio), settled arrival
-    // times are the better estimate.
-    const bool arrivalSettled =
-        !arrivals_.empty() && lastArrivalNs_ - firstArrivalNs_ >= kArrivalSettleNs;
-    if (timesyncSamples_ >= 3 || !arrivalSettled) return Source::Timesync;
+  if (timesyncOffsetNs_ && lastArrivalNs_ - timesyncAtNs_ <= config_.timesyncTimeoutNs) {
+    return Source::Timesync;
   }
   if (!arrivals_.empty()) return Source::Arrival;
   if (timesyncOffsetNs_) return Source::Timesync;

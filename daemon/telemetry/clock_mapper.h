@@ -69,8 +69,7 @@ class ClockMapper {
   std::int64_t firstArrivalNs_ = 0;
   std::int64_t lastArrivalNs_ = 0;
   std::optional<std::int64_t> timesyncOffsetNs_;
-  std::int64_t timesyncHeardNs_ = 0;  // the last answer at all
-  bool restartPending_ = false;       // answers came back after a silence, none usable yet
+  std::int64_t timesyncAtNs_ = 0;
   std::int64_t bestRttNs_ = -1;
   int timesyncSamples_ = 0;  // used since the estimate (re)started
   std::optional<std::int64_t> utcMinusBootUs_;

@@ -204,34 +204,51 @@ def test_the_daemon_places_a_replayed_video_by_its_motion(
         assert np.hypot(d_n, d_e) < 0.1 and abs(float(k["alt_amsl"]) - alt) < 0.1, k
 
 
+class PlacingDaemon:
+    """`keyframed run` placing the 30 s nadir flight (960x540: a pass of several
+    seconds) in its tlog by motion, its stderr read as it comes."""
+
+    def __init__(self, kf_bin: Path, tmp_path: Path) -> None:
+        big = flight("nadir")
+        self.proc = start(
+            kf_bin,
+            tmp_path,
+            f"camera.path={big / 'video.avi'}",
+            "camera.start_time=auto",
+            f"telemetry.url=tlog:{big / 'flight.tlog'}",
+        )
+        self.lines: list[str] = []
+        err = self.proc.stderr
+        assert err is not None
+        self.reader = threading.Thread(target=lambda: self.lines.extend(err), daemon=True)
+        self.reader.start()
+
+    def wait_for(self, text: str, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while not any(text in line for line in self.lines):
+            assert self.proc.poll() is None and time.monotonic() < deadline, "".join(self.lines)
+            time.sleep(0.05)
+
+    def stderr(self) -> str:
+        """Everything it wrote (once it has exited: all of it)."""
+        if self.proc.poll() is not None:
+            self.reader.join(timeout=5)
+        return "".join(self.lines)
+
+
 def test_the_daemon_answers_sigterm_while_placing_the_video(kf_bin: Path, tmp_path: Path) -> None:
     """The pass over a long video comes before the camera starts: SIGTERM ends it
     promptly and cleanly."""
-    big = flight("nadir")  # 960x540, 30 s: a pass of several seconds
-    proc = start(
-        kf_bin,
-        tmp_path,
-        f"camera.path={big / 'video.avi'}",
-        "camera.start_time=auto",
-        f"telemetry.url=tlog:{big / 'flight.tlog'}",
-    )
-    lines: list[str] = []
-    err = proc.stderr
-    assert err is not None
-    reader = threading.Thread(target=lambda: lines.extend(err), daemon=True)
-    reader.start()
-    deadline = time.monotonic() + 30
-    while not any("by their motion" in line for line in lines):
-        assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
-        time.sleep(0.05)
+    placing = PlacingDaemon(kf_bin, tmp_path)
+    proc = placing.proc
+    placing.wait_for("by their motion", 30)
     time.sleep(0.5)  # into the pass over the video
-    assert proc.poll() is None, "".join(lines)
+    assert proc.poll() is None, placing.stderr()
     t0 = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     proc.wait(timeout=20)
     took = time.monotonic() - t0
-    reader.join(timeout=5)
-    stderr = "".join(lines)
+    stderr = placing.stderr()
     assert proc.returncode == 0, stderr
     assert took < 2.0, f"SIGTERM took {took:.2f} s"
     assert "stopping before the video was placed" in stderr, stderr
@@ -241,40 +258,21 @@ def test_a_sighup_while_placing_the_video_is_taken_once_it_is_placed(
     kf_bin: Path, tmp_path: Path
 ) -> None:
     """A reload asked for during the pass is not lost: it runs once the outputs are open."""
-    big = flight("nadir")
-    proc = start(
-        kf_bin,
-        tmp_path,
-        f"camera.path={big / 'video.avi'}",
-        "camera.start_time=auto",
-        f"telemetry.url=tlog:{big / 'flight.tlog'}",
-    )
-    lines: list[str] = []
-    err = proc.stderr
-    assert err is not None
-    reader = threading.Thread(target=lambda: lines.extend(err), daemon=True)
-    reader.start()
-
-    def wait_for(text: str, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while not any(text in line for line in lines):
-            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
-            time.sleep(0.05)
-
+    placing = PlacingDaemon(kf_bin, tmp_path)
+    proc = placing.proc
     try:
-        wait_for("by their motion", 30)
+        placing.wait_for("by their motion", 30)
         time.sleep(0.3)  # into the pass over the video
         proc.send_signal(signal.SIGHUP)
-        wait_for("reloaded once the video is placed", 10)
-        wait_for("reload: selection settings unchanged", 120)
+        placing.wait_for("reloaded once the video is placed", 10)
+        placing.wait_for("reload: selection settings unchanged", 120)
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=20)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    reader.join(timeout=5)
-    stderr = "".join(lines)
+    stderr = placing.stderr()
     assert proc.returncode == 0, stderr
     placed = stderr.index("video start 2026-06-01T10:00:0")
     assert stderr.index("reload: selection settings unchanged") > placed, stderr

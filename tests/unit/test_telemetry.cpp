@@ -596,37 +596,6 @@ TEST(ClockMapper, TimesyncWinsAndUtcFollows) {
   EXPECT_NEAR(static_cast<double>(*utc), 1'780'000'000'250'000.0, 1.0);
 }
 
-TEST(ClockMapper, AJitteryRadioKeepsTimesyncAndItsQuickestAnswers) {
-  // Answers at 1 Hz over a radio that delays each by 5-60 ms: most round trips are too
-  // slow to use, yet the autopilot still answers. The estimate stays TIMESYNC's (from
-  // the quick ones) rather than falling back to arrival times every 5 s, and is good
-  // to about half the radio's least delay.
-  ClockMapper clock;
-  const std::int64_t trueOffset = 4'000 * kMs;
-  std::mt19937 rng(3);
-  std::uniform_int_distribution<std::int64_t> delay(5 * kMs, 60 * kMs);
-  int notTimesync = 0;
-  for (int i = 0; i < 120; ++i) {
-    const std::int64_t ts1 = (1000 + i * 1000) * kMs;  // our request, arriving at once
-    const std::int64_t tc1 = ts1 - trueOffset;         // their clock when it came
-    const std::int64_t back = ts1 + delay(rng);
-    // telemetry in between, over the same radio
-    for (int k = 1; k <= 10; ++k) {
-      const std::int64_t boot = ts1 - trueOffset + k * 100 * kMs;
-      clock.observeArrival(static_cast<std::uint32_t>(boot / kMs), boot + trueOffset + delay(rng));
-    }
-    clock.observeTimesync(tc1, ts1, back);
-    // (arrival times first, until three answers were quick enough to use)
-    if (i >= 60 && clock.source() != ClockMapper::Source::Timesync) ++notTimesync;
-  }
-  EXPECT_EQ(notTimesync, 0);
-  ASSERT_TRUE(clock.offsetNs().has_value());
-  EXPECT_NEAR(static_cast<double>(*clock.offsetNs() - trueOffset), 0.0, 5.0 * kMs);
-  // Silence for longer than the timeout: arrival times again, until answers return.
-  clock.observeArrival(200'000, 200'000 * kMs + trueOffset + 5 * kMs);
-  EXPECT_EQ(clock.source(), ClockMapper::Source::Arrival);
-}
-
 TEST(MavlinkParser, SkipsGarbageAndCorruptFramesAndKeepsTheRest) {
   MavlinkEncoder ap(1, 1);
   std::vector<std::uint8_t> stream;

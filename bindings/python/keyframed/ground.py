@@ -311,7 +311,9 @@ def colmap_camera(tags: ImageTags) -> str | None:
         model, params = "OPENCV_FISHEYE", [cam.fx, cam.fy, cam.cx, cam.cy, *cam.fisheye]
     elif cam.k[2] != 0.0:
         model, params = "FULL_OPENCV", params + [cam.k[2], 0.0, 0.0, 0.0]
-    return f"1 {model} {cam.width} {cam.height} " + " ".join(f"{p:.9g}" for p in params)
+    # 12 significant digits: the same intrinsics as cameras.json's to 1e-11, not to the
+    # rounding of a shorter form
+    return f"1 {model} {cam.width} {cam.height} " + " ".join(f"{p:.12g}" for p in params)
 
 
 def odm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
