@@ -13,6 +13,7 @@
 #include <atomic>
 #include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -601,9 +602,12 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
   if (telemetry_) {
     const TelemetryServiceStats ts = telemetry_->stats();
     const auto off = telemetry_->decoder().clockOffsetNs();
+    const double within = telemetry_->decoder().clockUncertaintyMs();
+    const std::string uncertainty = std::isnan(within) ? "null" : formatText("%.3f", within);
     const std::string b = formatText(
         "\"geotagged\": %lld, \"clock\": \"%s\", "
-        "\"clock_offset_ms\": %s, \"messages\": %llu, \"rejected_frames\": %llu, "
+        "\"clock_offset_ms\": %s, \"clock_uncertainty_ms\": %s, \"messages\": %llu, "
+        "\"rejected_frames\": %llu, "
         "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
         "\"captures_pending\": %llu, "
         "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
@@ -612,7 +616,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
         "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"bad_samples\": %llu, "
         "\"autopilot_reboots\": %llu}",
         static_cast<long long>(writer_.geotagged()), toString(telemetry_->decoder().clockSource()),
-        off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null",
+        off ? std::to_string(static_cast<double>(*off) / 1e6).c_str() : "null", uncertainty.c_str(),
         static_cast<unsigned long long>(ts.parser.messages),
         static_cast<unsigned long long>(ts.parser.rejected),
         static_cast<unsigned long long>(ts.parser.unknownIds),

@@ -40,6 +40,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
     tel = formatText(
         "{\n    \"source\": \"%s\",\n    \"geotagged\": %lld,\n"
         "    \"clock\": \"%s\",\n    \"clock_offset_ms\": %s,\n"
+        "    \"clock_uncertainty_ms\": %s,\n"
         "    \"record_clock_ahead_ms\": %s,\n"
         "    \"messages\": %llu,\n    \"rejected_frames\": %llu,\n"
         "    \"unknown_ids\": %llu,\n"
@@ -53,7 +54,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
         "    \"truncated\": %s\n  }",
         jsonEscape(s.telemetry.source).c_str(), static_cast<long long>(s.telemetry.geotagged),
         s.telemetry.clock.c_str(), s.telemetry.clockOffsetMs.c_str(),
-        s.telemetry.recordClockAheadMs.c_str(),
+        s.telemetry.clockUncertaintyMs.c_str(), s.telemetry.recordClockAheadMs.c_str(),
         static_cast<unsigned long long>(s.telemetry.messages),
         static_cast<unsigned long long>(s.telemetry.rejected),
         static_cast<unsigned long long>(s.telemetry.unknownIds),
@@ -487,6 +488,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.telemetry.clock = toString(telemetry->decoder().clockSource());
     if (const auto off = telemetry->decoder().clockOffsetNs())
       s.telemetry.clockOffsetMs = formatText("%.3f", static_cast<double>(*off) / 1e6);
+    if (const double within = telemetry->decoder().clockUncertaintyMs(); !std::isnan(within))
+      s.telemetry.clockUncertaintyMs = formatText("%.3f", within);
     if (const auto ahead = telemetry->decoder().recordClockAheadNs()) {
       const double ms = static_cast<double>(*ahead) / 1e6;
       s.telemetry.recordClockAheadMs = formatText("%.3f", ms);

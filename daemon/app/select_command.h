@@ -26,6 +26,7 @@ struct SelectSummary {
     std::int64_t geotagged = 0;
     std::string clock = "none";
     std::string clockOffsetMs = "null";
+    std::string clockUncertaintyMs = "null";  // TIMESYNC: half the width of its bounds
     std::string recordClockAheadMs = "null";  // tlog record times minus SYSTEM_TIME
     std::uint64_t messages = 0;
     std::uint64_t rejected = 0;

@@ -1,5 +1,6 @@
 #include "telemetry/clock_mapper.h"
 
+#include <algorithm>
 #include <cmath>
 
 namespace keyframed {
@@ -23,25 +24,19 @@ void ClockMapper::observeArrival(std::uint32_t bootMs, std::int64_t localNs) {
 void ClockMapper::observeTimesync(std::int64_t tc1Ns, std::int64_t ts1Ns, std::int64_t nowNs) {
   const std::int64_t rtt = nowNs - ts1Ns;
   if (rtt < 0 || tc1Ns <= 0) return;
-  // Forget the best round trip slowly, so a link that got slower is still used.
-  const bool best = bestRttNs_ < 0 || rtt <= bestRttNs_;
-  if (best) {
-    bestRttNs_ = rtt;
-  } else {
-    bestRttNs_ += (rtt - bestRttNs_) / 64;
-  }
-  if (rtt * 2 > bestRttNs_ * 3 + 1'000'000) return;
-  const std::int64_t offset = ts1Ns + rtt / 2 - tc1Ns;
-  const bool restart = !timesyncOffsetNs_ || nowNs - timesyncAtNs_ > config_.timesyncTimeoutNs;
+  const bool restart =
+      answers_.empty() || nowNs - answers_.back().localNs > config_.timesyncTimeoutNs;
   if (restart) timesyncSamples_ = 0;
-  // The shortest round trip is the least asymmetric: a first answer that waited in a
-  // queue must not linger in the average.
-  if (restart || best) {
-    timesyncOffsetNs_ = offset;
-  } else {
-    timesyncOffsetNs_ = *timesyncOffsetNs_ + (offset - *timesyncOffsetNs_) / 4;
+  answers_.push_back({nowNs, ts1Ns - tc1Ns, nowNs - tc1Ns});
+  while (answers_.front().localNs < nowNs - config_.arrivalWindowNs) answers_.pop_front();
+  lowerNs_ = answers_.front().lowerNs;
+  upperNs_ = answers_.front().upperNs;
+  bestRttNs_ = upperNs_ - lowerNs_;
+  for (const Answer& a : answers_) {
+    lowerNs_ = std::max(lowerNs_, a.lowerNs);
+    upperNs_ = std::min(upperNs_, a.upperNs);
+    bestRttNs_ = std::min(bestRttNs_, a.upperNs - a.lowerNs);
   }
-  timesyncAtNs_ = nowNs;
   ++timesyncSamples_;
 }
 
@@ -56,11 +51,11 @@ void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) 
 
 ClockMapper::Source ClockMapper::source() const {
   if (localIsUtc_ && utcMinusBootUs_) return Source::SystemTime;
-  if (timesyncOffsetNs_ && lastArrivalNs_ - timesyncAtNs_ <= config_.timesyncTimeoutNs) {
+  if (!answers_.empty() && lastArrivalNs_ - answers_.back().localNs <= config_.timesyncTimeoutNs) {
     return Source::Timesync;
   }
   if (!arrivals_.empty()) return Source::Arrival;
-  if (timesyncOffsetNs_) return Source::Timesync;
+  if (!answers_.empty()) return Source::Timesync;
   return Source::None;
 }
 
@@ -76,7 +71,12 @@ bool ClockMapper::settled() const {
 
 std::optional<std::int64_t> ClockMapper::offsetNs() const {
   switch (source()) {
-    case Source::Timesync: return timesyncOffsetNs_;
+    case Source::Timesync: {
+      const auto [lower, upper] = *timesyncBounds();
+      // Bounds that cross (the two clocks drifting apart over the window, by a few
+      // parts per million): their middle is still the best estimate.
+      return lower + (upper - lower) / 2;
+    }
     case Source::Arrival: return arrivals_.front().offsetNs;
     case Source::SystemTime: return *utcMinusBootUs_ * 1000;
     case Source::None: break;
@@ -102,6 +102,19 @@ std::optional<std::int64_t> ClockMapper::utcUs(std::int64_t localNs) const {
   // Round to the nearest microsecond, also for negative values.
   const std::int64_t bootUs = bootNs >= 0 ? (bootNs + 500) / 1000 : -((-bootNs + 500) / 1000);
   return bootUs + *utcMinusBootUs_;
+}
+
+std::optional<std::pair<std::int64_t, std::int64_t>> ClockMapper::timesyncBounds() const {
+  if (answers_.empty()) return std::nullopt;
+  std::int64_t upper = upperNs_;
+  if (!arrivals_.empty()) upper = std::min(upper, arrivals_.front().offsetNs);
+  return std::pair{lowerNs_, upper};
+}
+
+std::optional<std::int64_t> ClockMapper::uncertaintyNs() const {
+  if (source() != Source::Timesync) return std::nullopt;
+  const auto [lower, upper] = *timesyncBounds();
+  return std::max<std::int64_t>(upper - lower, 0) / 2;
 }
 
 double ClockMapper::bestRoundTripMs() const {

@@ -3,20 +3,26 @@
 #include <cstdint>
 #include <deque>
 #include <optional>
+#include <utility>
 
 namespace keyframed {
 
 // Maps the autopilot's clock (time_boot_ms) onto the companion's clock (the one
 // frames are stamped with) and onto UTC.
 //
-// Two estimates of offset = local - autopilot:
-//  - TIMESYNC: the companion sends ts1 = local time, the autopilot answers with its
-//    own time tc1; offset = (ts1 + now) / 2 - tc1, good to half the round trip.
-//    Samples with a round trip above 1.5x the best recent one are ignored; one with
-//    the best round trip yet replaces the estimate, the others are averaged in.
+// offset = local - autopilot is bounded from both sides, and the estimate is the
+// middle of the tightest bounds seen over a sliding window (an NTP-style filter that
+// needs no model of the link's delays):
 //  - arrival: every timestamped message arrives after it was stamped, so
-//    min(arrival - time_boot_ms) over a sliding window is the offset plus the
-//    smallest latency seen. Used while TIMESYNC is not answered.
+//    offset <= arrival - time_boot_ms, for each of them;
+//  - TIMESYNC: the companion sends ts1 = local time and the autopilot answers with its
+//    own time tc1, read between our send and the answer's arrival (now), so
+//    ts1 - tc1 <= offset <= now - tc1.
+// The least delayed datagrams give the tightest bounds, so a jittery radio that
+// delays most of them by tens of ms costs nothing once a few got through quickly;
+// half the width of the bounds is the most the estimate can be off. With TIMESYNC
+// unanswered there is no lower bound, and the estimate is the upper one (the offset
+// plus the smallest latency seen).
 // SYSTEM_TIME gives UTC for the autopilot's clock.
 //
 // When the local clock is UTC (a tlog replayed: its record times, frames stamped
@@ -28,7 +34,7 @@ class ClockMapper {
   enum class Source { None, Arrival, Timesync, SystemTime };
 
   struct Config {
-    std::int64_t arrivalWindowNs = 10'000'000'000;   // sliding window of the min filter
+    std::int64_t arrivalWindowNs = 10'000'000'000;   // sliding window of both bounds
     std::int64_t timesyncTimeoutNs = 5'000'000'000;  // fall back to arrival after this
   };
 
@@ -53,7 +59,10 @@ class ClockMapper {
   // over half a second. One answer, or the first few arrivals, can be late by a
   // scheduler's hiccup (tens of ms at start-up) that only more of them expose.
   [[nodiscard]] bool settled() const;
-  [[nodiscard]] double bestRoundTripMs() const;  // NaN without TIMESYNC
+  [[nodiscard]] double bestRoundTripMs() const;  // in the window; NaN without TIMESYNC
+  // Half the width of the bounds (the most the TIMESYNC estimate can be off); empty
+  // when the source is not TIMESYNC.
+  [[nodiscard]] std::optional<std::int64_t> uncertaintyNs() const;
   // With the local clock UTC and SYSTEM_TIME known: how far the arrival (record)
   // times run ahead of the autopilot's UTC, the smallest latency included.
   [[nodiscard]] std::optional<std::int64_t> arrivalMinusSystemTimeNs() const;
@@ -63,15 +72,24 @@ class ClockMapper {
     std::int64_t localNs;
     std::int64_t offsetNs;
   };
+  struct Answer {          // one TIMESYNC exchange
+    std::int64_t localNs;  // when the answer arrived
+    std::int64_t lowerNs;  // ts1 - tc1
+    std::int64_t upperNs;  // now - tc1
+  };
+  // The TIMESYNC bounds when answers are current: {lower, upper}, the upper one
+  // tightened by the arrivals'.
+  [[nodiscard]] std::optional<std::pair<std::int64_t, std::int64_t>> timesyncBounds() const;
 
   Config config_;
   std::deque<Arrival> arrivals_;  // monotonic deque: offsets increasing from front
   std::int64_t firstArrivalNs_ = 0;
   std::int64_t lastArrivalNs_ = 0;
-  std::optional<std::int64_t> timesyncOffsetNs_;
-  std::int64_t timesyncAtNs_ = 0;
+  std::deque<Answer> answers_;  // within the window, oldest first
+  std::int64_t lowerNs_ = 0;    // max lowerNs over answers_
+  std::int64_t upperNs_ = 0;    // min upperNs over answers_
   std::int64_t bestRttNs_ = -1;
-  int timesyncSamples_ = 0;  // used since the estimate (re)started
+  int timesyncSamples_ = 0;  // answers since the estimate (re)started
   std::optional<std::int64_t> utcMinusBootUs_;
   bool localIsUtc_ = false;
 };

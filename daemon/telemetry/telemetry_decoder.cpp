@@ -1,5 +1,6 @@
 #include "telemetry/telemetry_decoder.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -87,6 +88,10 @@ void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
   lastBootMs_ = bootMs;
   lastBootLocalNs_ = localNs;
   clock_.observeArrival(bootMs, localNs);
+  if (pendingGps_) {
+    store_->addGps(static_cast<std::int64_t>(bootMs) * kMs, *pendingGps_);
+    pendingGps_.reset();
+  }
 }
 
 void TelemetryDecoder::StreamTiming::observe(std::int64_t ms) {
@@ -224,9 +229,15 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       q.hAccuracyM = r.h_acc == 0 ? NAN : r.h_acc / 1000.0;
       q.vAccuracyM = r.v_acc == 0 ? NAN : r.v_acc / 1000.0;
       // time_usec is UTC or boot time depending on the autopilot: stamp GPS state
-      // with the newest boot time instead, it changes slowly.
-      const std::int64_t t = lastBootMs_ >= 0 ? lastBootMs_ * kMs : 0;
-      store_->addGps(t, q);
+      // with the autopilot's time now instead (the newest boot time, plus the time
+      // since it came), it changes slowly. Before any boot time has come (the first
+      // datagrams of a radio that reorders them) it waits for the first one.
+      if (lastBootMs_ >= 0) {
+        store_->addGps(lastBootMs_ * kMs + std::max<std::int64_t>(localNs - lastBootLocalNs_, 0),
+                       q);
+      } else {
+        pendingGps_ = q;
+      }
       ++stats_.gps;
       break;
     }
@@ -333,6 +344,12 @@ bool TelemetryDecoder::clockSettled() const {
 std::optional<std::int64_t> TelemetryDecoder::recordClockAheadNs() const {
   std::lock_guard lock(mutex_);
   return clock_.arrivalMinusSystemTimeNs();
+}
+
+double TelemetryDecoder::clockUncertaintyMs() const {
+  std::lock_guard lock(mutex_);
+  const auto u = clock_.uncertaintyNs();
+  return u ? static_cast<double>(*u) / 1e6 : NAN;
 }
 
 double TelemetryDecoder::clockRoundTripMs() const {

@@ -71,6 +71,8 @@ class TelemetryDecoder {
   [[nodiscard]] std::optional<std::int64_t> clockOffsetNs() const;
   [[nodiscard]] bool clockSettled() const;        // ClockMapper::settled()
   [[nodiscard]] double clockRoundTripMs() const;  // best TIMESYNC round trip; NaN without
+  // ClockMapper::uncertaintyNs() in ms; NaN when the clock is not mapped by TIMESYNC.
+  [[nodiscard]] double clockUncertaintyMs() const;
   // Local clock UTC, mapped by SYSTEM_TIME: how far the record times run ahead of the
   // autopilot's UTC (ClockMapper::arrivalMinusSystemTimeNs).
   [[nodiscard]] std::optional<std::int64_t> recordClockAheadNs() const;
@@ -124,9 +126,10 @@ class TelemetryDecoder {
   int gimbalComponent_ = -1;  // the first gimbal heard (component, device id) is used
   int gimbalDevice_ = -1;
   std::int64_t lastBootMs_ = -1;
-  std::int64_t lastBootLocalNs_ = 0;  // when lastBootMs_ arrived
-  StreamTiming quaternions_;          // ATTITUDE_QUATERNION
-  StreamTiming euler_;                // ATTITUDE
+  std::int64_t lastBootLocalNs_ = 0;      // when lastBootMs_ arrived
+  std::optional<GpsQuality> pendingGps_;  // a GPS_RAW_INT before any boot time
+  StreamTiming quaternions_;              // ATTITUDE_QUATERNION
+  StreamTiming euler_;                    // ATTITUDE
   bool localClockIsUtc_ = false;
 };
 

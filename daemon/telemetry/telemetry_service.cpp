@@ -633,6 +633,8 @@ void TelemetryService::logClock(std::int64_t nowNs) {
   std::string text = std::string("autopilot clock: ") + toString(source) + ", offset " +
                      formatMs(static_cast<double>(*offset) / 1e6) + " (local - autopilot)";
   const double rtt = decoder_.clockRoundTripMs();
+  const double within = decoder_.clockUncertaintyMs();
+  if (!std::isnan(within)) text += " within " + formatMs(within);
   text += std::isnan(rtt) ? ", no TIMESYNC round trip" : ", best round trip " + formatMs(rtt);
   if (!first) text += ", changed by " + formatMs(change);
   TelemetryLogLevel level = first ? TelemetryLogLevel::Notice : TelemetryLogLevel::Info;

@@ -658,7 +658,7 @@ def check_live_tags(
     tags = exif([out / k["file"] for k in kfs])
     errs = []
     for n, k in enumerate(kfs):
-        assert k["geotag"] == "ok", k
+        assert k["geotag"] == "ok", (k["index"], k["geotag"], n, k)
         flight_t = (ap.unix_us_at_monotonic_ns(int(k["time_ns"])) - truth.epoch_us) / 1e6
         errs.append(tag_errors(tags[k["file"]], truth.at(flight_t)))
         if n == 0 and not utc_first and "ExifIFD:DateTimeOriginal" not in tags[k["file"]]:
@@ -921,27 +921,42 @@ def test_live_udp_autopilot_with_noise(
 
 
 @needs_exiftool
+@pytest.mark.parametrize("timesync", [False, True], ids=["arrival", "timesync"])
 def test_live_udp_autopilot_behind_a_jittery_radio(
-    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any, timesync: bool
 ) -> None:
     """A telemetry radio's delay: 5-60 ms, different for every datagram (so they
-    overtake one another), on top of a clock offset, from an autopilot that does not
-    answer TIMESYNC. The least delayed arrivals still map its clock to about the
-    radio's least delay (5 ms here, which no estimate can see), and the tags stay
-    within the issue's 0.1 m and 0.2 degrees; UTC follows the same mapping."""
+    overtake one another), TIMESYNC answers included, on top of a clock offset.
+    Without TIMESYNC the least delayed arrivals map the autopilot's clock to about the
+    radio's least delay (5 ms here, which no estimate can see); with it, the bounds of
+    the quickest exchanges halve that, the source stays TIMESYNC all flight however
+    slow most answers are, and the summary says how far off it can be. Either way the
+    tags stay within the issue's 0.1 m and 0.2 degrees; UTC follows the same mapping."""
     ap = fake_autopilot(
         short_nadir / "flight.tlog",
         boot_offset_ms=1_234_567,
         latency_ms=(5.0, 60.0),
         seed=7,
-        answer_timesync=False,
+        answer_timesync=timesync,
     )
     out, log = live_run(kf_bin, short_nadir, tmp_path, ap)
     tel = json.loads((out / "summary.json").read_text())["telemetry"]
     error_ms = tel["clock_offset_ms"] - true_clock_offset_ms(ap)
-    print(f"jittery radio: clock offset error {error_ms:.3f} ms")
-    assert tel["clock"] == "arrival", tel
-    assert abs(error_ms) < 10.0, error_ms
+    print(
+        f"jittery radio ({tel['clock']}): clock offset error {error_ms:.3f} ms, "
+        f"uncertainty {tel['clock_uncertainty_ms']} ms"
+    )
+    if timesync:
+        assert tel["clock"] == "timesync", tel
+        # Up 0 ms (plus scheduling), down at least 5: the middle is 2.5 ms high.
+        assert abs(error_ms) < 5.0, error_ms
+        assert abs(error_ms) <= tel["clock_uncertainty_ms"] + 0.5, tel
+        assert tel["clock_uncertainty_ms"] < 10.0, tel
+        assert "no TIMESYNC answers for a while" not in log, log
+    else:
+        assert tel["clock"] == "arrival", tel
+        assert tel["clock_uncertainty_ms"] is None, tel
+        assert abs(error_ms) < 10.0, error_ms
     # UTC: the clock's error plus SYSTEM_TIME's millisecond steps
     errs = check_live_tags(short_nadir, out, ap, utc_tolerance_us=10_000, utc_first=False)
     print(
