@@ -49,8 +49,13 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
       const bool gimbal = writer_.mount().gimbal;
       // And for a clock estimate that has settled: the first keyframe, taken as the
       // first telemetry arrives, would otherwise be placed by a few messages' latency.
+      // Attitude (tens of Hz, and held, not carried on, past its newest sample) must be
+      // newer than the frame; a position (often 5-10 Hz) as old as the hold will do:
+      // carried on at its velocity over that time it is off by half the acceleration
+      // times its square (2 cm at 2 m/s^2 over 150 ms), well inside GPS's own error,
+      // where waiting for the next one would hold every keyframe up to 100-200 ms.
       const TelemetryDecoder& d = telemetry_->decoder();
-      while (!d.covers(frame.timestampNs, gimbal) || !d.clockSettled()) {
+      while (!d.covers(frame.timestampNs, gimbal, limits_.maxHoldNs) || !d.clockSettled()) {
         const std::int64_t now = monotonicNowNs();
         if (now >= deadline || !linkDelivers(now, gimbal)) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));

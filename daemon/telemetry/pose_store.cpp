@@ -282,10 +282,11 @@ bool PoseStore::hasGpsStatus() const {
   return config_.minFixType <= 0 || !gps_.empty();
 }
 
-bool PoseStore::covers(std::int64_t timeNs, bool gimbal) const {
+bool PoseStore::covers(std::int64_t timeNs, bool gimbal, std::int64_t positionLagNs) const {
   std::lock_guard lock(mutex_);
   const bool att = !attitude_.empty() && attitude_.back().timeNs >= timeNs;
-  const bool pos = !position_.empty() && position_.back().timeNs >= timeNs;
+  const std::int64_t lag = std::clamp<std::int64_t>(positionLagNs, 0, config_.maxHoldNs);
+  const bool pos = !position_.empty() && position_.back().timeNs >= timeNs - lag;
   const bool gim = !gimbal || gimbal_.empty() || gimbal_.back().timeNs >= timeNs;
   return att && pos && gim;
 }

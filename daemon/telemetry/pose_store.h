@@ -57,8 +57,10 @@ class PoseStore {
 
   // True when samples newer than timeNs exist for attitude and position (and, with
   // gimbal, for a gimbal that has reported: it reports at a few Hz): the caller may
-  // query without waiting for more.
-  [[nodiscard]] bool covers(std::int64_t timeNs, bool gimbal = false) const;
+  // query without waiting for more. positionLagNs: a position up to this much older
+  // will do (at() carries it on at its velocity for up to maxHoldNs).
+  [[nodiscard]] bool covers(std::int64_t timeNs, bool gimbal = false,
+                            std::int64_t positionLagNs = 0) const;
   [[nodiscard]] std::optional<std::int64_t> newestNs() const;
   // True when an attitude sample at or after timeNs has arrived.
   [[nodiscard]] bool hasAttitudeSince(std::int64_t timeNs) const;

@@ -295,11 +295,11 @@ Pose TelemetryDecoder::poseAt(std::int64_t localNs) const {
   return p;
 }
 
-bool TelemetryDecoder::covers(std::int64_t localNs, bool gimbal) const {
+bool TelemetryDecoder::covers(std::int64_t localNs, bool gimbal, std::int64_t positionLagNs) const {
   const Lookup l = lookup(localNs);
   // The boot before a reboot has said all it will: nothing newer is worth waiting for.
   if (l.previousBoot) return true;
-  return l.offset && l.store->covers(localNs - *l.offset, gimbal);
+  return l.offset && l.store->covers(localNs - *l.offset, gimbal, positionLagNs);
 }
 
 bool TelemetryDecoder::hasAttitudeSince(std::int64_t localNs) const {
@@ -312,7 +312,9 @@ bool TelemetryDecoder::hasPose() const {
   std::shared_ptr<const PoseStore> store;
   {
     std::lock_guard lock(mutex_);
-    mapped = clock_.offsetNs().has_value();
+    // Settled, not only mapped: the first keyframe, the camera's first frame, would
+    // otherwise wait for it.
+    mapped = clock_.offsetNs().has_value() && clock_.settled();
     store = store_;
   }
   // The receiver's status too: a camera started on attitude and position alone takes

@@ -58,12 +58,13 @@ class TelemetryDecoder {
   // attitude/position with staleReason when telemetry cannot tell.
   [[nodiscard]] Pose poseAt(std::int64_t localNs) const;
   // True when telemetry newer than localNs has arrived (no need to wait more);
-  // gimbal: the gimbal's too, once one has reported.
-  [[nodiscard]] bool covers(std::int64_t localNs, bool gimbal = false) const;
+  // gimbal: the gimbal's too, once one has reported; positionLagNs as PoseStore::covers.
+  [[nodiscard]] bool covers(std::int64_t localNs, bool gimbal = false,
+                            std::int64_t positionLagNs = 0) const;
   // An attitude sample at or after localNs has arrived (false before the clock is mapped).
   [[nodiscard]] bool hasAttitudeSince(std::int64_t localNs) const;
-  // True once the clock is mapped and attitude, position and (when a fix is required) the
-  // GPS status have arrived.
+  // True once the clock estimate has settled and attitude, position and (when a fix is
+  // required) the GPS status have arrived.
   [[nodiscard]] bool hasPose() const;
 
   [[nodiscard]] TelemetryStats stats() const;

@@ -219,6 +219,36 @@ TEST(PoseStore, AFixNotReportedForLongGoesStale) {
   EXPECT_TRUE(p.position.has_value()) << p.staleReason;
 }
 
+// A keyframe waits for an attitude newer than it, but a position up to the hold older
+// will do: carried on at its velocity, it lands where the next sample would have put
+// it (to half the acceleration times the square of the time).
+TEST(PoseStore, CoversWithAPositionAsOldAsTheHoldCarriedOnAtItsVelocity) {
+  PoseStore::Config cfg;
+  PoseStore store(cfg);
+  GpsQuality fix;
+  fix.fixType = 3;
+  store.addGps(0, fix);
+  GeoPosition p0{10.0, 20.0, 100.0, 50.0};
+  p0.velNorthMs = 10.0;  // 10 m/s north
+  p0.velEastMs = 0.0;
+  p0.velDownMs = -1.0;  // climbing 1 m/s
+  store.addPosition(0, p0);
+  for (std::int64_t t = 0; t <= 200 * kMs; t += 20 * kMs) store.addAttitude(t, Quaternion{});
+  const std::int64_t frame = 90 * kMs;
+  EXPECT_FALSE(store.covers(frame));  // no position newer than the frame
+  EXPECT_TRUE(store.covers(frame, false, cfg.maxHoldNs));
+  EXPECT_FALSE(store.covers(frame + cfg.maxHoldNs + 1, false, cfg.maxHoldNs));
+  // The lag never goes past the hold, whatever is asked.
+  EXPECT_FALSE(store.covers(frame + cfg.maxHoldNs + 1, false, 10 * cfg.maxHoldNs));
+  // No attitude newer than the frame: not covered, however recent the position.
+  EXPECT_FALSE(store.covers(250 * kMs, false, cfg.maxHoldNs));
+  const Pose p = store.at(frame);
+  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+  constexpr double kMetresPerDegree = 6378137.0 * 3.14159265358979323846 / 180.0;
+  EXPECT_NEAR((p.position->latDeg - 10.0) * kMetresPerDegree, 0.9, 1e-6);  // 10 m/s x 90 ms
+  EXPECT_NEAR(p.position->altAmslM, 100.09, 1e-9);
+}
+
 TEST(PoseStore, BeforeTheFirstGpsReportOnlyAReportRightAfterCounts) {
   PoseStore::Config cfg;
   PoseStore store(cfg);
@@ -274,6 +304,24 @@ TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   // A lone 0 on one axis is a real place (the equator, the prime meridian).
   push(position(ap, 1100, 0.0, 20.0, 50.0));
   EXPECT_EQ(dec.stats().badPositions, 6U);
+}
+
+// The camera starts on hasPose(): the clock estimate must have settled too, or the
+// first keyframe (its first frame) waits for it. Arrivals only here: half a second.
+TEST(TelemetryDecoder, HasAPoseOnceTheClockHasSettled) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  Feeder push{dec};
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  std::vector<bool> has;
+  for (std::uint32_t i = 0; i <= 6; ++i) {
+    push.now = (10'000 + i * 100) * kMs;
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, 5000 + i * 100, Quaternion{}));
+    push(position(ap, 5000 + i * 100, 10.0, 20.0, 50.0));
+    has.push_back(dec.hasPose());
+  }
+  EXPECT_EQ(has, (std::vector<bool>{false, false, false, false, false, true, true}));
 }
 
 // A radio that reorders datagrams can deliver GPS_RAW_INT (whose time is not the boot
