@@ -51,7 +51,8 @@ void ClockMapper::observeSystemTime(std::uint64_t unixUs, std::uint32_t bootMs) 
 
 ClockMapper::Source ClockMapper::source() const {
   if (localIsUtc_ && utcMinusBootUs_) return Source::SystemTime;
-  if (!answers_.empty() && lastArrivalNs_ - answers_.back().localNs <= config_.timesyncTimeoutNs) {
+  if (!answers_.empty() && lastArrivalNs_ - answers_.back().localNs <= config_.timesyncTimeoutNs &&
+      timesyncAgreesWithArrivals()) {
     return Source::Timesync;
   }
   if (!arrivals_.empty()) return Source::Arrival;
@@ -102,6 +103,19 @@ std::optional<std::int64_t> ClockMapper::utcUs(std::int64_t localNs) const {
   // Round to the nearest microsecond, also for negative values.
   const std::int64_t bootUs = bootNs >= 0 ? (bootNs + 500) / 1000 : -((-bootNs + 500) / 1000);
   return bootUs + *utcMinusBootUs_;
+}
+
+bool ClockMapper::timesyncAgreesWithArrivals() const {
+  // The bounds cross by a few parts per million of the window as the clocks drift.
+  // When they cross by more, or TIMESYNC puts the offset further below the arrivals'
+  // bound than any link's least delay over the window, tc1 is not on the boot clock
+  // the messages are stamped with (an autopilot that answers from another clock), and
+  // the arrivals, stamped with the very clock being mapped, are believed.
+  constexpr std::int64_t kCrossingNs = 20'000'000;
+  constexpr std::int64_t kLeastDelayNs = 500'000'000;
+  if (arrivals_.empty()) return true;
+  const std::int64_t arrivalUpper = arrivals_.front().offsetNs;
+  return lowerNs_ <= arrivalUpper + kCrossingNs && upperNs_ >= arrivalUpper - kLeastDelayNs;
 }
 
 std::optional<std::pair<std::int64_t, std::int64_t>> ClockMapper::timesyncBounds() const {

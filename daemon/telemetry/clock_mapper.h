@@ -80,6 +80,8 @@ class ClockMapper {
   // The TIMESYNC bounds when answers are current: {lower, upper}, the upper one
   // tightened by the arrivals'.
   [[nodiscard]] std::optional<std::pair<std::int64_t, std::int64_t>> timesyncBounds() const;
+  // False when TIMESYNC's bounds are far from the arrivals' (see the .cpp).
+  [[nodiscard]] bool timesyncAgreesWithArrivals() const;
 
   Config config_;
   std::deque<Arrival> arrivals_;  // monotonic deque: offsets increasing from front

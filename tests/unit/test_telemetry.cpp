@@ -693,6 +693,31 @@ TEST(ClockMapper, TimesyncBoundsHoldUpOnAJitteryRadio) {
   EXPECT_LT(*clock.uncertaintyNs(), 3 * kMs);
 }
 
+// An autopilot whose TIMESYNC answers come from another clock than its messages'
+// time_boot_ms: its bounds disagree with the arrivals' (above them, or far below),
+// and the arrivals, stamped with the clock being mapped, are believed.
+TEST(ClockMapper, TimesyncFromAnotherClockIsNotBelieved) {
+  const std::int64_t offset = 700 * kMs;
+  for (const std::int64_t skew : {-30 * kMs, 2000 * kMs, 0 * kMs}) {
+    ClockMapper clock;
+    for (int i = 0; i < 20; ++i) {
+      const std::int64_t local = (5000 + i * 50) * kMs;
+      const auto boot = static_cast<std::uint32_t>((local - offset) / kMs);
+      clock.observeArrival(boot, local + 3 * kMs);  // 3 ms on the link
+      if (i % 5 == 0) clock.observeTimesync(local - offset + skew + kMs, local, local + 2 * kMs);
+    }
+    const std::int64_t error = *clock.offsetNs() - offset;
+    if (skew == 0) {
+      EXPECT_EQ(clock.source(), ClockMapper::Source::Timesync);
+      EXPECT_LE(std::abs(error), kMs);
+    } else {
+      EXPECT_EQ(clock.source(), ClockMapper::Source::Arrival) << skew;
+      EXPECT_EQ(error, 3 * kMs) << skew;
+      EXPECT_FALSE(clock.uncertaintyNs().has_value());
+    }
+  }
+}
+
 // A SYSTEM_TIME that is no time (a corrupt field, a CRC-valid garbage packet) is not
 // taken: its microseconds would overflow as nanoseconds and date keyframes anywhere.
 TEST(ClockMapper, ASystemTimeOutsideThisCenturyIsIgnored) {
