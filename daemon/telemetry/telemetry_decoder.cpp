@@ -312,9 +312,9 @@ bool TelemetryDecoder::hasPose() const {
   std::shared_ptr<const PoseStore> store;
   {
     std::lock_guard lock(mutex_);
-    // Settled, not only mapped: the first keyframe, the camera's first frame, would
-    // otherwise wait for it.
-    mapped = clock_.offsetNs().has_value() && clock_.settled();
+    // Settled (so mapped), not only mapped: the first keyframe, the camera's first
+    // frame, would otherwise wait for it.
+    mapped = clock_.settled();
     store = store_;
   }
   // The receiver's status too: a camera started on attitude and position alone takes

@@ -126,6 +126,16 @@ TEST(PoseStore, PastTheNewestPositionItMovesOnAtTheReportedVelocity) {
   EXPECT_NEAR((p.position->lonDeg - 1.0) * kMPerDegLat * std::cos(51.0 * kDeg), -0.5, 1e-6);
   EXPECT_NEAR(p.position->altAmslM, 100.2, 1e-9);
   EXPECT_NEAR(p.position->altRelM, 10.2, 1e-9);
+  // So a keyframe need not wait for a position newer than it, only for an attitude
+  // (held, not carried on): a position as old as the hold will do, never older.
+  for (std::int64_t t = 1000 * kMs; t <= 1200 * kMs; t += 20 * kMs) {
+    store.addAttitude(t, Quaternion{});
+  }
+  EXPECT_FALSE(store.covers(1100 * kMs));  // no position newer than the frame
+  EXPECT_TRUE(store.covers(1100 * kMs, false, cfg.maxHoldNs));
+  EXPECT_FALSE(store.covers(1000 * kMs + cfg.maxHoldNs + 1, false, cfg.maxHoldNs));
+  EXPECT_FALSE(store.covers(1000 * kMs + cfg.maxHoldNs + 1, false, 10 * cfg.maxHoldNs));
+  EXPECT_FALSE(store.covers(1220 * kMs, false, cfg.maxHoldNs));  // no attitude after it
   // Without a velocity it is held where it was; between samples nothing changes.
   PoseStore still(cfg);
   still.addGps(0, fix);
@@ -217,36 +227,6 @@ TEST(PoseStore, AFixNotReportedForLongGoesStale) {
   store.addGps(late - 10 * kMs, fix);
   p = store.at(late);
   EXPECT_TRUE(p.position.has_value()) << p.staleReason;
-}
-
-// A keyframe waits for an attitude newer than it, but a position up to the hold older
-// will do: carried on at its velocity, it lands where the next sample would have put
-// it (to half the acceleration times the square of the time).
-TEST(PoseStore, CoversWithAPositionAsOldAsTheHoldCarriedOnAtItsVelocity) {
-  PoseStore::Config cfg;
-  PoseStore store(cfg);
-  GpsQuality fix;
-  fix.fixType = 3;
-  store.addGps(0, fix);
-  GeoPosition p0{10.0, 20.0, 100.0, 50.0};
-  p0.velNorthMs = 10.0;  // 10 m/s north
-  p0.velEastMs = 0.0;
-  p0.velDownMs = -1.0;  // climbing 1 m/s
-  store.addPosition(0, p0);
-  for (std::int64_t t = 0; t <= 200 * kMs; t += 20 * kMs) store.addAttitude(t, Quaternion{});
-  const std::int64_t frame = 90 * kMs;
-  EXPECT_FALSE(store.covers(frame));  // no position newer than the frame
-  EXPECT_TRUE(store.covers(frame, false, cfg.maxHoldNs));
-  EXPECT_FALSE(store.covers(frame + cfg.maxHoldNs + 1, false, cfg.maxHoldNs));
-  // The lag never goes past the hold, whatever is asked.
-  EXPECT_FALSE(store.covers(frame + cfg.maxHoldNs + 1, false, 10 * cfg.maxHoldNs));
-  // No attitude newer than the frame: not covered, however recent the position.
-  EXPECT_FALSE(store.covers(250 * kMs, false, cfg.maxHoldNs));
-  const Pose p = store.at(frame);
-  ASSERT_TRUE(p.position.has_value()) << p.staleReason;
-  constexpr double kMetresPerDegree = 6378137.0 * 3.14159265358979323846 / 180.0;
-  EXPECT_NEAR((p.position->latDeg - 10.0) * kMetresPerDegree, 0.9, 1e-6);  // 10 m/s x 90 ms
-  EXPECT_NEAR(p.position->altAmslM, 100.09, 1e-9);
 }
 
 TEST(PoseStore, BeforeTheFirstGpsReportOnlyAReportRightAfterCounts) {
