@@ -1,7 +1,12 @@
 #!/usr/bin/env bash
-# Idempotent set-up on Debian 12 (as root, or with sudo): apt packages, Python venv.
-# Safe to run again; does nothing that is already done.
+# Idempotent set-up on Debian 12 (as root, or with sudo): apt packages, Rust crates,
+# Python venv. Safe to run again; does nothing that is already done.
+#   tools/setup.sh [--system]   (--system: apt packages and Rust crates only)
 set -euo pipefail
+case "${1:-}" in
+  "" | --system) ;;
+  *) echo "usage: tools/setup.sh [--system]" >&2; exit 2 ;;
+esac
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${KEYFRAMED_VENV:-$ROOT/.venv}"
 STAMP_DIR="$ROOT/build/.setup"
@@ -77,6 +82,24 @@ if [ -n "$MISSING" ]; then
   done
 fi
 
+# Rust crates of daemon/io-rs (zenoh, mcap), fetched once per Cargo.lock so that the
+# build itself needs no network.
+LOCK="$ROOT/daemon/io-rs/Cargo.lock"
+if ! rust_ok; then
+  echo "setup: no cargo with rustc 1.88 or newer: install rustup, or enable bookworm-security" \
+       "for apt's rustc-web/cargo-web (found: $(rustc --version 2>/dev/null || echo none))." \
+       "To build without MCAP and Zenoh, configure with -DKEYFRAMED_WITH_IO=OFF." >&2
+  exit 1
+elif ! cmp -s "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"; then
+  echo "setup: fetching Rust crates (cargo fetch --locked)"
+  (cd "$ROOT/daemon/io-rs" && cargo fetch --locked -q)
+  cp "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"
+fi
+
+# --system: apt packages and Rust crates only (tools/test.sh starts the crate's build
+# then, beside the rest of set-up).
+if [ "${1:-}" = --system ]; then exit 0; fi
+
 # tests/harness/test_libcamera_virtual.py: newer libcamera releases than Debian 12's
 # 0.0.3, unpacked under build/debian (nothing installed): trixie's 0.4 with its
 # runtime, kernel and 9p modules (run under qemu on its virtual camera), sid's newest
@@ -103,18 +126,4 @@ if ! cmp -s "$REQ" "$VENV/.keyframed-requirements.txt"; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
   "$VENV/bin/python" -m pip install -q -r "$REQ"
   cp "$REQ" "$VENV/.keyframed-requirements.txt"
-fi
-
-# Rust crates of daemon/io-rs (zenoh, mcap), fetched once per Cargo.lock so that the
-# build itself needs no network.
-LOCK="$ROOT/daemon/io-rs/Cargo.lock"
-if ! rust_ok; then
-  echo "setup: no cargo with rustc 1.88 or newer: install rustup, or enable bookworm-security" \
-       "for apt's rustc-web/cargo-web (found: $(rustc --version 2>/dev/null || echo none))." \
-       "To build without MCAP and Zenoh, configure with -DKEYFRAMED_WITH_IO=OFF." >&2
-  exit 1
-elif ! cmp -s "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"; then
-  echo "setup: fetching Rust crates (cargo fetch --locked)"
-  (cd "$ROOT/daemon/io-rs" && cargo fetch --locked -q)
-  cp "$LOCK" "$STAMP_DIR/io-rs-Cargo.lock"
 fi

@@ -281,7 +281,14 @@ def test_interrupt_stops_cleanly_with_outputs_flushed(kf_bin: Path, tmp_path):
         stderr=subprocess.PIPE,
         text=True,
     )
-    time.sleep(0.5)
+    # Interrupted once it is selecting (its decisions file is open), not while it starts:
+    # a signal before main() is the inherited disposition's (pytest-xdist's workers
+    # ignore SIGINT), not the program's.
+    decisions = out / "decisions.csv"
+    deadline = time.monotonic() + 30
+    while not decisions.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130, err

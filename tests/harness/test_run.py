@@ -464,7 +464,11 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
         env={"NOTIFY_SOCKET": str(ns.path), "WATCHDOG_USEC": "1000000"},
     )
     try:
-        time.sleep(2.0)
+        # signals once it runs (READY: its handlers are in place), not while it starts
+        deadline = time.monotonic() + 20
+        while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
         # a bad configuration on reload: refused, the daemon goes on
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 7\n")
         proc.send_signal(signal.SIGHUP)

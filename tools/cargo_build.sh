@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# The one cargo command that builds the Rust I/O crate (daemon/io-rs). CMake's build
+# runs it; tools/test.sh runs it too, early, beside the rest of set-up, so that the
+# crate's cold build (minutes) is under way before the C++ build starts. Both calls
+# are the same command on the same target dir, so the second finds the crate built
+# (or waits for cargo's lock on the target dir and then finds it built).
+#   tools/cargo_build.sh CARGO TARGET_DIR
+set -euo pipefail
+[ "$#" -eq 2 ] || { echo "usage: $0 CARGO TARGET_DIR" >&2; exit 2; }
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+CARGO="$1"
+export CARGO_TARGET_DIR="$2"
+# cargo runs rustc from its own directory (rustup's or Debian's rustc-web).
+PATH="$(dirname "$CARGO"):$PATH"
+export PATH
+exec "$CARGO" build --release --locked -j"${KEYFRAMED_JOBS:-2}" --quiet \
+  --manifest-path "$ROOT/daemon/io-rs/Cargo.toml"
