@@ -468,7 +468,7 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
         deadline = time.monotonic() + 20
         while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
-        time.sleep(0.5)
+        time.sleep(2.0)  # keyframes kept for their overlap at the first target
         # a bad configuration on reload: refused, the daemon goes on
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 7\n")
         proc.send_signal(signal.SIGHUP)
