@@ -13,7 +13,7 @@ namespace keyframed {
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
+using SteadyClock = std::chrono::steady_clock;
 
 // A message without its numbers ("reopen attempt 7 failed" and "... 8 failed" are one kind).
 std::string kindOf(const std::string& message) {
@@ -31,7 +31,7 @@ std::string kindOf(const std::string& message) {
 class ErrorLog {
  public:
   void error(const std::string& message) {
-    const auto now = Clock::now();
+    const auto now = SteadyClock::now();
     if (errors_ == 0) outageStart_ = now;
     ++errors_;
     const std::int64_t nowNs =
@@ -47,7 +47,7 @@ class ErrorLog {
     if (errors_ == 0) return;
     char took[32];
     std::snprintf(took, sizeof took, "%.1f s",
-                  std::chrono::duration<double>(Clock::now() - outageStart_).count());
+                  std::chrono::duration<double>(SteadyClock::now() - outageStart_).count());
     KF_LOG(Capture, Notice) << "capture recovered after " << errors_ << " error"
                             << (errors_ == 1 ? "" : "s") << " in " << took;
     errors_ = 0;
@@ -56,7 +56,7 @@ class ErrorLog {
 
  private:
   std::uint64_t errors_ = 0;  // in the current outage
-  Clock::time_point outageStart_{};
+  SteadyClock::time_point outageStart_{};
   LogThrottle throttle_{10'000'000'000, 1'000'000'000};
 };
 
@@ -151,7 +151,7 @@ void CaptureThread::loop() {
   bool fresh = discardBeforeNs_ == std::numeric_limits<std::int64_t>::min();
   while (!stop_) {
     Frame frame;
-    const auto called = Clock::now();
+    const auto called = SteadyClock::now();
     const ReadStatus status = source_.next(frame, error);
     if (stop_) break;  // stopped while reading: an interrupted read is no capture error
     if (status == ReadStatus::End) {
@@ -170,7 +170,7 @@ void CaptureThread::loop() {
       if (maxConsecutiveErrors_ > 0 && consecutiveErrors >= maxConsecutiveErrors_) break;
       log.error(error);
       // A read that failed slowly (a poll timeout) has waited already.
-      const auto waited = Clock::now() - called;
+      const auto waited = SteadyClock::now() - called;
       if (waited < backoff && !pause(backoff - waited)) break;
       backoff = std::min<std::chrono::nanoseconds>(backoff * 2, kMaxBackoff);
       continue;

@@ -32,12 +32,12 @@ void Interrupter::raise() {
 
 Interrupter::Result Interrupter::wait(int fd, short events,
                                       std::chrono::milliseconds timeout) const {
-  using Clock = std::chrono::steady_clock;
-  const auto deadline = Clock::now() + timeout;
+  using SteadyClock = std::chrono::steady_clock;
+  const auto deadline = SteadyClock::now() + timeout;
   for (;;) {
     if (raised_.load()) return {Wake::Interrupted, 0, 0};
     const auto left =
-        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - SteadyClock::now());
     if (left.count() <= 0) return {Wake::Timeout, 0, 0};
     pollfd fds[2] = {{fd, events, 0}, {eventFd_, POLLIN, 0}};
     const auto slice = eventFd_ >= 0 ? left : std::min(left, kFallbackSlice);

@@ -40,7 +40,13 @@ void copyRows(std::uint8_t* to, int toStride, const std::uint8_t* from, int from
   }
 }
 
-// A libavcodec context with one frame and one packet, freed together.
+}  // namespace
+
+// A libavcodec context with one frame and one packet, freed together. In a named
+// namespace: the Impl structs below derive from it (a base from an anonymous namespace
+// is refused when a unity build compiles this file inside another).
+namespace h264_detail {
+
 struct AvCodec {
   AVCodecContext* ctx = nullptr;
   AVFrame* frame = nullptr;
@@ -73,9 +79,9 @@ struct AvCodec {
   }
 };
 
-}  // namespace
+}  // namespace h264_detail
 
-struct H264Encoder::Impl : AvCodec {
+struct H264Encoder::Impl : h264_detail::AvCodec {
   std::int64_t pts = 0;
 };
 
@@ -172,7 +178,7 @@ bool H264Encoder::encode(const I420View& picture, std::int64_t timeNs,
   return true;
 }
 
-struct H264Decoder::Impl : AvCodec {
+struct H264Decoder::Impl : h264_detail::AvCodec {
   std::vector<std::uint8_t> padded;  // libavcodec reads past a packet's end
 };
 

@@ -259,9 +259,9 @@ void McapRecorder::fail(const std::string& error) {
 }
 
 void McapRecorder::run() {
-  using Clock = std::chrono::steady_clock;
+  using SteadyClock = std::chrono::steady_clock;
   const auto interval = std::chrono::milliseconds(std::max(options_.flushIntervalMs, 10));
-  auto nextFlush = Clock::now() + interval;
+  auto nextFlush = SteadyClock::now() + interval;
   bool dirty = false;
   std::deque<Item> batch;
   std::string error;
@@ -302,15 +302,16 @@ void McapRecorder::run() {
       if (it.topic == McapTopic::Video) videoInPart_ = true;
       dirty = true;
       const bool full = options_.rotateBytes > 0 && fileBytes_ >= options_.rotateBytes;
-      const bool old = options_.rotateSeconds > 0 &&
-                       Clock::now() - fileStart_ >= std::chrono::seconds(options_.rotateSeconds);
-      if ((full || old) && !rotationDue_) rotationDue_ = Clock::now();
+      const bool old =
+          options_.rotateSeconds > 0 &&
+          SteadyClock::now() - fileStart_ >= std::chrono::seconds(options_.rotateSeconds);
+      if ((full || old) && !rotationDue_) rotationDue_ = SteadyClock::now();
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;
     batch.clear();
     // One reading of the clock for both: a deadline passing between two readings
     // would re-arm the timer without the flush, leaving two intervals unsynced.
-    const auto now = Clock::now();
+    const auto now = SteadyClock::now();
     if (!failed_.load() && dirty && (closing || now >= nextFlush)) {
       if (!writer_->flush(options_.fsync, error)) {
         fail(error);

@@ -2,14 +2,10 @@
 #include <opencv2/calib3d.hpp>
 
 #include "core/homography.h"
+#include "geometry.h"
 
 namespace keyframed {
 namespace {
-
-cv::Point2f apply(const cv::Matx33d& h, cv::Point2f p) {
-  const cv::Vec3d v = h * cv::Vec3d(p.x, p.y, 1);
-  return {static_cast<float>(v[0] / v[2]), static_cast<float>(v[1] / v[2])};
-}
 
 TEST(Homography, RecoversAProjectiveMapDespiteOutliers) {
   const cv::Matx33d truth(1.02, 0.03, 12.5, -0.02, 0.99, -7.0, 1e-4, -5e-5, 1.0);
@@ -17,7 +13,7 @@ TEST(Homography, RecoversAProjectiveMapDespiteOutliers) {
   std::vector<cv::Point2f> src, dst;
   for (int i = 0; i < 300; ++i) {
     const cv::Point2f p(rng.uniform(0.f, 640.f), rng.uniform(0.f, 360.f));
-    cv::Point2f q = apply(truth, p);
+    cv::Point2f q = test::applyHomography(truth, p);
     q += cv::Point2f(static_cast<float>(rng.gaussian(0.3)), static_cast<float>(rng.gaussian(0.3)));
     if (i % 5 == 0) q = {rng.uniform(0.f, 640.f), rng.uniform(0.f, 360.f)};  // 20 % outliers
     src.push_back(p);
@@ -31,13 +27,14 @@ TEST(Homography, RecoversAProjectiveMapDespiteOutliers) {
   EXPECT_LE(fit.inliers, 245);
   for (int i = 0; i < 300; i += 5) EXPECT_EQ(mask[static_cast<std::size_t>(i)], 0) << i;
   for (const cv::Point2f p : {cv::Point2f(0, 0), cv::Point2f(640, 360), cv::Point2f(320, 10)}) {
-    const cv::Point2f a = apply(fit.h, p), b = apply(truth, p);
+    const cv::Point2f a = test::applyHomography(fit.h, p), b = test::applyHomography(truth, p);
     EXPECT_NEAR(a.x, b.x, 0.3);
     EXPECT_NEAR(a.y, b.y, 0.3);
   }
   // Agrees with OpenCV's estimator on the same data.
   const cv::Matx33d cvH(cv::findHomography(src, dst, cv::RANSAC, 1.5));
-  const cv::Point2f a = apply(fit.h, {500, 300}), b = apply(cvH, {500, 300});
+  const cv::Point2f a = test::applyHomography(fit.h, {500, 300}),
+                    b = test::applyHomography(cvH, {500, 300});
   EXPECT_NEAR(a.x, b.x, 0.3);
   EXPECT_NEAR(a.y, b.y, 0.3);
 }
@@ -53,7 +50,7 @@ TEST(Homography, APoorFirstSampleAmongManyPointsDoesNotEndTheSearch) {
   for (int i = 0; i < 800; ++i) {
     const cv::Point2f p(rng.uniform(0.f, 480.f), rng.uniform(0.f, 270.f));
     src.push_back(p);
-    dst.push_back(i % 5 < 2 ? apply(truth, p)
+    dst.push_back(i % 5 < 2 ? test::applyHomography(truth, p)
                             : cv::Point2f(rng.uniform(0.f, 480.f), rng.uniform(0.f, 270.f)));
   }
   RansacHomography r;
@@ -62,7 +59,8 @@ TEST(Homography, APoorFirstSampleAmongManyPointsDoesNotEndTheSearch) {
   ASSERT_TRUE(fit.ok);
   EXPECT_GE(fit.inliers, 320);
   EXPECT_LE(fit.inliers, 330);
-  const cv::Point2f a = apply(fit.h, {400, 200}), b = apply(truth, {400, 200});
+  const cv::Point2f a = test::applyHomography(fit.h, {400, 200}),
+                    b = test::applyHomography(truth, {400, 200});
   EXPECT_NEAR(a.x, b.x, 0.05);
   EXPECT_NEAR(a.y, b.y, 0.05);
 }

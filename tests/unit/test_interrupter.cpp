@@ -12,7 +12,7 @@ namespace keyframed {
 namespace {
 
 using namespace std::chrono_literals;
-using Clock = std::chrono::steady_clock;
+using SteadyClock = std::chrono::steady_clock;
 
 // A pipe whose read end stands for a device that delivers nothing.
 struct Pipe {
@@ -27,9 +27,9 @@ struct Pipe {
 TEST(Interrupter, TimesOutWhenNothingHappens) {
   Interrupter in;
   Pipe p;
-  const auto t0 = Clock::now();
+  const auto t0 = SteadyClock::now();
   EXPECT_EQ(in.wait(p.fd[0], POLLIN, 80ms).wake, Interrupter::Wake::Timeout);
-  EXPECT_GE(Clock::now() - t0, 75ms);
+  EXPECT_GE(SteadyClock::now() - t0, 75ms);
 }
 
 TEST(Interrupter, ReportsAReadyDevice) {
@@ -48,31 +48,31 @@ TEST(Interrupter, RaiseFromAnotherThreadEndsAStalledWaitAndEveryLaterOne) {
     std::this_thread::sleep_for(50ms);
     in.raise();
   });
-  const auto t0 = Clock::now();
+  const auto t0 = SteadyClock::now();
   const Interrupter::Result r = in.wait(p.fd[0], POLLIN, 2000ms);  // a camera's frame timeout
-  const auto took = Clock::now() - t0;
+  const auto took = SteadyClock::now() - t0;
   stopper.join();
   EXPECT_EQ(r.wake, Interrupter::Wake::Interrupted);
   EXPECT_LT(took, 500ms);
   EXPECT_TRUE(in.raised());
-  const auto t1 = Clock::now();
+  const auto t1 = SteadyClock::now();
   EXPECT_EQ(in.wait(p.fd[0], POLLIN, 2000ms).wake, Interrupter::Wake::Interrupted);
   EXPECT_EQ(in.wait(-1, 0, 2000ms).wake, Interrupter::Wake::Interrupted);
-  EXPECT_LT(Clock::now() - t1, 100ms);
+  EXPECT_LT(SteadyClock::now() - t1, 100ms);
 }
 
 TEST(Interrupter, InterruptibleSleepWithoutADevice) {
   Interrupter in;
-  const auto t0 = Clock::now();
+  const auto t0 = SteadyClock::now();
   EXPECT_EQ(in.wait(-1, 0, 60ms).wake, Interrupter::Wake::Timeout);
-  EXPECT_GE(Clock::now() - t0, 55ms);
+  EXPECT_GE(SteadyClock::now() - t0, 55ms);
   std::thread stopper([&] {
     std::this_thread::sleep_for(30ms);
     in.raise();
   });
-  const auto t1 = Clock::now();
+  const auto t1 = SteadyClock::now();
   EXPECT_EQ(in.wait(-1, 0, 5000ms).wake, Interrupter::Wake::Interrupted);  // a reopen interval
-  EXPECT_LT(Clock::now() - t1, 500ms);
+  EXPECT_LT(SteadyClock::now() - t1, 500ms);
   stopper.join();
 }
 

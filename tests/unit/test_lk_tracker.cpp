@@ -8,6 +8,7 @@
 #include <opencv2/video/tracking.hpp>
 
 #include "core/lk_tracker.h"
+#include "geometry.h"
 #include "photos.h"
 
 namespace keyframed {
@@ -26,11 +27,6 @@ cv::Mat warped(const cv::Mat& src, const cv::Matx33d& h) {
   cv::Mat out;
   cv::warpPerspective(src, out, h, src.size(), cv::INTER_CUBIC, cv::BORDER_REFLECT_101);
   return out;
-}
-
-cv::Point2f apply(const cv::Matx33d& h, cv::Point2f p) {
-  const cv::Vec3d v = h * cv::Vec3d(p.x, p.y, 1.0);
-  return {static_cast<float>(v[0] / v[2]), static_cast<float>(v[1] / v[2])};
 }
 
 std::vector<cv::Point2f> corners(const cv::Mat& img, int margin = 20) {
@@ -52,7 +48,7 @@ Errors errors(const std::vector<cv::Point2f>& prev, const std::vector<cv::Point2
               const std::vector<unsigned char>& status, const cv::Matx33d& h) {
   std::vector<double> e;
   for (std::size_t i = 0; i < prev.size(); ++i)
-    if (status[i]) e.push_back(cv::norm(next[i] - apply(h, prev[i])));
+    if (status[i]) e.push_back(cv::norm(next[i] - test::applyHomography(h, prev[i])));
   if (e.empty()) return {};
   std::sort(e.begin(), e.end());
   return {e[e.size() / 2], e[e.size() * 9 / 10],

@@ -27,7 +27,7 @@ namespace keyframed {
 namespace {
 
 using namespace std::chrono_literals;
-using Clock = std::chrono::steady_clock;
+using SteadyClock = std::chrono::steady_clock;
 
 constexpr int kWidth = 64;
 constexpr int kHeight = 48;
@@ -389,9 +389,9 @@ TEST(V4l2FakeDriver, InterruptEndsAWaitForAFrameAndForTheDevice) {
     std::this_thread::sleep_for(50ms);
     src->interrupt();
   });
-  auto t0 = Clock::now();
+  auto t0 = SteadyClock::now();
   EXPECT_EQ(src->next(f, err), ReadStatus::Error);
-  EXPECT_LT(Clock::now() - t0, 500ms);
+  EXPECT_LT(SteadyClock::now() - t0, 500ms);
   stopper.join();
   EXPECT_EQ(err, "interrupted: waiting for a frame from /dev/video-fake");
 
@@ -407,9 +407,9 @@ TEST(V4l2FakeDriver, InterruptEndsAWaitForAFrameAndForTheDevice) {
     std::this_thread::sleep_for(50ms);
     lostSrc->interrupt();
   });
-  t0 = Clock::now();
+  t0 = SteadyClock::now();
   EXPECT_EQ(lostSrc->next(f, err), ReadStatus::Error);
-  EXPECT_LT(Clock::now() - t0, 500ms);
+  EXPECT_LT(SteadyClock::now() - t0, 500ms);
   stopper2.join();
   EXPECT_EQ(err.rfind("interrupted: device lost", 0), 0u) << err;
 }
