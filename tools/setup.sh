@@ -17,7 +17,7 @@ APT_PACKAGES=(
   python3 python3-dev python3-venv
   libopencv-dev opencv-doc libavcodec-dev
   libcamera-dev libv4l-dev libexiv2-dev libturbojpeg0-dev libsystemd-dev
-  libtomlplusplus-dev libgtest-dev libbenchmark-dev
+  libtomlplusplus-dev libzstd-dev libgtest-dev libbenchmark-dev
   libimage-exiftool-perl clang-format
   clang-14 libclang-rt-14-dev
   protobuf-compiler libprotobuf-dev

@@ -25,7 +25,9 @@ def flight(
     """The directory of a generated flight; regenerated when synth.py changes."""
     version = hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:12]
     rate = "" if fps == 30.0 else f"-{fps:g}fps"
-    key = f"{name}-{width}x{height}{rate}-{seconds or 'default'}-{version}"
+    # seconds=3 and seconds=3.0 are one flight.
+    length = "default" if seconds is None else f"{float(seconds):g}"
+    key = f"{name}-{width}x{height}{rate}-{length}-{version}"
     out = CACHE / key
     if (out / "meta.json").exists():
         return out
