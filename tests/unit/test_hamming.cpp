@@ -29,6 +29,54 @@ TEST(Hamming, AgreesWithOpenCvCrossCheckMatcher) {
   EXPECT_GE(got.count, 300);
 }
 
+// Mutual nearest neighbours the plain way: every pair's distance in a table, the first
+// of equals nearest both ways.
+MutualMatches naiveMutual(const cv::Mat& a, const cv::Mat& b) {
+  std::vector<int> dist(static_cast<std::size_t>(a.rows) * static_cast<std::size_t>(b.rows));
+  for (int i = 0; i < a.rows; ++i)
+    for (int j = 0; j < b.rows; ++j)
+      dist[static_cast<std::size_t>(i * b.rows + j)] =
+          static_cast<int>(cv::norm(a.row(i), b.row(j), cv::NORM_HAMMING));
+  const auto at = [&](int i, int j) { return dist[static_cast<std::size_t>(i * b.rows + j)]; };
+  MutualMatches r;
+  double sum = 0;
+  for (int i = 0; i < a.rows; ++i) {
+    int bj = 0;
+    for (int j = 1; j < b.rows; ++j)
+      if (at(i, j) < at(i, bj)) bj = j;
+    int bi = 0;
+    for (int k = 1; k < a.rows; ++k)
+      if (at(k, bj) < at(bi, bj)) bi = k;
+    if (bi == i) {
+      ++r.count;
+      sum += at(i, bj);
+    }
+  }
+  r.meanDistance = r.count > 0 ? sum / r.count : 0.0;
+  return r;
+}
+
+// The matcher takes queries four at a time: every remainder, and descriptors drawn from
+// a few values so that ties are everywhere, must give exactly the plain result.
+TEST(Hamming, EqualsThePlainMutualMatchForAnyCountAndTies) {
+  cv::RNG rng(11);
+  HammingMatcher m;
+  for (const int nq : {1, 2, 3, 4, 5, 7, 8, 61}) {
+    for (const int levels : {2, 256}) {
+      cv::Mat a(nq, 32, CV_8UC1), b(37, 32, CV_8UC1);
+      rng.fill(a, cv::RNG::UNIFORM, 0, levels);
+      rng.fill(b, cv::RNG::UNIFORM, 0, levels);
+      const MutualMatches want = naiveMutual(a, b);
+      const MutualMatches got = m.match(a, b);
+      EXPECT_EQ(got.count, want.count) << nq << " queries, " << levels << " levels";
+      EXPECT_DOUBLE_EQ(got.meanDistance, want.meanDistance) << nq << " queries";
+      // Both ways round: the trains become the queries.
+      const MutualMatches back = m.match(b, a);
+      EXPECT_EQ(back.count, naiveMutual(b, a).count) << nq << " trains";
+    }
+  }
+}
+
 TEST(Hamming, EmptyInputsGiveNoMatches) {
   HammingMatcher m;
   EXPECT_EQ(m.match(cv::Mat(), cv::Mat(10, 32, CV_8UC1, cv::Scalar(0))).count, 0);
