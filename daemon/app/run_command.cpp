@@ -1041,6 +1041,8 @@ int Daemon::run() {
           ? std::chrono::duration_cast<std::chrono::milliseconds>(notifier_.watchdogPingInterval())
           : std::chrono::milliseconds(1000);
   auto lastPing = std::chrono::steady_clock::now();
+  std::uint64_t lastCaptured = 0;  // the capture thread's count, and when it last grew
+  std::int64_t lastCaptureNs = 0;
   while (!stopNow) {
     timespec wait{0, 100'000'000};
     const int sig = sigtimedwait(&sigs, nullptr, &wait);
@@ -1050,8 +1052,19 @@ int Daemon::run() {
       break;
     }
     if (sig == SIGHUP) reload();
+    // Frames arrive while the camera delivers them and the analysis takes them, both
+    // within the last 2 s: frames still queued when the camera went away do not count
+    // (at a few frames a second they would keep the watchdog fed for seconds), nor a
+    // camera that delivers into an analysis that hangs.
+    const std::int64_t nowNs = monotonicNowNs();
+    if (const std::uint64_t captured = capture_->stats().captured; captured != lastCaptured) {
+      lastCaptured = captured;
+      lastCaptureNs = nowNs;
+    }
     const std::int64_t last = stats_.lastFrameNs.load();
-    const bool framesArrive = last > 0 && monotonicNowNs() - last < 2'000'000'000LL;
+    constexpr std::int64_t kFrameSilenceNs = 2'000'000'000LL;
+    const bool framesArrive = last > 0 && nowNs - last < kFrameSilenceNs && lastCaptureNs > 0 &&
+                              nowNs - lastCaptureNs < kFrameSilenceNs;
     if (!ready_ && last > 0) {
       ready_ = true;  // the camera has delivered its first frame
       notifier_.ready("first frame received");
