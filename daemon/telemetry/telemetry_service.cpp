@@ -11,7 +11,11 @@ namespace keyframed {
 
 namespace {
 constexpr std::int64_t kSecond = 1'000'000'000;
-constexpr std::size_t kTimesyncRequestsKept = 16;
+// Requests are remembered for 10 s, however many: at 40 Hz (before the clock has
+// settled) a count of 16 forgot a request after 0.4 s, and a slow radio link (a
+// 57600-baud telemetry radio with a queue) answers later than that, so that every
+// answer was refused. The count only bounds memory.
+constexpr std::size_t kTimesyncRequestsKept = 512;
 constexpr std::int64_t kTimesyncRequestAgeNs = 10 * kSecond;
 // A drifting clock offset is logged at most every 10 s, when it moved by 5 ms.
 constexpr std::int64_t kClockLogIntervalNs = 10 * kSecond;

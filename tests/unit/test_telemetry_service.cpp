@@ -251,29 +251,57 @@ TEST(TelemetryService, TimesyncOnlyFromTheAutopilotAndOnlyForOurOwnRequests) {
   mavlink_msg_timesync_decode(&requests[0], &req);
   ASSERT_EQ(req.tc1, 0);
 
-  // The autopilot's clock is 777 s behind ours.
-  const std::int64_t behind = 777'000 * kMs;
+  // The autopilot's clock is 777 s ahead of ours (ahead: ours, the monotonic clock,
+  // may have run for less than that on a machine just booted).
+  const std::int64_t ahead = 777'000 * kMs;
   // A ground station answering (with its own clock), another component of the
   // vehicle, and the autopilot answering a request we never sent: all ignored.
   peer.push(timesync(gcs, req.ts1 + 3'600'000 * kMs, req.ts1));
-  peer.push(timesync(apGimbal, req.ts1 - 5 * behind, req.ts1));
-  peer.push(timesync(ap, req.ts1 + 12'345 - behind, req.ts1 + 12'345));
+  peer.push(timesync(apGimbal, req.ts1 + 5 * ahead, req.ts1));
+  peer.push(timesync(ap, req.ts1 + 12'345 + ahead, req.ts1 + 12'345));
   ASSERT_TRUE(eventually([&] { return svc.stats().timesyncRejected == 3; }));
   EXPECT_EQ(svc.decoder().clockSource(), ClockMapper::Source::None);
   EXPECT_FALSE(svc.decoder().clockOffsetNs().has_value());
 
   // The autopilot's answer to our request sets the clock.
-  peer.push(timesync(ap, req.ts1 - behind, req.ts1));
+  peer.push(timesync(ap, req.ts1 + ahead, req.ts1));
   ASSERT_TRUE(
       eventually([&] { return svc.decoder().clockSource() == ClockMapper::Source::Timesync; }));
   const auto offset = svc.decoder().clockOffsetNs();
   ASSERT_TRUE(offset.has_value());
-  // offset = ts1 + rtt/2 - tc1 = behind + rtt/2 (the answer was pushed at once)
-  EXPECT_NEAR(static_cast<double>(*offset - behind) / kMs, 0.0, 50.0);
+  // offset = ts1 + rtt/2 - tc1 = rtt/2 - ahead (the answer was pushed at once)
+  EXPECT_NEAR(static_cast<double>(*offset + ahead) / kMs, 0.0, 50.0);
   // The same answer again (a duplicate datagram) is not a second sample.
-  peer.push(timesync(ap, req.ts1 - behind + 100 * kMs, req.ts1));
+  peer.push(timesync(ap, req.ts1 + ahead + 100 * kMs, req.ts1));
   ASSERT_TRUE(eventually([&] { return svc.stats().timesyncRejected == 4; }));
   EXPECT_EQ(*svc.decoder().clockOffsetNs(), *offset);
+  svc.stop();
+}
+
+TEST(TelemetryService, AnAnswerToARequestASecondOldSetsTheClock) {
+  // A slow radio link: the answer to the first request comes after some 20 further
+  // requests (40 Hz until the clock has settled), half a second or more later.
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder ap(1, 1);
+  peer.push(quadHeartbeat(ap));
+  const auto requests = peer.waitFor(MAVLINK_MSG_ID_TIMESYNC);
+  ASSERT_FALSE(requests.empty());
+  mavlink_timesync_t req;
+  mavlink_msg_timesync_decode(&requests[0], &req);
+  // Half a second of them at least (16 kept were once all there was).
+  ASSERT_GE(peer.waitFor(MAVLINK_MSG_ID_TIMESYNC, 20, 5000).size(), 20U);
+  const std::int64_t ahead = 60'000 * kMs;
+  peer.push(timesync(ap, req.ts1 + ahead, req.ts1));
+  ASSERT_TRUE(
+      eventually([&] { return svc.decoder().clockSource() == ClockMapper::Source::Timesync; }));
+  EXPECT_EQ(svc.stats().timesyncRejected, 0U);
+  // The bounds of a one-second round trip: the offset lies within it.
+  const std::int64_t offset = *svc.decoder().clockOffsetNs();
+  EXPECT_GE(offset, -ahead);
+  EXPECT_LE(offset, -ahead + 2'000 * kMs);
   svc.stop();
 }
 
