@@ -4,7 +4,11 @@
 # test runs: more than most tests take. `ctest -R Selector` picks suites; the binary's
 # own --gtest_filter picks single tests.
 #
-#   keyframed_gtest_suites(TARGET)
+#   keyframed_gtest_suites(TARGET [FIRST SUITE...])
+#
+# FIRST names the suites that take longest (seconds, mostly waiting on threads and
+# sockets): ctest starts them first (a COST), so that they do not run alone at the
+# end of a cold run, which has no timings of an earlier run to order by.
 #
 # After each link, this file runs in script mode: it lists the tests and writes an
 # add_test() per suite into a file that ctest includes. A suite in which every test
@@ -20,13 +24,20 @@ if(CMAKE_SCRIPT_MODE_FILE)
   # are indented.
   string(REGEX MATCHALL "(^|\n)[A-Za-z0-9_/]+\\." suites "${listing}")
   set(content "")
+  string(REPLACE "," ";" first "${FIRST_SUITES}")
   foreach(suite IN LISTS suites)
     string(STRIP "${suite}" suite)
     string(REGEX REPLACE "\\.$" "" suite "${suite}")
+    list(FIND first "${suite}" at)  # (no IN_LIST: script mode runs without policies)
+    set(cost 0)
+    if(at GREATER -1)
+      set(cost 100)
+    endif()
     string(APPEND content
       "add_test([=[${suite}]=] [=[${TEST_EXECUTABLE}]=] [=[--gtest_filter=${suite}.*]=])\n"
       "set_tests_properties([=[${suite}]=] PROPERTIES WORKING_DIRECTORY "
-      "[=[${WORKING_DIRECTORY}]=] SKIP_REGULAR_EXPRESSION [=[\\[  PASSED  \\] 0 tests]=])\n")
+      "[=[${WORKING_DIRECTORY}]=] SKIP_REGULAR_EXPRESSION [=[\\[  PASSED  \\] 0 tests]=] "
+      "COST ${cost})\n")
   endforeach()
   if(content STREQUAL "")
     message(FATAL_ERROR "${TEST_EXECUTABLE} lists no test suites")
@@ -38,11 +49,14 @@ endif()
 set(_KEYFRAMED_GTEST_SUITES_SCRIPT "${CMAKE_CURRENT_LIST_FILE}")
 
 function(keyframed_gtest_suites target)
+  cmake_parse_arguments(PARSE_ARGV 1 arg "" "" "FIRST")
+  list(JOIN arg_FIRST "," first)
   set(ctest_file "${CMAKE_CURRENT_BINARY_DIR}/${target}_suites.cmake")
   set(include_file "${CMAKE_CURRENT_BINARY_DIR}/${target}_suites_include.cmake")
   add_custom_command(TARGET ${target} POST_BUILD
     COMMAND "${CMAKE_COMMAND}" "-DTEST_EXECUTABLE=$<TARGET_FILE:${target}>"
             "-DCTEST_FILE=${ctest_file}" "-DWORKING_DIRECTORY=${CMAKE_CURRENT_BINARY_DIR}"
+            "-DFIRST_SUITES=${first}"
             -P "${_KEYFRAMED_GTEST_SUITES_SCRIPT}"
     BYPRODUCTS "${ctest_file}"
     VERBATIM)

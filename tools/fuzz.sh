@@ -15,7 +15,8 @@
 # the camera commands, a byte stream and a tlog); crashes land in build/fuzz/artifacts/.
 # The same target also runs without libFuzzer in every test build, on the seeds and
 # deterministic mutations of them (fuzz_mavlink_standalone, a ctest).
-#   tools/fuzz.sh [SECONDS]   (default 60)
+#   tools/fuzz.sh [SECONDS]   (default 60; wall time, in KEYFRAMED_JOBS processes,
+#                              libFuzzer's fork mode, 2 by default)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -38,6 +39,6 @@ ninja -C build/fuzz -j"$JOBS" fuzz_mavlink fuzz_mavlink_standalone
 mkdir -p build/fuzz/corpus build/fuzz/artifacts
 build/fuzz/tests/fuzz/fuzz_mavlink_standalone --write-seeds build/fuzz/seeds
 ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-  build/fuzz/tests/fuzz/fuzz_mavlink -max_total_time="$SECONDS_TO_RUN" -max_len=4096 \
+  build/fuzz/tests/fuzz/fuzz_mavlink -fork="$JOBS" -max_total_time="$SECONDS_TO_RUN" -max_len=4096 \
   -print_final_stats=1 -artifact_prefix=build/fuzz/artifacts/ \
   build/fuzz/corpus build/fuzz/seeds

@@ -104,8 +104,8 @@ done
 build/asan/tests/fuzz/fuzz_mavlink_standalone --iterations 25000
 unset ASAN_OPTIONS UBSAN_OPTIONS
 
-step "fuzz the MAVLink parser (libFuzzer, 30 s)"
-tools/fuzz.sh 30
+step "fuzz the MAVLink parser (libFuzzer, 15 s in $JOBS processes)"
+tools/fuzz.sh 15
 
 step "style and types (clang-format, ruff, mypy)"
 git ls-files -co --exclude-standard -- '*.cpp' '*.h' | xargs clang-format --dry-run --Werror
