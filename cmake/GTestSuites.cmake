@@ -11,8 +11,12 @@
 # end of a cold run, which has no timings of an earlier run to order by.
 #
 # After each link, this file runs in script mode: it lists the tests and writes an
-# add_test() per suite into a file that ctest includes. A suite in which every test
-# skipped (GTEST_SKIP: no camera, for instance) is reported as skipped.
+# add_test() per suite into a file that ctest includes. Each suite runs through
+# run_gtest_suite.sh: a suite in which every test skipped (GTEST_SKIP: no camera, for
+# instance) is reported as skipped, and the tests that skipped in any suite are listed
+# in skipped-tests/ beside the binary (tools/test.sh reports them). (Not ctest's
+# SKIP_REGULAR_EXPRESSION on "[  PASSED  ] 0 tests": it wins over the exit status, so
+# a suite whose every test failed passed as skipped.)
 
 if(CMAKE_SCRIPT_MODE_FILE)
   execute_process(COMMAND "${TEST_EXECUTABLE}" --gtest_list_tests
@@ -25,6 +29,8 @@ if(CMAKE_SCRIPT_MODE_FILE)
   string(REGEX MATCHALL "(^|\n)[A-Za-z0-9_/]+\\." suites "${listing}")
   set(content "")
   string(REPLACE "," ";" first "${FIRST_SUITES}")
+  get_filename_component(exe_name "${TEST_EXECUTABLE}" NAME)
+  file(MAKE_DIRECTORY "${WORKING_DIRECTORY}/skipped-tests")
   foreach(suite IN LISTS suites)
     string(STRIP "${suite}" suite)
     string(REGEX REPLACE "\\.$" "" suite "${suite}")
@@ -33,11 +39,13 @@ if(CMAKE_SCRIPT_MODE_FILE)
     if(at GREATER -1)
       set(cost 100)
     endif()
+    string(REPLACE "/" "_" file_suite "${suite}")
+    set(skipped_file "${WORKING_DIRECTORY}/skipped-tests/${exe_name}.${file_suite}.txt")
     string(APPEND content
-      "add_test([=[${suite}]=] [=[${TEST_EXECUTABLE}]=] [=[--gtest_filter=${suite}.*]=])\n"
+      "add_test([=[${suite}]=] [=[${RUNNER}]=] [=[${skipped_file}]=] [=[${TEST_EXECUTABLE}]=] "
+      "[=[--gtest_filter=${suite}.*]=])\n"
       "set_tests_properties([=[${suite}]=] PROPERTIES WORKING_DIRECTORY "
-      "[=[${WORKING_DIRECTORY}]=] SKIP_REGULAR_EXPRESSION [=[\\[  PASSED  \\] 0 tests]=] "
-      "COST ${cost})\n")
+      "[=[${WORKING_DIRECTORY}]=] SKIP_RETURN_CODE 77 COST ${cost})\n")
   endforeach()
   if(content STREQUAL "")
     message(FATAL_ERROR "${TEST_EXECUTABLE} lists no test suites")
@@ -47,6 +55,7 @@ if(CMAKE_SCRIPT_MODE_FILE)
 endif()
 
 set(_KEYFRAMED_GTEST_SUITES_SCRIPT "${CMAKE_CURRENT_LIST_FILE}")
+set(_KEYFRAMED_GTEST_SUITE_RUNNER "${CMAKE_CURRENT_LIST_DIR}/run_gtest_suite.sh")
 
 function(keyframed_gtest_suites target)
   cmake_parse_arguments(PARSE_ARGV 1 arg "" "" "FIRST")
@@ -56,7 +65,7 @@ function(keyframed_gtest_suites target)
   add_custom_command(TARGET ${target} POST_BUILD
     COMMAND "${CMAKE_COMMAND}" "-DTEST_EXECUTABLE=$<TARGET_FILE:${target}>"
             "-DCTEST_FILE=${ctest_file}" "-DWORKING_DIRECTORY=${CMAKE_CURRENT_BINARY_DIR}"
-            "-DFIRST_SUITES=${first}"
+            "-DFIRST_SUITES=${first}" "-DRUNNER=${_KEYFRAMED_GTEST_SUITE_RUNNER}"
             -P "${_KEYFRAMED_GTEST_SUITES_SCRIPT}"
     BYPRODUCTS "${ctest_file}"
     VERBATIM)
