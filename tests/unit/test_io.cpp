@@ -14,6 +14,7 @@
 #include <mutex>
 #include <span>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <tuple>
 #include <vector>
@@ -112,14 +113,17 @@ ReadBack readMcap(const std::string& path, std::vector<const char*> topics) {
 }
 
 // 1000 JSON messages, a third on /b and the rest on /a (with channel metadata), in
-// chunks of 2 KiB compressed as `compression`.
+// chunks of 2 KiB compressed as `compression`; a channel /never-written without any,
+// with a schema of its own.
 void writeSample(const std::string& path, const std::string& compression) {
   std::string error;
   auto w = McapWriter::open({path, compression, 2048}, error);
   ASSERT_TRUE(w) << error;
-  std::uint16_t schema = 0, a = 0, b = 0;
+  std::uint16_t schema = 0, other = 0, a = 0, b = 0, empty = 0;
   ASSERT_TRUE(w->addSchema("s", "jsonschema", {}, schema, error)) << error;
+  ASSERT_TRUE(w->addSchema("never.Written", "jsonschema", {}, other, error)) << error;
   ASSERT_TRUE(w->addChannel(schema, "/a", "json", {{"k", "v"}}, a, error)) << error;
+  ASSERT_TRUE(w->addChannel(other, "/never-written", "json", {}, empty, error)) << error;
   ASSERT_TRUE(w->addChannel(schema, "/b", "json", {}, b, error)) << error;
   for (std::uint32_t i = 0; i < 1000; ++i) {
     const std::string msg = "message " + std::to_string(i) + std::string(i % 97, 'x');
@@ -218,6 +222,12 @@ TEST(McapRepair, AFileCutShortIsRewrittenCompleteWithWhatReadsBack) {
   const ReadBack again = readMcap(path, {"/a", "/b"});
   EXPECT_FALSE(again.truncated);
   EXPECT_EQ(again.messages, cut.messages);
+  // The channel without messages, and its schema, are there too (uncompressed: the
+  // sample's chunks are, and the repair keeps the first chunk's compression).
+  const auto fixed = readAll(path);
+  const std::string_view bytes(reinterpret_cast<const char*>(fixed.data()), fixed.size());
+  EXPECT_NE(bytes.find("/never-written"), std::string_view::npos);
+  EXPECT_NE(bytes.find("never.Written"), std::string_view::npos);
   // Complete now: a second pass has nothing to do.
   EXPECT_TRUE(repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop).empty());
   // What is not an MCAP file stays as it is.

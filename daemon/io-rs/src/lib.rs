@@ -572,7 +572,8 @@ fn first_chunk_compression(path: &str) -> Option<String> {
 
 /// Rewrites an MCAP file that was cut short (SIGKILL, a power cut: no summary, no
 /// footer, perhaps half a chunk) as a complete file at `dst`: every message that
-/// reads back, in file order, with its channel and schema, chunked and compressed
+/// reads back, in file order, with its channel and schema, then the channels declared
+/// before the cut that carried no message, chunked and compressed
 /// as `compression` ("zstd", "lz4", "none"; "same": as the file's first chunk, zstd
 /// without one), fsynced. *messages gets their count.
 /// `dst` is created (truncated); the caller renames it into place. A non-zero
@@ -603,7 +604,7 @@ pub unsafe extern "C" fn kfio_mcap_recover(
         }
         let compression = parse_compression(&compression)?;
         // Not an MCAP file (nor the start of one): an error, and left as it is.
-        let reader = open_message_stream(src)?;
+        let mut reader = open_message_stream(src)?;
         let file = Arc::new(File::create(dst).map_err(|e| format!("cannot create {dst}: {e}"))?);
         let mut writer = mcap::WriteOptions::new()
             .compression(compression)
@@ -620,7 +621,7 @@ pub unsafe extern "C" fn kfio_mcap_recover(
             ))
             .map_err(|e| format!("cannot start MCAP file {dst}: {e}"))?;
         let mut count: u64 = 0;
-        for m in reader {
+        for m in reader.by_ref() {
             // The first record that does not read is where the file was cut.
             let Ok(m) = m else { break };
             if stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed) != 0) {
@@ -628,6 +629,32 @@ pub unsafe extern "C" fn kfio_mcap_recover(
             }
             writer.write(&m).map_err(|e| format!("{dst}: {e}"))?;
             count += 1;
+        }
+        // Channels the file declared that carried no message before the cut (a topic
+        // with nothing yet: no keyframe, no telemetry) are kept too, with their ids and
+        // schemas, so that the repaired file lists what the recorder declared. Those
+        // with messages are known to the writer already (the same content: no second
+        // record). One that cannot be added (a conflicting id) is left out: the
+        // messages are what a repair must not lose.
+        for id in 0..=u16::MAX {
+            let Some(channel) = reader.get_channel(id) else {
+                continue;
+            };
+            let schema_id = match channel.schema.as_ref() {
+                Some(s) => match writer.add_schema_with_id(s.id, &s.name, &s.encoding, &s.data) {
+                    Ok(sid) => sid,
+                    Err(_) => continue,
+                },
+                None => 0,
+            };
+            // Left out on an error, as above.
+            let _ = writer.add_channel_with_id(
+                id,
+                schema_id,
+                &channel.topic,
+                &channel.message_encoding,
+                &channel.metadata,
+            );
         }
         writer.finish().map_err(|e| format!("{dst}: {e}"))?;
         writer
