@@ -54,8 +54,11 @@ ReadStatus PacedSource::next(Frame& frame, std::string& error) {
       error = "interrupted: waiting for a frame's time";
       return ReadStatus::Error;
     }
-    // A camera stamps on CLOCK_MONOTONIC; a recorded flight keeps its own clock.
-    frame.timestampNs = startUnixNs_ ? *startUnixNs_ + containerNs : monotonicNowNs();
+    // A camera stamps on CLOCK_MONOTONIC when it captures, not when the frame is read:
+    // the time it was due, also when this thread came late (a busy machine, a slow
+    // decode), so that frame times keep the video's rhythm. A recorded flight keeps
+    // its own clock.
+    frame.timestampNs = startUnixNs_ ? *startUnixNs_ + containerNs : due;
   } else if (startUnixNs_) {
     frame.timestampNs += *startUnixNs_;
   }

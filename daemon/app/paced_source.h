@@ -19,7 +19,8 @@ class MonotonicClock final : public Clock {
 };
 
 // A video file played as a camera would deliver it (`realtime`): at its own frame
-// rate, each frame stamped with CLOCK_MONOTONIC on arrival, the clock live
+// rate, each frame stamped with the CLOCK_MONOTONIC time it is due (as a camera
+// stamps a frame when it captures it, however late it is read), the clock live
 // telemetry is mapped to, or, given `startUnixNs` (a recorded flight replayed with
 // its tlog), with its container time shifted by that: the tlog's unix times.
 // Otherwise as fast as it decodes, with container times shifted by `startUnixNs`

@@ -273,5 +273,24 @@ TEST(PacedSource, AJumpInTheTimestampsRestartsThePacing) {
   EXPECT_GE(at.back() - at.front(), 180 * ms);  // six periods: 200 ms
 }
 
+// A reader that comes late (a busy machine) gets the frames at once, each stamped
+// with the time it was due, a period apart, as a camera stamps its frames when it
+// captures them: not with the time it was read.
+TEST(PacedSource, ALateReaderGetsTheFramesStampedWhenTheyWereDue) {
+  const std::int64_t ms = 1'000'000;
+  PacedSource src(
+      std::make_unique<GapSource>(std::vector<std::int64_t>{0, 33 * ms, 66 * ms, 99 * ms}),
+      /*realtime=*/true, std::nullopt);
+  Frame f;
+  std::string err;
+  ASSERT_EQ(src.next(f, err), ReadStatus::Frame);
+  const std::int64_t first = f.timestampNs;
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  std::vector<std::int64_t> at;
+  while (src.next(f, err) == ReadStatus::Frame) at.push_back(f.timestampNs - first);
+  ASSERT_EQ(at.size(), 3U) << err;
+  EXPECT_EQ(at, (std::vector<std::int64_t>{33 * ms, 66 * ms, 99 * ms}));
+}
+
 }  // namespace
 }  // namespace keyframed
