@@ -19,6 +19,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <utility>
@@ -175,6 +176,15 @@ class Peer {
     return r;
   }
 
+  // The service's `n`-th TIMESYNC request (from 1), once it has sent that many.
+  std::optional<mavlink_timesync_t> timesyncRequest(std::size_t n, int timeoutMs = 3000) {
+    const auto requests = waitFor(MAVLINK_MSG_ID_TIMESYNC, n, timeoutMs);
+    if (requests.size() < n) return std::nullopt;
+    mavlink_timesync_t req;
+    mavlink_msg_timesync_decode(&requests[n - 1], &req);
+    return req;
+  }
+
   void setWritable(bool w) {
     std::lock_guard lock(state->m);
     state->writable = w;
@@ -245,10 +255,9 @@ TEST(TelemetryService, TimesyncOnlyFromTheAutopilotAndOnlyForOurOwnRequests) {
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1), gcs(255, 190), apGimbal(1, 154);
   peer.push(quadHeartbeat(ap));
-  const auto requests = peer.waitFor(MAVLINK_MSG_ID_TIMESYNC);
-  ASSERT_FALSE(requests.empty());
-  mavlink_timesync_t req;
-  mavlink_msg_timesync_decode(&requests[0], &req);
+  const auto first = peer.timesyncRequest(1);
+  ASSERT_TRUE(first.has_value());
+  const mavlink_timesync_t req = *first;
   ASSERT_EQ(req.tc1, 0);
 
   // The autopilot's clock is 777 s ahead of ours (ahead: ours, the monotonic clock,
@@ -287,14 +296,12 @@ TEST(TelemetryService, AnAnswerToARequestASecondOldSetsTheClock) {
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1);
   peer.push(quadHeartbeat(ap));
-  const auto requests = peer.waitFor(MAVLINK_MSG_ID_TIMESYNC);
-  ASSERT_FALSE(requests.empty());
-  mavlink_timesync_t req;
-  mavlink_msg_timesync_decode(&requests[0], &req);
+  const auto req = peer.timesyncRequest(1);
+  ASSERT_TRUE(req.has_value());
   // Half a second of them at least (16 kept were once all there was).
-  ASSERT_GE(peer.waitFor(MAVLINK_MSG_ID_TIMESYNC, 20, 5000).size(), 20U);
+  ASSERT_TRUE(peer.timesyncRequest(20, 5000).has_value());
   const std::int64_t ahead = 60'000 * kMs;
-  peer.push(timesync(ap, req.ts1 + ahead, req.ts1));
+  peer.push(timesync(ap, req->ts1 + ahead, req->ts1));
   ASSERT_TRUE(
       eventually([&] { return svc.decoder().clockSource() == ClockMapper::Source::Timesync; }));
   EXPECT_EQ(svc.stats().timesyncRejected, 0U);
@@ -673,11 +680,9 @@ TEST(TelemetryService, LogsTheClockOnceAndLinkDropsAndReconnects) {
   // Answer two requests with the same clock: one record, not one per answer.
   const std::int64_t behind = 5'000 * kMs;
   for (std::size_t n = 1; n <= 2; ++n) {
-    const auto reqs = peer.waitFor(MAVLINK_MSG_ID_TIMESYNC, n, 3000);
-    ASSERT_GE(reqs.size(), n);
-    mavlink_timesync_t req;
-    mavlink_msg_timesync_decode(&reqs[n - 1], &req);
-    peer.push(timesync(ap, req.ts1 - behind, req.ts1));
+    const auto req = peer.timesyncRequest(n);
+    ASSERT_TRUE(req.has_value());
+    peer.push(timesync(ap, req->ts1 - behind, req->ts1));
   }
   ASSERT_TRUE(eventually([&] { return logged.count("autopilot clock: timesync, offset 50") == 1; }))
       << logged.all();
