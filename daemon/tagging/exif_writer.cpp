@@ -185,6 +185,7 @@ void writeGps(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const GeoPosition& p,
   } else if (q.fixType == 2) {
     exif["Exif.GPSInfo.GPSMeasureMode"] = std::string("2");
   }
+  if (q.satellites >= 0) exif["Exif.GPSInfo.GPSSatellites"] = std::to_string(q.satellites);
   // GPSDOP: PDOP for a 3D fix, HDOP for a 2D one, as EXIF defines it. PDOP from HDOP
   // and VDOP; HDOP alone where VDOP is unknown.
   double dop = q.hdop;

@@ -382,6 +382,7 @@ class TlogLink final : public MavlinkLink {
   [[nodiscard]] bool isReplay() const override { return true; }
   [[nodiscard]] std::string describe() const override { return "tlog:" + url_.host; }
   [[nodiscard]] bool truncated() const override { return reader_.truncated(); }
+  [[nodiscard]] std::uint64_t skippedBytes() const override { return reader_.resyncedBytes(); }
 
  private:
   Url url_;

@@ -36,6 +36,8 @@ class MavlinkLink {
   [[nodiscard]] virtual bool isReplay() const { return false; }
   // A replay that ended inside a record.
   [[nodiscard]] virtual bool truncated() const { return false; }
+  // Bytes of a replay that belonged to no record (garbage between records), skipped.
+  [[nodiscard]] virtual std::uint64_t skippedBytes() const { return 0; }
   [[nodiscard]] virtual std::string describe() const = 0;
 };
 

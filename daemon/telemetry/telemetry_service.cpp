@@ -89,6 +89,8 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
     std::lock_guard lock(mutex_);
     stats_.replayDone = true;
     stats_.truncated = link_->truncated();
+    replaySkippedBytes_ = link_->skippedBytes();
+    stats_.parser.skippedBytes = replaySkippedBytes_;
     return true;
   }
   stop_ = false;
@@ -135,6 +137,7 @@ void TelemetryService::advanceReplay(std::int64_t localNs) {
   if (replayFed_ == from) return;
   std::lock_guard lock(mutex_);
   stats_.parser = parser_.stats();
+  stats_.parser.skippedBytes += replaySkippedBytes_;
 }
 
 void TelemetryService::stop() {
@@ -603,12 +606,14 @@ void TelemetryService::onMessage(const mavlink_message_t& msg, std::int64_t time
 }
 
 void TelemetryService::logClock(std::int64_t nowNs) {
+  // Said once both ids are known: `--autopilot 2` fixes the system, and its HEARTBEAT
+  // then the component.
   const int sys = decoder_.autopilotSystem();
-  if (sys != 0 && sys != loggedAutopilot_) {
-    loggedAutopilot_ = sys;
+  const int comp = decoder_.autopilotComponent();
+  if (sys != 0 && comp != 0 && sys * 256 + comp != loggedAutopilot_) {
+    loggedAutopilot_ = sys * 256 + comp;
     log(TelemetryLogLevel::Notice, "following the autopilot at system " + std::to_string(sys) +
-                                       " component " +
-                                       std::to_string(decoder_.autopilotComponent()));
+                                       " component " + std::to_string(comp));
   }
   const std::uint64_t reboots = decoder_.stats().reboots;
   if (reboots != loggedReboots_) {
@@ -690,8 +695,9 @@ void TelemetryService::run() {
     // a quick link, a few requests of 30 bytes), so that the first keyframe is not
     // held for it; then 1 Hz.
     const std::int64_t timesyncInterval = decoder_.clockSettled() ? kSecond : kSecond / 40;
-    if (config_.timesync && decoder_.autopilotSystem() != 0 &&
-        now - lastTimesync >= timesyncInterval) {
+    // Only once the autopilot has spoken: before, on a port that hears several senders,
+    // the requests would go to whoever sent last (another vehicle, a ground station).
+    if (config_.timesync && autopilotHeard_ && now - lastTimesync >= timesyncInterval) {
       lastTimesync = now;
       sendTimesync(now);
     }
@@ -750,7 +756,10 @@ void TelemetryService::run() {
               if (sink_) sink_(m, t);
             });
         // udpin: answer the autopilot, not whoever else sends to the port.
-        if (fromAutopilot) link_->pinPeerToLastSender();
+        if (fromAutopilot) {
+          link_->pinPeerToLastSender();
+          autopilotHeard_ = true;
+        }
         std::lock_guard lock(mutex_);
         stats_.parser = parser_.stats();
         break;

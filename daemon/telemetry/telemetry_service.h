@@ -198,7 +198,8 @@ class TelemetryService {
   bool replay_ = false;
   std::vector<TimedPacket> replayPackets_;
   std::mutex replayMutex_;
-  std::size_t replayFed_ = 0;  // packets of replayPackets_ given to the decoder
+  std::size_t replayFed_ = 0;             // packets of replayPackets_ given to the decoder
+  std::uint64_t replaySkippedBytes_ = 0;  // garbage between the replay's records
   std::int64_t startNs_ = 0;
 
   // Telemetry thread only.
@@ -206,7 +207,8 @@ class TelemetryService {
   ClockMapper::Source loggedSource_ = ClockMapper::Source::None;
   std::int64_t loggedOffsetNs_ = 0;
   std::int64_t lastClockLogNs_ = 0;
-  int loggedAutopilot_ = 0;
+  bool autopilotHeard_ = false;  // a message from the chosen autopilot (telemetry thread)
+  int loggedAutopilot_ = 0;      // system * 256 + component, once logged
   std::uint64_t loggedReboots_ = 0;
   // MAVLink 2 from the autopilot seen; when it has spoken MAVLink 1 only for a while,
   // the encoder switches to MAVLink 1 (telemetry.mavlink1 does so from the start).

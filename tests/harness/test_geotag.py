@@ -158,6 +158,7 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
         )
         # a 3D fix: PDOP from the autopilot's HDOP 0.8 and VDOP 1.2
         assert t["GPS:GPSDOP"] == pytest.approx(math.hypot(0.8, 1.2), abs=1e-3)
+        assert str(t["GPS:GPSSatellites"]) == "14"  # the flight's GPS_RAW_INT says 14
         assert t["XMP-Camera:GPSXYAccuracy"] == pytest.approx(0.8)
         assert decisions(out)[idx]["geotag"] == "ok"
     print(
@@ -519,6 +520,54 @@ def test_truncated_tlog_tags_what_it_covers(
     assert max(int(k["index"]) for k in tagged) < min(int(k["index"]) for k in stale)
     assert all("stale" in k["geotag"] for k in stale)
     assert all(k["lat"] == "" for k in stale)
+
+
+def test_garbage_inside_a_tlog_is_counted_and_skipped(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """A tlog with a run of garbage between two records and one record whose packet
+    was damaged: the garbage is counted as skipped bytes, the damaged packet as a
+    rejected frame, and every keyframe is still tagged from the records around them."""
+    data = bytearray((short_nadir / "flight.tlog").read_bytes())
+    records = [r for r in read_tlog_offsets(bytes(data))]
+    at = records[len(records) // 3]  # a record boundary about 2 s in
+    garbage = bytes([0x55, 0xAA]) * 2500  # no STX byte, no plausible timestamp
+    hit = records[2 * len(records) // 3]
+    data[hit + 8 + 6] ^= 0xFF  # a byte inside the packet after the cut: its CRC fails
+    bad = tmp_path / "garbage.tlog"
+    bad.write_bytes(bytes(data[:at]) + garbage + bytes(data[at:]))
+    out = tmp_path / "out"
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        out,
+        "--telemetry",
+        f"tlog:{bad}",
+        "--video-start",
+        "2026-06-01T10:00:00.000Z",
+    )
+    assert r.returncode == 0, r.stderr
+    telemetry = json.loads((out / "summary.json").read_text())["telemetry"]
+    assert telemetry["skipped_bytes"] == len(garbage)
+    assert telemetry["rejected_frames"] >= 1
+    assert telemetry["truncated"] is False
+    kfs = keyframes(out)
+    assert kfs and all(k["geotag"] == "ok" for k in kfs), [k["geotag"] for k in kfs]
+
+
+def read_tlog_offsets(data: bytes) -> list[int]:
+    """Byte offsets of a well-formed tlog's records (8-byte time, then one packet)."""
+    offsets, at = [], 0
+    while at + 10 <= len(data):
+        offsets.append(at)
+        stx, length = data[at + 8], data[at + 9]
+        if stx == 0xFE:
+            size = 6 + length + 2
+        else:
+            size = 10 + length + 2 + (13 if data[at + 10] & 0x01 else 0)
+        at += 8 + size
+    assert at == len(data), "not a well-formed tlog"
+    return offsets
 
 
 def test_a_video_start_outside_the_tlog_is_an_error(
@@ -1029,6 +1078,69 @@ def test_live_udpin_daemon_listens(
     ), errs
     # our HEARTBEATs reach the autopilot through the address it streams to
     assert ap.wait_for("HEARTBEAT", timeout=5)
+
+
+@needs_exiftool
+def test_two_vehicles_on_one_port_the_chosen_one_tags(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """Two vehicles stream to the camera's one udpin port: system 2 flies the flight,
+    system 1 (the default choice) reports positions 1.1 km north on another boot clock.
+    With `--autopilot 2` every tag and the clock come from system 2, TIMESYNC and the
+    camera protocol talk to it, not to the other. This camera has no calibration:
+    CAMERA_INFORMATION says NaN for what it does not know, never 0."""
+    import time
+
+    def as_system(sysid: int, north_deg: float) -> list[TlogRecord]:
+        out = []
+        for rec in read_tlog(short_nadir / "flight.tlog"):
+            msg = copy.deepcopy(rec.msg)
+            msg.get_header().srcSystem = sysid
+            if msg.get_type() in ("GLOBAL_POSITION_INT", "GPS_RAW_INT"):
+                msg.lat += int(north_deg * 1e7)
+            out.append(TlogRecord(rec.unix_us, msg))
+        return out
+
+    write_tlog(tmp_path / "vehicle2.tlog", as_system(2, 0.0))
+    write_tlog(tmp_path / "vehicle1.tlog", as_system(1, 0.01))
+    port = free_port(socket.SOCK_DGRAM)
+    ap = fake_autopilot(tmp_path / "vehicle2.tlog", target=("127.0.0.1", port))
+    decoy = fake_autopilot(
+        tmp_path / "vehicle1.tlog", target=("127.0.0.1", port), boot_offset_ms=3_000_000
+    )
+    assert (ap.system_id, decoy.system_id) == (2, 1)
+    out = tmp_path / "live"
+    proc = subprocess.Popen(
+        [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(out), "--quiet"]
+        + ["--telemetry", f"udpin:127.0.0.1:{port}", "--autopilot", "2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(0.3)
+    decoy.start()  # heard first: the default choice would follow it
+    time.sleep(0.5)
+    ap.start()
+    ap.wait_for("HEARTBEAT", timeout=10)
+    ap.request_message(mav2.MAVLINK_MSG_ID_CAMERA_INFORMATION)
+    _, log = proc.communicate(timeout=120)
+    assert proc.returncode == 0, log
+    errs = np.array(check_live_tags(short_nadir, out, ap))
+    assert (
+        errs[:, 0].max() < LIVE_HORIZONTAL_M and errs[:, 1].max() < 0.1 and errs[:, 2].max() < 0.2
+    ), errs
+    assert "following the autopilot at system 2 component 1" in log, log
+    tel = json.loads((out / "summary.json").read_text())["telemetry"]
+    assert tel["clock"] == "timesync", tel
+    assert abs(tel["clock_offset_ms"] - true_clock_offset_ms(ap)) < 5.0, tel
+    assert tel["other_sources"] > 0, tel  # the decoy was heard, and left alone
+    # Our requests and reports went to system 2 only.
+    assert ap.received("TIMESYNC") and ap.received("CAMERA_IMAGE_CAPTURED")
+    assert not decoy.received("TIMESYNC") and not decoy.received("CAMERA_IMAGE_CAPTURED")
+    info = ap.wait_for("CAMERA_INFORMATION", timeout=5)[0]
+    assert math.isnan(info.focal_length), info
+    assert math.isnan(info.sensor_size_h) and math.isnan(info.sensor_size_v), info
+    assert (info.resolution_h, info.resolution_v) == (480, 270), info
 
 
 def _rx(a: float) -> np.ndarray:

@@ -117,6 +117,7 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   t.position = GeoPosition{47.3977418, 8.5455938, 123.456, 50.0};
   t.gps.fixType = 3;
   t.gps.hdop = 0.83;
+  t.gps.satellites = 17;
   t.gps.hAccuracyM = 1.25;
   t.gps.vAccuracyM = 2.5;
   t.utcUs = kUtcUs;
@@ -133,6 +134,7 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   EXPECT_EQ(field(j, "GPS:GPSVersionID"), "2 3 0 0");
   EXPECT_EQ(field(j, "GPS:GPSMapDatum"), "WGS-84");
   EXPECT_EQ(field(j, "GPS:GPSMeasureMode"), "3");
+  EXPECT_EQ(field(j, "GPS:GPSSatellites"), "17");
   EXPECT_EQ(field(j, "GPS:GPSDateStamp"), "2026:06:01");
   EXPECT_EQ(field(j, "GPS:GPSTimeStamp"), "10:00:00.123456");
 
@@ -166,6 +168,10 @@ TEST_F(TaggingTest, NorthEastFullSetReadByExiftool) {
   // The principal point in mm times FocalPlaneXResolution is OpenCV's cx + 0.5, as a
   // reader that takes the resolution as pixels per mm computes it.
   EXPECT_NEAR(3.2 * number(j, "ExifIFD:FocalPlaneXResolution"), 160.0, 1e-3);
+  // Pix4D's namespace as Pix4D-aware cameras write it (exiftool names the group from
+  // the prefix, so the address itself is checked in the bytes).
+  const std::string bytes(jpeg_.begin(), jpeg_.end());
+  EXPECT_NE(bytes.find("xmlns:Camera=\"http://pix4d.com/camera/1.0/\""), std::string::npos);
 }
 
 TEST_F(TaggingTest, FisheyeLensReadByExiftool) {
@@ -208,6 +214,7 @@ TEST_F(TaggingTest, SouthWestAndBelowSeaLevel) {
   EXPECT_EQ(field(j, "GPS:GPSAltitudeRef"), "1");
   EXPECT_NEAR(number(j, "Composite:GPSAltitude"), -12.345, 1e-3);
   EXPECT_EQ(field(j, "GPS:GPSMeasureMode"), "2");
+  EXPECT_EQ(field(j, "GPS:GPSSatellites"), "");  // not said by the receiver
   // No receiver accuracy: HDOP x 5 m UERE for a standalone fix.
   EXPECT_NEAR(number(j, "XMP-Camera:GPSXYAccuracy"), 7.5, 1e-9);
   EXPECT_EQ(field(j, "XMP-Camera:GPSZAccuracy"), "");  // no VDOP either

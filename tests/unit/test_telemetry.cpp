@@ -1143,7 +1143,7 @@ TEST(TelemetryDecoder, LegacyYawLockMeansEarthFrame) {
   EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -60 * kDeg, 10 * kDeg)), 0.0, 1e-6);
 }
 
-TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
+TEST(Tlog, ReadsRecordsSkipsGarbageAndReportsATruncatedEnd) {
   MavlinkEncoder ap(1, 1);
   const auto path = std::filesystem::temp_directory_path() / "keyframed_test.tlog";
   std::vector<std::uint8_t> bytes;
@@ -1153,6 +1153,7 @@ TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
     for (int k = 7; k >= 0; --k) bytes.push_back(static_cast<std::uint8_t>(us >> (8 * k)));
     const auto pkt = attitudeQ(ap, static_cast<std::uint32_t>(i * 20), Quaternion{});
     bytes.insert(bytes.end(), pkt.begin(), pkt.end());
+    if (i == 5) bytes.insert(bytes.end(), 37, std::uint8_t{0x55});  // garbage between records
   }
   bytes.resize(bytes.size() - 7);  // cut the last packet short
   std::ofstream(path, std::ios::binary)
@@ -1171,6 +1172,7 @@ TEST(Tlog, ReadsRecordsAndReportsATruncatedEnd) {
   }
   EXPECT_EQ(n, 19);
   EXPECT_TRUE(reader.truncated());
+  EXPECT_EQ(reader.resyncedBytes(), 37U);
 
   // Not a tlog at all.
   std::ofstream(path, std::ios::binary) << "this is not a tlog, just text\n";
