@@ -29,7 +29,9 @@ set(CPACK_PACKAGE_DESCRIPTION_SUMMARY
     "keyframe selection daemon for UAV companion computers (sharp, overlapping, geotagged)")
 set(CPACK_DEBIAN_FILE_NAME DEB-DEFAULT)  # keyframed_<version>_<arch>.deb
 set(CPACK_DEBIAN_PACKAGE_SECTION video)
-set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)  # Depends: from dpkg-shlibdeps
+# postinst makes the user with systemd-sysusers, or adduser where systemd is absent.
+set(CPACK_DEBIAN_PACKAGE_DEPENDS "systemd | adduser")
+set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)  # the rest of Depends: from dpkg-shlibdeps
 set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "systemd")
 set(CPACK_STRIP_FILES ON)
 # /etc is outside the prefix: install through DESTDIR so absolute paths land in the package.

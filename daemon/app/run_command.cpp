@@ -486,6 +486,17 @@ void Daemon::outputLoop() {
   std::string error;
   LogThrottle errorLog;  // once per kind, then every 10 s
   while (std::optional<KeyframeEvent> ev = events_.pop()) {
+    const Decision& d = ev->decision;
+    if (d.kept) {
+      KF_LOG(Select, Debug) << "keyframe " << d.index << ": " << toString(d.reason) << ", overlap "
+                            << (std::isfinite(d.overlap) ? formatFixed(d.overlap, 3) : "none")
+                            << ", sharpness " << formatFixed(d.sharpness, 1) << " (threshold "
+                            << formatFixed(d.threshold, 1) << ")";
+    }
+    if (ev->promoted) {
+      KF_LOG(Select, Debug) << "keyframe " << d.promotedIndex
+                            << ": gap fill, the sharpest since the last keyframe";
+    }
     bool handled = false;
     try {
       handled = output_->handle(*ev, error);

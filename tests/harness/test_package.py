@@ -127,6 +127,8 @@ def test_debian_package(deb: Path, tmp_path: Path):
     # Computed by dpkg-shlibdeps from the binary's libraries.
     for lib in ("libc6", "libsystemd0", "libtomlplusplus3", "libopencv-core"):
         assert lib in depends, depends
+    # what postinst makes the user with
+    assert "systemd | adduser" in depends, depends
     assert "Package: keyframed" in info
 
 
@@ -157,7 +159,7 @@ def test_debian_package_installs_runs_and_purges(deb: Path, tmp_path: Path):
         user = subprocess.run(["getent", "passwd", "keyframed"], capture_output=True, text=True)
         assert user.returncode == 0, "postinst made no keyframed user"
         groups = subprocess.check_output(["id", "-nG", "keyframed"], text=True).split()
-        assert "keyframed" in groups
+        assert {"keyframed", "video", "dialout"} <= set(groups), groups
         # the installed binary with the installed configuration, as the unit runs it
         p = subprocess.run(
             ["/usr/bin/keyframed", "check-config"], capture_output=True, text=True, timeout=30

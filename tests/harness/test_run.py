@@ -9,6 +9,8 @@ import contextlib
 import csv
 import json
 import os
+import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -451,6 +453,61 @@ class NotifySocket:
         self.sock.close()
 
 
+def test_under_systemd_the_log_goes_to_journald_with_priority_and_category(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """Started by systemd, stderr is the journal stream (JOURNAL_STREAM): every record
+    goes to journald's native socket with its syslog priority, category and source
+    line, none to stderr. journald is stood in for by a socket bound at its path in a
+    private mount namespace (root: CI runs the suite as root)."""
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        pytest.skip("a private mount namespace for the journal socket needs root and unshare")
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True)
+    (cfg / "keyframed.toml").write_text("")
+    daemon = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    for s in (
+        f"output.state_dir={tmp_path / 'state'}",
+        "telemetry.url=",
+        "zenoh.enabled=false",
+        "camera.source=file",
+        f"camera.path={short_nadir / 'video.avi'}",
+        "camera.realtime=false",
+    ):
+        daemon += ["--set", s]
+    stderr = tmp_path / "stderr.txt"
+    sink = Path(__file__).with_name("journal_sink.py")
+    p = subprocess.run(
+        ["unshare", "--mount", "--propagation", "private", "sh", "-c"]
+        + ['mount -t tmpfs tmpfs /run && exec "$@"', "sh", sys.executable, str(sink)]
+        + [str(stderr), *daemon],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr + stderr.read_text()
+    records = [json.loads(ln) for ln in p.stdout.splitlines()]
+    assert len(records) >= 3, records
+    for r in records:
+        assert r["SYSLOG_IDENTIFIER"] == "keyframed", r
+        assert r["PRIORITY"] in {"3", "4", "5", "6", "7"}, r
+        assert r["KEYFRAMED_CATEGORY"] in {
+            "capture",
+            "select",
+            "telemetry",
+            "tagging",
+            "output",
+            "app",
+        }, r
+        assert r["CODE_FILE"].endswith(".cpp") and int(r["CODE_LINE"]) > 0, r
+    ready = [r for r in records if r["MESSAGE"] == "ready: first frame received"]
+    assert len(ready) == 1 and ready[0]["PRIORITY"] == "5", records  # notice
+    assert ready[0]["KEYFRAMED_CATEGORY"] == "app", ready
+    # no record twice: nothing of the log on stderr
+    logged = [ln for ln in stderr.read_text().splitlines() if re.match(r"\d\d:\d\d:\d\d\.", ln)]
+    assert logged == [], logged
+
+
 def test_sd_notify_ready_watchdog_status_reload_and_stopping(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
@@ -476,10 +533,11 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 0.8\n")
         proc.send_signal(signal.SIGHUP)
         time.sleep(1.5)
-        # the same selection settings again (a reload for [log], say): the chain goes on;
-        # a changed key that only a restart applies is named
+        # the same selection settings again, a reload for [log] (each keyframe said at
+        # debug level from now on): the chain goes on; a changed key that only a restart
+        # applies is named
         (tmp_path / "etc" / "keyframed.toml").write_text(
-            '[selection]\ntarget = 0.8\n[log]\nlevel = "info"\n[output]\nmcap_rotate_s = 60\n'
+            '[selection]\ntarget = 0.8\n[log]\nselect = "debug"\n[output]\nmcap_rotate_s = 60\n'
         )
         proc.send_signal(signal.SIGHUP)
         time.sleep(2.0)
@@ -494,13 +552,30 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
     ready = ns.has("READY=1")
     assert ready and "first frame" in ready[0]
     assert len(ns.has("WATCHDOG=1")) >= 4, "pinged every half second while frames arrive"
-    status = ns.has("STATUS=")
-    assert any("fps" in m and "keyframes" in m and "dropped" in m for m in status)
+    # STATUS= each second: the analysis rate, keyframes written, frames dropped
+    status = [
+        re.search(r"STATUS=(\d+\.\d) fps, (\d+) keyframes, (\d+) dropped(, no frames)?$", m)
+        for m in ns.has("STATUS=")
+        if "fps" in m
+    ]
+    assert len(status) >= 4 and all(status), ns.has("STATUS=")
+    fps = sorted(float(m.group(1)) for m in status if m)
+    kept = [int(m.group(2)) for m in status if m]
+    assert 24.0 <= fps[len(fps) // 2] <= 36.0, fps  # a 30 fps file played in real time
+    assert kept == sorted(kept) and 0 < kept[-1], kept
+    summary = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+    assert kept[-1] <= summary["written"] and all(int(m.group(3)) == 0 for m in status if m)
+    assert summary["frames_dropped"] == 0, summary
     assert len(ns.has("RELOADING=1")) == 3
     assert ns.has("STOPPING=1")
     assert "reload:" in stderr and "keeping the running settings" in stderr
     assert stderr.count("selection settings reloaded") == 1, stderr
     assert "selection settings unchanged" in stderr, stderr
+    # [log] reloaded: keyframes said at debug level, only after that reload
+    lines = stderr.splitlines()
+    at = next(i for i, ln in enumerate(lines) if "selection settings unchanged" in ln)
+    said = [i for i, ln in enumerate(lines) if re.search(r" D select: keyframe \d+: ", ln)]
+    assert said and min(said) > at, stderr
     restart = [ln for ln in stderr.splitlines() if "apply on reload" in ln]
     assert len(restart) == 1 and "reload: output.mcap_rotate_s changed:" in restart[0], stderr
 
@@ -690,6 +765,18 @@ def test_bad_input_is_a_clear_error(
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == status, stderr
     assert message in stderr
+    assert "Sanitizer" not in stderr and "runtime error" not in stderr
+
+
+def test_no_camera_at_all_is_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
+    """camera.device left empty picks the first V4L2 capture device: with none on the
+    machine that is said, exit 1 (systemd restarts it: the camera may be plugged in)."""
+    if list(Path("/dev").glob("video*")):
+        pytest.skip("this machine has a /dev/video* node: the daemon would open it")
+    proc = start(any_bin, tmp_path, "camera.source=v4l2", "camera.device=")
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1, stderr
+    assert "no V4L2 capture device found (camera.device to name one)" in stderr, stderr
     assert "Sanitizer" not in stderr and "runtime error" not in stderr
 
 

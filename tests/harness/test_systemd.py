@@ -74,6 +74,31 @@ def test_unit_has_the_agreed_settings():
         assert f"char-{tty} rw" in settings["DeviceAllow"]
     assert one["CapabilityBoundingSet"] == ""
     assert one["UMask"] == "0027"
+    # Writable: its own state and log directories only.
+    assert one["StateDirectory"] == "keyframed" and one["LogsDirectory"] == "keyframed"
+    # The sandbox the issue asks for, each directive pinned (the exposure rating below
+    # hardly moves without several of them: 1.6 to 3.6 with five removed).
+    hardening = {
+        "ProtectSystem": "strict",
+        "ProtectHome": "yes",
+        "PrivateTmp": "yes",
+        "NoNewPrivileges": "yes",
+        "MemoryDenyWriteExecute": "yes",
+        "AmbientCapabilities": "",
+        "SystemCallArchitectures": "native",
+        "RestrictNamespaces": "yes",
+        "ProtectKernelTunables": "yes",
+        "ProtectKernelModules": "yes",
+        "ProtectControlGroups": "yes",
+    }
+    assert {k: one.get(k) for k in hardening} == hardening
+    assert one["RestrictAddressFamilies"].split() == [
+        "AF_UNIX",
+        "AF_INET",
+        "AF_INET6",
+        "AF_NETLINK",
+    ]
+    assert settings["SystemCallFilter"] == ["@system-service", "~@privileged"]
 
 
 @needs_analyze
@@ -92,7 +117,8 @@ def test_security_exposure_is_ok(unit_copy: Path):
     # >= 1 SAFE, 0 PERFECT: "OK or better" is an exposure under 5.0.
     print(f"systemd-analyze security: exposure {exposure} {rating}")
     assert rating in ("OK", "SAFE", "PERFECT"), p.stdout[-2000:]
-    assert exposure < 5.0
+    # 1.6 as shipped; what raises it (a directive dropped) is a decision to make here.
+    assert exposure <= 2.0
 
 
 def test_sysusers_creates_the_user_in_a_scratch_root(tmp_path: Path):
