@@ -107,6 +107,9 @@ output:
   --max-frames N             stop after N frames
   --progress | --no-progress progress line on stderr (default: when a terminal)
   --quiet                    no summary on stdout
+  --overwrite                replace an earlier run's keyframes, decisions and summary
+                             in DIR (without it, such a DIR is refused: a keyframe of
+                             the old run would pass for one of the new)
 recording and streaming:
   --mcap FILE                record decisions, keyframes, calibration and poses to an
                              MCAP file (Foxglove schemas; see docs/formats.md)
@@ -382,6 +385,10 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       o.quiet = true;
       continue;
     }
+    if (a == "--overwrite") {
+      o.overwrite = true;
+      continue;
+    }
     if (a == "--realtime") {
       o.realtime = true;
       continue;
@@ -438,6 +445,8 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (c.blur.warmup > c.blur.window)
     return fail("--blur-warmup (" + std::to_string(c.blur.warmup) +
                 ") must not exceed --blur-window (" + std::to_string(c.blur.window) + ")");
+  if (c.motionRatio > 0.0 && c.motionRatio < 1.0)
+    return fail("--motion-ratio: must be 0 (off) or at least 1 (got " + num(c.motionRatio) + ")");
   // The core's own rules as a last line of defence.
   if (std::string e = c.validate(); !e.empty()) return fail("selection settings: " + e);
   if (!o.telemetrySets.empty()) {

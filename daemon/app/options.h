@@ -22,6 +22,7 @@ struct SelectOptions {
   std::int64_t maxFrames = -1;                     // --max-frames N (stop after N frames)
   std::optional<bool> progress;  // --progress / --no-progress (default: when stderr is a TTY)
   bool quiet = false;            // --quiet: no summary on stdout
+  bool overwrite = false;        // --overwrite: replace an earlier run's output in outDir
 
   // Telemetry and tagging.
   std::string telemetry;    // --telemetry URL|FILE.tlog (see openMavlinkLink)

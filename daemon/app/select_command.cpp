@@ -2,6 +2,7 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <csignal>
@@ -9,6 +10,7 @@
 #include <filesystem>
 #include <optional>
 #include <thread>
+#include <vector>
 
 #include <opencv2/core/utils/logger.hpp>
 
@@ -32,6 +34,43 @@
 
 namespace keyframed {
 namespace {
+
+// The files a run writes into --out: keyframes named by their frame index, the
+// decisions, the summary and the keyframe list.
+bool isRunOutput(const std::string& name) {
+  if (name == "summary.json" || name == "keyframes.csv" || name == "decisions.csv" ||
+      name == "decisions.jsonl")
+    return true;
+  const std::size_t dot = name.size() >= 5 ? name.size() - 4 : 0;
+  if (dot == 0 || name.compare(dot, 4, ".jpg") != 0) return false;
+  return std::all_of(name.begin(), name.begin() + static_cast<std::ptrdiff_t>(dot),
+                     [](char c) { return c >= '0' && c <= '9'; });
+}
+
+// An earlier run's output in `dir` is refused (its keyframes would mix with this
+// run's), or with `overwrite` removed. Other files are left alone.
+bool clearEarlierRun(const std::string& dir, bool overwrite, std::string& error) {
+  std::error_code ec;
+  std::vector<std::filesystem::path> earlier;
+  for (const auto& e : std::filesystem::directory_iterator(dir, ec)) {
+    if (e.is_regular_file(ec) && isRunOutput(e.path().filename().string()))
+      earlier.push_back(e.path());
+  }
+  if (earlier.empty()) return true;
+  if (!overwrite) {
+    error = dir + " holds an earlier run's output (" + std::to_string(earlier.size()) +
+            " files: keyframes, decisions, summary): choose another --out, or --overwrite "
+            "to replace it";
+    return false;
+  }
+  for (const auto& p : earlier) {
+    if (!std::filesystem::remove(p, ec) && ec) {
+      error = "cannot remove " + p.string() + ": " + ec.message();
+      return false;
+    }
+  }
+  return true;
+}
 
 bool writeSummary(const std::string& path, const SelectOptions& o, const SourceInfo& info,
                   const SelectSummary& s, std::string& error) {
@@ -115,9 +154,21 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
 }
 
 std::atomic<bool> gStop{false};
+// Set while the video is being opened: an open can block for good (a FIFO that no
+// writer opens, a stalled network mount), and nothing is written yet to flush.
+std::atomic<bool> gOpening{false};
 extern "C" void onSignal(int) {
-  gStop.store(true);
+  // A signal while opening, or a second one (something blocks): out at once.
+  if (gStop.exchange(true) || gOpening.load()) ::_exit(130);
 }
+
+// Marks the opening of the video for the signal handler.
+struct OpeningScope {
+  OpeningScope() { gOpening.store(true); }
+  ~OpeningScope() { gOpening.store(false); }
+  OpeningScope(const OpeningScope&) = delete;
+  OpeningScope& operator=(const OpeningScope&) = delete;
+};
 
 }  // namespace
 
@@ -187,6 +238,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.videoStart.method = "given";
   }
   if (opts.videoStartUnixNs) s.videoStart.unixNs = *opts.videoStartUnixNs;
+  std::optional<OpeningScope> opening(std::in_place);
   if (isMcapFile(opts.video)) {
     auto r = McapReplaySource::open(opts.video, error);
     replay = r.get();
@@ -202,6 +254,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       source = std::move(f);
     }
   }
+  opening.reset();
   if (!source) {
     s.error = error;
     return s;
@@ -251,6 +304,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     if (!size.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
   }
   std::error_code ec;
+  if (!clearEarlierRun(opts.outDir, opts.overwrite, s.error)) return s;
   std::filesystem::create_directories(opts.outDir, ec);
   if (ec || !std::filesystem::is_directory(opts.outDir, ec)) {
     s.error = "cannot create output directory " + opts.outDir;

@@ -5,7 +5,9 @@ from __future__ import annotations
 import csv
 import json
 import os
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import cv2
@@ -54,6 +56,53 @@ def test_select_writes_keyframes_decisions_and_summary(kf_bin: Path, pan_video: 
     assert summary["frames_per_second"] > 0
     assert "keyframes:" in p.stdout and str(out) in p.stdout
     assert not list(out.glob("*.tmp"))
+
+
+def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, tmp_path):
+    """A second run into the same --out is refused with one line (its keyframes would
+    mix with the first run's: an SfM tool reads them all); with --overwrite the first
+    run's keyframes, decisions and summary go, and nothing else in the directory."""
+    out = tmp_path / "out"
+    first = run(any_bin, "select", pan_video, "--out", out, "--target", "0.85")
+    assert first.returncode == 0, first.stderr
+    before = json.loads((out / "summary.json").read_text())
+    (out / "notes.txt").write_text("the pilot's notes\n")
+    again = run(any_bin, "select", pan_video, "--out", out, "--target", "0.6")
+    assert_clean_failure(again, "earlier run's output")
+    assert "--overwrite" in again.stderr
+    assert json.loads((out / "summary.json").read_text()) == before  # untouched
+    p = run(any_bin, "select", pan_video, "--out", out, "--target", "0.6", "--overwrite")
+    assert p.returncode == 0, p.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kept"] < before["kept"]
+    kept = [
+        int(r["index"]) for r in csv.DictReader((out / "decisions.csv").open()) if r["kept"] == "1"
+    ]
+    assert sorted(int(f.stem) for f in out.glob("*.jpg")) == kept
+    assert len(kept) == summary["kept"]
+    assert (out / "notes.txt").read_text() == "the pilot's notes\n"
+
+
+def test_a_fifo_no_one_writes_to_ends_on_ctrl_c(any_bin: Path, tmp_path):
+    """A named pipe that no writer opens blocks the video's open for good: Ctrl-C (or
+    SIGTERM) ends the command then and there, exit 130, with nothing written."""
+    fifo = tmp_path / "camera.avi"
+    os.mkfifo(fifo)
+    out = tmp_path / "out"
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        proc = subprocess.Popen(
+            [str(any_bin), "select", str(fifo), "--out", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(1.0)
+        assert proc.poll() is None, proc.communicate()  # still waiting for a writer
+        proc.send_signal(sig)
+        _, stderr = proc.communicate(timeout=10)
+        assert proc.returncode == 130, stderr
+        assert "Sanitizer" not in stderr
+        assert not out.exists()
 
 
 def test_jsonl_decisions_and_paper_mode(kf_bin: Path, pan_video: Path, tmp_path):
@@ -137,7 +186,7 @@ def test_truncated_video_keeps_what_was_read_and_fails(any_bin: Path, pan_video:
     out = tmp_path / "o"
     p = run(any_bin, "select", cut, "--out", out)
     assert p.returncode == 3
-    assert "ended early" in p.stderr
+    assert_clean_failure(p, "ended early")
     summary = json.loads((out / "summary.json").read_text())
     assert 10 < summary["frames_read"] < 90
     assert summary["truncated"] is True
@@ -175,7 +224,8 @@ def test_cut_transport_stream_is_truncated(any_bin: Path, tmp_path):
     out = tmp_path / "o"
     p = run(any_bin, "select", cut, "--out", out)
     assert p.returncode == 3, p.stderr
-    assert "transport packet" in p.stderr and "ended early" in p.stderr
+    assert_clean_failure(p, "ended early")
+    assert "transport packet" in p.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["truncated"] is True
     assert 10 < summary["frames_read"] < 60

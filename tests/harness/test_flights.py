@@ -63,7 +63,7 @@ def test_hover_adds_no_keyframes(kf_bin: Path, tmp_path):
     hover = load_flight(fdir).hover
     assert hover.sum() > 60  # the flight does hover
     inside = [k for k in ev.keyframes if hover[k]]
-    assert len(inside) <= 1, inside  # at most the frame where it arrived
+    assert inside == [], inside  # not even the frame where it arrived
 
 
 # t = 50 is the paper's value for a Bebop; t = 29 is what gives 0.70 overlap on the

@@ -112,6 +112,17 @@ def test_config_validation():
 def test_select_video_from_python(pan_video: Path, tmp_path):
     s = keyframed.select_video(str(pan_video), str(tmp_path / "o"))
     assert s["frames_read"] == 90 and s["kept"] >= 3 and s["error"] == ""
+    # the same directory again: refused (the runs' keyframes would mix), or replaced
+    with pytest.raises(RuntimeError, match="earlier run"):
+        keyframed.select_video(str(pan_video), str(tmp_path / "o"), max_frames=30)
+    again = keyframed.select_video(
+        str(pan_video), str(tmp_path / "o"), max_frames=30, overwrite=True
+    )
+    assert again["frames_read"] == 30
+    assert len(list((tmp_path / "o").glob("*.jpg"))) == again["kept"] < s["kept"]
+    for bad in (0, -5):
+        with pytest.raises(ValueError, match="max_frames"):
+            keyframed.select_video(str(pan_video), str(tmp_path / "o4"), max_frames=bad)
     with pytest.raises(RuntimeError, match="no such file"):
         keyframed.select_video(str(tmp_path / "missing.avi"), str(tmp_path / "o2"))
     # An output that fails part-way (the first keyframe's name taken by a directory):

@@ -46,7 +46,10 @@ TEST(Options, ParsesEverySetting) {
   EXPECT_DOUBLE_EQ(o.selector.bandLow, 0.55);
   EXPECT_DOUBLE_EQ(o.selector.bandHigh, 0.8);
   EXPECT_EQ(o.selector.blur.mode, BlurMode::Absolute);
+  EXPECT_DOUBLE_EQ(o.selector.blur.absoluteThreshold, 80.0);
   EXPECT_EQ(o.selector.blur.rowStep, 3);
+  EXPECT_EQ(o.selector.blur.colStep, 3);
+  EXPECT_DOUBLE_EQ(o.selector.overlap.paperThreshold, 40.0);
   EXPECT_EQ(o.selector.analysisWidth, 480);
   EXPECT_EQ(o.selector.overlap.orbFeatures, 1000);
   EXPECT_EQ(o.decisions, DecisionFormat::JsonLines);
@@ -68,6 +71,11 @@ TEST(Options, RejectsBadInputWithOneLine) {
       {"v.avi", "w.avi", "--out", "d"},               // two videos
       {"v.avi", "--out", "d", "--blur-step", "0,3"},  // bad step
   };
+  // Each says which option, not only which rule of the core.
+  SelectOptions named;
+  const auto motion = parse({"v.avi", "--out", "d", "--motion-ratio", "0.5"}, named);
+  EXPECT_FALSE(motion.ok);
+  EXPECT_EQ(motion.error.rfind("--motion-ratio", 0), 0U) << motion.error;
   for (const auto& args : bad) {
     SelectOptions o;
     const auto r = parse(args, o);
@@ -90,10 +98,29 @@ TEST(Options, EveryGeometricAndBlurSettingHasAnOption) {
                         "30",    "--blur-warmup",
                         "7",     "--motion-min-fraction",
                         "0.02",  "--motion-window",
-                        "90"},
+                        "90",    "--blur-floor",
+                        "15",    "--blur-ratio",
+                        "0.6",   "--blur-quantile",
+                        "0.8",   "--blur-window",
+                        "120",   "--motion-ratio",
+                        "5",     "--capture-wait-ms",
+                        "500",   "--min-overlap",
+                        "0.45",  "--max-tracks",
+                        "250",   "--max-frames",
+                        "77",    "--overwrite"},
                        o);
   ASSERT_TRUE(r.ok) << r.error;
   const SelectorConfig& c = o.selector;
+  EXPECT_DOUBLE_EQ(c.blur.floor, 15.0);
+  EXPECT_DOUBLE_EQ(c.blur.ratio, 0.6);
+  EXPECT_DOUBLE_EQ(c.blur.quantile, 0.8);
+  EXPECT_EQ(c.blur.window, 120);
+  EXPECT_DOUBLE_EQ(c.motionRatio, 5.0);
+  EXPECT_EQ(c.captureWaitMs, 500);
+  EXPECT_DOUBLE_EQ(c.minOverlap, 0.45);
+  EXPECT_EQ(c.overlap.maxTracks, 250);
+  EXPECT_EQ(o.maxFrames, 77);
+  EXPECT_TRUE(o.overwrite);
   EXPECT_EQ(c.overlap.minTracks, 50);
   EXPECT_EQ(c.overlap.minInliers, 12);
   EXPECT_DOUBLE_EQ(c.overlap.ransacPixels, 2.5);

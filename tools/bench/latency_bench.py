@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import statistics
 import subprocess
@@ -41,7 +42,7 @@ import zenoh
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def fly(fl: Path, port: int, telemetry: bool) -> tuple[dict, float]:
+def fly(fl: Path, port: int, telemetry: bool, daemon: Path) -> tuple[dict, float]:
     """One `keyframed run` of the flight, publishing to the subscriber on ``port``."""
     from fake_autopilot import FakeAutopilot  # the tests' (tests/harness)
 
@@ -66,7 +67,7 @@ def fly(fl: Path, port: int, telemetry: bool) -> tuple[dict, float]:
             f"zenoh.config={zconf}",
             "zenoh.vehicle=bench",
         ]
-        cmd = [str(ROOT / "build/release/daemon/keyframed"), "run", "--config-dir", f"{tmp}/etc"]
+        cmd = [str(daemon), "run", "--config-dir", f"{tmp}/etc"]
         for s in sets:
             cmd += ["--set", s]
         if autopilot is not None:
@@ -102,6 +103,12 @@ def main() -> int:
     p.add_argument(
         "--telemetry", action="store_true", help="the flight's telemetry from a fake autopilot"
     )
+    p.add_argument(
+        "--bin",
+        type=Path,
+        default=Path(os.environ.get("KEYFRAMED_BIN", ROOT / "build/release/daemon/keyframed")),
+        help="the daemon (default: $KEYFRAMED_BIN, else build/release/daemon/keyframed)",
+    )
     args = p.parse_args()
     sys.path.insert(0, str(ROOT / "tests" / "harness"))
     from flights import flight  # the tests' cached sample flights
@@ -126,7 +133,7 @@ def main() -> int:
     written = frames = geotagged = 0
     mcap_mb = 0.0
     for _ in range(args.runs):
-        summary, size = fly(fl, port, args.telemetry)
+        summary, size = fly(fl, port, args.telemetry, args.bin)
         written += summary["written"]
         geotagged += (summary.get("telemetry") or {}).get("geotagged", 0)
         frames += summary["frames_read"]

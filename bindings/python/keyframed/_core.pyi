@@ -132,4 +132,5 @@ def select_video(
     jpeg_quality: int = 92,
     max_frames: int = -1,
     calibration: str = "",
+    overwrite: bool = False,
 ) -> _SelectSummary: ...

@@ -25,7 +25,7 @@ Camera
     The camera is fixed to the vehicle body (FRD) through a pure pitch mount of
     ``mount_pitch_deg`` (negative = down): R_body_cam = Ry(mount) * R0, where R0
     maps camera (x right, y down, z forward) onto body (y, z, x). Nadir flights use
-    -90 deg (image top = vehicle nose); the orbit uses a fixed forward mount 45
+    -90 deg (image top = vehicle nose); the orbit uses a fixed forward mount 55
     degrees down (the vehicle banks into the turn, its pitch stays near level).
 
 Flights (30 fps by default; ``seconds`` shortens or lengthens them from the start)

@@ -263,10 +263,11 @@ NB_MODULE(_core, m) {
       "select_video",
       [](const std::string& video, const std::string& outDir, std::optional<SelectorConfig> config,
          const std::string& decisions, int jpegQuality, std::int64_t maxFrames,
-         const std::string& calibration) {
+         const std::string& calibration, bool overwrite) {
         SelectOptions o;
         o.video = video;
         o.outDir = outDir;
+        o.overwrite = overwrite;
         o.calibration = calibration;
         if (config) {
           o.selector = *config;
@@ -282,6 +283,8 @@ NB_MODULE(_core, m) {
         if (jpegQuality < 1 || jpegQuality > 100)
           throw nb::value_error("jpeg_quality must be 1..100");
         o.jpegQuality = jpegQuality;
+        if (maxFrames != -1 && (maxFrames < 1 || maxFrames > (std::int64_t{1} << 40)))
+          throw nb::value_error("max_frames must be -1 (all) or 1..2^40");
         o.maxFrames = maxFrames;
         SelectSummary s;
         {
@@ -308,8 +311,10 @@ NB_MODULE(_core, m) {
         return r;
       },
       "video"_a, "out_dir"_a, "config"_a = nb::none(), "decisions"_a = "csv", "jpeg_quality"_a = 92,
-      "max_frames"_a = -1, "calibration"_a = "",
+      "max_frames"_a = -1, "calibration"_a = "", "overwrite"_a = false,
       "Run selection over a video file, writing keyframes, decisions and summary into out_dir.\n"
+      "An earlier run's output in out_dir raises RuntimeError, or with overwrite=True is\n"
+      "replaced (as `keyframed select --overwrite`).\n"
       "calibration: a camera calibration file (as `keyframed select --calibration`): its\n"
       "intrinsics go into the keyframes' tags, and a fisheye or distorting lens is the one\n"
       "the overlap is measured through.\n"

@@ -1,0 +1,100 @@
+"""The benchmark programs run and print what docs/performance.md quotes: short runs,
+so that a benchmark broken by a change is noticed here, not when someone measures.
+No timing is asserted (the numbers are the machine's); the tables' shape and the
+counts that do not depend on speed are."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import keyframed_bin
+from flights import flight
+from mcap.reader import make_reader
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def bench(name: str) -> Path:
+    exe = keyframed_bin().resolve().parents[1] / "tools" / "bench" / name
+    if not exe.exists():
+        pytest.skip(f"{exe} not built")
+    return exe
+
+
+def row(text: str, label: str) -> list[float]:
+    """The numbers on the table row that starts with ``label``."""
+    m = re.search(rf"^\s*{re.escape(label)}\s+(.*)$", text, re.MULTILINE)
+    assert m, f"no row {label!r} in:\n{text}"
+    return [float(v) for v in re.findall(r"\d+(?:\.\d+)?", m.group(1))]
+
+
+def test_selector_benchmark_on_1080p_frames() -> None:
+    fl = flight("nadir", width=1920, height=1080, seconds=2.0, fps=60.0)
+    p = subprocess.run(
+        [str(bench("keyframed-bench")), str(fl / "video.avi"), "--frames", "40"]
+        + ["--geometric-only"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stderr
+    out = p.stdout + p.stderr
+    print(out)
+    assert "40 frames of 1920x1080" in out
+    for stage in ("blur score (S9 Laplacian)", "overlap (track/ORB+match)", "total decision"):
+        median, p99, *_ = row(out, stage)
+        assert 0 < median <= p99, (stage, median, p99)
+    assert row(out, "frames/s (single thread)")[0] > 0
+    # the steady state allocates nothing (held by keyframed_alloc_test too)
+    assert row(out, "heap allocations/frame")[0] == 0.0
+    for stage in ("JPEG from YUV420 (camera)", "EXIF + XMP tags (exiv2)"):
+        median, p99 = row(out, stage)[-2:]
+        assert 0 < median <= p99, (stage, median, p99)
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_mcap_benchmark_writes_a_readable_file(tmp_path: Path, compression: str) -> None:
+    path = tmp_path / "bench.mcap"
+    p = subprocess.run(
+        [str(bench("keyframed-mcap-bench")), str(path), "50", "20000", compression],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr
+    print(p.stdout)
+    m = re.search(r"(\d+) messages of (\d+) bytes, .* ([\d.]+) MB/s", p.stdout)
+    assert m and (m.group(1), m.group(2)) == ("50", "20000"), p.stdout
+    assert float(m.group(3)) > 0
+    with path.open("rb") as f:
+        messages = list(make_reader(f).iter_messages())
+    # CompressedImage messages around each 20,000-byte payload
+    assert len(messages) == 50 and all(len(msg.data) > 20000 for _, _, msg in messages)
+
+
+def test_latency_benchmark_receives_every_keyframe() -> None:
+    """One short flight through the daemon to a Zenoh subscriber: every keyframe
+    written is received, and the latency lines are printed."""
+    p = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "bench" / "latency_bench.py")]
+        + ["--width", "480", "--height", "270", "--seconds", "6", "--runs", "1"]
+        + ["--bin", str(keyframed_bin())],
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    print(p.stdout)
+    got, written = row(p.stdout, "keyframes received")
+    assert got == written > 0, p.stdout
+    m = re.search(
+        r"decision to receipt\s+median ([\d.]+) ms, p99 ([\d.]+), max ([\d.]+) over (\d+)",
+        p.stdout,
+    )
+    assert m, p.stdout
+    median, p99, worst, count = (float(v) for v in m.groups())
+    assert 0 < median <= p99 <= worst and count == written, p.stdout
