@@ -589,6 +589,23 @@ def test_a_flight_list_decides_what_is_fetched_and_a_resumed_dataset_keeps_its_n
     assert (again.images / "000000.jpg").read_bytes() == b"b0"
 
 
+def test_progress_shows_the_newest_keyframes_position(tmp_path: Path) -> None:
+    """The progress line's position is the newest keyframe's that has one (the latest
+    flight, its highest sequence), not that of the last one to arrive: a gap filled
+    later, or an earlier flight fetched, is an older keyframe."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav7", None)
+    assert ds.progress().startswith("uav7: 0 keyframes, ") and " at " not in ds.progress()
+    flight = "20261204T101500Z"
+    ds.add({"flight": flight, "sequence": 3, "lat": 51.3, "lon": 7.3}, b"3")
+    ds.add({"flight": flight, "sequence": 4, "lat": "", "lon": ""}, b"4")  # not geotagged
+    ds.add({"flight": flight, "sequence": 1, "lat": 51.1, "lon": 7.1}, b"1", fetched=True)
+    ds.add({"flight": "20261204T090000Z", "sequence": 9, "lat": 50.9, "lon": 6.9}, b"e")
+    line = ds.progress()
+    assert line.startswith("uav7: 4 keyframes, ") and line.endswith(" at 51.300000,7.300000"), line
+
+
 def test_which_flights_ended_with_their_count_unknown(tmp_path: Path) -> None:
     """The flights the station saw followed by another, and whether it learned how
     many keyframes they ended with: from a final status (which may overtake the next
@@ -1243,8 +1260,11 @@ def test_one_vehicle_of_two_with_live_progress(tagged: Path, tmp_path: Path) -> 
     ports = free_port(), free_port()
     vehicles = [Vehicle("uav1", tagged, ports[0]), Vehicle("uav2", tagged, ports[1])]
     out = tmp_path / "dataset"
+    # the console script as installed (the other tests run the module)
+    script = Path(sys.executable).parent / "keyframed-ground"
+    assert script.is_file(), f"{script}: the package's console script is not installed"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "keyframed.ground", "--out", str(out), "--vehicle", "uav2"]
+        [str(script), "--out", str(out), "--vehicle", "uav2"]
         + [arg for p in ports for arg in ("--connect", f"tcp/127.0.0.1:{p}")]
         + ["--until-idle", "2.5"],
         stdout=subprocess.PIPE,

@@ -96,7 +96,9 @@ def test_mcap_record_is_valid_and_complete(kf_bin: Path, short_nadir: Path, tmp_
     )
     assert r.returncode == 0, r.stderr
     d = doctor(rec)
-    assert d.returncode == 0 and "passed" in d.stdout, d.stdout + d.stderr
+    text = " ".join(d.stdout.split())
+    assert d.returncode == 0 and "passed MCAP doctor checks" in text, d.stdout + d.stderr
+    assert "warning" not in text.lower(), text  # formats.md: "without warnings"
 
     msgs = messages(rec)
     rows = keyframe_rows(out)
@@ -228,11 +230,13 @@ def peer_config(listen: list[str] | None = None, connect: list[str] | None = Non
     )
 
 
+@pytest.mark.parametrize("transport", ["tcp", "udp"])
 def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
-    kf_bin: Path, pan_video: Path, tmp_path: Path
+    kf_bin: Path, pan_video: Path, tmp_path: Path, transport: str
 ):
+    """Over TCP, and over UDP (a radio link's usual transport): every keyframe, whole."""
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"{transport}/127.0.0.1:{port}"
     cfg = tmp_path / "zenoh.json5"
     cfg.write_text(peer_config(connect=[endpoint]))
     out = tmp_path / "out"
@@ -280,6 +284,11 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
         odd = list(session.get("keyframed/test1/keyframes/00", timeout=5.0))
         assert odd and odd[0].err is not None
         assert "not a keyframe sequence number: '00'" in odd[0].err.payload.to_string()
+        # Another flight's keyframes by name: never a path out of the store.
+        for flight in ("..", "../../etc", "nope"):
+            ans = list(session.get(f"keyframed/test1/keyframes/0?flight={flight}", timeout=5.0))
+            assert ans and ans[0].err is not None, flight
+            assert f"no flight '{flight}' here" in ans[0].err.payload.to_string()
         stdout, stderr = p.communicate(timeout=60)
         assert p.returncode == 0, stderr
         time.sleep(0.2)

@@ -1256,6 +1256,8 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
     took = time.monotonic() - t0
     assert r.returncode == 0, r.stderr
     print(f"replay of an 8 s flight: {took:.1f} s")  # speed: docs/performance.md
+    # faster than real time (30 fps): by its own count, as fast as it can go
+    assert json.loads((out / "summary.json").read_text())["frames_per_second"] > 30.0
     # Frame for frame, with the live run's indices: frames its capture dropped (a
     # loaded machine) leave the same gaps in both.
     a, b = rows(fd / "decisions.csv"), rows(out / "decisions.csv")
@@ -1361,17 +1363,51 @@ def test_replay_of_a_reduced_preview_and_of_a_cut_file(
     assert 30 < s["frames_read"] < 240
 
 
-def test_replay_bad_flight_records(any_bin: Path, tmp_path: Path) -> None:
+def test_replay_bad_flight_records(any_bin: Path, pan_video: Path, tmp_path: Path) -> None:
+    """Records that cannot be replayed: each one line saying why, exit 3."""
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from mcap_protobuf.writer import Writer
+
     garbage = tmp_path / "garbage.mcap"
     garbage.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 20)
+    # `select --mcap` records decisions and keyframes, not the stream
+    no_stream = tmp_path / "select.mcap"
     r = subprocess.run(
-        [str(any_bin), "select", str(garbage), "--out", str(tmp_path / "o")],
+        [str(any_bin), "select", str(pan_video), "--out", str(tmp_path / "s"), "--quiet"]
+        + ["--mcap", str(no_stream)],
         capture_output=True,
         text=True,
         timeout=60,
     )
-    assert r.returncode == 3 and "garbage.mcap" in r.stderr, r.stderr
-    assert "Sanitizer" not in r.stderr and "runtime error" not in r.stderr
+    assert r.returncode == 0, r.stderr
+    # a preview stream whose frames are not JPEG pictures
+    not_jpeg = tmp_path / "not-jpeg.mcap"
+    with not_jpeg.open("wb") as f:
+        w = Writer(f)
+        for i in range(3):
+            img = CompressedImage(format="jpeg", data=b"no picture here " * 10)
+            img.timestamp.FromNanoseconds(1_000_000_000 + i * 33_333_333)
+            w.write_message("/camera/preview", img, log_time=1_000_000_000 + i * 33_333_333)
+        w.finish()
+    # a record cut before its first frame (the power went at once)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(no_stream.read_bytes()[:4000])
+    cases = {
+        garbage: "garbage.mcap",
+        no_stream: "no preview stream (/camera/preview or /camera/video) to replay",
+        not_jpeg: "the first preview frame is not a JPEG",
+        cut: "corrupt or cut short before its first preview frame",
+    }
+    for record, message in cases.items():
+        r = subprocess.run(
+            [str(any_bin), "select", str(record), "--out", str(tmp_path / record.stem)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert r.returncode == 3 and message in r.stderr, (record.name, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "Sanitizer" not in r.stderr and "runtime error" not in r.stderr
 
 
 mounts_tmpfs = pytest.mark.skipif(

@@ -837,6 +837,25 @@ class VehicleDataset:
         if running is not None:
             self.note_running(running)
 
+    def progress(self) -> str:
+        """The progress line's part for this vehicle: keyframes, their rate since the
+        first, and where the newest one with a position was taken: the latest flight's
+        (flight ids are UTC times) highest sequence, not the last to arrive (a gap
+        filled later, or an earlier flight fetched, holds older keyframes)."""
+        n = self.count()
+        rate = n / max(1e-3, time.monotonic() - self.first_time)
+        last = ""
+        with self.lock:
+            placed = []
+            for (flight, seq), m in self.meta.items():
+                lat, lon = _float_or_none(m.get("lat")), _float_or_none(m.get("lon"))
+                if lat is not None and lon is not None:
+                    placed.append((flight, seq, lat, lon))
+            if placed:
+                *_, lat, lon = max(placed)
+                last = f" at {lat:.6f},{lon:.6f}"
+        return f"{self.vehicle}: {n} keyframes, {rate * 60:.0f}/min{last}"
+
     def add(self, meta: dict[str, Any], jpeg: bytes, fetched: bool = False) -> bool:
         """Stores one keyframe; False when it was already there."""
         seq = int(meta["sequence"])
@@ -1291,18 +1310,8 @@ class GroundStation:
         return 1
 
     def progress(self) -> str:
-        parts = []
-        for ds in list(self.datasets.values()):  # a vehicle may be heard meanwhile
-            n = ds.count()
-            rate = n / max(1e-3, time.monotonic() - ds.first_time)
-            last = ""
-            with ds.lock:
-                if ds.meta:
-                    m = list(ds.meta.values())[-1]
-                    lat, lon = _float_or_none(m.get("lat")), _float_or_none(m.get("lon"))
-                    if lat is not None and lon is not None:
-                        last = f" at {lat:.6f},{lon:.6f}"
-            parts.append(f"{ds.vehicle}: {n} keyframes, {rate * 60:.0f}/min{last}")
+        # a vehicle may be heard meanwhile: a copy of the list
+        parts = [ds.progress() for ds in list(self.datasets.values())]
         return "; ".join(parts) or "waiting for keyframes"
 
     def run(
