@@ -8,15 +8,24 @@ for other prefixes).
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import re
 import shutil
 import socket
 import subprocess
+import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import ROOT
+from fake_autopilot import autopilot_fixture
+from flights import flight
+from ports import free_port, zenoh_connect_config, zenoh_listener_config
+from sandbox import sandbox_preexec
 
 UNIT = ROOT / "systemd/keyframed.service"
 SYSUSERS = ROOT / "systemd/keyframed.sysusers"
@@ -195,3 +204,100 @@ def test_without_notify_socket_nothing_is_sent(kf_bin: Path):
     )
     assert p.returncode == 1  # every send reports "nobody listens"
     assert "notify_socket=no" in p.stdout
+
+
+fake_autopilot = autopilot_fixture()
+
+
+@needs_analyze
+def test_the_sandbox_of_the_unit_refuses_what_it_should(tmp_path: Path) -> None:
+    """The sandbox as tests/harness/sandbox.py builds it from the unit is in force:
+    chroot (@privileged) fails, a raw packet socket's family is refused, and what the
+    unit allows still works."""
+    apply = sandbox_preexec(UNIT)
+    probe = (
+        "import os, socket, sys\n"
+        "try:\n    os.chroot('/')\nexcept PermissionError:\n    print('chroot refused')\n"
+        "try:\n    socket.socket(socket.AF_PACKET, socket.SOCK_RAW)\n"
+        "except OSError as e:\n    print('packet', e.errno)\n"
+        "socket.socket(socket.AF_INET, socket.SOCK_DGRAM).close()\n"
+        "print('inet ok')\n"
+    )
+    p = subprocess.run(
+        [sys.executable, "-c", probe], preexec_fn=apply, capture_output=True, text=True, timeout=60
+    )
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split("\n")[:3] == ["chroot refused", "packet 97", "inet ok"], p.stdout
+
+
+@needs_analyze
+def test_the_daemon_runs_inside_the_units_system_call_sandbox(
+    kf_bin: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """`keyframed run` under the unit's SystemCallFilter=, RestrictAddressFamilies=,
+    NoNewPrivileges= and MemoryDenyWriteExecute= (seccomp, as systemd applies them):
+    a flight with telemetry over UDP, geotagged keyframes published over Zenoh, the
+    MCAP record with its H.264 video, sd_notify: all of it works inside, so no system
+    call the daemon (or OpenCV, libx264, exiv2, Zenoh) makes is one the unit forbids."""
+    import zenoh
+
+    fl = flight("nadir", width=320, height=180, seconds=3.0)
+    ap = fake_autopilot(fl / "flight.tlog")
+    port = free_port()
+    zconf = zenoh_connect_config(tmp_path / "zenoh.json5", port)
+    cfg = tmp_path / "etc"
+    (cfg / "conf.d").mkdir(parents=True)
+    (cfg / "keyframed.toml").write_text("")
+    notify = tmp_path / "notify.sock"
+    ns = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    ns.bind(str(notify))
+    ns.settimeout(0.1)
+    cmd = [str(kf_bin), "run", "--config-dir", str(cfg)]
+    for s in (
+        f"output.state_dir={tmp_path / 'state'}",
+        "camera.source=file",
+        f"camera.path={fl / 'video.avi'}",
+        f"tagging.calibration={fl / 'intrinsics.json'}",
+        "output.preview_format=h264",
+        f"telemetry.url=udpout:127.0.0.1:{ap.port}",
+        f"zenoh.config={zconf}",
+        "zenoh.vehicle=boxed",
+    ):
+        cmd += ["--set", s]
+    received: list[bytes] = []
+    listen = zenoh_listener_config(tmp_path / "ground.json5", port)
+    session = zenoh.open(zenoh.Config.from_file(str(listen)))
+    try:
+        sub = session.declare_subscriber(
+            "keyframed/boxed/keyframe", lambda s: received.append(s.payload.to_bytes())
+        )
+        ap.start()
+        proc = subprocess.Popen(
+            cmd,
+            preexec_fn=sandbox_preexec(UNIT),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "NOTIFY_SOCKET": str(notify)},
+        )
+        _, stderr = proc.communicate(timeout=120)
+        time.sleep(0.3)
+        sub.undeclare()
+    finally:
+        session.close()
+    messages = []
+    with contextlib.suppress(TimeoutError):
+        while True:
+            messages.append(ns.recv(4096).decode())
+    ns.close()
+    assert proc.returncode == 0, stderr
+    for refused in ("Operation not permitted", "Bad system call", "Address family not"):
+        assert refused not in stderr, stderr
+    assert any(m.startswith("READY=1") for m in messages), messages
+    state = (tmp_path / "state" / "latest").resolve()
+    summary = json.loads((state / "summary.json").read_text())
+    assert summary["state"] == "done" and summary["written"] == summary["kept"] >= 2, summary
+    assert summary["telemetry"]["geotagged"] == summary["written"], summary
+    assert len(received) == summary["written"], (len(received), summary)
+    assert (state / "flight.mcap").stat().st_size > 0
+    assert "/camera/video" in (state / "flight.mcap").read_bytes().decode("latin-1")
