@@ -623,8 +623,9 @@ def test_offline_record_carries_the_tlog_and_the_chosen_autopilot_only(
     for system, lat0 in ((1, 51.89), (2, 52.89)):
         rec = tmp_path / f"sys{system}.mcap"
         r = subprocess.run(
-            [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(tmp_path / "o")]
-            + ["--quiet", "--telemetry", str(tlog), "--video-start", str(synth.EPOCH_UNIX_S)]
+            [str(kf_bin), "select", str(short_nadir / "video.avi")]
+            + ["--out", str(tmp_path / f"o{system}"), "--quiet", "--telemetry", str(tlog)]
+            + ["--video-start", str(synth.EPOCH_UNIX_S)]
             + ["--autopilot", str(system), "--mcap", str(rec)],
             capture_output=True,
             text=True,
