@@ -446,7 +446,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     return fail("--blur-warmup (" + std::to_string(c.blur.warmup) +
                 ") must not exceed --blur-window (" + std::to_string(c.blur.window) + ")");
   if (c.motionRatio > 0.0 && c.motionRatio < 1.0)
-    return fail("--motion-ratio: must be 0 (off) or at least 1 (got " + num(c.motionRatio) + ")");
+    return fail("--motion-ratio (" + num(c.motionRatio) + ") must be 0 (off) or at least 1");
   // The core's own rules as a last line of defence.
   if (std::string e = c.validate(); !e.empty()) return fail("selection settings: " + e);
   if (!o.telemetrySets.empty()) {

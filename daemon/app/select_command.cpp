@@ -35,35 +35,49 @@
 namespace keyframed {
 namespace {
 
-// The files a run writes into --out: keyframes named by their frame index, the
-// decisions, the summary and the keyframe list.
-bool isRunOutput(const std::string& name) {
-  if (name == "summary.json" || name == "keyframes.csv" || name == "decisions.csv" ||
-      name == "decisions.jsonl")
-    return true;
-  const std::size_t dot = name.size() >= 5 ? name.size() - 4 : 0;
-  if (dot == 0 || name.compare(dot, 4, ".jpg") != 0) return false;
-  return std::all_of(name.begin(), name.begin() + static_cast<std::ptrdiff_t>(dot),
-                     [](char c) { return c >= '0' && c <= '9'; });
+// A run's record of itself in --out: the decisions, the summary, the keyframe list.
+bool isRunRecord(const std::string& name) {
+  return name == "summary.json" || name == "keyframes.csv" || name == "decisions.csv" ||
+         name == "decisions.jsonl";
 }
 
-// An earlier run's output in `dir` is refused (its keyframes would mix with this
-// run's), or with `overwrite` removed. Other files are left alone.
-bool clearEarlierRun(const std::string& dir, bool overwrite, std::string& error) {
+// A keyframe's name: its frame index in six digits or more, ".jpg".
+bool isKeyframeName(const std::string& name) {
+  if (name.size() < 6 + 4 || name.compare(name.size() - 4, 4, ".jpg") != 0) return false;
+  return std::all_of(name.begin(), name.end() - 4, [](char c) { return c >= '0' && c <= '9'; });
+}
+
+// The files of an earlier run in `dir` (its record and its keyframes), or none when
+// no record of one is there: numbered pictures alone are someone else's.
+std::vector<std::filesystem::path> earlierRunFiles(const std::string& dir) {
   std::error_code ec;
-  std::vector<std::filesystem::path> earlier;
-  for (const auto& e : std::filesystem::directory_iterator(dir, ec)) {
-    if (e.is_regular_file(ec) && isRunOutput(e.path().filename().string()))
-      earlier.push_back(e.path());
+  std::vector<std::filesystem::path> files;
+  bool record = false;
+  for (std::filesystem::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    std::error_code typeEc;
+    if (!it->is_regular_file(typeEc)) continue;
+    if (isRunRecord(name)) {
+      record = true;
+      files.push_back(it->path());
+    } else if (isKeyframeName(name)) {
+      files.push_back(it->path());
+    }
   }
-  if (earlier.empty()) return true;
-  if (!overwrite) {
-    error = dir + " holds an earlier run's output (" + std::to_string(earlier.size()) +
-            " files: keyframes, decisions, summary): choose another --out, or --overwrite "
-            "to replace it";
-    return false;
-  }
-  for (const auto& p : earlier) {
+  if (!record) files.clear();
+  return files;
+}
+
+std::string earlierRunRefused(const std::string& dir, std::size_t files) {
+  return dir + " holds an earlier run's output (" + std::to_string(files) +
+         " files: keyframes, decisions, summary): choose another --out, or --overwrite to "
+         "replace it";
+}
+
+// With --overwrite, the earlier run's files go (other files in `dir` stay).
+bool removeEarlierRun(const std::string& dir, std::string& error) {
+  std::error_code ec;
+  for (const auto& p : earlierRunFiles(dir)) {
     if (!std::filesystem::remove(p, ec) && ec) {
       error = "cannot remove " + p.string() + ": " + ec.message();
       return false;
@@ -178,6 +192,11 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   SelectSummary s;
   cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
   std::string error;
+  // Said before any work: an earlier run's keyframes would mix with this run's.
+  if (const auto earlier = earlierRunFiles(opts.outDir); !earlier.empty() && !opts.overwrite) {
+    s.error = earlierRunRefused(opts.outDir, earlier.size());
+    return s;
+  }
   // A video file, or a flight record (MCAP from `keyframed run`) to replay.
   std::unique_ptr<FrameSource> source;
   FileSource* file = nullptr;
@@ -205,7 +224,11 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     req.camera = calibrated;
     if (!opts.quiet)
       std::fprintf(stderr, "placing the video in %s by its motion...\n", opts.telemetry.c_str());
+    // Its open may block too, and nothing is written before it ends: a signal then
+    // ends the command at once.
+    std::optional<OpeningScope> placing(std::in_place);
     const VideoSync sync = syncVideoWithTlog(req, stop);
+    placing.reset();
     if (stop != nullptr && stop->load()) {  // Ctrl-C: interrupted, not failed
       s.interrupted = true;
       return s;
@@ -304,7 +327,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     if (!size.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
   }
   std::error_code ec;
-  if (!clearEarlierRun(opts.outDir, opts.overwrite, s.error)) return s;
+  if (opts.overwrite && !removeEarlierRun(opts.outDir, s.error)) return s;
   std::filesystem::create_directories(opts.outDir, ec);
   if (ec || !std::filesystem::is_directory(opts.outDir, ec)) {
     s.error = "cannot create output directory " + opts.outDir;

@@ -244,8 +244,10 @@ void TelemetryService::sendCameraInformation() {
 
 void TelemetryService::requestMessageRates(std::int64_t nowNs) {
   if (!(config_.messageRateHz > 0.0)) return;
+  // Only once the autopilot has spoken (as TIMESYNC): the commands go to the sender
+  // the link heard last, and the tries would run out before it is heard.
   const int sys = decoder_.autopilotSystem();
-  if (sys == 0) return;
+  if (sys == 0 || !autopilotHeard_) return;
   const int who = sys << 8 | decoder_.autopilotComponent();
   const std::uint64_t reboots = decoder_.stats().reboots;
   if (who != rates_.autopilot || reboots != rates_.reboots) {  // new, or rebooted

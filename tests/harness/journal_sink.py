@@ -14,8 +14,10 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 
 SOCKET = "/run/systemd/journal/socket"
+TIMEOUT_S = 90.0  # the command is killed after this (the test's own timeout is longer)
 
 
 def parse(datagram: bytes) -> dict[str, str]:
@@ -49,12 +51,27 @@ def main() -> int:
         env = {**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"}
         proc = subprocess.Popen(command, stderr=err, stdout=subprocess.DEVNULL, env=env)
         records = []
+        deadline = time.monotonic() + TIMEOUT_S
+        try:
+            while proc.poll() is None:
+                if time.monotonic() > deadline:
+                    sys.stderr.write(f"journal_sink: {command[0]} still running: killed\n")
+                    return 124
+                try:
+                    records.append(parse(sock.recv(1 << 20)))
+                except TimeoutError:
+                    pass
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        # What it sent before it exited is queued: all of it.
+        sock.setblocking(False)
         while True:
             try:
                 records.append(parse(sock.recv(1 << 20)))
-            except TimeoutError:
-                if proc.poll() is not None:
-                    break
+            except BlockingIOError:
+                break
     for r in records:
         print(json.dumps(r))
     return proc.returncode

@@ -8,6 +8,11 @@ and systemd's own lists of system call groups (`systemd-analyze syscall-filter`)
 The mount namespace settings (ProtectSystem=, PrivateTmp=, ...) and the user are not
 applied: they decide what the process may see and write, which the tests give it
 anyway (state in a temporary directory).
+
+Used as a wrapper, so that the filters are loaded in a process of one thread just
+before it execs the command (not in a fork of a test process with threads):
+
+    python sandbox.py UNIT COMMAND [ARGS...]      (``sandboxed(unit, command)``)
 """
 
 from __future__ import annotations
@@ -18,11 +23,13 @@ import errno
 import os
 import socket
 import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 # libseccomp's actions and comparison operators (seccomp.h)
 SCMP_ACT_ALLOW = 0x7FFF0000
+SCMP_ACT_KILL_PROCESS = 0x80000000
 SCMP_CMP_EQ = 4
 SCMP_CMP_MASKED_EQ = 7
 PROT_EXEC = 0x4
@@ -124,17 +131,20 @@ class _Seccomp:
 
 
 def sandbox_preexec(unit: Path) -> Callable[[], None]:
-    """A preexec_fn that puts the child under the unit's sandbox before it execs.
-    Everything is worked out here, in the parent; the child only loads the filters."""
+    """A function that puts the calling process under the unit's sandbox (the wrapper
+    below calls it, then execs). Everything is worked out first; the function only
+    loads the filters."""
     settings = unit_settings(unit)
     one = {k: v[-1] for k, v in settings.items()}
     sc = _Seccomp()
-    error = getattr(errno, one.get("SystemCallErrorNumber", "EPERM"))
-    allowed = sorted(nr for nr in (sc.number(n) for n in allowed_syscalls(settings)) if nr >= 0)
+    # A refused call fails with SystemCallErrorNumber=; without it systemd kills.
+    name = one.get("SystemCallErrorNumber")
+    refuse = SCMP_ACT_ERRNO(getattr(errno, name)) if name else SCMP_ACT_KILL_PROCESS
+    allowed = sorted({nr for nr in (sc.number(n) for n in allowed_syscalls(settings)) if nr >= 0})
     if not allowed:
         raise ValueError(f"{unit}: no SystemCallFilter= to apply")
-    # Filter 1: the allow list, every other call fails with the unit's errno.
-    calls = sc.lib.seccomp_init(SCMP_ACT_ERRNO(error))
+    # Filter 1: the allow list, every other call refused.
+    calls = sc.lib.seccomp_init(refuse)
     for nr in allowed:
         sc.rule(calls, SCMP_ACT_ALLOW, nr)
     # Filter 2: what systemd adds per setting, on top (the kernel takes the stricter).
@@ -142,7 +152,7 @@ def sandbox_preexec(unit: Path) -> Callable[[], None]:
     families = one.get("RestrictAddressFamilies", "").split()
     if families:
         keep = {int(getattr(socket, f)) for f in families}
-        for family in range(0, 46):  # AF_MAX on Linux 6
+        for family in range(0, 64):  # AF_MAX is 46 on Linux 6.x: room for more
             if family not in keep:
                 sc.rule(
                     extra,
@@ -168,3 +178,15 @@ def sandbox_preexec(unit: Path) -> Callable[[], None]:
             os._exit(121)
 
     return apply
+
+
+def sandboxed(unit: Path, command: list[str]) -> list[str]:
+    """COMMAND run under UNIT's sandbox (this file as the wrapper)."""
+    return [sys.executable, str(Path(__file__).resolve()), str(unit), *command]
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        sys.exit("usage: sandbox.py UNIT COMMAND [ARGS...]")
+    sandbox_preexec(Path(sys.argv[1]))()
+    os.execvp(sys.argv[2], sys.argv[2:])

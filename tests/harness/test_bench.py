@@ -11,11 +11,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import keyframed_bin
+from conftest import ROOT, keyframed_bin
 from flights import flight
 from mcap.reader import make_reader
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def bench(name: str) -> Path:

@@ -67,9 +67,13 @@ def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, 
     assert first.returncode == 0, first.stderr
     before = json.loads((out / "summary.json").read_text())
     (out / "notes.txt").write_text("the pilot's notes\n")
+    (out / "0042.jpg").write_bytes(b"a photo of the pilot's, numbered")
     again = run(any_bin, "select", pan_video, "--out", out, "--target", "0.6")
     assert_clean_failure(again, "earlier run's output")
     assert "--overwrite" in again.stderr
+    # said at once, before the video is even looked at
+    early = run(any_bin, "select", tmp_path / "missing.avi", "--out", out)
+    assert_clean_failure(early, "earlier run's output")
     assert json.loads((out / "summary.json").read_text()) == before  # untouched
     p = run(any_bin, "select", pan_video, "--out", out, "--target", "0.6", "--overwrite")
     assert p.returncode == 0, p.stderr
@@ -78,9 +82,17 @@ def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, 
     kept = [
         int(r["index"]) for r in csv.DictReader((out / "decisions.csv").open()) if r["kept"] == "1"
     ]
-    assert sorted(int(f.stem) for f in out.glob("*.jpg")) == kept
+    assert sorted(int(f.stem) for f in out.glob("*.jpg") if len(f.stem) >= 6) == kept
     assert len(kept) == summary["kept"]
     assert (out / "notes.txt").read_text() == "the pilot's notes\n"
+    assert (out / "0042.jpg").is_file()  # not a keyframe's name (six digits or more)
+    # numbered pictures without a run's record are someone else's: not refused
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "100001.jpg").write_bytes(b"a camera's picture")
+    p = run(any_bin, "select", pan_video, "--out", photos, "--max-frames", "10")
+    assert p.returncode == 0, p.stderr
+    assert (photos / "100001.jpg").read_bytes() == b"a camera's picture"
 
 
 def test_a_fifo_no_one_writes_to_ends_on_ctrl_c(any_bin: Path, tmp_path):
@@ -96,10 +108,19 @@ def test_a_fifo_no_one_writes_to_ends_on_ctrl_c(any_bin: Path, tmp_path):
             stderr=subprocess.PIPE,
             text=True,
         )
-        time.sleep(1.0)
-        assert proc.poll() is None, proc.communicate()  # still waiting for a writer
-        proc.send_signal(sig)
-        _, stderr = proc.communicate(timeout=10)
+        try:
+            # until it waits in open() for a writer (its handlers are in place by then)
+            deadline = time.monotonic() + 60
+            wchan = Path(f"/proc/{proc.pid}/wchan")
+            while wchan.read_text() not in ("wait_for_partner", "fifo_open"):
+                assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+                time.sleep(0.05)
+            proc.send_signal(sig)
+            _, stderr = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
         assert proc.returncode == 130, stderr
         assert "Sanitizer" not in stderr
         assert not out.exists()

@@ -1136,7 +1136,9 @@ def test_two_vehicles_on_one_port_the_chosen_one_tags(
     assert tel["other_sources"] > 0, tel  # the decoy was heard, and left alone
     # Our requests and reports went to system 2 only.
     assert ap.received("TIMESYNC") and ap.received("CAMERA_IMAGE_CAPTURED")
-    assert not decoy.received("TIMESYNC") and not decoy.received("CAMERA_IMAGE_CAPTURED")
+    for kind in ("TIMESYNC", "CAMERA_IMAGE_CAPTURED", "COMMAND_LONG"):
+        assert not decoy.received(kind), kind  # no requests, reports or stream rates
+    assert ap.message_intervals, "the stream rates were asked of the chosen autopilot"
     info = ap.wait_for("CAMERA_INFORMATION", timeout=5)[0]
     assert math.isnan(info.focal_length), info
     assert math.isnan(info.sensor_size_h) and math.isnan(info.sensor_size_v), info

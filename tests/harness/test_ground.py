@@ -15,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import sysconfig
 import threading
 import time
 from pathlib import Path
@@ -1261,7 +1262,7 @@ def test_one_vehicle_of_two_with_live_progress(tagged: Path, tmp_path: Path) -> 
     vehicles = [Vehicle("uav1", tagged, ports[0]), Vehicle("uav2", tagged, ports[1])]
     out = tmp_path / "dataset"
     # the console script as installed (the other tests run the module)
-    script = Path(sys.executable).parent / "keyframed-ground"
+    script = Path(sysconfig.get_path("scripts")) / "keyframed-ground"
     assert script.is_file(), f"{script}: the package's console script is not installed"
     proc = subprocess.Popen(
         [str(script), "--out", str(out), "--vehicle", "uav2"]

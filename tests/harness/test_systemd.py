@@ -25,7 +25,7 @@ from conftest import ROOT
 from fake_autopilot import autopilot_fixture
 from flights import flight
 from ports import free_port, zenoh_connect_config, zenoh_listener_config
-from sandbox import sandbox_preexec
+from sandbox import sandboxed
 
 UNIT = ROOT / "systemd/keyframed.service"
 SYSUSERS = ROOT / "systemd/keyframed.sysusers"
@@ -214,7 +214,6 @@ def test_the_sandbox_of_the_unit_refuses_what_it_should(tmp_path: Path) -> None:
     """The sandbox as tests/harness/sandbox.py builds it from the unit is in force:
     chroot (@privileged) fails, a raw packet socket's family is refused, and what the
     unit allows still works."""
-    apply = sandbox_preexec(UNIT)
     probe = (
         "import os, socket, sys\n"
         "try:\n    os.chroot('/')\nexcept PermissionError:\n    print('chroot refused')\n"
@@ -222,12 +221,15 @@ def test_the_sandbox_of_the_unit_refuses_what_it_should(tmp_path: Path) -> None:
         "except OSError as e:\n    print('packet', e.errno)\n"
         "socket.socket(socket.AF_INET, socket.SOCK_DGRAM).close()\n"
         "print('inet ok')\n"
+        "status = dict(ln.split(':', 1) for ln in open('/proc/self/status'))\n"
+        "print(status['NoNewPrivs'].strip(), status['Seccomp'].strip())\n"
     )
     p = subprocess.run(
-        [sys.executable, "-c", probe], preexec_fn=apply, capture_output=True, text=True, timeout=60
+        sandboxed(UNIT, [sys.executable, "-c", probe]), capture_output=True, text=True, timeout=60
     )
     assert p.returncode == 0, p.stderr
-    assert p.stdout.split("\n")[:3] == ["chroot refused", "packet 97", "inet ok"], p.stdout
+    lines = p.stdout.split("\n")[:4]
+    assert lines == ["chroot refused", "packet 97", "inet ok", "1 2"], p.stdout  # 2: filter
 
 
 @needs_analyze
@@ -273,14 +275,18 @@ def test_the_daemon_runs_inside_the_units_system_call_sandbox(
         )
         ap.start()
         proc = subprocess.Popen(
-            cmd,
-            preexec_fn=sandbox_preexec(UNIT),
+            sandboxed(UNIT, cmd),
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
             env={**os.environ, "NOTIFY_SOCKET": str(notify)},
         )
-        _, stderr = proc.communicate(timeout=120)
+        try:
+            _, stderr = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
         time.sleep(0.3)
         sub.undeclare()
     finally:
