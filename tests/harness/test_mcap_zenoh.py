@@ -213,8 +213,8 @@ def test_write_error_stops_only_the_recorder(kf_bin: Path, pan_video: Path, tmp_
 # ---- (c) Zenoh --------------------------------------------------------------------------
 
 
-def free_port() -> int:
-    with socket.socket() as s:
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
@@ -235,7 +235,7 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
     kf_bin: Path, pan_video: Path, tmp_path: Path, transport: str
 ):
     """Over TCP, and over UDP (a radio link's usual transport): every keyframe, whole."""
-    port = free_port()
+    port = free_port(socket.SOCK_DGRAM if transport == "udp" else socket.SOCK_STREAM)
     endpoint = f"{transport}/127.0.0.1:{port}"
     cfg = tmp_path / "zenoh.json5"
     cfg.write_text(peer_config(connect=[endpoint]))
