@@ -79,9 +79,9 @@ telemetry and tags:
   --telemetry SRC            MAVLink source: FILE.tlog, udpin:HOST:PORT, udpout:HOST:PORT
                              or serial:DEVICE[:BAUD]; keyframes are geotagged with the
                              pose at their time (a live link implies --realtime)
-  --video-start TIME|auto    UTC time of the video's first frame (ISO 8601 or unix
-                             seconds); needed with a tlog. auto: found by lining up
-                             the camera's turns in the video with the tlog's attitude
+  --video-start TIME|auto    with a tlog: UTC time of the video's first frame (ISO 8601
+                             or unix seconds), or auto (the default): found by lining
+                             up the camera's turns in the video with the tlog's attitude
   --time-offset MS           the camera's latency: each keyframe's pose and UTC time are
                              taken MS after its frame time (negative: before; -2000..2000,
                              default 0)
@@ -459,8 +459,12 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     const bool replay =
         o.telemetry.starts_with("tlog:") ||
         (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
-    if (replay && !o.videoStartUnixNs && !o.videoStartAuto)
-      return fail("--video-start TIME (or auto) is needed to align the video with the tlog");
+    // Without --video-start the video is placed in the tlog by its motion, as `auto`.
+    if (replay && !o.videoStartUnixNs && !o.videoStartAuto) {
+      if (o.video.ends_with(".mcap"))
+        return fail("--video-start TIME is needed to align a flight record with a tlog");
+      o.videoStartAuto = true;
+    }
     if (!replay && (o.videoStartUnixNs || o.videoStartAuto))
       return fail(
           "--video-start aligns a video with a tlog; a live link's frames are "

@@ -507,7 +507,16 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       break;
     }
     const ReadStatus st = source->next(frame, error);
-    if (st == ReadStatus::End) break;
+    if (st == ReadStatus::End) {
+      // A record cut short (a power cut before its repair) or corrupt part-way: what
+      // came before the break was replayed, and it is said, as for a cut video.
+      if (replay != nullptr && replay->truncated()) {
+        s.truncated = true;
+        s.error = opts.video + ": the record ends early (cut short or corrupt): replayed the " +
+                  std::to_string(s.framesRead) + " frames before the break";
+      }
+      break;
+    }
     if (st == ReadStatus::Error) {
       s.error = error;
       s.truncated = file != nullptr && file->truncated();

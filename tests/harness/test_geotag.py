@@ -611,7 +611,6 @@ def test_a_video_start_outside_the_tlog_is_an_error(
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--telemetry", "x.tlog"], "--video-start"),
         (["--telemetry", "tcp:1.2.3.4:5"], "unknown scheme"),
         (["--telemetry", "serial:/dev/ttyS0:1234"], "baud"),
         (["--video-start", "yesterday"], "UTC time"),

@@ -1362,9 +1362,12 @@ def test_replay_of_a_reduced_preview_and_of_a_cut_file(
         text=True,
         timeout=60,
     )
-    assert r.returncode == 0, r.stderr
+    # said, and failed as a cut video is (exit 3), with everything before the break
+    assert r.returncode == 3, r.stderr
+    assert "the record ends early (cut short or corrupt): replayed the" in r.stderr, r.stderr
     s = json.loads((tmp_path / "cut" / "summary.json").read_text())
-    assert 30 < s["frames_read"] < 240
+    assert 30 < s["frames_read"] < 240 and s["truncated"] is True, s
+    assert len(rows(tmp_path / "cut" / "decisions.csv")) == s["frames_read"]
 
 
 def test_replay_bad_flight_records(any_bin: Path, pan_video: Path, tmp_path: Path) -> None:

@@ -49,9 +49,13 @@ def cut(video: Path, out: Path, first: int, count: int) -> Path:
     return out
 
 
-def select_auto(kf_bin: Path, video: Path, fl: Path, out: Path, *extra: str) -> Any:
+def select_auto(
+    kf_bin: Path, video: Path, fl: Path, out: Path, *extra: str, given: bool = True
+) -> Any:
+    """`select --telemetry TLOG --video-start auto`, or with `given` False the same
+    without --video-start (auto is the default with a tlog)."""
     cmd = [str(kf_bin), "select", str(video), "--out", str(out), "--telemetry"]
-    cmd += [str(fl / "flight.tlog"), "--video-start", "auto", *extra]
+    cmd += [str(fl / "flight.tlog"), *(["--video-start", "auto"] if given else []), *extra]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=180)
 
 
@@ -74,9 +78,13 @@ def test_a_clip_is_placed_in_its_tlog_and_tagged_as_the_truth(
 ) -> None:
     """A video that starts 5 s into the tlog, with nothing to say so: the motion
     places it within 5 ms (a sixth of a frame), and its keyframes carry the pose the
-    ground truth has for their frames, as with --video-start given exactly."""
+    ground truth has for their frames, as with --video-start given exactly. The
+    command is the plain `select VIDEO --telemetry FLIGHT.tlog --calibration FILE
+    --out DIR` (auto is the default with a tlog)."""
     out = tmp_path / "out"
-    r = select_auto(kf_bin, clip, nadir, out, "--calibration", str(nadir / "intrinsics.json"))
+    r = select_auto(
+        kf_bin, clip, nadir, out, "--calibration", str(nadir / "intrinsics.json"), given=False
+    )
     assert r.returncode == 0, r.stderr
     start = video_start(out)
     expected = synth.EPOCH_UNIX_S + CLIP_FIRST / 30.0
