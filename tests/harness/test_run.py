@@ -1368,6 +1368,22 @@ def test_replay_of_a_reduced_preview_and_of_a_cut_file(
     s = json.loads((tmp_path / "cut" / "summary.json").read_text())
     assert 30 < s["frames_read"] < 240 and s["truncated"] is True, s
     assert len(rows(tmp_path / "cut" / "decisions.csv")) == s["frames_read"]
+    # a few bytes damaged half-way (a bad sector): the chunk's CRC says so, and the
+    # replay ends there as at a cut, rather than decode a damaged picture
+    flipped = tmp_path / "flipped.mcap"
+    damaged = bytearray(data)
+    for k in range(len(data) // 2, len(data) // 2 + 64):
+        damaged[k] ^= 0x5A
+    flipped.write_bytes(bytes(damaged))
+    r = subprocess.run(
+        [str(kf_bin), "select", str(flipped), "--out", str(tmp_path / "flipped"), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 3 and "the record ends early" in r.stderr, r.stderr
+    s = json.loads((tmp_path / "flipped" / "summary.json").read_text())
+    assert 30 < s["frames_read"] < 240 and s["truncated"] is True, s
 
 
 def test_replay_bad_flight_records(any_bin: Path, pan_video: Path, tmp_path: Path) -> None:

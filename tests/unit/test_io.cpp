@@ -273,6 +273,37 @@ TEST(McapRepair, CompressedRecordsAreRepairedInTheirOwnCompression) {
   }
 }
 
+TEST(McapRepair, ACorruptChunkEndsTheReadAndIsNotSignedAfresh) {
+  // A few bytes flipped inside a chunk (a bad sector, a bit error on the card): the
+  // chunk's CRC no longer matches. Reading stops before it, as at a cut, and a
+  // repair keeps what precedes it: no damaged message passes for a good one.
+  const std::string path = tempPath("flipped.mcap");
+  ASSERT_NO_FATAL_FAILURE(writeSample(path, "none"));
+  const ReadBack whole = readMcap(path, {"/a", "/b"});
+  ASSERT_EQ(whole.messages.size(), 1000U);
+  auto bytes = readAll(path);
+  const std::string_view text(reinterpret_cast<const char*>(bytes.data()), bytes.size());
+  const std::size_t at = text.find("message 500x");  // inside a chunk (uncompressed)
+  ASSERT_NE(at, std::string_view::npos);
+  bytes[at + 8] = static_cast<std::uint8_t>('9');  // "message 900...": plausible, wrong
+  std::ofstream(path, std::ios::binary | std::ios::trunc)
+      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<long>(bytes.size()));
+  const ReadBack read = readMcap(path, {"/a", "/b"});
+  EXPECT_TRUE(read.truncated);
+  EXPECT_GT(read.messages.size(), 100U);
+  EXPECT_LT(read.messages.size(), 500U);  // none from the damaged chunk on
+  const std::string fixed = path + ".repaired";
+  std::uint64_t n = 0;
+  std::string error;
+  ASSERT_TRUE(recoverMcap(path, fixed, n, error)) << error;
+  EXPECT_EQ(n, read.messages.size());
+  const ReadBack again = readMcap(fixed, {"/a", "/b"});
+  EXPECT_FALSE(again.truncated);
+  EXPECT_EQ(again.messages, read.messages);
+  std::filesystem::remove(path);
+  std::filesystem::remove(fixed);
+}
+
 TEST(McapWriter, UnwritablePathIsAnError) {
   std::string error;
   auto w = McapWriter::open({"/nonexistent-dir/x.mcap", "zstd", 0}, error);

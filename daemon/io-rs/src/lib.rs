@@ -186,7 +186,12 @@ fn open_message_stream(path: &str) -> Res<McapStream> {
     // longer than the file, or (decompressed, inside a chunk) than the file plus a
     // generous 256 MiB.
     let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
-    let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
+    // A chunk is checked against its CRC before any of its messages is given out: a
+    // corrupt one ends the stream there (replay stops, a repair keeps what precedes
+    // it) instead of passing on damaged messages, which a repair would sign afresh.
+    let options = mcap::sans_io::LinearReaderOptions::default()
+        .with_record_length_limit(limit)
+        .with_prevalidate_chunk_crcs(true);
     Ok(mcap::io::MessageReader::new_with_options(
         std::io::BufReader::with_capacity(1 << 20, file),
         options,
