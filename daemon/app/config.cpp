@@ -718,9 +718,14 @@ class Loader {
       fail(0, path + ": " + (fs::exists(path, ec) ? "not a regular file" : "no such file"));
       return;
     }
+    std::string text;
+    if (std::string why = readSmallText(path, text); !why.empty()) {
+      fail(0, path + ": " + why);
+      return;
+    }
     toml::table doc;
     try {
-      doc = toml::parse_file(path);
+      doc = toml::parse(text, path);
     } catch (const toml::parse_error& e) {
       fail(e.source().begin.line, path + ":" + std::to_string(e.source().begin.line) + ": " +
                                       std::string(e.description()));
@@ -950,10 +955,11 @@ class Loader {
   std::vector<Error> errors_;
 };
 
+// A drop-in by its name: one that is then no regular file (a directory, a dangling
+// symlink) is an error, not skipped, as its settings would be lost without a word.
 bool isTomlFile(const fs::directory_entry& e) {
   const std::string name = e.path().filename().string();
-  std::error_code ec;
-  return e.is_regular_file(ec) && !name.starts_with(".") && name.ends_with(".toml");
+  return !name.starts_with(".") && name.ends_with(".toml");
 }
 
 }  // namespace
@@ -977,7 +983,9 @@ ConfigLoadResult loadConfig(const ConfigSources& sources) {
       return result;
     }
     // A missing main file or conf.d means: defaults.
-    if (fs::exists(dir / "keyframed.toml", ec)) loader.file((dir / "keyframed.toml").string());
+    // (A dangling symlink in its place is an error: someone meant a file there.)
+    if (fs::exists(dir / "keyframed.toml", ec) || fs::is_symlink(dir / "keyframed.toml", ec))
+      loader.file((dir / "keyframed.toml").string());
     std::vector<std::string> dropIns;
     // increment(ec), not a range-for: a read error mid-directory (a failing SD card,
     // on a SIGHUP reload too) is reported, not thrown.

@@ -21,6 +21,8 @@ commands:
   run                      the live daemon (see: keyframed run --help)
   select VIDEO --out DIR   pick keyframes from a video file (see: keyframed select --help)
   check-config [FILE]      validate the daemon's configuration and print it (see --help)
+  probe-v4l2               V4L2 cameras, their formats and frame timing (see --help)
+  probe-libcamera          libcamera cameras and what they deliver (see --help)
   version                  print the version
 )";
 
@@ -40,7 +42,7 @@ int main(int argc, char** argv) {
   try {
     if (command == "select") return keyframed::selectMain(args);
     if (command == "run") return keyframed::runMain(args);
-    // Diagnostic, not in the usage text: V4L2 devices, formats and frame timing.
+    // Diagnostics: V4L2 devices, formats and frame timing; libcamera cameras.
     if (command == "probe-v4l2") return keyframed::probeV4l2Main(args);
 #ifdef KEYFRAMED_WITH_LIBCAMERA
     if (command == "probe-libcamera") return keyframed::probeLibcameraMain(args);

@@ -153,7 +153,12 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       "    \"blur_mode\": \"%s\",\n    \"blur_threshold\": %.3f,\n    \"blur_floor\": %.3f,\n"
       "    \"blur_ratio\": %.3f,\n    \"blur_quantile\": %.3f,\n    \"blur_window\": %d,\n"
       "    \"blur_step\": [%d, %d],\n    \"blur_width\": %d,\n    \"orb_features\": %d,\n"
-      "    \"paper_threshold\": %.3f\n  }\n}\n",
+      "    \"paper_threshold\": %.3f,\n    \"paper_min_matches\": %d,\n"
+      "    \"min_overlap\": %.3f,\n    \"motion_ratio\": %.3f,\n"
+      "    \"motion_min_fraction\": %.4f,\n    \"motion_window\": %d,\n"
+      "    \"capture_wait_ms\": %d,\n    \"max_tracks\": %d,\n    \"min_tracks\": %d,\n"
+      "    \"min_inliers\": %d,\n    \"ransac_px\": %.3f,\n    \"fast_threshold\": %d,\n"
+      "    \"lk_window\": %d,\n    \"lk_levels\": %d,\n    \"blur_warmup\": %d\n  }\n}\n",
       jsonEscape(o.video).c_str(), info.width, info.height, info.fps,
       static_cast<long long>(s.framesRead), static_cast<long long>(s.kept),
       static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
@@ -163,9 +168,16 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       c.analysisWidth, c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute",
       c.blur.absoluteThreshold, c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window,
       c.blur.rowStep, c.blur.colStep, c.blur.analysisWidth, c.overlap.orbFeatures,
-      c.overlap.paperThreshold);
+      c.overlap.paperThreshold, c.overlap.paperMinMatches, c.minOverlap, c.motionRatio,
+      c.motionMinFraction, c.motionWindow, c.captureWaitMs, c.overlap.maxTracks,
+      c.overlap.minTracks, c.overlap.minInliers, c.overlap.ransacPixels, c.overlap.fastThreshold,
+      c.overlap.lkWindow, c.overlap.lkLevels, c.blur.warmup);
   return writeFileAtomically(path, std::string_view(text), error);
 }
+
+// The smallest analysis image, each way: ORB's pyramid and the corner tracker need
+// room (a 4000x8 strip scaled to 640 wide is one row).
+constexpr int kMinAnalysisSide = 32;
 
 std::atomic<bool> gStop{false};
 // Set while the video is being opened: an open can block for good (a FIFO that no
@@ -325,6 +337,19 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
     const std::string size = camera->physicalSizeWarning();
     if (!size.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
+  }
+  {
+    // Too small to analyse (a strip of a few rows, a thumbnail): said before any
+    // output, not an OpenCV exception part-way.
+    const int w = source->info().width, h = source->info().height;
+    const int aw = opts.selector.analysisWidth > 0 ? std::min(opts.selector.analysisWidth, w) : w;
+    const long ah = w > 0 ? std::lround(static_cast<double>(h) * aw / w) : 0;
+    if (w > 0 && (aw < kMinAnalysisSide || ah < kMinAnalysisSide)) {
+      s.error = opts.video + ": frames of " + std::to_string(w) + "x" + std::to_string(h) +
+                " are too small to analyse (at least " + std::to_string(kMinAnalysisSide) +
+                " pixels each way at the analysis width, --analysis-width)";
+      return s;
+    }
   }
   std::error_code ec;
   if (opts.overwrite && !removeEarlierRun(opts.outDir, s.error)) return s;

@@ -1,6 +1,8 @@
 #include "tagging/camera_model.h"
 #include "tagging/camera_model_toml.h"
 
+#include "core/nesting.h"
+
 #include <algorithm>
 #include <cctype>
 #include <cmath>
@@ -160,6 +162,15 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
   if (!fs.isOpened()) {
     error = path + ": not an OpenCV YAML/XML/JSON file";
     return false;
+  }
+  // Present means a number: "fx": "228.5" must not quietly become "no intrinsics".
+  for (const char* key : {"fx", "fy", "cx", "cy", "width", "height", "image_width", "image_height",
+                          "sensor_width_mm", "sensor_height_mm", "focal_length_mm"}) {
+    const cv::FileNode n = fs[key];
+    if (!n.empty() && !n.isReal() && !n.isInt()) {
+      error = path + ": " + key + " is not a number";
+      return false;
+    }
   }
   const auto text = [](const cv::FileNode& n, std::string& dst) {
     if (n.isString()) dst = static_cast<std::string>(n);
@@ -335,9 +346,27 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
   return finish(path, m, error);
 }
 
+std::string readSmallText(const std::string& path, std::string& text) {
+  constexpr std::size_t kMaxBytes = 1 << 20;
+  constexpr std::size_t kMaxNesting = 64;
+  std::ifstream in(path, std::ios::binary);
+  if (!in.good()) return "cannot open";
+  in.seekg(0, std::ios::end);
+  const std::streamoff size = in.tellg();
+  if (size < 0) return "cannot read";
+  if (static_cast<std::size_t>(size) > kMaxBytes) return "larger than 1 MiB: not a settings file";
+  text.resize(static_cast<std::size_t>(size));
+  in.seekg(0);
+  if (!in.read(text.data(), size)) return "cannot read";
+  if (textNesting(text) > kMaxNesting) return "nested more than 64 levels deep";
+  return {};
+}
+
 bool loadCameraModel(const std::string& path, CameraModel& out, std::string& error) {
-  if (!std::ifstream(path).good()) {
-    error = path + ": cannot open";
+  // Checked before a parser reads it.
+  std::string text;
+  if (std::string why = readSmallText(path, text); !why.empty()) {
+    error = path + ": " + why;
     return false;
   }
   CameraModel m;

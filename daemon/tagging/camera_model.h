@@ -77,4 +77,9 @@ struct CameraModel {
 // model from elsewhere (a flight record); errors start with `origin`.
 [[nodiscard]] bool checkCameraModel(const std::string& origin, CameraModel& m, std::string& error);
 
+// A settings file's text (a configuration or a calibration), read whole: "" when
+// it is fine, else why not (unreadable, over 1 MiB, nested over 64 deep: its parser
+// would recurse past the stack; core/nesting.h).
+[[nodiscard]] std::string readSmallText(const std::string& path, std::string& text);
+
 }  // namespace keyframed

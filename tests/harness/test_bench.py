@@ -33,8 +33,7 @@ def row(text: str, label: str) -> list[float]:
 def test_selector_benchmark_on_1080p_frames() -> None:
     fl = flight("nadir", width=1920, height=1080, seconds=2.0, fps=60.0)
     p = subprocess.run(
-        [str(bench("keyframed-bench")), str(fl / "video.avi"), "--frames", "40"]
-        + ["--geometric-only"],
+        [str(bench("keyframed-bench")), str(fl / "video.avi"), "--frames", "40"],
         capture_output=True,
         text=True,
         timeout=300,
@@ -43,9 +42,10 @@ def test_selector_benchmark_on_1080p_frames() -> None:
     out = p.stdout + p.stderr
     print(out)
     assert "40 frames of 1920x1080" in out
+    # the geometric and the paper mode side by side: median / p99 of each
     for stage in ("blur score (S9 Laplacian)", "overlap (track/ORB+match)", "total decision"):
-        median, p99, *_ = row(out, stage)
-        assert 0 < median <= p99, (stage, median, p99)
+        geo_median, geo_p99, paper_median, paper_p99, *_ = row(out, stage)
+        assert 0 < geo_median <= geo_p99 and 0 < paper_median <= paper_p99, (stage, out)
     assert row(out, "frames/s (single thread)")[0] > 0
     # the steady state allocates nothing (held by keyframed_alloc_test too)
     assert row(out, "heap allocations/frame")[0] == 0.0
@@ -96,3 +96,24 @@ def test_latency_benchmark_receives_every_keyframe() -> None:
     assert m, p.stdout
     median, p99, worst, count = (float(v) for v in m.groups())
     assert 0 < median <= p99 <= worst and count == written, p.stdout
+
+
+def test_daemon_benchmark_with_its_peers() -> None:
+    """tools/bench/daemon_bench.sh --full on a 2 s 1080p flight: the daemon with a fake
+    autopilot and a ground station; its rows printed, every keyframe geotagged and
+    received."""
+    p = subprocess.run(
+        [str(ROOT / "tools" / "bench" / "daemon_bench.sh"), "2", "--full"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    print(p.stdout)
+    out = p.stdout
+    assert row(out, "frames_read")[0] > 0 and row(out, "frames_dropped")[0] == 0, out
+    kept = row(out, "kept")[0]
+    assert kept > 0 and row(out, "geotagged")[0] == kept, out
+    assert row(out, "ground station received")[0] == kept, out
+    assert row(out, "cpu_percent")[0] > 0 and row(out, "max_rss_mb")[0] > 0, out

@@ -56,6 +56,15 @@ def test_select_writes_keyframes_decisions_and_summary(kf_bin: Path, pan_video: 
     assert summary["frames_per_second"] > 0
     assert "keyframes:" in p.stdout and str(out) in p.stdout
     assert not list(out.glob("*.tmp"))
+    # every selection setting used, by the name `select`'s options and [selection] give it
+    assert set(summary["settings"]) == {
+        "mode", "target", "band", "analysis_width", "blur_mode", "blur_threshold",
+        "blur_floor", "blur_ratio", "blur_quantile", "blur_window", "blur_step", "blur_width",
+        "orb_features", "paper_threshold", "paper_min_matches", "min_overlap", "motion_ratio",
+        "motion_min_fraction", "motion_window", "capture_wait_ms", "max_tracks", "min_tracks",
+        "min_inliers", "ransac_px", "fast_threshold", "lk_window", "lk_levels", "blur_warmup",
+    }  # fmt: skip
+    assert summary["settings"]["min_tracks"] == 80 and summary["settings"]["lk_window"] == 13
 
 
 def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, tmp_path):
@@ -278,6 +287,23 @@ def test_bad_options(any_bin: Path, pan_video: Path, tmp_path, args: list[str], 
     p = run(any_bin, "select", pan_video, "--out", tmp_path / "o", *args)
     assert p.returncode == 2
     assert_clean_failure(p, needle)
+
+
+@pytest.mark.parametrize("size", [(640, 16), (4000, 8), (16, 16)])
+def test_frames_too_small_to_analyse(any_bin: Path, tmp_path, size: tuple[int, int]):
+    """A strip of a few rows, or a thumbnail: one line and exit 3 before any output,
+    in either mode (ORB's pyramid failed inside OpenCV before: exit 1, its message)."""
+    video = tmp_path / "strip.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30, size)
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        w.write(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8))
+    w.release()
+    for mode in ("geometric", "paper"):
+        p = run(any_bin, "select", video, "--out", tmp_path / mode, "--mode", mode)
+        assert p.returncode == 3, p.stderr
+        assert_clean_failure(p, f"frames of {size[0]}x{size[1]} are too small to analyse")
+        assert not (tmp_path / mode).exists()
 
 
 def test_unknown_command_and_help(any_bin: Path):

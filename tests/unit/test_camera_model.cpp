@@ -182,6 +182,9 @@ TEST(CameraModel, UncalibratedTomlKeepsOnlyWhatIsKnown) {
 }
 
 TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
+  std::string dotted = "[";  // [a.a.a. ... .a]: a table 20,001 keys deep
+  for (int i = 0; i < 20000; ++i) dotted += "a.";
+  dotted += "a]\n";
   const std::vector<std::pair<std::string, std::string>> cases = {
       {"empty.yaml", ""},
       {"garbage.yaml", "%YAML:1.0\ncamera_matrix: [1, 2\n  ::: }"},
@@ -192,6 +195,17 @@ TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
       {"badtype.toml", "[camera]\nwidth = \"wide\"\n"},
       {"partial.toml", "[camera]\nwidth = 640\nheight = 480\nfx = 500\n"},
       {"binary.xml", std::string("\x01\x02\xff\xfe<<", 6)},
+      // a number written as a string: not "uncalibrated", an error
+      {"stringfx.json",
+       R"({"width": 480, "height": 270, "fx": "228.5", "fy": 228.5, "cx": 240, "cy": 135})"},
+      {"stringsensor.json",
+       R"({"width": 480, "height": 270, "fx": 228.5, "fy": 228.5, "cx": 240, "cy": 135,
+           "sensor_width_mm": "6.4"})"},
+      // nested far deeper than any calibration: refused before a parser recurses
+      {"deep.toml", std::string(50000, '[') + "camera" + std::string(50000, ']')},
+      {"deepdots.toml", dotted},
+      {"deep.json", std::string(100000, '[') + std::string(100000, ']')},
+      {"big.yaml", "%YAML:1.0\n# " + std::string(2 << 20, 'x') + "\n"},
   };
   for (const auto& [name, text] : cases) {
     CameraModel m;

@@ -209,6 +209,33 @@ TEST(Config, AConfDThatCannotBeReadIsAnErrorNotDefaults) {
       << joined(r.errors);
 }
 
+TEST(Config, ADropInThatIsNoFileOrNestsTooDeepIsAnError) {
+  TempDir dir;
+  dir.write("keyframed.toml", "[zenoh]\nvehicle = \"main\"\n");
+  dir.write("conf.d/10-ok.toml", "[selection]\ntarget = 0.75\n");
+  std::filesystem::create_directories(dir.path() + "/conf.d/20-dir.toml");
+  std::filesystem::create_symlink(dir.path() + "/gone.toml", dir.path() + "/conf.d/30-link.toml");
+  std::string deep = "[";
+  for (int i = 0; i < 20000; ++i) deep += "a.";
+  dir.write("conf.d/40-deep.toml", deep + "a]\n");
+  dir.write("conf.d/notes.txt", "ignored: not .toml\n");
+  const ConfigLoadResult r = loadDir(dir);
+  ASSERT_FALSE(r.ok());
+  const std::string all = joined(r.errors);
+  EXPECT_NE(all.find("/conf.d/20-dir.toml: not a regular file"), std::string::npos) << all;
+  EXPECT_NE(all.find("/conf.d/30-link.toml: no such file"), std::string::npos) << all;
+  EXPECT_NE(all.find("/conf.d/40-deep.toml: nested more than 64 levels deep"), std::string::npos)
+      << all;
+  EXPECT_EQ(all.find("notes.txt"), std::string::npos) << all;
+  // A main file that is a dangling symlink: an error too, not the defaults.
+  TempDir other;
+  std::filesystem::create_symlink(other.path() + "/nowhere", other.path() + "/keyframed.toml");
+  const ConfigLoadResult r2 = loadDir(other);
+  ASSERT_FALSE(r2.ok());
+  EXPECT_NE(joined(r2.errors).find("keyframed.toml: no such file"), std::string::npos)
+      << joined(r2.errors);
+}
+
 TEST(Config, DirectoryFromTheEnvironmentAndMissingDirectories) {
   TempDir dir;
   dir.write("keyframed.toml", "[camera]\nwidth = 800\n");
