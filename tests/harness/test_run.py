@@ -37,13 +37,9 @@ def short_nadir() -> Path:
     return flight("nadir", width=480, height=270, seconds=8.0)
 
 
-def start(
-    kf_bin: Path,
-    tmp_path: Path,
-    *sets: str,
-    config: str = "",
-    env: dict[str, str] | None = None,
-) -> subprocess.Popen[str]:
+def run_args(kf_bin: Path, tmp_path: Path, *sets: str, config: str = "") -> list[str]:
+    """`keyframed run` with its configuration in tmp_path/etc (CONFIG as its main
+    file), state in tmp_path/state, a file camera, no telemetry or Zenoh, then SETS."""
     cfg = tmp_path / "etc"
     (cfg / "conf.d").mkdir(parents=True, exist_ok=True)
     (cfg / "keyframed.toml").write_text(config)
@@ -56,8 +52,18 @@ def start(
     ]
     for s in base + list(sets):
         args += ["--set", s]
+    return args
+
+
+def start(
+    kf_bin: Path,
+    tmp_path: Path,
+    *sets: str,
+    config: str = "",
+    env: dict[str, str] | None = None,
+) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        args,
+        run_args(kf_bin, tmp_path, *sets, config=config),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -465,19 +471,9 @@ def test_under_systemd_the_log_goes_to_journald_with_priority_and_category(
         or subprocess.run(["unshare", "--mount", "true"], capture_output=True).returncode != 0
     ):
         pytest.skip("no private mount namespace here for the journal socket (needs root)")
-    cfg = tmp_path / "etc"
-    (cfg / "conf.d").mkdir(parents=True)
-    (cfg / "keyframed.toml").write_text("")
-    daemon = [str(kf_bin), "run", "--config-dir", str(cfg)]
-    for s in (
-        f"output.state_dir={tmp_path / 'state'}",
-        "telemetry.url=",
-        "zenoh.enabled=false",
-        "camera.source=file",
-        f"camera.path={short_nadir / 'video.avi'}",
-        "camera.realtime=false",
-    ):
-        daemon += ["--set", s]
+    daemon = run_args(
+        kf_bin, tmp_path, f"camera.path={short_nadir / 'video.avi'}", "camera.realtime=false"
+    )
     stderr = tmp_path / "stderr.txt"
     sink = Path(__file__).with_name("journal_sink.py")
     p = subprocess.run(
