@@ -37,8 +37,10 @@ APT_PACKAGES+=(colmap)
 
 # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu
 # (an x86-64 guest; on other architectures, e.g. a Pi, that test skips).
+# tests/harness/test_systemd_vm.py: the installed service under systemd in such a VM
+# (udev gives the camera node to group video).
 if [ "$(dpkg --print-architecture)" = amd64 ]; then
-  APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio)
+  APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio udev)
 fi
 
 # Rust 1.88+ for daemon/io-rs: rustup's toolchain when there is one, else Debian 12's

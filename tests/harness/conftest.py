@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -40,6 +46,60 @@ def any_bin(request: pytest.FixtureRequest) -> Path:
     if path is None:
         pytest.skip("no sanitizer build (KEYFRAMED_ASAN_BIN unset): tools/test.sh builds one")
     return path
+
+
+def build_dir() -> Path:
+    build = keyframed_bin().resolve().parent.parent  # BUILD/daemon/keyframed
+    if not (build / "CPackConfig.cmake").exists():
+        pytest.skip(f"{build} has no CPackConfig.cmake")
+    return build
+
+
+def cached(name: str) -> str:
+    """A variable from the build's CMakeCache.txt."""
+    for line in (build_dir() / "CMakeCache.txt").read_text().splitlines():
+        if line.startswith(name + ":"):
+            return line.split("=", 1)[1]
+    raise KeyError(name)
+
+
+def require_usr_prefix() -> None:
+    prefix = cached("CMAKE_INSTALL_PREFIX")
+    if prefix != "/usr":
+        pytest.skip(
+            f"build configured with prefix {prefix} (a cache from before the /usr default):"
+            " reconfigure with -DCMAKE_INSTALL_PREFIX=/usr to build the .deb"
+        )
+
+
+@pytest.fixture(scope="session")
+def deb(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The Debian package built by cpack from the tested build tree (about 5 s)."""
+    if shutil.which("dpkg-deb") is None:
+        pytest.skip("dpkg-deb not installed")
+    require_usr_prefix()
+    out = tmp_path_factory.mktemp("pkg")
+    p = subprocess.run(
+        ["cpack", "-G", "DEB", "-B", str(out)],
+        cwd=build_dir(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    debs = list(out.glob("keyframed_*_*.deb"))
+    assert len(debs) == 1, list(out.iterdir())
+    return debs[0]
+
+
+@contextlib.contextmanager
+def host_package_lock() -> Iterator[None]:
+    """Held while a test installs the package on this machine (test_package.py) and
+    while a VM sees this machine's dpkg state through virtio-9p (test_systemd_vm.py):
+    pytest-xdist would otherwise run the two files at once."""
+    with open(Path(tempfile.gettempdir()) / "keyframed-tests-dpkg.lock", "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        yield
 
 
 def photo_strip() -> np.ndarray:

@@ -7,36 +7,11 @@ about 2 s here. The build must be configured with the /usr prefix (the default).
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, keyframed_bin
-
-
-def build_dir() -> Path:
-    build = keyframed_bin().resolve().parent.parent  # BUILD/daemon/keyframed
-    if not (build / "CPackConfig.cmake").exists():
-        pytest.skip(f"{build} has no CPackConfig.cmake")
-    return build
-
-
-def cached(name: str) -> str:
-    """A variable from the build's CMakeCache.txt."""
-    for line in (build_dir() / "CMakeCache.txt").read_text().splitlines():
-        if line.startswith(name + ":"):
-            return line.split("=", 1)[1]
-    raise KeyError(name)
-
-
-def require_usr_prefix() -> None:
-    prefix = cached("CMAKE_INSTALL_PREFIX")
-    if prefix != "/usr":
-        pytest.skip(
-            f"build configured with prefix {prefix} (a cache from before the /usr default):"
-            " reconfigure with -DCMAKE_INSTALL_PREFIX=/usr to build the .deb"
-        )
+from conftest import ROOT, build_dir, cached, host_package_lock
 
 
 def test_install_layout(tmp_path: Path):
@@ -68,25 +43,6 @@ def test_install_layout(tmp_path: Path):
     assert (stage / etc / "keyframed.toml").read_text() == (
         ROOT / "config/keyframed.toml"
     ).read_text()
-
-
-@pytest.fixture(scope="module")
-def deb(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    if shutil.which("dpkg-deb") is None:
-        pytest.skip("dpkg-deb not installed")
-    require_usr_prefix()
-    out = tmp_path_factory.mktemp("pkg")
-    p = subprocess.run(
-        ["cpack", "-G", "DEB", "-B", str(out)],
-        cwd=build_dir(),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert p.returncode == 0, p.stdout + p.stderr
-    debs = list(out.glob("keyframed_*_*.deb"))
-    assert len(debs) == 1, list(out.iterdir())
-    return debs[0]
 
 
 def test_debian_package(deb: Path, tmp_path: Path):
@@ -149,6 +105,11 @@ def test_debian_package_installs_runs_and_purges(deb: Path, tmp_path: Path):
     otherwise (CI's throw-away machine)."""
     if os.geteuid() != 0:
         pytest.skip("installing a .deb needs root")
+    with host_package_lock():
+        _install_run_and_purge(deb)
+
+
+def _install_run_and_purge(deb: Path) -> None:
     if _dpkg("-s", "keyframed").returncode == 0:
         pytest.skip("keyframed is already installed as a package here: not touching it")
     if Path("/usr/bin/keyframed").exists() or Path("/etc/keyframed").exists():

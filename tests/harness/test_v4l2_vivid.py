@@ -21,12 +21,8 @@ no virtio-9p device or the kernel no 9p/9pnet_virtio/virtio_pci modules.
 from __future__ import annotations
 
 import base64
-import gzip
 import json
-import lzma
-import os
 import re
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -48,105 +44,6 @@ DAEMON_RUN_S = 2
 # back made to stall (every buffer dropped); SIGTERM comes 0.3 s after the capture's
 # first 2 s frame timeout, while it waits for the next frame.
 DAEMON_GONE_S = 4.5
-
-
-def _probe_bin() -> Path:
-    env = os.environ.get("KEYFRAMED_V4L2_PROBE")
-    path = Path(env) if env else keyframed_bin().parent / "keyframed-v4l2-probe"
-    if not path.exists():
-        pytest.fail(f"{path} not found: build the keyframed-v4l2-probe target")
-    return path
-
-
-def _kernel() -> tuple[Path, Path]:
-    """The newest /boot/vmlinuz-VER whose /lib/modules/VER holds vivid."""
-    want = os.environ.get("KEYFRAMED_VM_KERNEL_VERSION")
-    found = []
-    for vmlinuz in sorted(Path("/boot").glob("vmlinuz-*")):
-        ver = vmlinuz.name[len("vmlinuz-") :]
-        moddir = Path("/lib/modules") / ver
-        if want and ver != want:
-            continue
-        if (moddir / "modules.dep").exists() and list(moddir.rglob("vivid.ko*")):
-            found.append((vmlinuz, moddir))
-    if not found:
-        pytest.skip(
-            "no kernel with vivid.ko (/boot/vmlinuz-* + /lib/modules/*/.../vivid.ko): "
-            "apt-get install linux-image-amd64"
-        )
-    vmlinuz, moddir = found[-1]
-    if not os.access(vmlinuz, os.R_OK):
-        pytest.skip(f"{vmlinuz} is not readable by this user")
-    return vmlinuz, moddir
-
-
-def _module_order(moddir: Path, name: str) -> list[str]:
-    """vivid and its dependencies from modules.dep, dependencies first."""
-    deps: dict[str, list[str]] = {}
-    for line in (moddir / "modules.dep").read_text().splitlines():
-        mod, _, rest = line.partition(":")
-        deps[mod] = rest.split()
-    target = next(m for m in deps if re.search(rf"/{name}\.ko(\.\w+)?$", m))
-    order: list[str] = []
-
-    def visit(mod: str) -> None:
-        if mod in order:
-            return
-        for d in deps.get(mod, []):
-            visit(d)
-        order.append(mod)
-
-    visit(target)
-    return order
-
-
-def _ninep_modules(moddir: Path) -> tuple[list[str], str | None]:
-    """The modules (dependencies first) for a virtio-9p root, or why it cannot be had."""
-    dep = (moddir / "modules.dep").read_text()
-    builtin_file = moddir / "modules.builtin"
-    builtin = builtin_file.read_text() if builtin_file.exists() else ""
-    order: list[str] = []
-    for name in ("virtio_pci", "9pnet_virtio", "9p"):
-        if re.search(rf"/{name}\.ko$", builtin, re.M):
-            continue
-        if not re.search(rf"/{name}\.ko(\.\w+)?:", dep):
-            return [], f"the kernel has no {name} module (modules.dep/modules.builtin in {moddir})"
-        order += [m for m in _module_order(moddir, name) if m not in order]
-    return order, None
-
-
-def _copy_module(src: Path, dst_dir: Path) -> str:
-    """Copies one module, decompressing .ko.xz/.ko.zst/.ko.gz (busybox insmod wants plain .ko)."""
-    base = src.name.split(".ko")[0] + ".ko"
-    dst = dst_dir / base
-    if src.suffix == ".xz":
-        dst.write_bytes(lzma.decompress(src.read_bytes()))
-    elif src.suffix == ".gz":
-        dst.write_bytes(gzip.decompress(src.read_bytes()))
-    elif src.suffix == ".zst":
-        if not shutil.which("zstd"):
-            pytest.skip("kernel modules are zstd-compressed and zstd is not installed")
-        subprocess.run(["zstd", "-q", "-d", "-f", str(src), "-o", str(dst)], check=True)
-    else:
-        shutil.copyfile(src, dst)
-    return base
-
-
-def _copy_program(src: Path, root: Path, dst: str) -> None:
-    """Copies a program, with its shared libraries and loader when it is dynamic."""
-    target = root / dst.lstrip("/")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copy2(src, target)
-    out = subprocess.run(["ldd", str(src)], capture_output=True, text=True)
-    if out.returncode != 0 or "not a dynamic executable" in out.stdout + out.stderr:
-        return
-    for line in out.stdout.splitlines():
-        m = re.search(r"(/\S+)", line.split("=>")[-1])
-        if m and Path(m.group(1)).exists():
-            lib = Path(m.group(1))
-            dest = root / str(lib).lstrip("/")
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(lib, dest)
 
 
 INIT = r"""#!/bin/busybox sh
@@ -299,17 +196,17 @@ def _scratch_dir(binary: Path) -> str:
 @pytest.fixture(scope="module")
 def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     qemu, busybox = qemu_vm.tools()
-    vmlinuz, moddir = _kernel()
-    probe = _probe_bin()
+    vmlinuz, moddir = qemu_vm.kernel()
+    probe = qemu_vm.v4l2_probe_bin()
 
     work = tmp_path_factory.mktemp("vivid-vm")
     root = work / "root"
     for d in ("bin", "proc", "sys", "dev", "tmp", "modules"):
         (root / d).mkdir(parents=True)
-    _copy_program(Path(busybox), root, "/bin/busybox")
-    _copy_program(probe, root, "/probe")
-    order = _module_order(moddir, "vivid")
-    names = [_copy_module(moddir / m, root / "modules") for m in order]
+    qemu_vm.copy_program(Path(busybox), root, "/bin/busybox")
+    qemu_vm.copy_program(probe, root, "/probe")
+    order = qemu_vm.module_order(moddir, "vivid")
+    names = [qemu_vm.copy_module(moddir / m, root / "modules") for m in order]
     (root / "modules.order").write_text("\n".join(n for n in names if n != "vivid.ko") + "\n")
 
     # The daemon section needs virtio-9p in both qemu and the kernel.
@@ -317,12 +214,12 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     devices = subprocess.run([qemu, "-device", "help"], capture_output=True, text=True)
     if "virtio-9p-pci" not in devices.stdout + devices.stderr:
         daemon_skip = f"{qemu} has no virtio-9p-pci device (no virtfs support)"
-    ninep, reason = _ninep_modules(moddir)
+    ninep, reason = qemu_vm.ninep_modules(moddir)
     daemon_skip = daemon_skip or reason
     daemon = ""
     if not daemon_skip:
         extra = [m for m in ninep if m not in order]
-        names9p = [_copy_module(moddir / m, root / "modules") for m in extra]
+        names9p = [qemu_vm.copy_module(moddir / m, root / "modules") for m in extra]
         (root / "modules9p.order").write_text("\n".join(names9p) + "\n")
         scratch = _scratch_dir(keyframed_bin().resolve())
         sets = [
