@@ -1,14 +1,26 @@
 #include "telemetry/mavlink_codec.h"
 
+#include <cstring>
+
 namespace keyframed {
 
 MavlinkParser::MavlinkParser() = default;
 
-MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte) {
-  ++stats_.bytes;
+namespace {
+
+bool between(std::uint8_t state) {
+  return state == MAVLINK_PARSE_STATE_UNINIT || state == MAVLINK_PARSE_STATE_IDLE;
+}
+
+}  // namespace
+
+MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte, bool again) {
   const std::uint8_t stateBefore = status_.parse_state;
   const std::uint8_t result =
       mavlink_frame_char_buffer(&rx_, &status_, byte, &message_, &messageStatus_);
+  const bool inFrame = !between(status_.parse_state);
+  if (between(stateBefore)) frameLen_ = 0;  // a start byte, or noise
+  if ((!between(stateBefore) || inFrame) && frameLen_ < frame_.size()) frame_[frameLen_++] = byte;
   // A signed frame whose checksum is bad, or cannot be checked (an unknown id), is
   // reported at the checksum too, with the previous frame still in message_, and
   // again, as itself, once the signature has been read: only the last counts.
@@ -25,22 +37,47 @@ MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte) {
     ++stats_.unknownIds;
     return Frame::UnknownId;
   }
-  if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE) {
+  if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE ||
+      (!between(stateBefore) && !inFrame)) {  // or a header no frame can have
     ++stats_.rejected;
-  } else if (stateBefore == MAVLINK_PARSE_STATE_IDLE &&
-             status_.parse_state == MAVLINK_PARSE_STATE_IDLE) {
+    return Frame::Rejected;
+  }
+  if (!again && between(stateBefore) && !inFrame) {
     ++stats_.skippedBytes;  // not a start byte: noise between frames
   }
   return Frame::None;
 }
 
-void MavlinkParser::reset() {
-  if (status_.parse_state != MAVLINK_PARSE_STATE_UNINIT &&
-      status_.parse_state != MAVLINK_PARSE_STATE_IDLE) {
-    ++stats_.rejected;
+void MavlinkParser::parseAgain() {
+  // The bytes still to be parsed again follow this frame's, which came before them.
+  const std::size_t tail = frameLen_ > 0 ? frameLen_ - 1 : 0;
+  const std::size_t rest = replayLen_ - replayPos_;
+  if (tail + rest > replay_.size()) {  // cannot happen: both are parts of one frame
+    replayLen_ = replayPos_ = 0;
+  } else {
+    std::memmove(replay_.data() + tail, replay_.data() + replayPos_, rest);
+    std::memcpy(replay_.data(), frame_.data() + 1, tail);
+    replayPos_ = 0;
+    replayLen_ = tail + rest;
   }
+  frameLen_ = 0;
   rx_ = {};
   status_ = {};
+}
+
+bool MavlinkParser::cutShort() {
+  if (between(status_.parse_state)) return false;
+  ++stats_.rejected;
+  parseAgain();
+  return true;
+}
+
+void MavlinkParser::reset() {
+  if (!between(status_.parse_state)) ++stats_.rejected;
+  rx_ = {};
+  status_ = {};
+  frameLen_ = 0;
+  replayLen_ = replayPos_ = 0;
 }
 
 MavlinkEncoder::MavlinkEncoder(std::uint8_t systemId, std::uint8_t componentId, bool mavlink1)

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <utility>
@@ -11,11 +12,11 @@
 namespace keyframed {
 
 // Counts of what a parser saw on a link. "Rejected" frames had a good start byte
-// but a bad checksum (corruption, or a frame cut short and run into the next) or a
-// bad signature; "unknown" frames carry a message id the common dialect lacks
-// (ArduPilot's or PX4's own messages: not corruption, but their CRC_EXTRA is
-// unknown, so they cannot be checked and are skipped); bytes between frames are
-// "skipped".
+// but a bad checksum (corruption, or a frame cut short and run into the next), a bad
+// signature or an impossible header; "unknown" frames carry a message id the common
+// dialect lacks (ArduPilot's or PX4's own messages: not corruption, but their
+// CRC_EXTRA is unknown, so they cannot be checked and are skipped); bytes between
+// frames are "skipped" (not counting a rejected frame's bytes, searched again).
 struct ParserStats {
   std::uint64_t bytes = 0;
   std::uint64_t messages = 0;
@@ -26,8 +27,10 @@ struct ParserStats {
 };
 
 // Byte-stream MAVLink 1/2 parser with its own state (no global channel table), so
-// several links parse in parallel. Garbage never stops it: it resynchronises on
-// the next start byte.
+// several links parse in parallel. Garbage never stops it: it resynchronises on the
+// next start byte. A rejected frame's bytes after its start byte are parsed again:
+// a frame cut short (a serial byte lost, a datagram cut) runs into the frame after
+// it, which is then found there rather than lost with it.
 class MavlinkParser {
  public:
   MavlinkParser();
@@ -43,31 +46,66 @@ class MavlinkParser {
   // never decoded; line noise can look like one, so take it only from known senders).
   template <typename Fn, typename Gn>
   void feed(const std::uint8_t* data, std::size_t size, Fn&& onMessage, Gn&& onUnknown) {
-    for (std::size_t i = 0; i < size; ++i) {
-      switch (parseByte(data[i])) {
+    stats_.bytes += size;
+    std::size_t i = 0;
+    for (;;) {
+      std::uint8_t byte = 0;
+      bool again = false;
+      if (replayPos_ < replayLen_) {
+        byte = replay_[replayPos_++];
+        again = true;
+      } else if (i < size) {
+        byte = data[i++];
+      } else {
+        break;
+      }
+      switch (parseByte(byte, again)) {
         case Frame::Good: onMessage(message_); break;
         case Frame::UnknownId: onUnknown(message_); break;
+        case Frame::Rejected: parseAgain(); break;
         case Frame::None: break;
       }
     }
   }
 
+  // One UDP datagram: it holds whole frames, so a frame it leaves unfinished was cut
+  // short (counted as rejected) and the frames inside its bytes are searched for;
+  // the next datagram starts afresh.
+  template <typename Fn, typename Gn>
+  void feedDatagram(const std::uint8_t* data, std::size_t size, Fn&& onMessage, Gn&& onUnknown) {
+    feed(data, size, onMessage, onUnknown);
+    while (cutShort()) feed(nullptr, 0, onMessage, onUnknown);
+  }
+
   // Drops a frame half read (counted as rejected: a frame cut short): the next byte
-  // is taken as the start of a new one. For a link reopened (the bytes before the
-  // drop are gone) and for each UDP datagram (each starts on a frame boundary).
+  // is taken as the start of a new one. For a link reopened: the bytes before the
+  // drop are gone.
   void reset();
 
   [[nodiscard]] const ParserStats& stats() const { return stats_; }
 
  private:
-  enum class Frame : std::uint8_t { None, Good, UnknownId };
-  Frame parseByte(std::uint8_t byte);
+  enum class Frame : std::uint8_t { None, Good, UnknownId, Rejected };
+  Frame parseByte(std::uint8_t byte, bool again);
+  // After a rejected frame: its bytes after the start byte, then what was still to be
+  // parsed again, are parsed before new input.
+  void parseAgain();
+  // A frame half read at the end of a datagram: rejected and parsed again, or false
+  // when there is none.
+  bool cutShort();
 
   mavlink_message_t rx_{};
   mavlink_status_t status_{};
   mavlink_message_t message_{};
   mavlink_status_t messageStatus_{};
   ParserStats stats_;
+  // The frame being read, byte for byte (at most one whole frame).
+  std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN> frame_{};
+  std::size_t frameLen_ = 0;
+  // Bytes to parse again ahead of new input: never more than one frame's.
+  std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN> replay_{};
+  std::size_t replayLen_ = 0;
+  std::size_t replayPos_ = 0;
 };
 
 // Encodes outgoing messages of one component with its own sequence counter.

@@ -736,27 +736,29 @@ void TelemetryService::run() {
                                              formatMs(static_cast<double>(t - lastData) / 1e6, 0));
         }
         lastData = t;
-        // A datagram starts on a frame boundary: whatever the last one left unfinished
-        // (a datagram cut short, another protocol's) must not swallow this one's start.
-        if (link_->datagrams()) parser_.reset();
         bool fromAutopilot = false;
-        parser_.feed(
-            buf.data(), n,
-            [&](const mavlink_message_t& m) {
-              onMessage(m, t);
-              const bool autopilot = m.sysid == decoder_.autopilotSystem() &&
-                                     m.compid == decoder_.autopilotComponent();
-              fromAutopilot = fromAutopilot || autopilot;
-              if (autopilot && m.magic == MAVLINK_STX) autopilotV2_ = true;
-              if (autopilot && autopilotV1SinceNs_ == 0) autopilotV1SinceNs_ = t;
-              std::lock_guard lock(sinkMutex_);
-              if (sink_) sink_(m, t);
-            },
-            [&](const mavlink_message_t& m) {
-              // Another dialect's message (ArduPilot's, PX4's): recorded, not decoded.
-              std::lock_guard lock(sinkMutex_);
-              if (sink_) sink_(m, t);
-            });
+        const auto good = [&](const mavlink_message_t& m) {
+          onMessage(m, t);
+          const bool autopilot =
+              m.sysid == decoder_.autopilotSystem() && m.compid == decoder_.autopilotComponent();
+          fromAutopilot = fromAutopilot || autopilot;
+          if (autopilot && m.magic == MAVLINK_STX) autopilotV2_ = true;
+          if (autopilot && autopilotV1SinceNs_ == 0) autopilotV1SinceNs_ = t;
+          std::lock_guard lock(sinkMutex_);
+          if (sink_) sink_(m, t);
+        };
+        const auto otherDialect = [&](const mavlink_message_t& m) {
+          // Another dialect's message (ArduPilot's, PX4's): recorded, not decoded.
+          std::lock_guard lock(sinkMutex_);
+          if (sink_) sink_(m, t);
+        };
+        // A datagram holds whole frames: one it leaves unfinished (cut short, another
+        // protocol's) must not swallow the next datagram's start.
+        if (link_->datagrams()) {
+          parser_.feedDatagram(buf.data(), n, good, otherDialect);
+        } else {
+          parser_.feed(buf.data(), n, good, otherDialect);
+        }
         // udpin: answer the autopilot, not whoever else sends to the port.
         if (fromAutopilot) {
           link_->pinPeerToLastSender();

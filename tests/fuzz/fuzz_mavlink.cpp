@@ -72,11 +72,18 @@ void parserAndDecoder(const std::uint8_t* data, std::size_t size, std::size_t pi
   std::uint64_t seen = 0;
   for (std::size_t at = 0; at < size; at += piece) {
     const std::size_t n = size - at < piece ? size - at : piece;
-    parser.feed(data + at, n, [&](const mavlink_message_t& msg) {
+    const auto onMessage = [&](const mavlink_message_t& msg) {
       ++seen;
       now += 7'000'000;
       decoder.handle(msg, now);
-    });
+    };
+    // Odd pieces as UDP datagrams (a frame left unfinished is searched and dropped),
+    // even ones as a serial stream.
+    if (piece % 2 == 1) {
+      parser.feedDatagram(data + at, n, onMessage, [](const mavlink_message_t&) {});
+    } else {
+      parser.feed(data + at, n, onMessage);
+    }
   }
   const auto& stats = parser.stats();
   // Every byte is counted once; a frame counted as a message is one we delivered.

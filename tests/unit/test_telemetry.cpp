@@ -753,8 +753,9 @@ TEST(MavlinkParser, SkipsGarbageAndCorruptFramesAndKeepsTheRest) {
   parser.feed(stream.data(), stream.size(), [&](const mavlink_message_t& m) {
     if (m.msgid == MAVLINK_MSG_ID_ATTITUDE_QUATERNION) ++seen;
   });
-  // A false start byte in the noise can swallow the frame after it (the parser
-  // does not backtrack), so at most one good frame is lost per burst.
+  // A false start byte in the noise can swallow the frame after it, when what it
+  // starts comes out as another dialect's frame (not searched again), so at most one
+  // good frame is lost per burst.
   EXPECT_GE(seen, good - bursts);
   EXPECT_LE(seen, good);
   EXPECT_GT(parser.stats().rejected, 0U);
@@ -901,6 +902,96 @@ TEST(MavlinkParser, ResetDropsAHalfReadFrame) {
   EXPECT_EQ(n, 2);
   EXPECT_EQ(parser.stats().rejected, 1U);
   EXPECT_EQ(parser.stats().bytes, cut.size() + 2 * good.size());
+}
+
+// A frame cut short on a serial link (bytes lost in a UART overrun, a radio
+// glitch) runs into the next frame; the next is found there, not lost with it.
+TEST(MavlinkParser, AFrameCutShortDoesNotTakeTheNextWithIt) {
+  MavlinkEncoder ap(1, 1);
+  MavlinkEncoder ap1(1, 1, /*mavlink1=*/true);
+  std::vector<std::uint8_t> s;
+  int sent = 0;
+  int cuts = 0;
+  for (int i = 0; i < 60; ++i) {
+    auto pkt = i % 3 == 0 ? heartbeat(ap1, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA)
+                          : attitudeQ(ap, static_cast<std::uint32_t>(i * 20), Quaternion{});
+    if (i % 4 == 1) {
+      pkt.resize(pkt.size() - 1 - static_cast<std::size_t>(i % 7));  // the end lost
+      ++cuts;
+    } else {
+      ++sent;
+    }
+    s.insert(s.end(), pkt.begin(), pkt.end());
+  }
+  // Fed whole and byte by byte (a serial read returns what has come).
+  for (const std::size_t piece : {s.size(), std::size_t{1}, std::size_t{7}}) {
+    MavlinkParser parser;
+    int seen = 0;
+    for (std::size_t at = 0; at < s.size(); at += piece) {
+      parser.feed(s.data() + at, std::min(piece, s.size() - at),
+                  [&](const mavlink_message_t&) { ++seen; });
+    }
+    EXPECT_EQ(seen, sent) << "piece " << piece;
+    EXPECT_EQ(parser.stats().rejected, static_cast<std::uint64_t>(cuts)) << "piece " << piece;
+    EXPECT_EQ(parser.stats().skippedBytes, 0U);
+    EXPECT_EQ(parser.stats().bytes, s.size());
+  }
+}
+
+// A length byte hit by noise makes a frame claim more bytes than it has: in a UDP
+// datagram the frames after it are found all the same; a datagram cut short loses
+// only the frame it cuts.
+TEST(MavlinkParser, ADatagramsFramesAfterABadLengthAreKept) {
+  MavlinkEncoder ap(1, 1);
+  std::vector<std::uint8_t> d;
+  auto first = attitudeQ(ap, 20, Quaternion{});
+  first[1] = 0xF0;  // the payload length
+  d.insert(d.end(), first.begin(), first.end());
+  for (int i = 0; i < 3; ++i) {
+    const auto p = attitudeQ(ap, static_cast<std::uint32_t>(40 + 20 * i), Quaternion{});
+    d.insert(d.end(), p.begin(), p.end());
+  }
+  const auto good = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  std::vector<std::uint8_t> cut = good;
+  cut.resize(good.size() - 3);
+  MavlinkParser parser;
+  std::vector<std::uint32_t> ids;
+  const auto onMessage = [&](const mavlink_message_t& m) { ids.push_back(m.msgid); };
+  const auto none = [](const mavlink_message_t&) {};
+  parser.feedDatagram(d.data(), d.size(), onMessage, none);
+  EXPECT_EQ(ids, std::vector<std::uint32_t>(3, MAVLINK_MSG_ID_ATTITUDE_QUATERNION));
+  EXPECT_EQ(parser.stats().rejected, 1U);  // the first, cut short by its datagram's end
+  parser.feedDatagram(cut.data(), cut.size(), onMessage, none);
+  parser.feedDatagram(good.data(), good.size(), onMessage, none);
+  ASSERT_EQ(ids.size(), 4U);
+  EXPECT_EQ(ids.back(), static_cast<std::uint32_t>(MAVLINK_MSG_ID_HEARTBEAT));
+  EXPECT_EQ(parser.stats().rejected, 2U);
+  EXPECT_EQ(parser.stats().bytes, d.size() + cut.size() + good.size());
+}
+
+// A frame's bytes are searched again only when it was rejected: another dialect's
+// whole frame (ArduPilot's own messages) is handed on and the parser goes on after it,
+// whatever its payload holds.
+TEST(MavlinkParser, AnotherDialectsFrameIsNotSearchedAgain) {
+  MavlinkEncoder ap(1, 1);
+  const auto hb = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
+  // A payload that holds a whole heartbeat frame, CRC and all.
+  std::vector<std::uint8_t> other = {
+      0xFD, static_cast<std::uint8_t>(hb.size()), 0, 0, 9, 1, 1, 0xB8, 0x2A, 0x00};
+  other.insert(other.end(), hb.begin(), hb.end());
+  std::uint16_t crc = crc_calculate(other.data() + 1, static_cast<std::uint16_t>(other.size() - 1));
+  crc_accumulate(0x5B, &crc);
+  other.push_back(static_cast<std::uint8_t>(crc & 0xFF));
+  other.push_back(static_cast<std::uint8_t>(crc >> 8));
+  MavlinkParser parser;
+  int good = 0;
+  int unknown = 0;
+  parser.feed(
+      other.data(), other.size(), [&](const mavlink_message_t&) { ++good; },
+      [&](const mavlink_message_t&) { ++unknown; });
+  EXPECT_EQ(good, 0);
+  EXPECT_EQ(unknown, 1);
+  EXPECT_EQ(parser.stats().rejected, 0U);
 }
 
 TEST(MavlinkParser, ReadsMavlink1AndMavlink2) {
