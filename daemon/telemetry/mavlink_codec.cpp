@@ -19,7 +19,12 @@ MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte, bool again) {
   const std::uint8_t result =
       mavlink_frame_char_buffer(&rx_, &status_, byte, &message_, &messageStatus_);
   const bool inFrame = !between(status_.parse_state);
-  if (between(stateBefore)) frameLen_ = 0;  // a start byte, or noise
+  if (between(stateBefore)) {  // a start byte, or noise
+    frameLen_ = 0;
+    // Parsed again, but right after a good frame found there: in step again.
+    insideRejected_ = again && !afterFrame_;
+  }
+  afterFrame_ = false;
   if ((!between(stateBefore) || inFrame) && frameLen_ < frame_.size()) frame_[frameLen_++] = byte;
   // A signed frame whose checksum is bad, or cannot be checked (an unknown id), is
   // reported at the checksum too, with the previous frame still in message_, and
@@ -29,17 +34,22 @@ MavlinkParser::Frame MavlinkParser::parseByte(std::uint8_t byte, bool again) {
     return Frame::None;
   }
   if (result == MAVLINK_FRAMING_OK) {
+    afterFrame_ = true;
     ++stats_.messages;
     if (message_.magic == MAVLINK_STX_MAVLINK1) ++stats_.mavlink1;
     return Frame::Good;
   }
   if (result == MAVLINK_FRAMING_BAD_CRC && mavlink_get_msg_entry(message_.msgid) == nullptr) {
+    // One that started inside a rejected frame is more likely a false start in its
+    // bytes, which would swallow the good frames after it, than a frame of its own.
+    if (insideRejected_) return Frame::Rejected;
+    afterFrame_ = true;
     ++stats_.unknownIds;
     return Frame::UnknownId;
   }
   if (result == MAVLINK_FRAMING_BAD_CRC || result == MAVLINK_FRAMING_BAD_SIGNATURE ||
       (!between(stateBefore) && !inFrame)) {  // or a header no frame can have
-    ++stats_.rejected;
+    if (!insideRejected_) ++stats_.rejected;  // once, not each false start in it
     return Frame::Rejected;
   }
   if (!again && between(stateBefore) && !inFrame) {
@@ -67,7 +77,7 @@ void MavlinkParser::parseAgain() {
 
 bool MavlinkParser::cutShort() {
   if (between(status_.parse_state)) return false;
-  ++stats_.rejected;
+  if (!insideRejected_) ++stats_.rejected;
   parseAgain();
   return true;
 }

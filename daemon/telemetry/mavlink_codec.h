@@ -16,7 +16,8 @@ namespace keyframed {
 // signature or an impossible header; "unknown" frames carry a message id the common
 // dialect lacks (ArduPilot's or PX4's own messages: not corruption, but their
 // CRC_EXTRA is unknown, so they cannot be checked and are skipped); bytes between
-// frames are "skipped" (not counting a rejected frame's bytes, searched again).
+// frames are "skipped". A rejected frame's bytes are searched again: a false start
+// found there is neither counted as rejected nor its bytes as skipped.
 struct ParserStats {
   std::uint64_t bytes = 0;
   std::uint64_t messages = 0;
@@ -30,7 +31,9 @@ struct ParserStats {
 // several links parse in parallel. Garbage never stops it: it resynchronises on the
 // next start byte. A rejected frame's bytes after its start byte are parsed again:
 // a frame cut short (a serial byte lost, a datagram cut) runs into the frame after
-// it, which is then found there rather than lost with it.
+// it, which is then found there rather than lost with it. What starts in those bytes
+// and reads as another dialect's frame is taken for a false start (payload bytes that
+// look like a start byte) and searched in turn, so that it swallows nothing.
 class MavlinkParser {
  public:
   MavlinkParser();
@@ -102,6 +105,9 @@ class MavlinkParser {
   // The frame being read, byte for byte (at most one whole frame).
   std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN> frame_{};
   std::size_t frameLen_ = 0;
+  // It started in a rejected frame's bytes, where no good frame ended just before.
+  bool insideRejected_ = false;
+  bool afterFrame_ = false;  // the last byte ended a good (or another dialect's) frame
   // Bytes to parse again ahead of new input: never more than one frame's.
   std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN> replay_{};
   std::size_t replayLen_ = 0;

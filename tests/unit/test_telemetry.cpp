@@ -938,6 +938,40 @@ TEST(MavlinkParser, AFrameCutShortDoesNotTakeTheNextWithIt) {
   }
 }
 
+// Flight-like traffic whose payloads hold start bytes (floats of any value): a
+// frame that loses bytes on the line is searched again from its second byte, and the
+// false starts in it are searched too, never handed on as another dialect's frame
+// that would swallow the good frames after it.
+TEST(MavlinkParser, FalseStartsInADamagedFrameSwallowNothing) {
+  MavlinkEncoder ap(1, 1);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> any(-4.0F, 4.0F);
+  std::vector<std::uint8_t> s;
+  int whole = 0;
+  int damaged = 0;
+  for (int i = 0; i < 2000; ++i) {
+    auto pkt = attitudeEuler(ap, static_cast<std::uint32_t>(i * 4), any(rng), any(rng), any(rng));
+    if (i % 10 == 0) {  // 3 bytes lost from its middle
+      pkt.erase(pkt.begin() + static_cast<std::ptrdiff_t>(pkt.size() / 2),
+                pkt.begin() + static_cast<std::ptrdiff_t>(pkt.size() / 2 + 3));
+      ++damaged;
+    } else {
+      ++whole;
+    }
+    s.insert(s.end(), pkt.begin(), pkt.end());
+  }
+  MavlinkParser parser;
+  int seen = 0;
+  int unknown = 0;
+  parser.feed(
+      s.data(), s.size(), [&](const mavlink_message_t&) { ++seen; },
+      [&](const mavlink_message_t&) { ++unknown; });
+  EXPECT_EQ(seen, whole);
+  EXPECT_EQ(unknown, 0);
+  EXPECT_EQ(parser.stats().rejected, static_cast<std::uint64_t>(damaged));
+  EXPECT_EQ(parser.stats().skippedBytes, 0U);
+}
+
 // A length byte hit by noise makes a frame claim more bytes than it has: in a UDP
 // datagram the frames after it are found all the same; a datagram cut short loses
 // only the frame it cuts.
