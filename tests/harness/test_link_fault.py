@@ -1,7 +1,9 @@
 """The link between the daemon and the ground station fails: `keyframed run` on a
 sample flight with the fake autopilot, the real ground station stopped for part of
 the flight and started again on the same folder, or the link itself dropped while
-both run; the gap is filled from the daemon's queryable (its range form)."""
+both run; the gap is filled from the daemon's queryable (its range form). Or the link
+is too slow for what the vehicle sends: the preview is dropped on it, keyframes are
+not, and selection never waits for it."""
 
 from __future__ import annotations
 
@@ -281,7 +283,8 @@ def written_in(flight_dir: Path) -> list[dict[str, str]]:
 class Relay:
     """A TCP relay on loopback between the ground station and the vehicle's Zenoh
     listener: the radio link. drop() closes every connection through it and refuses
-    new ones until restore()."""
+    new ones until restore(). throttle(N) carries at most N bytes a second from the
+    vehicle, through small socket buffers, as a slow radio would (None: full speed)."""
 
     def __init__(self, port: int, target: int) -> None:
         self.target = target
@@ -289,7 +292,11 @@ class Relay:
         self.lock = threading.Lock()
         self.up = True
         self.open: list[socket.socket] = []
+        self.rate: float | None = None
         threading.Thread(target=self._accept, daemon=True).start()
+
+    def throttle(self, bytes_per_s: float | None) -> None:
+        self.rate = bytes_per_s
 
     def _accept(self) -> None:
         while True:
@@ -297,11 +304,17 @@ class Relay:
                 down, _ = self.server.accept()
             except OSError:
                 return  # closed
+            up = socket.socket()
+            # A small receive window: the vehicle's side cannot park megabytes in
+            # socket buffers when the relay reads slowly.
+            up.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             try:
-                up = socket.create_connection(("127.0.0.1", self.target), timeout=2.0)
+                up.settimeout(2.0)
+                up.connect(("127.0.0.1", self.target))
                 up.settimeout(None)
             except OSError:
                 down.close()  # the vehicle is not listening (yet)
+                up.close()
                 continue
             with self.lock:
                 if not self.up:
@@ -309,14 +322,19 @@ class Relay:
                     up.close()
                     continue
                 self.open += [down, up]
-            for a, b in ((down, up), (up, down)):
-                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+            threading.Thread(target=self._pump, args=(down, up), daemon=True).start()
+            threading.Thread(target=self._pump, args=(up, down, True), daemon=True).start()
 
-    @staticmethod
-    def _pump(a: socket.socket, b: socket.socket) -> None:
+    def _pump(self, a: socket.socket, b: socket.socket, from_vehicle: bool = False) -> None:
         try:
-            while data := a.recv(65536):
+            while True:
+                rate = self.rate if from_vehicle else None
+                data = a.recv(1024 if rate else 65536)
+                if not data:
+                    break
                 b.sendall(data)
+                if rate:
+                    time.sleep(len(data) / rate)
         except OSError:
             pass
         for sock in (a, b):
@@ -437,3 +455,96 @@ def test_the_end_of_a_flight_lost_on_the_link_is_fetched_after_the_daemon_restar
         fd = flights[0] if m["flight"] == flights[0].name else flights[1]
         source = fd / "keyframes" / m["file"].removeprefix(f"{fd.name}_")
         assert (images / m["file"]).read_bytes() == source.read_bytes(), m["file"]
+
+
+def test_a_congested_link_drops_previews_never_keyframes_or_frames(
+    kf_bin: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """A radio link far slower than the vehicle's output (12 kB/s against keyframes of
+    about 100 kB): the preview (best effort, low priority) is dropped on that link
+    while a ground session on a fast link gets it all; keyframes (reliable) wait or are
+    left to the queryable, and the analysis never waits for the link: no frame
+    dropped. Once the link is fast again, every keyframe reaches the slow side, live
+    or by query, byte for byte."""
+    fl = flight("nadir", width=960, height=540, seconds=20.0)
+    zport, lport = free_port(), free_port()
+    mport = free_port(socket.SOCK_DGRAM)
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
+    relay = Relay(lport, zport)
+    relay.throttle(12_000)
+
+    def session(port: int) -> tuple[Any, list[float], dict[int, bytes]]:
+        conf = zenoh.Config()
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        s = zenoh.open(conf)
+        previews: list[float] = []
+        keyframes: dict[int, bytes] = {}
+
+        def on_keyframe(sample: Any) -> None:
+            meta = json.loads(sample.attachment.to_bytes())
+            keyframes[meta["sequence"]] = sample.payload.to_bytes()
+
+        s.declare_subscriber("keyframed/uav5/preview", lambda _: previews.append(time.monotonic()))
+        s.declare_subscriber("keyframed/uav5/keyframe", on_keyframe)
+        return s, previews, keyframes
+
+    ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))
+    proc = start_run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={fl / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{mport}",
+        f"tagging.calibration={fl / 'intrinsics.json'}",
+        "zenoh.enabled=true",
+        f"zenoh.config={zconf}",
+        "zenoh.vehicle=uav5",
+        "output.preview_width=240",
+        "output.mcap=false",
+    )
+    sessions = []
+    try:
+        sessions = [session(zport), session(lport)]
+        (fast, fast_previews, _), (slow, slow_previews, slow_keyframes) = sessions
+        time.sleep(0.3)
+        ap.start()
+        start = time.monotonic()
+        # The slow link for most of the flight, then full speed: what is queued drains.
+        time.sleep(16.0)
+        lifted = time.monotonic()
+        relay.throttle(None)
+        _, stderr = proc.communicate(timeout=120)
+        ended = time.monotonic()
+        kfs = written(tmp_path)
+        # Whatever the slow side missed, it fetches from the queryable.
+        missing = [int(k["sequence"]) for k in kfs if int(k["sequence"]) not in slow_keyframes]
+        for seq in missing:
+            for reply in slow.get(f"keyframed/uav5/keyframes/{seq}", timeout=10.0):
+                if reply.ok is not None:
+                    slow_keyframes[seq] = reply.ok.payload.to_bytes()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        for s, _, _ in sessions:
+            s.close()
+        relay.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(((tmp_path / "state" / "latest") / "summary.json").read_text())
+    assert summary["frames_dropped"] == 0, summary  # selection never waited for the link
+    fast_n = len([t for t in fast_previews if start + 2 < t < lifted])
+    slow_n = len([t for t in slow_previews if start + 2 < t < lifted])
+    print(
+        f"congested link (12 kB/s): {slow_n} previews through it against {fast_n} on a fast "
+        f"link; {len(kfs)} keyframes, {len(kfs) - len(missing)} live through the slow link, "
+        f"{len(missing)} fetched after"
+    )
+    assert fast_n >= 15, fast_n  # about 2 a second were published
+    assert slow_n <= fast_n // 3, (slow_n, fast_n)
+    # the same link carries them again once it is fast
+    assert [t for t in slow_previews if lifted + 1 < t < ended], (lifted, ended, slow_previews)
+    fd = (tmp_path / "state" / "latest").resolve()
+    assert sorted(slow_keyframes) == [int(k["sequence"]) for k in kfs]
+    for k in kfs:
+        data = (fd / "keyframes" / k["file"]).read_bytes()
+        assert slow_keyframes[int(k["sequence"])] == data, k["file"]
