@@ -47,8 +47,8 @@ def test_demo_flies_the_sample_and_shows_where_the_keyframes_went() -> None:
     dataset = Path(where["COLMAP/ODM"])
     images = sorted(p.name for p in (dataset / "images").glob("*.jpg"))
     assert len(images) == len(rows), (len(images), len(rows))
-    for f in ("cameras.txt", "pairs.txt", "geo.txt", "cameras.json"):
-        assert (dataset / f).stat().st_size > 0, f
+    for name in ("cameras.txt", "pairs.txt", "geo.txt", "cameras.json"):
+        assert (dataset / name).stat().st_size > 0, name
     # the report: the run's numbers and the ground station's
     assert f"{len(rows)} keyframes, {len(rows)} geotagged" in out, out[-2000:]
     assert f"ground station: {len(rows)} keyframes of vehicle demo-nadir" in out, out[-2000:]
