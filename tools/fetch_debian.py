@@ -9,7 +9,7 @@ with trixie's kernel (`--kernel amd64 --modules 9p,9pnet_virtio`), which has the
 dma-buf heaps that camera allocates from and virtio-9p to reach this machine's
 files; `--suite sid libcamera-dev` gives the newest headers to compile against.
 
-    fetch_debian.py --suite S --dest DIR [--kernel FLAVOUR [--modules M,...]]
+    fetch_debian.py --suite S --dest DIR [--arch ARCH] [--kernel FLAVOUR [--modules M,...]]
                     [--no-deps] PACKAGE...
 
 Unpacks each package and its dependencies (first alternative of each, transitively)
@@ -38,8 +38,8 @@ MIRROR = "http://deb.debian.org/debian"
 SKIP = {"debconf", "debconf-2.0", "dpkg", "libc-bin", "perl-base", "install-info", "tzdata"}
 
 
-def packages_index(suite: str) -> dict[str, dict[str, str]]:
-    url = f"{MIRROR}/dists/{suite}/main/binary-amd64/Packages.xz"
+def packages_index(suite: str, arch: str = "amd64") -> dict[str, dict[str, str]]:
+    url = f"{MIRROR}/dists/{suite}/main/binary-{arch}/Packages.xz"
     with urllib.request.urlopen(url, timeout=120) as r:
         text = lzma.decompress(r.read()).decode("utf-8", "replace")
     index: dict[str, dict[str, str]] = {}
@@ -141,6 +141,7 @@ def main() -> int:
         default="",
         help="with --kernel: these modules (comma-separated) and what they depend on",
     )
+    ap.add_argument("--arch", default="amd64", help="Debian architecture (arm64: a Pi's)")
     ap.add_argument("--no-deps", action="store_true", help="only the packages named (headers)")
     ap.add_argument("packages", nargs="+")
     args = ap.parse_args()
@@ -151,12 +152,13 @@ def main() -> int:
         "packages": args.packages,
         "deps": not args.no_deps,
         "modules": args.modules,
+        "arch": args.arch,
     }
     done = args.dest / "complete"
     if done.is_file() and json.loads(done.read_text()).get("request") == request:
         return 0
     try:
-        index = packages_index(args.suite)
+        index = packages_index(args.suite, args.arch)
         if args.no_deps:
             missing = [p for p in args.packages if p not in index]
             if missing:

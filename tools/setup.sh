@@ -38,9 +38,11 @@ APT_PACKAGES+=(colmap)
 # tests/harness/test_v4l2_vivid.py: the kernel's vivid camera driver under qemu
 # (an x86-64 guest; on other architectures, e.g. a Pi, that test skips).
 # tests/harness/test_systemd_vm.py: the installed service under systemd in such a VM
-# (udev gives the camera node to group video).
+# (udev gives the camera node to group video). tests/harness/test_arm64.py: the core
+# and its tests cross-built for a Pi (arm64), run under qemu-aarch64.
 if [ "$(dpkg --print-architecture)" = amd64 ]; then
   APT_PACKAGES+=(qemu-system-x86 linux-image-amd64 busybox-static cpio udev)
+  APT_PACKAGES+=(g++-aarch64-linux-gnu qemu-user)
 fi
 
 # Rust 1.88+ for daemon/io-rs: rustup's toolchain when there is one, else Debian 12's
@@ -114,6 +116,16 @@ if [ "$(dpkg --print-architecture)" = amd64 ]; then
   python3 "$ROOT/tools/fetch_debian.py" --suite sid --dest "$ROOT/build/debian/sid" \
     --no-deps libcamera-dev ||
     echo "setup: warning: no libcamera headers from sid; that compile check will skip" >&2
+  # tests/harness/test_arm64.py: Debian 12's arm64 OpenCV (the modules the core and
+  # its tests use, and what those load), unpacked under build/debian (95 MB).
+  python3 "$ROOT/tools/fetch_debian.py" --suite bookworm --arch arm64 \
+    --dest "$ROOT/build/debian/bookworm-arm64" --no-deps \
+    libopencv-{core,imgproc,features2d,flann,calib3d,video}-dev \
+    libopencv-{core,imgproc,features2d,flann,calib3d,video,dnn}406 libprotobuf32 \
+    libtbb12 libtbbmalloc2 libtbbbind-2-5 libhwloc15 libxml2 libicu72 liblzma5 libudev1 \
+    libglx0 libglvnd0 libx11-6 libxcb1 libxau6 libxdmcp6 libbsd0 libmd0 liblapack3 \
+    libblas3 libgfortran5 zlib1g ||
+    echo "setup: warning: no arm64 OpenCV from bookworm; the arm64 test will skip" >&2
 fi
 
 PY="${PYTHON:-python3}"
