@@ -72,8 +72,12 @@ def test_core_unit_tests_pass_on_arm64(tmp_path: Path) -> None:
     ]
     p = subprocess.run(configure, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    # At the lowest priority: the tests beside it replay flights in real time.
     p = subprocess.run(
-        ["ninja", "-C", str(build), "-j2"], capture_output=True, text=True, timeout=1200
+        ["nice", "-n", "19", "ninja", "-C", str(build), "-j2"],
+        capture_output=True,
+        text=True,
+        timeout=1200,
     )
     assert p.returncode == 0, p.stdout[-5000:] + p.stderr[-3000:]
     binary = build / "keyframed_core_test"
@@ -84,7 +88,7 @@ def test_core_unit_tests_pass_on_arm64(tmp_path: Path) -> None:
     paths = [lib, lib / "blas", lib / "lapack", SYSROOT / "lib/aarch64-linux-gnu"]
     env = {**os.environ, "LD_LIBRARY_PATH": ":".join(map(str, paths))}
     p = subprocess.run(
-        ["qemu-aarch64", "-L", "/usr/aarch64-linux-gnu", str(binary)],
+        ["nice", "-n", "19", "qemu-aarch64", "-L", "/usr/aarch64-linux-gnu", str(binary)],
         capture_output=True,
         text=True,
         timeout=900,
