@@ -54,6 +54,25 @@ def test_selector_benchmark_on_1080p_frames() -> None:
         assert 0 < median <= p99, (stage, median, p99)
 
 
+def test_mavlink_parser_benchmark_reads_every_whole_packet() -> None:
+    p = subprocess.run(
+        [str(bench("keyframed-mavlink-bench")), "20000"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stderr
+    print(p.stdout)
+    # each row: MB/s, messages read, of how many, frames rejected
+    clean = row(p.stdout, "telemetry ")
+    lossy = row(p.stdout, "telemetry, 3 bytes lost in 1 of 10")
+    junk = row(p.stdout, "random bytes, 1/4 start bytes")
+    assert clean[0] > 0 and clean[1] == clean[2] == 20000 and clean[3] == 0, clean
+    # every packet that arrived whole is read; the damaged ones are rejected
+    assert lossy[0] > 0 and lossy[1] == lossy[2] == 18000 and 1900 <= lossy[3] <= 2000, lossy
+    assert junk[0] > 0 and junk[1] == junk[2] == 0, junk
+
+
 @pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
 def test_mcap_benchmark_writes_a_readable_file(tmp_path: Path, compression: str) -> None:
     path = tmp_path / "bench.mcap"
