@@ -20,7 +20,9 @@ conf.d drop-in, and then:
   and restarts it, and it is ready again once frames come back;
 - `systemctl stop` stops it cleanly; each start left a complete flight, owned by
   keyframed, in /var/lib/keyframed; `systemd-analyze security` rates the running
-  unit as test_systemd.py does offline.
+  unit as test_systemd.py does offline;
+- `dpkg -r keyframed` stops the running service (prerm), flushing its flight, and
+  leaves every flight in place.
 
 Results come back through a second, writable 9p share. Skipped with the reason when
 qemu, virtio-9p, the kernel's 9p/overlay/vivid modules, busybox or cpio are missing.
@@ -161,13 +163,28 @@ systemctl stop keyframed
 echo $? > $out/stop.rc
 mark stopped
 show stopped
-journalctl -u keyframed -o json --no-pager > $out/journal.json
 find /var/lib/keyframed /var/log/keyframed -printf '%u %g %m %y %p\n' > $out/state.txt
 n=0
 for f in /var/lib/keyframed/flights/*/summary.json; do
   n=$((n+1)); cp "$f" $out/summary-$n.json
 done
 systemd-analyze security keyframed --no-pager > $out/security.txt 2>&1
+
+# Removing the package stops the running service (prerm) and keeps its flights.
+systemctl start keyframed
+echo $? > $out/restart.rc
+wait_for 600 frames_flowing
+mark remove
+DEBIAN_FRONTEND=noninteractive dpkg -r keyframed > $out/dpkg-r.txt 2>&1
+echo $? > $out/dpkg-r.rc
+mark removed
+systemctl is-active keyframed > $out/after-remove.txt 2>&1
+ls /var/lib/keyframed/flights > $out/flights-after-remove.txt
+last=$(ls -d /var/lib/keyframed/flights/* | sort | tail -1)
+cp $last/summary.json $out/removed-summary.json
+[ -e /usr/bin/keyframed ] && echo present > $out/binary-after-remove.txt ||
+  echo gone > $out/binary-after-remove.txt
+journalctl -u keyframed -o json --no-pager > $out/journal.json
 mark done
 sync
 systemctl poweroff --force --force
@@ -420,3 +437,16 @@ def test_security_rating_of_the_running_unit(vm: dict) -> None:
     m = re.search(r"Overall exposure level for keyframed\.service: ([\d.]+) (\w+)", text)
     assert m, text[-2000:]
     assert float(m.group(1)) <= 2.0 and m.group(2) == "OK", m.group(0)
+
+
+def test_removing_the_package_stops_the_service_and_keeps_its_flights(vm: dict) -> None:
+    assert _text(vm, "restart.rc").strip() == "0", _log_tail(vm)
+    assert _text(vm, "dpkg-r.rc").strip() == "0", _text(vm, "dpkg-r.txt")
+    assert _text(vm, "after-remove.txt").split() == ["inactive"]
+    assert _text(vm, "binary-after-remove.txt").split() == ["gone"]
+    assert len(_text(vm, "flights-after-remove.txt").split()) == 3  # the third: this start's
+    summary = json.loads(_text(vm, "removed-summary.json"))
+    assert summary["state"] == "stopped" and summary["written"] == summary["kept"] >= 1, summary
+    marks = _marks(vm)
+    msgs = [m for t, m, _ in _messages(_journal(vm)) if marks["remove"] < t < marks["removed"]]
+    assert any("SIGTERM: stopping" in m for m in msgs), msgs
