@@ -7,6 +7,7 @@ import os
 import random
 import socket
 from pathlib import Path
+from typing import Any
 
 # Ports are picked below Linux's ephemeral range (32768-60999 by default), from which
 # the kernel takes the source port of every outgoing connection: a port the kernel
@@ -73,3 +74,14 @@ def zenoh_connect_config(path: Path, port: int, mode: str = "peer") -> Path:
     }
     path.write_text(json.dumps(conf))
     return path
+
+
+def zenoh_dialling(port: int) -> Any:
+    """A zenoh.Config for a test's own session dialling tcp/127.0.0.1:PORT, no scouting:
+    a watcher of the daemon, or the slow side of a relay."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf

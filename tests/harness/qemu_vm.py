@@ -31,8 +31,11 @@ def tools() -> tuple[str, str]:
     return qemu, busybox
 
 
-def initramfs(root: Path, out: Path) -> None:
-    """root's tree as a newc cpio archive (uncompressed: quicker to unpack under TCG)."""
+def initramfs(root: Path, init: str, out: Path) -> None:
+    """root's tree with `init` (the script the kernel runs first) as a newc cpio archive
+    (uncompressed: quicker to unpack under TCG)."""
+    (root / "init").write_text(init)
+    (root / "init").chmod(0o755)
     files = subprocess.run(["find", "."], cwd=root, capture_output=True, check=True).stdout
     with out.open("wb") as f:
         subprocess.run(

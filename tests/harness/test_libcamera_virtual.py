@@ -221,7 +221,6 @@ def vm(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     cases = "\n".join(
         f'echo "KF-CASE {name}"\n/probe {args}\necho "KF-RC $?"' for name, args in CASES.items()
     )
-    init = root / "init"
     # The daemon section, when the daemon was built against this release and qemu
     # has virtio-9p (the VM reads the host's libraries through it).
     alt = alt_bin()
@@ -259,10 +258,8 @@ def vm(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
             .replace("@RUN_S@", str(DAEMON_RUN_S))
             .replace("@HOSTLIBS@", ":".join(f"/host{d}" for d in host_library_dirs()))
         )
-    init.write_text(INIT.replace("@CASES@", cases).replace("@DAEMON@", daemon))
-    init.chmod(0o755)
     initrd = work / "initrd.cpio"
-    qemu_vm.initramfs(root, initrd)
+    qemu_vm.initramfs(root, INIT.replace("@CASES@", cases).replace("@DAEMON@", daemon), initrd)
     virtfs = "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap"
     console, elapsed = qemu_vm.boot(
         qemu,

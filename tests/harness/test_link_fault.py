@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
-from ports import free_port, zenoh_listener_config
+from ports import free_port, zenoh_dialling, zenoh_listener_config
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -38,6 +38,24 @@ def start_run(kf_bin: Path, tmp_path: Path, *sets: str) -> subprocess.Popen[str]
     for s in [f"output.state_dir={tmp_path / 'state'}", "camera.source=file", *sets]:
         args += ["--set", s]
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def start_flight(
+    kf_bin: Path, tmp_path: Path, fl: Path, mport: int, zconf: Path, vehicle: str, *sets: str
+) -> subprocess.Popen[str]:
+    """`keyframed run` flying FL: its video as the camera, telemetry from the fake
+    autopilot on UDP port MPORT, publishing over Zenoh (ZCONF) as VEHICLE."""
+    return start_run(
+        kf_bin,
+        tmp_path,
+        f"camera.path={fl / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{mport}",
+        f"tagging.calibration={fl / 'intrinsics.json'}",
+        "zenoh.enabled=true",
+        f"zenoh.config={zconf}",
+        f"zenoh.vehicle={vehicle}",
+        *sets,
+    )
 
 
 def written(tmp_path: Path) -> list[dict[str, str]]:
@@ -88,21 +106,16 @@ def test_ground_station_stopped_mid_flight_ends_with_every_keyframe_once(
     images = out / "uav9" / "images"
     first = ground(out, zport)
     ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))
-    proc = start_run(
+    proc = start_flight(
         kf_bin,
         tmp_path,
-        f"camera.path={fl / 'video.avi'}",
-        f"telemetry.url=udpin:127.0.0.1:{mport}",
-        f"tagging.calibration={fl / 'intrinsics.json'}",
-        "zenoh.enabled=true",
-        f"zenoh.config={zconf}",
-        "zenoh.vehicle=uav9",
+        fl,
+        mport,
+        zconf,
+        "uav9",
         "output.preview_width=240",
     )
-    conf = zenoh.Config()
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    watcher = zenoh.open(conf)
+    watcher = zenoh.open(zenoh_dialling(zport))
     second = None
     try:
         time.sleep(0.3)
@@ -174,9 +187,7 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
     zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport)
     out = tmp_path / "dataset"
     station = None
-    conf = zenoh.Config()
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = zenoh_dialling(zport)
     watcher = None
     flights: list[Path] = []
     try:
@@ -189,16 +200,14 @@ def test_a_restarted_daemon_loses_no_keyframe_at_the_ground_station(
                 year_ago = time.time() - 365 * 86400
                 os.utime(old / "keyframes.csv", (year_ago, year_ago))
             mport = free_port(socket.SOCK_DGRAM)
-            proc = start_run(
+            proc = start_flight(
                 kf_bin,
                 tmp_path,
-                f"camera.path={fl / 'video.avi'}",
-                f"telemetry.url=udpin:127.0.0.1:{mport}",
+                fl,
+                mport,
+                zconf,
+                "uav8",
                 "telemetry.start_wait_ms=30000",
-                f"tagging.calibration={fl / 'intrinsics.json'}",
-                "zenoh.enabled=true",
-                f"zenoh.config={zconf}",
-                "zenoh.vehicle=uav8",
             )
             try:
                 if run == 1:
@@ -383,16 +392,14 @@ def test_the_end_of_a_flight_lost_on_the_link_is_fetched_after_the_daemon_restar
         """A run of the daemon on the same state directory: a new flight."""
         mport = free_port(socket.SOCK_DGRAM)
         procs.append(
-            start_run(
+            start_flight(
                 kf_bin,
                 tmp_path,
-                f"camera.path={fl / 'video.avi'}",
-                f"telemetry.url=udpin:127.0.0.1:{mport}",
+                fl,
+                mport,
+                zconf,
+                "uav7",
                 "telemetry.start_wait_ms=30000",
-                f"tagging.calibration={fl / 'intrinsics.json'}",
-                "zenoh.enabled=true",
-                f"zenoh.config={zconf}",
-                "zenoh.vehicle=uav7",
                 "output.preview_width=240",
             )
         )
@@ -474,10 +481,7 @@ def test_a_congested_link_drops_previews_never_keyframes_or_frames(
     relay.throttle(12_000)
 
     def session(port: int) -> tuple[Any, list[float], dict[int, bytes]]:
-        conf = zenoh.Config()
-        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        s = zenoh.open(conf)
+        s = zenoh.open(zenoh_dialling(port))
         previews: list[float] = []
         keyframes: dict[int, bytes] = {}
 
@@ -490,15 +494,13 @@ def test_a_congested_link_drops_previews_never_keyframes_or_frames(
         return s, previews, keyframes
 
     ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))
-    proc = start_run(
+    proc = start_flight(
         kf_bin,
         tmp_path,
-        f"camera.path={fl / 'video.avi'}",
-        f"telemetry.url=udpin:127.0.0.1:{mport}",
-        f"tagging.calibration={fl / 'intrinsics.json'}",
-        "zenoh.enabled=true",
-        f"zenoh.config={zconf}",
-        "zenoh.vehicle=uav5",
+        fl,
+        mport,
+        zconf,
+        "uav5",
         "output.preview_width=240",
         "output.mcap=false",
     )

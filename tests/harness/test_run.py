@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from fake_autopilot import autopilot_fixture
 from flights import flight
-from ports import free_port, zenoh_connect_config, zenoh_listener_config
+from ports import free_port, zenoh_connect_config, zenoh_dialling, zenoh_listener_config
 from pymavlink.dialects.v20 import common as mav2
 
 fake_autopilot = autopilot_fixture()
@@ -961,9 +961,7 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     )
     import zenoh
 
-    conf = zenoh.Config()
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = zenoh_dialling(zport)
     watcher = zenoh.open(conf)
     previews: list[bytes] = []
     poses: list[dict[str, Any]] = []

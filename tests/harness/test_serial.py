@@ -192,6 +192,27 @@ class PtyAutopilot:
         return [h for h in self.heard if h[2].get_type() == msg_type and epoch in (None, h[0])]
 
 
+def select_over_serial(
+    kf_bin: Path, fl: Path, out: Path, ap: PtyAutopilot, baud: int, *extra: str, **kw: Any
+) -> Any:
+    """`keyframed select` on flight FL with its telemetry from AP's serial device (and
+    its calibration); AP stopped after."""
+    try:
+        return run_select(
+            kf_bin,
+            fl,
+            out,
+            "--telemetry",
+            f"serial:{ap.device}:{baud}",
+            "--calibration",
+            str(fl / "intrinsics.json"),
+            *extra,
+            **kw,
+        )
+    finally:
+        ap.stop()
+
+
 def check_tags(fl: Path, out: Path, ap: PtyAutopilot, kfs: list[dict[str, str]]) -> None:
     """Each keyframe's tags against the truth at the instant the pty replayed then."""
     truth = Truth(fl)
@@ -212,18 +233,7 @@ def test_serial_link_over_a_pty(
     """A serial link (telemetry radio, flight controller UART) at 921600 baud."""
     ap = PtyAutopilot(short_nadir / "flight.tlog", tmp_path / "ttyFC")
     out = tmp_path / "serial"
-    try:
-        r = run_select(
-            kf_bin,
-            short_nadir,
-            out,
-            "--telemetry",
-            f"serial:{ap.device}:921600",
-            "--calibration",
-            str(short_nadir / "intrinsics.json"),
-        )
-    finally:
-        ap.stop()
+    r = select_over_serial(kf_bin, short_nadir, out, ap, 921600)
     assert r.returncode == 0, r.stderr
     kfs = keyframes(out)
     assert len(kfs) >= 5
@@ -247,18 +257,7 @@ def test_a_serial_line_losing_bytes_loses_only_the_packets_hit(
     packet that arrived whole counts, and the tags are as accurate as on a clean line."""
     ap = PtyAutopilot(short_nadir / "flight.tlog", tmp_path / "ttyFC", damage_every=10)
     out = tmp_path / "lossy"
-    try:
-        r = run_select(
-            kf_bin,
-            short_nadir,
-            out,
-            "--telemetry",
-            f"serial:{ap.device}:921600",
-            "--calibration",
-            str(short_nadir / "intrinsics.json"),
-        )
-    finally:
-        ap.stop()
+    r = select_over_serial(kf_bin, short_nadir, out, ap, 921600)
     assert r.returncode == 0, r.stderr
     tel = json.loads((out / "summary.json").read_text())["telemetry"]
     assert ap.damaged >= 50, (ap.damaged, ap.written)
@@ -292,24 +291,10 @@ def test_serial_device_unplugged_and_back(
         short_nadir / "flight.tlog", tmp_path / "ttyFC", unplug_s=unplug_s, plug_s=plug_s
     )
     out = tmp_path / "out"
-    try:
-        r = run_select(
-            kf_bin,
-            short_nadir,
-            out,
-            "--telemetry",
-            f"serial:{ap.device}:57600",
-            "--calibration",
-            str(short_nadir / "intrinsics.json"),
-            # keyframes closer together than the default 0.70: several on each side
-            "--target",
-            "0.9",
-            "--band",
-            "0.8,0.95",
-            timeout=60,
-        )
-    finally:
-        ap.stop()
+    # keyframes closer together than the default 0.70: several on each side
+    r = select_over_serial(
+        kf_bin, short_nadir, out, ap, 57600, "--target", "0.9", "--band", "0.8,0.95", timeout=60
+    )
     assert r.returncode == 0, r.stderr
     log = r.stderr
     assert f"MAVLink link serial:{ap.device}:57600: serial port" in log, log

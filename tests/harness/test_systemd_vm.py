@@ -235,10 +235,8 @@ def vm(deb: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     qemu_vm.copy_program(Path(busybox), root, "/bin/busybox")
     names = [qemu_vm.copy_module(moddir / m, root / "modules") for m in order]
     (root / "modules.order").write_text("\n".join(names) + "\n")
-    (root / "init").write_text(INIT)
-    (root / "init").chmod(0o755)
     initrd = work / "initrd.cpio"
-    qemu_vm.initramfs(root, initrd)
+    qemu_vm.initramfs(root, INIT, initrd)
     share = _share(deb, work)
     with host_package_lock():  # the VM's dpkg reads this machine's package state
         console, elapsed = qemu_vm.boot(

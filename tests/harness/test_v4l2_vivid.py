@@ -249,10 +249,8 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
         .replace("@FRAMES@", "45")
         .replace("@RFRAMES@", "60")
     )
-    (root / "init").write_text(init)
-    (root / "init").chmod(0o755)
     initrd = work / "initrd.cpio"
-    qemu_vm.initramfs(root, initrd)
+    qemu_vm.initramfs(root, init, initrd)
     # The daemon section mounts the host's root read-only over virtio-9p.
     virtfs = "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap"
     console, elapsed = qemu_vm.boot(

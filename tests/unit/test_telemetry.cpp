@@ -762,6 +762,20 @@ TEST(MavlinkParser, SkipsGarbageAndCorruptFramesAndKeepsTheRest) {
   EXPECT_EQ(parser.stats().bytes, stream.size());
 }
 
+// A MAVLink 2 frame of message id 0x2AB8, which the common dialect lacks (another
+// dialect's), from system 1 component 1, its checksum over CRC_EXTRA 0x5B.
+std::vector<std::uint8_t> otherDialectFrame(std::uint8_t seq,
+                                            const std::vector<std::uint8_t>& payload) {
+  std::vector<std::uint8_t> f = {
+      0xFD, static_cast<std::uint8_t>(payload.size()), 0, 0, seq, 1, 1, 0xB8, 0x2A, 0x00};
+  f.insert(f.end(), payload.begin(), payload.end());
+  std::uint16_t crc = crc_calculate(f.data() + 1, static_cast<std::uint16_t>(f.size() - 1));
+  crc_accumulate(0x5B, &crc);
+  f.push_back(static_cast<std::uint8_t>(crc & 0xFF));
+  f.push_back(static_cast<std::uint8_t>(crc >> 8));
+  return f;
+}
+
 TEST(MavlinkParser, CountsEachKindOfBadInputExactly) {
   MavlinkEncoder ap(1, 1);
   std::vector<std::uint8_t> s;
@@ -770,12 +784,8 @@ TEST(MavlinkParser, CountsEachKindOfBadInputExactly) {
   };
   add(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));  // good
   // A well-formed MAVLink 2 frame of an id the common dialect lacks (another
-  // dialect's message: its CRC_EXTRA, 0x5B here, is unknown to us).
-  std::vector<std::uint8_t> other = {0xFD, 4, 0, 0, 7, 1, 1, 0xB8, 0x2A, 0x00, 1, 2, 3, 4};
-  std::uint16_t crc = crc_calculate(other.data() + 1, static_cast<std::uint16_t>(other.size() - 1));
-  crc_accumulate(0x5B, &crc);
-  other.push_back(static_cast<std::uint8_t>(crc & 0xFF));
-  other.push_back(static_cast<std::uint8_t>(crc >> 8));
+  // dialect's message: its CRC_EXTRA is unknown to us).
+  const auto other = otherDialectFrame(7, {1, 2, 3, 4});
   add(other);
   auto corrupt = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
   corrupt[12] ^= 0x21;  // a payload bit flipped in flight
@@ -1010,13 +1020,7 @@ TEST(MavlinkParser, AnotherDialectsFrameIsNotSearchedAgain) {
   MavlinkEncoder ap(1, 1);
   const auto hb = heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA);
   // A payload that holds a whole heartbeat frame, CRC and all.
-  std::vector<std::uint8_t> other = {
-      0xFD, static_cast<std::uint8_t>(hb.size()), 0, 0, 9, 1, 1, 0xB8, 0x2A, 0x00};
-  other.insert(other.end(), hb.begin(), hb.end());
-  std::uint16_t crc = crc_calculate(other.data() + 1, static_cast<std::uint16_t>(other.size() - 1));
-  crc_accumulate(0x5B, &crc);
-  other.push_back(static_cast<std::uint8_t>(crc & 0xFF));
-  other.push_back(static_cast<std::uint8_t>(crc >> 8));
+  const auto other = otherDialectFrame(9, hb);
   MavlinkParser parser;
   int good = 0;
   int unknown = 0;
