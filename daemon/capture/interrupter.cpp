@@ -36,9 +36,12 @@ Interrupter::Result Interrupter::wait(int fd, short events,
   const auto deadline = SteadyClock::now() + timeout;
   for (;;) {
     if (raised_.load()) return {Wake::Interrupted, 0, 0};
-    const auto left =
-        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - SteadyClock::now());
-    if (left.count() <= 0) return {Wake::Timeout, 0, 0};
+    // Rounded up: a wait that ends, as poll() counts, in whole milliseconds never
+    // times out before its deadline (truncating would return up to 1 ms early, and a
+    // paced frame would be handed over before the time it is stamped with).
+    const auto rest = deadline - SteadyClock::now();
+    if (rest.count() <= 0) return {Wake::Timeout, 0, 0};
+    const auto left = std::chrono::ceil<std::chrono::milliseconds>(rest);
     pollfd fds[2] = {{fd, events, 0}, {eventFd_, POLLIN, 0}};
     const auto slice = eventFd_ >= 0 ? left : std::min(left, kFallbackSlice);
     // A negative fd is ignored by poll(); so is the eventfd when it is missing.

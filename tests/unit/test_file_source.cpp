@@ -12,6 +12,7 @@
 #include "app/paced_source.h"
 #include "capture/file_source.h"
 #include "photos.h"
+#include "telemetry/link.h"
 
 namespace keyframed {
 namespace {
@@ -271,6 +272,25 @@ TEST(PacedSource, AJumpInTheTimestampsRestartsThePacing) {
   // on a busy machine, later; never earlier). Racing through the jump back would
   // deliver the last three at once, three periods (100 ms) sooner.
   EXPECT_GE(at.back() - at.front(), 180 * ms);  // six periods: 200 ms
+}
+
+// A camera delivers a frame after it captured it, never before: each frame is
+// handed over no earlier than the monotonic time it is stamped with, so that a
+// keyframe's capture time never follows the time it was decided at. Frame times
+// that fall inside a millisecond, as 30 fps does.
+TEST(PacedSource, NoFrameIsHandedOverBeforeItsStamp) {
+  std::vector<std::int64_t> times;
+  for (int n = 0; n < 40; ++n) times.push_back(n * 1'000'000'000LL / 301);
+  PacedSource src(std::make_unique<GapSource>(times), /*realtime=*/true, std::nullopt);
+  Frame f;
+  std::string err;
+  int frames = 0;
+  while (src.next(f, err) == ReadStatus::Frame) {
+    const std::int64_t handedOver = monotonicNowNs();
+    EXPECT_LE(f.timestampNs, handedOver) << "frame " << frames;
+    ++frames;
+  }
+  EXPECT_EQ(frames, 40) << err;
 }
 
 // A reader that comes late (a busy machine) gets the frames at once, each stamped
