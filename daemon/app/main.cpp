@@ -1,3 +1,5 @@
+#include <signal.h>
+
 #include <cstdio>
 #include <cstdlib>
 #include <exception>
@@ -36,6 +38,14 @@ int main(int argc, char** argv) {
   }
   const std::string command = args[0];
   args.erase(args.begin());
+  // A peer that hangs up (a Zenoh session refused mid-handshake, a ground station
+  // gone, a reader of stdout that quit) costs an EPIPE on that write, not the process:
+  // Rust ignores SIGPIPE in its own programs, not in a library inside ours, and a TLS
+  // stack that writes with writev() raises it.
+  struct sigaction ignore {};
+  ignore.sa_handler = SIG_IGN;
+  sigemptyset(&ignore.sa_mask);
+  sigaction(SIGPIPE, &ignore, nullptr);
   // FFmpeg (under OpenCV's video reader) would add its own lines to a bad video's one
   // error line ("moov atom not found"); ours say what failed. Set it to see FFmpeg's.
   setenv("OPENCV_FFMPEG_LOGLEVEL", "-8", /*overwrite=*/0);

@@ -294,6 +294,25 @@ def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
         assert make_reader(f).get_summary() is not None
 
 
+def test_sigpipe_does_not_kill_the_daemon(kf_bin: Path, short_nadir: Path, tmp_path: Path) -> None:
+    """A peer that hangs up (a Zenoh TLS session refused mid-handshake) raises SIGPIPE
+    where its stack writes with writev(): an EPIPE for that write, not the end of the
+    flight. Sent outright, it must not end the daemon either."""
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{free_port()}",
+        "telemetry.start_wait_ms=30000",
+    )
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGPIPE)
+    time.sleep(0.5)
+    assert proc.poll() is None, proc.communicate()[1]
+    stderr, _ = sigterm(proc)
+    assert proc.returncode == 0, stderr
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_sigterm_stops_within_a_second_with_everything_flushed(
     kf_bin: Path, short_nadir: Path, tmp_path: Path, sig: signal.Signals
