@@ -602,7 +602,7 @@ std::vector<Field> makeSchema() {
       }));
   f.push_back(integer(
       "output", "preview_width", [](auto& c) -> auto& { return c.output.previewWidth; },
-      R{0, 16384}));
+      R{0, 16384}, ZeroOr{16, "no preview"}));
   f.push_back(text(
       "output", "preview_format", [](auto& c) -> auto& { return c.output.previewFormat; },
       [](const std::string& s) -> std::string {

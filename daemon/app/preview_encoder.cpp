@@ -29,7 +29,8 @@ PreviewEncoder::PreviewEncoder(int width, Format format, double fps)
 
 cv::Size PreviewEncoder::sizeFor(int width, int height) const {
   if (width_ <= 0 || width <= 0) return {0, 0};
-  const int w = std::min(width_, width) & ~1;
+  // At least 2 wide (a YUV picture's chroma is half of it): halving stops there.
+  const int w = std::max(2, std::min(width_, width) & ~1);
   const int h = static_cast<int>(static_cast<std::int64_t>(height) * w / width) & ~1;
   return {w, h > 0 ? h : 2};
 }
@@ -66,10 +67,13 @@ bool PreviewEncoder::scaleYuv(const Frame& f) {
     u = GrayView::of(chromaUFull_);
     v = GrayView::of(chromaVFull_);
   } else {
-    const int cstride = (f.stride + 1) / 2;
-    u = GrayView{chroma, srcCw, srcCh, cstride};
-    v = GrayView{chroma + static_cast<std::size_t>(cstride) * static_cast<std::size_t>(srcCh),
-                 srcCw, srcCh, cstride};
+    // As the frame's planes are laid out and copied (planeSizes, frameBytes): rows of
+    // half the luma stride, rounded down, and no wider than that.
+    const int cstride = f.stride / 2;
+    const int cols = std::min(srcCw, cstride);
+    u = GrayView{chroma, cols, srcCh, cstride};
+    v = GrayView{chroma + static_cast<std::size_t>(cstride) * static_cast<std::size_t>(srcCh), cols,
+                 srcCh, cstride};
   }
   const GrayView luma{f.data, f.width, f.height, f.stride};
   return copyPlane(luma_.scale(luma, size.width, size.height), size.width, size.height, y) &&

@@ -407,13 +407,17 @@ void Daemon::analysisLoop() {
 
 void Daemon::analyse() {
   while (true) {
+    // Taken under the lock, applied outside it: applying may hand a keyframe to the
+    // output and wait for room there (a slow disk), and a reload meanwhile (the main
+    // thread, which also feeds the watchdog) must not wait for that.
+    std::optional<SelectorConfig> settings;
     {
       std::lock_guard lock(reloadMutex_);
-      if (pendingSelection_) {
-        stage_->reconfigure(*pendingSelection_);
-        pendingSelection_.reset();
-        KF_LOG(Select, Notice) << "selection settings reloaded";
-      }
+      settings.swap(pendingSelection_);
+    }
+    if (settings) {
+      stage_->reconfigure(*settings);
+      KF_LOG(Select, Notice) << "selection settings reloaded";
     }
     if (stopAnalysis_.load()) break;
     if (const int refused = captureRequests_.drainInto(*stage_); refused > 0) {

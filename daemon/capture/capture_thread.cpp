@@ -181,9 +181,19 @@ void CaptureThread::loop() {
     if (!fresh) {
       // Only until the first fresh frame: later timestamps are the stream's own.
       std::lock_guard lock(mutex_);
-      if (frame.timestampNs < discardBeforeNs_) {
+      if (frame.timestampNs < discardBeforeNs_ && stats_.stale < kMaxStaleFrames) {
         ++stats_.stale;
         continue;
+      }
+      // More than a camera's buffers can hold: not frames from before the start but a
+      // clock that lags this one (a loopback device fed presentation times, a driver
+      // stamping from its own counter). Thrown away for ever, they would keep the
+      // daemon from ever starting: kept, and said.
+      if (frame.timestampNs < discardBeforeNs_) {
+        KF_LOG(Capture, Warning)
+            << "the camera's timestamps lie " << (discardBeforeNs_ - frame.timestampNs) / 1'000'000
+            << " ms behind the start of the capture after " << stats_.stale
+            << " frames: its clock is not this machine's monotonic clock; the frames are kept";
       }
       fresh = true;
       stats_.lostBeforeStart = source_.lostFrames();

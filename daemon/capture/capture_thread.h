@@ -52,7 +52,10 @@ class CaptureThread {
   // hold when the capture starts (seconds later, after the telemetry wait) show the
   // past: until the first frame stamped at or after this instant (the source's
   // clock), frames are thrown away. The default keeps every frame.
+  // At most kMaxStaleFrames (more than a V4L2 queue's 32 buffers) are thrown away:
+  // a source whose clock lags far behind has its frames kept, with a warning.
   void start(std::int64_t discardBeforeNs = std::numeric_limits<std::int64_t>::min());
+  static constexpr std::uint64_t kMaxStaleFrames = 40;
   // Stops the thread and joins it: interrupts the source's next() (a camera
   // waiting for a frame returns at once; see FrameSource::interrupt, which is for
   // good) and any back-off wait.

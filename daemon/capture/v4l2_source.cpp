@@ -577,8 +577,12 @@ bool V4l2Source::reopen(std::string& error) {
   const std::string fourcc = fourcc_;
   shutdown();
   if (!start(error)) {
+    // start() may have got as far as a new format before failing: the next attempt
+    // compares with the layout from before the loss, not with that one's.
     shutdown();
     info_ = before;
+    stride_ = stride;
+    fourcc_ = fourcc;
     return false;
   }
   if (info_.width != before.width || info_.height != before.height || stride_ != stride ||
@@ -590,6 +594,7 @@ bool V4l2Source::reopen(std::string& error) {
     shutdown();
     info_ = before;
     stride_ = stride;
+    fourcc_ = fourcc;
     return false;
   }
   ++reopens_;

@@ -427,10 +427,14 @@ TEST(Config, ZeroOrAtLeastSettingsNameTheirOwnKeyAndLine) {
                  "2: selection.blur_width: must be 0 (full) or >= 32 (got 20)");
   expectOneError(dir, "[selection]\nmotion_ratio = 0.5\ntarget = 0.7\n",
                  "2: selection.motion_ratio: must be 0 (off) or >= 1 (got 0.5)");
+  // A preview a pixel wide would be no picture at all.
+  expectOneError(dir, "[output]\npreview_width = 1\n",
+                 "2: output.preview_width: must be 0 (no preview) or >= 16 (got 1)");
   TempDir ok;
-  for (const char* text :
-       {"[selection]\nanalysis_width = 0\nblur_width = 0\nmotion_ratio = 0\n",
-        "[selection]\nanalysis_width = 64\nblur_width = 32\nmotion_ratio = 1\n"}) {
+  for (const char* text : {"[selection]\nanalysis_width = 0\nblur_width = 0\nmotion_ratio = 0\n"
+                           "[output]\npreview_width = 0\n",
+                           "[selection]\nanalysis_width = 64\nblur_width = 32\nmotion_ratio = 1\n"
+                           "[output]\npreview_width = 16\n"}) {
     const ConfigLoadResult r = loadText(ok, text);
     EXPECT_TRUE(r.ok()) << text << joined(r.errors);
   }

@@ -342,6 +342,45 @@ TEST(CaptureThread, FramesHeldFromBeforeTheStartAreThrownAway) {
   EXPECT_EQ(st.lostBeforeStart, 96u);
 }
 
+// A source whose clock lags far behind (a loopback device fed presentation times
+// from 0): its frames are all "before the start". No camera holds more than
+// kMaxStaleFrames: past them, frames are kept, not thrown away for ever.
+TEST(CaptureThread, AClockFarBehindHasItsFramesKeptAfterABufferfulAreThrownAway) {
+  class LaggingClock final : public FrameSource {
+   public:
+    LaggingClock() {
+      info_.width = 16;
+      info_.height = 8;
+      pixels_.assign(16 * 8, 0);
+    }
+    const SourceInfo& info() const override { return info_; }
+    ReadStatus next(Frame& f, std::string&) override {
+      if (n_ >= 100) return ReadStatus::End;
+      f = Frame{PixelFormat::Gray8, pixels_.data(), 16, 8, 16, n_ * 33'000'000LL, n_};
+      ++n_;
+      return ReadStatus::Frame;
+    }
+
+   private:
+    SourceInfo info_;
+    std::vector<std::uint8_t> pixels_;
+    int n_ = 0;
+  };
+  LaggingClock src;
+  FramePool pool(128);
+  FrameQueue q(128);
+  CaptureThread capture(src, pool, q);
+  capture.start(3'600'000'000'000LL);  // an hour after boot
+  std::vector<std::int64_t> seen;
+  while (auto f = q.pop()) seen.push_back((*f)->frame.index);
+  capture.stop();
+  const auto st = capture.stats();
+  EXPECT_EQ(st.stale, CaptureThread::kMaxStaleFrames);
+  ASSERT_EQ(seen.size(), 100 - CaptureThread::kMaxStaleFrames);
+  EXPECT_EQ(seen.front(), static_cast<std::int64_t>(CaptureThread::kMaxStaleFrames));
+  EXPECT_EQ(seen.back(), 99);
+}
+
 TEST(CaptureThread, KeepsEveryFrameByDefault) {
   CountingSource src(50);
   FramePool pool(64);

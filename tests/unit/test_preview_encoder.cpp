@@ -33,7 +33,12 @@ CameraFrame cameraFrame(const cv::Mat& bgr, PixelFormat format, int stride) {
   const std::uint8_t* u = y + static_cast<std::size_t>(w) * h;
   const std::uint8_t* v = u + static_cast<std::size_t>(cw) * ch;
   CameraFrame c;
-  c.bytes.assign(static_cast<std::size_t>(stride) * (h + ch), 255);
+  // Exactly as long as the frame's planes (frameBytes): reading past them shows under
+  // AddressSanitizer.
+  const std::size_t chromaBytes = format == PixelFormat::NV12
+                                      ? static_cast<std::size_t>(stride) * ch
+                                      : 2 * static_cast<std::size_t>(stride / 2) * ch;
+  c.bytes.assign(static_cast<std::size_t>(stride) * h + chromaBytes, 255);
   for (int r = 0; r < h; ++r) std::memcpy(&c.bytes[std::size_t(r) * stride], y + r * w, w);
   std::uint8_t* chroma = c.bytes.data() + static_cast<std::size_t>(stride) * h;
   if (format == PixelFormat::NV12) {
@@ -43,7 +48,7 @@ CameraFrame cameraFrame(const cv::Mat& bgr, PixelFormat format, int stride) {
         chroma[r * stride + 2 * x + 1] = v[r * cw + x];
       }
   } else {
-    const int cs = (stride + 1) / 2;
+    const int cs = stride / 2;  // as planeSizes() lays out an I420 frame's chroma
     for (int r = 0; r < ch; ++r) {
       std::memcpy(chroma + r * cs, u + r * cw, cw);
       std::memcpy(chroma + cs * ch + r * cs, v + r * cw, cw);
@@ -88,7 +93,9 @@ TEST_F(PreviewEncoderTest, CameraYuvIsScaledPlaneByPlaneToTheSamePicture) {
   const double fromBgr = psnr(out, size);
   EXPECT_GT(fromBgr, 24.0);
   for (PixelFormat format : {PixelFormat::YUV420, PixelFormat::NV12}) {
-    for (int stride : {500, 532}) {  // tight, and padded rows as drivers give them
+    // Tight, padded rows as drivers give them, and an odd stride (chroma rows half
+    // of it, rounded down).
+    for (int stride : {500, 532, 501}) {
       SCOPED_TRACE(std::string(toString(format)) + " stride " + std::to_string(stride));
       const CameraFrame cam = cameraFrame(bgr_, format, stride);
       // Swapped or misplaced chroma, or padding read as picture, costs far more
@@ -194,6 +201,16 @@ TEST_F(PreviewEncoderTest, AStillIsAJpegOfThePreviewSizeInEveryFormat) {
   ASSERT_TRUE(full.still(Frame::ofBgr(bgr_, 0, 0), still)) << full.error();
   EXPECT_GT(psnr(still, bgr_.size()), 30.0);
   EXPECT_FALSE(PreviewEncoder(0).still(Frame::ofBgr(bgr_, 0, 0), still));
+}
+
+// A width under 2 (the configuration refuses one under 16) still makes a picture: 2
+// wide, as 4:2:0 chroma needs, never an empty size that OpenCV throws on.
+TEST(PreviewEncoder, ATinyWidthMakesATwoPixelWidePicture) {
+  std::vector<std::uint8_t> out;
+  const cv::Mat bgr(48, 64, CV_8UC3, cv::Scalar(10, 100, 200));
+  PreviewEncoder preview(1);
+  ASSERT_TRUE(preview.encode(Frame::ofBgr(bgr, 0, 0), out));
+  EXPECT_EQ(decode(out).size(), cv::Size(2, 2));
 }
 
 TEST(PreviewEncoder, OffOrEmptyEncodesNothing) {
