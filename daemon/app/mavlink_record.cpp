@@ -45,8 +45,11 @@ void MavlinkRecord::vehicle(const mavlink_message_t& msg, std::int64_t timeNs) {
     case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
       mavlink_attitude_quaternion_t a;
       mavlink_msg_attitude_quaternion_decode(&msg, &a);
+      // As telemetry reads them: an unset (zero) or NaN quaternion is no attitude.
+      const Quaternion q{a.q1, a.q2, a.q3, a.q4};
+      if (!usableRotation(q)) return;
       lastQuaternionNs_ = timeNs;
-      outputs_.vehicleAttitude(timeNs, {a.q1, a.q2, a.q3, a.q4});
+      outputs_.vehicleAttitude(timeNs, normalized(q));
       break;
     }
     case MAVLINK_MSG_ID_ATTITUDE: {
@@ -54,6 +57,7 @@ void MavlinkRecord::vehicle(const mavlink_message_t& msg, std::int64_t timeNs) {
       if (lastQuaternionNs_ >= 0 && timeNs - lastQuaternionNs_ < kQuaternionHoldNs) return;
       mavlink_attitude_t a;
       mavlink_msg_attitude_decode(&msg, &a);
+      if (!std::isfinite(a.roll) || !std::isfinite(a.pitch) || !std::isfinite(a.yaw)) return;
       outputs_.vehicleAttitude(timeNs, quaternionFromEuler(a.roll, a.pitch, a.yaw));
       break;
     }

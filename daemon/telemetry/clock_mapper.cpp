@@ -90,6 +90,11 @@ std::optional<std::int64_t> ClockMapper::arrivalMinusSystemTimeNs() const {
   return arrivals_.front().offsetNs - *utcMinusBootUs_ * 1000;
 }
 
+std::optional<std::int64_t> ClockMapper::arrivalOffsetNs() const {
+  if (arrivals_.empty()) return std::nullopt;
+  return arrivals_.front().offsetNs;
+}
+
 std::optional<std::int64_t> ClockMapper::toLocalNs(std::int64_t bootNs) const {
   const auto offset = offsetNs();
   if (!offset) return std::nullopt;

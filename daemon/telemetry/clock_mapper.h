@@ -66,6 +66,10 @@ class ClockMapper {
   // With the local clock UTC and SYSTEM_TIME known: how far the arrival (record)
   // times run ahead of the autopilot's UTC, the smallest latency included.
   [[nodiscard]] std::optional<std::int64_t> arrivalMinusSystemTimeNs() const;
+  // Local minus autopilot time as the arrivals measure it (the smallest latency
+  // included), on the clock the arrivals are stamped with, whatever the source: what
+  // places a sample stamped only with its arrival. Empty before any arrival.
+  [[nodiscard]] std::optional<std::int64_t> arrivalOffsetNs() const;
 
  private:
   struct Arrival {

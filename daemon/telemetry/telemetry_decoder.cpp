@@ -144,8 +144,11 @@ void TelemetryDecoder::handleGimbal(const mavlink_message_t& msg, std::int64_t l
     t = static_cast<std::int64_t>(g.time_boot_ms) * kMs;  // the autopilot's own clock
   } else {
     // A separate gimbal component counts time from its own boot: stamp the sample with
-    // its arrival instead, mapped onto the autopilot's timeline.
-    const auto offset = clock_.offsetNs();
+    // its arrival instead, mapped onto the autopilot's timeline by the arrivals of the
+    // autopilot's own samples (the same link, the same latency). Not by offsetNs():
+    // replaying a tlog that is GPS time (UTC - boot), and the arrivals are the record
+    // station's clock, seconds off it may be.
+    const auto offset = clock_.arrivalOffsetNs();
     if (!offset) return;
     t = localNs - *offset;
   }

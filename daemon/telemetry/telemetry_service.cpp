@@ -299,6 +299,12 @@ void TelemetryService::onCommandAck(const mavlink_message_t& msg) {
       from != rates_.autopilot || a.result == MAV_RESULT_IN_PROGRESS) {
     return;
   }
+  // On a shared link the autopilot also answers a ground station's own request: one
+  // addressed to another (MAVLink 2 says to whom; MAVLink 1 leaves 0) is not ours.
+  if (a.target_system != 0 &&
+      (a.target_system != systemId() || a.target_component != config_.componentId)) {
+    return;
+  }
   const bool accepted = a.result == MAV_RESULT_ACCEPTED;
   {
     std::lock_guard lock(mutex_);

@@ -615,10 +615,18 @@ def test_offline_record_carries_the_tlog_and_the_chosen_autopilot_only(
     )
     ekf_bytes = bytes(ekf.pack(ardupilotmega.MAVLink(None, srcSystem=1, srcComponent=1)))
     stranger = bytes(ekf.pack(ardupilotmega.MAVLink(None, srcSystem=77, srcComponent=1)))
+    # The autopilot's estimator not aligned yet: a zero quaternion and NaN angles are
+    # no attitude, on /vehicle/pose as for the tags (recorded raw all the same).
+    ap = ardupilotmega.MAVLink(None, srcSystem=1, srcComponent=1)
+    unset = bytes(ap.attitude_quaternion_encode(10**7, 0, 0, 0, 0, 0, 0, 0).pack(ap))
+    nan = float("nan")
+    no_angles = bytes(ap.attitude_encode(10**7 + 1, nan, nan, nan, 0, 0, 0).pack(ap))
     with tlog.open("ab") as f:
         f.write(struct.pack(">Q", last + 1) + ekf_bytes)
         f.write(struct.pack(">Q", last + 2) + stranger)
-    packets = sorted(packets + [ekf_bytes])
+        f.write(struct.pack(">Q", last + 3) + unset)
+        f.write(struct.pack(">Q", last + 3_000_000) + no_angles)
+    packets = sorted(packets + [ekf_bytes, unset, no_angles])
 
     for system, lat0 in ((1, 51.89), (2, 52.89)):
         rec = tmp_path / f"sys{system}.mcap"
@@ -640,4 +648,9 @@ def test_offline_record_carries_the_tlog_and_the_chosen_autopilot_only(
         fixes = decoded(rec, "/vehicle/location")
         assert len(fixes) == (own if system == 1 else other) > 0
         assert all(abs(f.latitude - lat0) < 0.01 for f in fixes), (system, fixes[0])
-        assert len(decoded(rec, "/vehicle/pose")) > len(fixes)
+        poses = decoded(rec, "/vehicle/pose")
+        assert len(poses) > len(fixes)
+        for p in poses:
+            o = p.pose.orientation
+            norm = math.sqrt(o.x * o.x + o.y * o.y + o.z * o.z + o.w * o.w)
+            assert abs(norm - 1.0) < 1e-6, p

@@ -1254,6 +1254,51 @@ TEST(TelemetryDecoder, ReadsTheVehiclesGimbalInItsFrame) {
   EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -30 * kDeg, 90 * kDeg)), 0.0, 1e-6);
 }
 
+// A tlog recorded by a station whose clock ran 3 s ahead of GPS time: the frames are
+// placed by SYSTEM_TIME, and a separate gimbal component's reports (stamped with
+// their arrival, the station's clock) must land at the same boot times as the
+// autopilot's samples that came with them, not 3 s later.
+TEST(TelemetryDecoder, ASeparateGimbalInATlogOnAWrongClockIsPlacedByTheAutopilotsArrivals) {
+  TelemetryDecoder dec;
+  dec.setLocalClockIsUtc(true);
+  MavlinkEncoder ap(1, 1), gimbal(1, MAV_COMP_ID_GIMBAL);
+  MavlinkParser parser;
+  const std::int64_t utc0 = 1'790'000'000'000'000'000;  // UTC at the autopilot's boot
+  const std::int64_t ahead = 3'000 * kMs;               // the station's clock error
+  auto push = [&](const std::vector<std::uint8_t>& pkt, std::int64_t recordNs) {
+    parser.feed(pkt.data(), pkt.size(),
+                [&](const mavlink_message_t& m) { dec.handle(m, recordNs); });
+  };
+  // The gimbal pitches down by 1 degree every 100 ms of boot time, from -10 at 1.0 s.
+  const auto pitchAt = [](std::int64_t bootMs) {
+    return -10.0 - static_cast<double>(bootMs - 1000) / 100.0;
+  };
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4), utc0 + ahead + 900 * kMs);
+  for (std::int64_t ms = 1000; ms <= 2500; ms += 100) {
+    const std::int64_t record = utc0 + ahead + ms * kMs;
+    const auto boot = static_cast<std::uint32_t>(ms);
+    push(attitudeQ(ap, boot, Quaternion{}), record);
+    push(ap.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+      mavlink_msg_system_time_pack_status(
+          s, c, st, m, static_cast<std::uint64_t>((utc0 + ms * kMs) / 1000), boot);
+    }),
+         record);
+    // Its own clock: 777 s since the gimbal's boot.
+    push(gimbalStatus(gimbal, static_cast<std::uint32_t>(777'000 + ms),
+                      quaternionFromEuler(0, pitchAt(ms) * kDeg, 0),
+                      GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME),
+         record);
+  }
+  ASSERT_EQ(dec.clockSource(), ClockMapper::Source::SystemTime);
+  EXPECT_EQ(dec.stats().gimbal, 16U);
+  // A frame at boot time 1.55 s (its local time UTC, from --video-start).
+  const Pose p = dec.poseAt(utc0 + 1550 * kMs);
+  ASSERT_TRUE(p.attitude.has_value()) << p.staleReason;
+  ASSERT_TRUE(p.gimbal.has_value()) << p.gimbalReason;
+  EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, pitchAt(1550) * kDeg, 0)) / kDeg, 0.0,
+              0.01);
+}
+
 TEST(TelemetryDecoder, LegacyYawLockMeansEarthFrame) {
   TelemetryDecoder dec;
   MavlinkEncoder ap(1, 1);

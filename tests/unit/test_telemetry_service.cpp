@@ -772,11 +772,14 @@ TEST(TelemetryService, AFrameCutShortBeforeAReopenDoesNotSwallowTheNext) {
   EXPECT_EQ(svc.stats().parser.messages, 1U);
 }
 
+// To nobody in particular (as MAVLink 1 has it), or to the given system and component.
 std::vector<std::uint8_t> commandAck(MavlinkEncoder& enc, std::uint16_t command,
-                                     std::uint8_t result) {
+                                     std::uint8_t result, std::uint8_t targetSystem = 0,
+                                     std::uint8_t targetComponent = 0) {
   return enc.encode(
       [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-        mavlink_msg_command_ack_pack_status(s, c, st, m, command, result, 0, 0, 0, 0);
+        mavlink_msg_command_ack_pack_status(s, c, st, m, command, result, 0, 0, targetSystem,
+                                            targetComponent);
       });
 }
 
@@ -819,9 +822,13 @@ TEST(TelemetryService, AsksTheAutopilotForItsMessageRatesUntilItAnswers) {
   // An acknowledgement from another component, or of another command, is not the answer.
   peer.push(commandAck(gimbal, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED));
   peer.push(commandAck(ap, MAV_CMD_REQUEST_MESSAGE, MAV_RESULT_ACCEPTED));
-  peer.push(commandAck(ap, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED));
+  // Nor the autopilot's answer to a ground station's own request on the same link.
+  peer.push(commandAck(ap, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED, 255, 190));
+  peer.push(commandAck(ap, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_ACCEPTED, 1,
+                       static_cast<std::uint8_t>(cfg.componentId)));
   ASSERT_TRUE(eventually([&] { return svc.stats().rateAccepted == 1; }));
   std::this_thread::sleep_for(std::chrono::milliseconds(2300));
+  EXPECT_EQ(svc.stats().rateAccepted, 1U) << "the ground station's answer was taken";
   EXPECT_EQ(rates().size(), 8U) << "answered: not asked again";
   EXPECT_EQ(svc.stats().rateRequests, 8U);
   svc.stop();
