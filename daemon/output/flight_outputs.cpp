@@ -101,9 +101,15 @@ struct FlightOutputs::Impl {
     std::string meta;
   };
   static constexpr std::size_t kMaxQueuedPuts = 8;
+  // Keyframes the disk did not take wait for the link past kMaxQueuedPuts (the link is
+  // their way out), but not past this many bytes: a full disk over a slow radio would
+  // grow the queue by the keyframe rate for as long as it lasts. Past it they are
+  // served by the queryable from memory (KeyframePublisher::keepUnsaved).
+  static constexpr std::size_t kMaxQueuedPutBytes = 32u << 20;
   std::mutex putMutex;
   std::condition_variable putCv;
   std::deque<Put> puts;
+  std::size_t putBytes = 0;  // the JPEGs in puts
   bool putStop = false;
   std::thread putThread;
   std::int64_t putsSkipped = 0;  // left to the queryable (output thread)
@@ -131,6 +137,7 @@ struct FlightOutputs::Impl {
       if (puts.empty()) return;  // stopping, all put
       Put p = std::move(puts.front());
       puts.pop_front();
+      putBytes -= p.jpeg.size();
       lock.unlock();
       put(p.sequence, p.jpeg, p.meta);
       lock.lock();
@@ -437,7 +444,9 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     std::lock_guard lock(impl_->putMutex);
     // One that could not be saved (a full disk) is not on disk for the queryable: the
     // link is its only way out, so it waits for the link whatever the queue holds.
-    if (impl_->puts.size() < Impl::kMaxQueuedPuts || !rec.indexed) {
+    if (impl_->puts.size() < Impl::kMaxQueuedPuts ||
+        (!rec.indexed && impl_->putBytes + jpeg.size() <= Impl::kMaxQueuedPutBytes)) {
+      impl_->putBytes += jpeg.size();
       impl_->puts.push_back({rec.sequence, {jpeg.begin(), jpeg.end()}, meta});
       impl_->putCv.notify_one();
       return;

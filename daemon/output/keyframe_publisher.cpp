@@ -507,9 +507,12 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
       // A whole flight in one answer would hold a radio link for minutes, past any
       // querier's timeout, while it asked again: the rest is asked for by range.
       std::string ignored;
+      // The parameters to ask with, as they stand: the range's end and the flight kept,
+      // so that a querier that follows them gets the rest of what it asked for.
       reply.fail("at most " + std::to_string(kMaxRepliesPerQuery) +
                      " keyframes a query: ask again with range=" + std::to_string(r.sequence) +
-                     "..",
+                     ".." + (final == INT64_MAX ? std::string() : std::to_string(final)) +
+                     (flight.empty() ? std::string() : ";flight=" + flight),
                  ignored);
       return;
     }

@@ -677,9 +677,37 @@ def test_hostile_metadata_costs_only_itself(tagged: Path, tmp_path: Path) -> Non
         assert ds.add({"sequence": seq, "file": jpeg.name, "cam_q": q}, jpeg.read_bytes())
     with pytest.raises(ValueError, match="not believed"):  # would make missing() endless
         ds.add({"sequence": 10**12, "file": "x.jpg"}, jpegs[0].read_bytes())
+    # A number too large for a float where a position goes: no position, no crash.
+    assert ds.add(
+        {"sequence": 4, "file": "big.jpg", "lat": 10**400, "lon": 7.0, "alt": 10**400},
+        jpegs[0].read_bytes(),
+    )
+    assert ds.progress().startswith("uav8: 5 keyframes")
+    # Names another keyframe holds, or that are no JPEG's (a .tmp is thrown away on
+    # resume, the index is the dataset's own): each image kept under a name of its
+    # own, none overwritten.
+    for seq, name in (
+        (5, jpegs[1].name),
+        (6, "x.jpg.tmp"),
+        (7, "keyframes.jsonl"),
+        (8, "seq000009.jpg"),
+        (9, ""),
+    ):
+        assert ds.add({"sequence": seq, "file": name}, jpegs[seq % 4].read_bytes())
+    names = {m["file"] for m in ds.meta.values()}
+    assert len(names) == 10 and all(n.endswith(".jpg") for n in names), names
+    assert (ds.images / jpegs[1].name).read_bytes() == jpegs[1].read_bytes()
+    for m in ds.meta.values():
+        assert (ds.images / m["file"]).read_bytes() == jpegs[m["sequence"] % 4].read_bytes()
     summary = ds.finish()
-    assert summary["keyframes"] == 4 and summary["missing"] == [], summary
-    assert summary["pairs"] >= 3 and (ds.dir / "geo.txt").read_text().count("\n") == 5
+    assert summary["keyframes"] == 10 and summary["missing"] == [], summary
+    assert summary["pairs"] >= 3 and (ds.dir / "geo.txt").read_text().count("\n") == 11
+    # Resumed, the names are known: a new keyframe takes none of them.
+    again = VehicleDataset(tmp_path, "uav8", None)
+    assert len(again.meta) == 10
+    assert again.add({"sequence": 10, "file": jpegs[2].name}, jpegs[2].read_bytes())
+    assert (again.images / jpegs[2].name).read_bytes() == jpegs[2].read_bytes()
+    assert again.meta[("", 10)]["file"] == "seq000010.jpg"
 
 
 def test_the_sift_worker_leaves_ctrl_c_to_the_station() -> None:

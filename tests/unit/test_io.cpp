@@ -864,6 +864,62 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
       << warnings[1];
 }
 
+// A full disk over a slow link: keyframes the disk did not take wait for the link
+// past the usual 8, but only up to 32 MB of them; the rest are left to the queryable,
+// which serves them from memory, so the queue does not grow for as long as it lasts.
+TEST(FlightOutputs, UnsavedKeyframesWaitingForASlowLinkAreBoundedInBytes) {
+  FlightOutputOptions o;
+  o.zenohConfig = isolatedZenohConfig();
+  o.vehicle = "unit";
+  o.offline = false;
+  std::vector<std::string> warnings;
+  o.warn = [&warnings](const std::string& m) { warnings.push_back(m); };
+  FlightOutputs outputs;
+  std::string error;
+  ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
+  std::mutex m;
+  std::condition_variable cv;
+  bool released = false;
+  std::vector<std::int64_t> tried;
+  outputs.setKeyframePutForTesting(
+      [&](std::span<const std::uint8_t>, const std::string& meta, std::string&) {
+        std::unique_lock lock(m);
+        const auto at = meta.find("\"sequence\":");
+        tried.push_back(std::stoll(meta.substr(at + 11)));
+        cv.notify_all();
+        cv.wait(lock, [&] { return released; });
+        return true;
+      });
+  std::vector<std::uint8_t> jpeg(1u << 20, 0x55);  // 1 MB keyframes
+  jpeg[0] = 0xFF;
+  jpeg[1] = 0xD8;
+  const auto keyframe = [&](std::int64_t i) {
+    KeyframeRecord r;
+    r.sequence = i;
+    r.frameIndex = i;
+    r.indexed = false;  // the disk is full
+    outputs.keyframe(r, jpeg);
+  };
+  keyframe(0);
+  {
+    std::unique_lock lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, std::chrono::seconds(10), [&] { return !tried.empty(); }));
+  }
+  for (std::int64_t i = 1; i <= 40; ++i) keyframe(i);
+  ASSERT_EQ(warnings.size(), 1U);
+  EXPECT_NE(warnings[0].find("keyframe 33 left to the queryable"), std::string::npos)
+      << warnings[0];
+  {
+    std::lock_guard lock(m);
+    released = true;
+  }
+  cv.notify_all();
+  ASSERT_TRUE(outputs.close("done", error)) << error;
+  std::vector<std::int64_t> expected;
+  for (std::int64_t i = 0; i <= 32; ++i) expected.push_back(i);
+  EXPECT_EQ(tried, expected);
+}
+
 // A live run's frame in its record: its decision (index and time) and its picture.
 void recordFrame(FlightOutputs& outputs, std::int64_t index, std::int64_t t,
                  std::span<const std::uint8_t> picture, const char* format) {

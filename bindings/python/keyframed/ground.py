@@ -663,6 +663,7 @@ class VehicleDataset:
         self.images.mkdir(parents=True, exist_ok=True)
         self.lock = threading.Lock()
         self.meta: dict[Key, dict[str, Any]] = {}
+        self.names: set[str] = set()  # the images' names, one per keyframe
         self.flights: list[str] = []  # in the order first heard of
         self.duplicates = 0
         self.fetched = 0
@@ -721,6 +722,7 @@ class VehicleDataset:
                         flight = str(m.get("flight") or "")
                         self._flight(flight)
                         self.meta[(flight, int(m["sequence"]))] = m
+                        self.names.add(m["file"])
                 except (ValueError, KeyError):
                     continue
             # The flight whose images have plain names stays the one (the index is
@@ -747,6 +749,20 @@ class VehicleDataset:
                 print(f"keyframed-ground: {self.vehicle}: SIFT not queued: {err}", file=sys.stderr)
                 return
             self.sift_jobs.append(job)
+
+    def _unused_name(self, name: str, flight: str, seq: int) -> str:
+        """``name`` when it is a JPEG's name no other keyframe holds (under the lock);
+        else one made from the flight and sequence number. The name comes from the
+        sender: one already taken would overwrite another keyframe's image, one that
+        is no ``.jpg`` (a ``.tmp``, the index's own) would be thrown away or clash."""
+        if name.endswith(".jpg") and not name.startswith(".") and name not in self.names:
+            return name
+        stem = f"{flight}_seq{seq:06d}" if flight else f"seq{seq:06d}"
+        candidate, n = f"{stem}.jpg", 1
+        while candidate in self.names:
+            n += 1
+            candidate = f"{stem}_{n}.jpg"
+        return candidate
 
     def _flight(self, flight: str) -> bool:
         """Notes a flight (under the lock); True for the dataset's first."""
@@ -870,6 +886,8 @@ class VehicleDataset:
                 return False
             if not self._flight(flight):
                 name = f"{flight}_{name}"
+            name = self._unused_name(name, flight, seq)
+            self.names.add(name)
             meta = dict(meta, file=name)
             _write_atomic(self.images / name, jpeg)
             self.meta[(flight, seq)] = meta
@@ -1027,10 +1045,13 @@ class VehicleDataset:
 
 
 def _float_or_none(v: Any) -> float | None:
+    """A metadata value as a finite number; None for anything else (an integer too
+    large for a float, inf and NaN included)."""
     try:
-        return float(v) if v not in (None, "") else None
-    except (TypeError, ValueError):
+        f = float(v) if v not in (None, "") else None
+    except (TypeError, ValueError, OverflowError):
         return None
+    return f if f is not None and math.isfinite(f) else None
 
 
 def _quaternion_or_none(v: Any) -> list[float] | None:
