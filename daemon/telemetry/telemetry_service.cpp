@@ -113,25 +113,32 @@ void TelemetryService::advanceReplay(std::int64_t localNs) {
   constexpr std::int64_t kMax = std::numeric_limits<std::int64_t>::max();
   const std::size_t from = replayFed_;
   // A tlog whose record times run ahead of the autopilot's GPS time (a station's clock
-  // set wrong; the frames follow GPS time) is fed that much further ahead: once
-  // SYSTEM_TIME has told by how much, which may change the limit, hence the loop.
-  std::int64_t ahead = -1;
-  for (;;) {
-    const std::int64_t now = std::max<std::int64_t>(0, decoder_.recordClockAheadNs().value_or(0));
-    if (now == ahead) break;
-    ahead = now;
-    const std::int64_t lead = kReplayLeadNs + std::min<std::int64_t>(ahead, kMax / 4);
+  // set wrong; the frames follow GPS time) is fed that much further ahead, one that
+  // runs behind that much less far: once SYSTEM_TIME has told by how much. That may
+  // change with any packet, so the limit is worked out again after each one that
+  // changed it: fed to the old limit, a station minutes behind would push the
+  // history past the frame's own samples (PoseStore keeps two minutes).
+  for (bool again = true; again;) {
+    again = false;
+    const std::optional<std::int64_t> ahead = decoder_.recordClockAheadNs();
+    const std::int64_t lead =
+        kReplayLeadNs + std::clamp<std::int64_t>(ahead.value_or(0), -kMax / 4, kMax / 4);
     // Until SYSTEM_TIME says how far ahead the record times run, a frame time before
     // the first record feeds the records' start: a station clock further ahead than
     // the lead would otherwise never let the first SYSTEM_TIME through.
-    const std::int64_t base =
-        replayPackets_.empty() ? localNs : std::max(localNs, replayPackets_.front().timeNs);
-    const std::int64_t until = base > kMax - lead ? kMax : base + lead;
-    for (; replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until;
-         ++replayFed_) {
-      const TimedPacket& p = replayPackets_[replayFed_];
+    const std::int64_t base = replayPackets_.empty() || ahead
+                                  ? localNs
+                                  : std::max(localNs, replayPackets_.front().timeNs);
+    const std::int64_t until =
+        lead >= 0 && base > kMax - lead ? kMax : std::max(base, -kMax / 2) + lead;
+    while (replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until) {
+      const TimedPacket& p = replayPackets_[replayFed_++];
       parser_.feed(p.bytes.data(), p.bytes.size(),
                    [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
+      if (decoder_.recordClockAheadNs() != ahead) {
+        again = true;
+        break;
+      }
     }
   }
   if (replayFed_ == from) return;

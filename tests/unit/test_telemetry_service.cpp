@@ -248,6 +248,49 @@ TelemetryServiceConfig serviceConfig() {
   return c;
 }
 
+// A tlog recorded by a station whose clock ran 200 s behind GPS time (no RTC, no
+// NTP): the frames follow GPS time, and each is fed the records up to its own time
+// and a little after, not 200 s of them more, which would push the history (two
+// minutes) past its own samples and leave the survey's first minutes untagged.
+TEST(TelemetryService, ATlogFarBehindGpsTimeIsFedOnlyAsFarAsEachFrame) {
+  MavlinkEncoder ap(1, 1);
+  const std::int64_t utc0 = 1'790'000'000'000'000'000;  // UTC at the autopilot's boot
+  const std::int64_t behind = 200'000 * kMs;
+  std::vector<TimedPacket> packets;
+  const auto add = [&](std::int64_t bootMs, std::vector<std::uint8_t> bytes) {
+    packets.push_back({utc0 - behind + bootMs * kMs, std::move(bytes)});
+  };
+  add(900, quadHeartbeat(ap));
+  for (std::int64_t ms = 1000; ms <= 300'000; ms += 200) {
+    const auto boot = static_cast<std::uint32_t>(ms);
+    add(ms,
+        ap.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+          const float q[4] = {1, 0, 0, 0};
+          mavlink_msg_attitude_quaternion_pack_status(s, c, st, m, boot, q[0], q[1], q[2], q[3], 0,
+                                                      0, 0, nullptr);
+        }));
+    if (ms % 1000 == 0) {
+      add(ms, ap.encode(
+                  [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+                    mavlink_msg_system_time_pack_status(
+                        s, c, st, m, static_cast<std::uint64_t>((utc0 + ms * kMs) / 1000), boot);
+                  }));
+    }
+  }
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  svc.startFromPackets(std::move(packets), /*utc=*/true);
+  for (const std::int64_t s : {5, 60, 150, 290}) {
+    const std::int64_t frame = utc0 + s * 1000 * kMs;  // the frame's GPS time
+    svc.advanceReplay(frame);
+    const Pose p = svc.decoder().poseAt(frame);
+    EXPECT_TRUE(p.attitude.has_value()) << "frame at boot time " << s << " s: " << p.staleReason;
+  }
+  ASSERT_TRUE(svc.decoder().recordClockAheadNs().has_value());
+  EXPECT_NEAR(static_cast<double>(*svc.decoder().recordClockAheadNs()),
+              static_cast<double>(-behind), 1e6);
+  svc.stop();
+}
+
 TEST(TelemetryService, TimesyncOnlyFromTheAutopilotAndOnlyForOurOwnRequests) {
   Peer peer;
   TelemetryService svc(serviceConfig(), CameraDescription{});
