@@ -100,6 +100,7 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
 
 void TelemetryService::startFromPackets(std::vector<TimedPacket> packets, bool utc) {
   replay_ = true;
+  replayUtc_ = utc;
   decoder_.setLocalClockIsUtc(utc);
   startNs_ = monotonicNowNs();
   replayPackets_ = std::move(packets);
@@ -133,8 +134,10 @@ void TelemetryService::advanceReplay(std::int64_t localNs) {
         lead >= 0 && base > kMax - lead ? kMax : std::max(base, -kMax / 2) + lead;
     while (replayFed_ < replayPackets_.size() && replayPackets_[replayFed_].timeNs <= until) {
       const TimedPacket& p = replayPackets_[replayFed_++];
-      parser_.feed(p.bytes.data(), p.bytes.size(),
-                   [&](const mavlink_message_t& m) { decoder_.handle(m, p.timeNs); });
+      parser_.feed(p.bytes.data(), p.bytes.size(), [&](const mavlink_message_t& m) {
+        decoder_.handle(m, p.timeNs);
+        if (m.msgid == MAVLINK_MSG_ID_TIMESYNC && !replayUtc_) replayTimesync(m, p.timeNs);
+      });
       if (decoder_.recordClockAheadNs() != ahead) {
         again = true;
         break;
@@ -145,6 +148,22 @@ void TelemetryService::advanceReplay(std::int64_t localNs) {
   std::lock_guard lock(mutex_);
   stats_.parser = parser_.stats();
   stats_.parser.skippedBytes += replaySkippedBytes_;
+}
+
+void TelemetryService::replayTimesync(const mavlink_message_t& msg, std::int64_t timeNs) {
+  // A flight record's MAVLink is on the live run's clock, TIMESYNC answers included:
+  // the clock is mapped by them again, as it was live (by arrivals alone it would be
+  // off by the link's smallest latency, tens of ms over a radio). The requests are
+  // not in the record: an answer from the autopilot echoing a time of ours from the
+  // last few seconds (as onTimesync keeps them) stands for one.
+  mavlink_timesync_t ts;
+  mavlink_msg_timesync_decode(&msg, &ts);
+  if (ts.tc1 == 0 || msg.sysid != decoder_.autopilotSystem() ||
+      msg.compid != decoder_.autopilotComponent() || ts.ts1 > timeNs ||
+      timeNs - ts.ts1 > kTimesyncRequestAgeNs) {
+    return;
+  }
+  decoder_.handleTimesync(ts.tc1, ts.ts1, timeNs);
 }
 
 void TelemetryService::stop() {

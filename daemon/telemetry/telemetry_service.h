@@ -195,7 +195,10 @@ class TelemetryService {
   RawSink sink_;
   std::mutex logMutex_;
   LogSink logSink_;
+  // A TIMESYNC answer in a replay of a flight record: the clock mapped by it as live.
+  void replayTimesync(const mavlink_message_t& msg, std::int64_t timeNs);
   bool replay_ = false;
+  bool replayUtc_ = false;  // the replay's times are unix time (a tlog), not the live clock
   std::vector<TimedPacket> replayPackets_;
   std::mutex replayMutex_;
   std::size_t replayFed_ = 0;             // packets of replayPackets_ given to the decoder
