@@ -109,7 +109,18 @@ struct FlightOutputs::Impl {
   std::mutex putMutex;
   std::condition_variable putCv;
   std::deque<Put> puts;
-  std::size_t putBytes = 0;  // the JPEGs in puts
+  std::size_t putBytes = 0;   // the JPEGs in puts
+  std::int64_t putting = -1;  // the sequence number being put, -1: none
+  // Of `count` keyframes, how many are out: put, or left to the queryable. Not those
+  // still queued (nor any after the first of them): a ground station told of them
+  // would ask the queryable for what is on its way, doubling it on a slow link.
+  std::int64_t keyframesOut(std::int64_t count) {
+    std::lock_guard lock(putMutex);
+    std::int64_t out = count;
+    if (putting >= 0) out = std::min(out, putting);
+    if (!puts.empty()) out = std::min(out, puts.front().sequence);
+    return out;
+  }
   bool putStop = false;
   std::thread putThread;
   std::int64_t putsSkipped = 0;  // left to the queryable (output thread)
@@ -138,9 +149,11 @@ struct FlightOutputs::Impl {
       Put p = std::move(puts.front());
       puts.pop_front();
       putBytes -= p.jpeg.size();
+      putting = p.sequence;
       lock.unlock();
       put(p.sequence, p.jpeg, p.meta);
       lock.lock();
+      putting = -1;
     }
   }
   // The keyframes still queued are put before it returns.
@@ -475,6 +488,10 @@ void FlightOutputs::setKeyframePutForTesting(KeyframePut put) {
   impl_->putForTesting = std::move(put);
 }
 
+std::int64_t FlightOutputs::keyframesOut(std::int64_t kept) const {
+  return impl_->keyframesOut(kept);
+}
+
 void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
   impl_->framesRead = framesRead;
   if (!impl_->publisher) return;
@@ -484,7 +501,7 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
   std::string ignored;
   impl_->publisher->publishStatus(
       "{\"state\":\"running\",\"frames\":" + std::to_string(framesRead) +
-          ",\"kept\":" + std::to_string(kept) + impl_->flightField() + "}",
+          ",\"kept\":" + std::to_string(keyframesOut(kept)) + impl_->flightField() + "}",
       ignored);
 }
 

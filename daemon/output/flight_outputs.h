@@ -85,8 +85,12 @@ class FlightOutputs {
   // The vehicle's pose (JSON) on Zenoh's .../telemetry key.
   void telemetry(const std::string& json);
   [[nodiscard]] bool publishing() const;  // a Zenoh session is open
-  // Progress (status on Zenoh about once a second).
+  // Progress (status on Zenoh about once a second): its `kept` is keyframesOut(kept).
   void progress(std::int64_t framesRead, std::int64_t kept);
+  // Of the first `kept` keyframes (sequence numbers 0..kept-1), how many are out on
+  // the link: put, or left to the queryable; not one still waiting to be put, nor any
+  // after it. Thread-safe.
+  [[nodiscard]] std::int64_t keyframesOut(std::int64_t kept) const;
   // One line of the daemon's log into the record's /keyframed/log, stamped now.
   // Thread-safe and never waits (the logger calls it under its lock); level is a
   // syslog priority (3 error ... 7 debug).

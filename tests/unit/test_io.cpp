@@ -851,6 +851,9 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(2));
   ASSERT_EQ(warnings.size(), 1U);
   EXPECT_NE(warnings[0].find("keyframe 9 left to the queryable"), std::string::npos) << warnings[0];
+  // The status tells a ground station of none of them yet: keyframe 0 is still on its
+  // way (9 to 11, left to the queryable, are told of once 0 to 8 are out).
+  EXPECT_EQ(outputs.keyframesOut(14), 0);
   {
     std::lock_guard lock(m);
     released = true;
@@ -859,6 +862,7 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   // close() puts what is queued first.
   ASSERT_TRUE(outputs.close("done", error)) << error;
   EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13}));
+  EXPECT_EQ(outputs.keyframesOut(14), 14);
   ASSERT_EQ(warnings.size(), 2U);
   EXPECT_NE(warnings[1].find("3 keyframes left to the queryable"), std::string::npos)
       << warnings[1];
