@@ -99,6 +99,69 @@ def test_bgr_input_and_bad_arrays():
         sel.process(np.zeros((4, 4), np.float32), 1)
 
 
+def test_arrays_the_core_cannot_read_are_refused():
+    """An empty array, rows that do not follow one another (a flipped or broadcast
+    view), a negative frame index, a sampling step of 0: refused with a ValueError,
+    never read out of bounds; a slice of a larger array reads as itself."""
+    sel = keyframed.KeyframeSelector()
+    read = cv2.imread(str(PHOTOS / "aero3.jpg"), cv2.IMREAD_GRAYSCALE)
+    assert read is not None
+    grey: np.ndarray = np.asarray(read, dtype=np.uint8)
+    bgr: np.ndarray = np.ascontiguousarray(np.dstack([grey, grey, grey]))
+    bad: list[tuple[np.ndarray, str]] = [
+        (np.zeros((0, 1000), np.uint8), "empty"),
+        (np.zeros((10, 0), np.uint8), "empty"),
+        (np.zeros((0, 10, 3), np.uint8), "empty"),
+        (np.flipud(grey), "rows"),
+        (np.broadcast_to(grey[:1], grey.shape), "rows"),
+        (np.flipud(bgr), "rows"),
+    ]
+    for image, why in bad:
+        with pytest.raises(ValueError, match=why):
+            sel.process(image, 0)
+        with pytest.raises(ValueError, match=why):
+            keyframed.SharpnessScorer().score(image if image.ndim == 2 else image[:, :, 0])
+    with pytest.raises(ValueError, match="index"):
+        sel.process(grey, -1)
+    with pytest.raises(ValueError, match="step"):
+        keyframed.sampled_laplacian_variance(grey, 0, 3)
+    # Nothing refused was taken half-way: the first good frame is the first keyframe.
+    assert sel.process(grey, 0)["reason"] == "first"
+    view: np.ndarray = grey[10:200, 20:300]
+    assert keyframed.reference_laplacian_variance(view) == keyframed.reference_laplacian_variance(
+        view.copy()
+    )
+
+
+def test_one_selector_from_two_threads_takes_turns(pan_video: Path) -> None:
+    """process() lets go of the GIL; two threads on one selector take turns on its
+    lock instead of racing on its state: every frame decided once, none lost."""
+    import threading
+
+    cap = cv2.VideoCapture(str(pan_video))
+    frames: list[np.ndarray] = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(np.asarray(f, dtype=np.uint8))
+    assert len(frames) == 90
+    sel = keyframed.KeyframeSelector()
+    decided: list[int] = []
+
+    def work(first: int) -> None:
+        for i in range(first, len(frames), 2):
+            decided.append(sel.process(frames[i], i)["index"])
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(decided) == list(range(90))
+    assert sel.keyframes >= 1
+
+
 def test_config_validation():
     cfg = keyframed.SelectorConfig()
     cfg.target = 0.5  # under the default band

@@ -1,6 +1,7 @@
 // Python bindings of the selection core (nanobind). Images are numpy uint8
 // arrays: (H, W) grey or (H, W, 3) BGR, as OpenCV's Python API uses.
 #include <cmath>
+#include <mutex>
 #include <string>
 
 #include <nanobind/nanobind.h>
@@ -25,19 +26,36 @@ namespace {
 
 using Image = nb::ndarray<const std::uint8_t, nb::device::cpu>;
 
+// An image's rows as the core reads them: some pixels, rows one after another in
+// memory, never overlapping (a flipped or broadcast view, an empty array: refused,
+// not read out of bounds).
+void checkRows(const Image& a, std::size_t rowBytes) {
+  constexpr std::size_t kMaxSide = 1u << 16;
+  if (a.shape(0) == 0 || a.shape(1) == 0) throw nb::value_error("the image is empty");
+  if (a.shape(0) > kMaxSide || a.shape(1) > kMaxSide)
+    throw nb::value_error("the image is larger than 65536 pixels a side");
+  if (a.stride(0) < 0 || static_cast<std::size_t>(a.stride(0)) < rowBytes)
+    throw nb::value_error(
+        "the image's rows must follow one another in memory (a C-contiguous array, or a "
+        "slice of one)");
+}
+
 GrayView grayOf(const Image& a) {
   if (a.ndim() != 2) throw nb::value_error("expected a 2-D uint8 grey image");
   if (a.stride(1) != 1) throw nb::value_error("grey image rows must be contiguous");
+  checkRows(a, a.shape(1));
   return GrayView{a.data(), static_cast<int>(a.shape(1)), static_cast<int>(a.shape(0)),
                   static_cast<int>(a.stride(0))};
 }
 
 Frame frameOf(const Image& a, std::int64_t index, std::int64_t ts) {
+  if (index < 0) throw nb::value_error("index must be >= 0 (the frame's number in the stream)");
   if (a.ndim() == 2) {
     const GrayView g = grayOf(a);
     return Frame{PixelFormat::Gray8, g.data, g.width, g.height, g.stride, ts, index};
   }
-  if (a.ndim() == 3 && a.shape(2) == 3 && a.stride(2) == 1 && a.stride(1) == 3)
+  if (a.ndim() == 3 && a.shape(2) == 3 && a.stride(2) == 1 && a.stride(1) == 3) {
+    checkRows(a, 3 * a.shape(1));
     return Frame{PixelFormat::BGR24,
                  a.data(),
                  static_cast<int>(a.shape(1)),
@@ -45,6 +63,7 @@ Frame frameOf(const Image& a, std::int64_t index, std::int64_t ts) {
                  static_cast<int>(a.stride(0)),
                  ts,
                  index};
+  }
   throw nb::value_error("expected a uint8 image of shape (H, W) or (H, W, 3) with contiguous rows");
 }
 
@@ -110,6 +129,14 @@ nb::dict decisionDict(const Decision& d) {
   return r;
 }
 
+// The selector as Python holds it: KeyframeSelector is not thread-safe, and process()
+// lets go of the GIL, so each call takes this lock.
+struct LockedSelector {
+  LockedSelector(const SelectorConfig& c, const Clock* clock) : selector(c, clock) {}
+  KeyframeSelector selector;
+  std::mutex mutex;
+};
+
 }  // namespace
 }  // namespace keyframed
 
@@ -120,6 +147,7 @@ NB_MODULE(_core, m) {
   m.def(
       "sampled_laplacian_variance",
       [](const Image& img, int rowStep, int colStep) {
+        if (rowStep < 1 || colStep < 1) throw nb::value_error("row_step and col_step must be >= 1");
         return sampledLaplacianVariance(grayOf(img), rowStep, colStep).variance;
       },
       "gray"_a.noconvert(), "row_step"_a = 2, "col_step"_a = 3,
@@ -222,42 +250,58 @@ NB_MODULE(_core, m) {
           "with it.")
       .def("reset", &OverlapEstimator::reset);
 
-  nb::class_<KeyframeSelector>(m, "KeyframeSelector")
+  nb::class_<LockedSelector>(m, "KeyframeSelector")
       .def(
           "__init__",
-          [](KeyframeSelector* self, const SelectorConfig& c) {
+          [](LockedSelector* self, const SelectorConfig& c) {
             checkValid(c);
             // Core reads no clock; like the daemon, the binding lends it one so
             // that decisions carry per-stage times.
             static const MonotonicClock clock;
-            new (self) KeyframeSelector(c, &clock);
+            new (self) LockedSelector(c, &clock);
           },
           "config"_a = SelectorConfig{})
       .def(
           "process",
-          [](KeyframeSelector& s, const Image& img, std::int64_t index, std::int64_t ts) {
+          [](LockedSelector& s, const Image& img, std::int64_t index, std::int64_t ts) {
             const Frame f = frameOf(img, index, ts);
             Decision d;
             {
+              // Without the GIL (other Python threads run meanwhile), under the
+              // selector's own lock: two threads on one selector take turns. The lock
+              // is let go before the GIL is taken back.
               nb::gil_scoped_release release;
-              d = s.process(f);
+              std::lock_guard lock(s.mutex);
+              d = s.selector.process(f);
             }
             return decisionDict(d);
           },
           "image"_a.noconvert(), "index"_a, "timestamp_ns"_a = 0,
-          "Decide for the next frame; returns the decision as a dict.")
+          "Decide for the next frame; returns the decision as a dict. Thread-safe.")
       .def(
           "finish",
-          [](KeyframeSelector& s) {
-            const std::int64_t i = s.finish();
+          [](LockedSelector& s) {
+            std::int64_t i = -1;
+            {
+              nb::gil_scoped_release release;
+              std::lock_guard lock(s.mutex);
+              i = s.selector.finish();
+            }
             return i >= 0 ? nb::object(nb::int_(i)) : nb::none();
           },
           "End of stream: the index of the pending candidate, now a keyframe, or None.")
-      .def("request_capture", &KeyframeSelector::requestCapture,
-           "Ask for a keyframe (as MAV_CMD_IMAGE_START_CAPTURE does): the next sharp frame is "
-           "kept whatever its overlap. False when too many requests wait already.")
-      .def_prop_ro("pending_captures", &KeyframeSelector::pendingCaptures)
-      .def_prop_ro("keyframes", &KeyframeSelector::keyframes);
+      // Meant for another thread while frames are processed: atomic, no lock.
+      .def(
+          "request_capture", [](LockedSelector& s) { return s.selector.requestCapture(); },
+          "Ask for a keyframe (as MAV_CMD_IMAGE_START_CAPTURE does): the next sharp frame is "
+          "kept whatever its overlap. False when too many requests wait already.")
+      .def_prop_ro("pending_captures",
+                   [](LockedSelector& s) { return s.selector.pendingCaptures(); })
+      .def_prop_ro("keyframes", [](LockedSelector& s) {
+        nb::gil_scoped_release release;
+        std::lock_guard lock(s.mutex);
+        return s.selector.keyframes();
+      });
 
   m.def(
       "select_video",
