@@ -857,9 +857,13 @@ class Loader {
     require(s.overlap.minTracks <= s.overlap.maxTracks,
             {"selection.min_tracks", "selection.max_tracks"},
             "selection.min_tracks must not exceed selection.max_tracks");
-    require(s.overlap.minInliers <= s.overlap.maxTracks,
-            {"selection.min_inliers", "selection.max_tracks"},
-            "selection.min_inliers must not exceed selection.max_tracks");
+    require(s.overlap.minInliers <= s.overlap.minTracks,
+            {"selection.min_inliers", "selection.min_tracks"},
+            "selection.min_inliers must not exceed selection.min_tracks (tracks are "
+            "replenished only below it)");
+    require(s.overlap.paperMinMatches <= s.overlap.orbFeatures,
+            {"selection.paper_min_matches", "selection.orb_features"},
+            "selection.paper_min_matches must not exceed selection.orb_features");
     require(s.blur.warmup <= s.blur.window, {"selection.blur_warmup", "selection.blur_window"},
             "selection.blur_warmup must not exceed selection.blur_window");
     require(c.camera.source != Source::File || !c.camera.path.empty(),

@@ -439,9 +439,13 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (c.overlap.minTracks > c.overlap.maxTracks)
     return fail("--min-tracks (" + std::to_string(c.overlap.minTracks) +
                 ") must not exceed --max-tracks (" + std::to_string(c.overlap.maxTracks) + ")");
-  if (c.overlap.minInliers > c.overlap.maxTracks)
+  if (c.overlap.minInliers > c.overlap.minTracks)
     return fail("--min-inliers (" + std::to_string(c.overlap.minInliers) +
-                ") must not exceed --max-tracks (" + std::to_string(c.overlap.maxTracks) + ")");
+                ") must not exceed --min-tracks (" + std::to_string(c.overlap.minTracks) +
+                "): tracks are replenished only below it");
+  if (c.overlap.paperMinMatches > c.overlap.orbFeatures)
+    return fail("--paper-min-matches (" + std::to_string(c.overlap.paperMinMatches) +
+                ") must not exceed --orb-features (" + std::to_string(c.overlap.orbFeatures) + ")");
   if (c.blur.warmup > c.blur.window)
     return fail("--blur-warmup (" + std::to_string(c.blur.warmup) +
                 ") must not exceed --blur-window (" + std::to_string(c.blur.window) + ")");

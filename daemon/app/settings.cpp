@@ -38,7 +38,11 @@ bool parseDouble(const std::string& s, double& out) {
 
 void relaxDependentDefaults(SelectorConfig& config, bool minTracksSet, bool warmupSet) {
   OverlapConfig& o = config.overlap;
-  if (!minTracksSet && o.minTracks > o.maxTracks) o.minTracks = std::max(8, o.maxTracks * 2 / 5);
+  // Lowered with max_tracks, but never under min_inliers (as far as max_tracks allows):
+  // tracks are replenished below min_tracks, and fewer than min_inliers lose the track.
+  if (!minTracksSet && o.minTracks > o.maxTracks) {
+    o.minTracks = std::max({8, o.maxTracks * 2 / 5, std::min(o.minInliers, o.maxTracks)});
+  }
   SharpnessConfig& b = config.blur;
   if (!warmupSet && b.warmup > b.window) b.warmup = b.window;
 }

@@ -276,6 +276,12 @@ def test_cut_transport_stream_is_truncated(any_bin: Path, tmp_path):
         (["--analysis-width", "10"], "--analysis-width: must be 0 (full) or >= 64"),
         (["--min-overlap", "0.65"], "--min-overlap (0.65) must not exceed --band LO (0.6)"),
         (["--max-tracks", "20", "--min-tracks", "30"], "--min-tracks (30) must not exceed"),
+        # tracks replenished only below min-tracks: fewer than min-inliers lose the track
+        (["--min-inliers", "100"], "--min-inliers (100) must not exceed --min-tracks (80)"),
+        (
+            ["--mode", "paper", "--paper-min-matches", "5000"],
+            "--paper-min-matches (5000) must not exceed --orb-features (2500)",
+        ),
         # a live link's frames are stamped as they arrive, not from a given start
         (
             ["--telemetry", "udpin:127.0.0.1:9", "--video-start", "2026-06-01T10:00:00Z"],

@@ -444,12 +444,20 @@ TEST(Config, SmallValuesLowerTheDefaultsThatDependOnThem) {
   TempDir dir;
   const ConfigLoadResult r = loadText(dir, "[selection]\nmax_tracks = 30\nblur_window = 2\n");
   ASSERT_TRUE(r.errors.empty()) << joined(r.errors);
-  EXPECT_EQ(r.config.selection.overlap.minTracks, 12);
+  // Two fifths of max_tracks, but not under min_inliers (15): fewer tracks than that
+  // would lose the track before they are replenished.
+  EXPECT_EQ(r.config.selection.overlap.minTracks, 15);
   EXPECT_EQ(r.config.selection.blur.warmup, 2);
   // Set explicitly, a conflict is still reported.
   expectOneError(dir, "[selection]\nmax_tracks = 30\nmin_tracks = 40\n",
                  "3: selection.min_tracks: selection.min_tracks must not exceed "
                  "selection.max_tracks");
+  expectOneError(dir, "[selection]\nmin_tracks = 20\nmin_inliers = 25\n",
+                 "3: selection.min_inliers: selection.min_inliers must not exceed "
+                 "selection.min_tracks (tracks are replenished only below it)");
+  expectOneError(dir, "[selection]\nmode = \"paper\"\npaper_min_matches = 5000\n",
+                 "3: selection.paper_min_matches: selection.paper_min_matches must not exceed "
+                 "selection.orb_features");
 }
 
 TEST(Config, MalformedTomlGivesTheLine) {

@@ -124,6 +124,14 @@ TEST(Overlap, ConfigValidation) {
   EXPECT_TRUE(c.validate().empty());
   c.minTracks = c.maxTracks + 1;
   EXPECT_FALSE(c.validate().empty());
+  // Tracks are replenished below minTracks: fewer than minInliers would lose the track
+  // first. And the paper mode cannot match more features than ORB finds.
+  c = OverlapConfig{};
+  c.minInliers = c.minTracks + 1;
+  EXPECT_EQ(c.validate(), "min inliers must be 4..min tracks");
+  c = OverlapConfig{};
+  c.paperMinMatches = c.orbFeatures + 1;
+  EXPECT_EQ(c.validate(), "paper minimum matches must be 4..ORB features");
 }
 
 }  // namespace

@@ -239,7 +239,10 @@ int main(int argc, char** argv) {
       width = std::atoi(argv[++i]);
     } else if (a == "--max-tracks" && hasValue) {
       geometric.overlap.maxTracks = std::atoi(argv[++i]);
-      geometric.overlap.minTracks = geometric.overlap.maxTracks * 2 / 5;
+      // As the daemon lowers it: never under min_inliers (see relaxDependentDefaults).
+      geometric.overlap.minTracks =
+          std::max({8, geometric.overlap.maxTracks * 2 / 5,
+                    std::min(geometric.overlap.minInliers, geometric.overlap.maxTracks)});
     } else if (a == "--lk-window" && hasValue) {
       geometric.overlap.lkWindow = std::atoi(argv[++i]);
     } else if (a == "--fast-threshold" && hasValue) {
