@@ -267,18 +267,24 @@ def test_run_replays_a_tlog_with_its_video_as_select_does(
     assert t0 - 60 * 10**9 <= times["/mavlink/raw"] <= t0 + 60 * 10**9, times
 
 
+def start_without_autopilot(kf_bin: Path, tmp_path: Path, flight: Path) -> subprocess.Popen[str]:
+    """The daemon on a flight's video, waiting up to 30 s for an autopilot that is
+    never heard (telemetry.start_wait_ms)."""
+    return start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={flight / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{free_port()}",
+        "telemetry.start_wait_ms=30000",
+    )
+
+
 def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
     """Stopped before the autopilot was ever heard (telemetry.start_wait_ms): the same
     clean stop as later on, with a summary and a closed record, not a bare exit."""
-    proc = start(
-        kf_bin,
-        tmp_path,
-        f"camera.path={short_nadir / 'video.avi'}",
-        f"telemetry.url=udpin:127.0.0.1:{free_port()}",
-        "telemetry.start_wait_ms=30000",
-    )
+    proc = start_without_autopilot(kf_bin, tmp_path, short_nadir)
     time.sleep(1.5)
     assert proc.poll() is None
     stderr, took = sigterm(proc)
@@ -298,13 +304,7 @@ def test_sigpipe_does_not_kill_the_daemon(kf_bin: Path, short_nadir: Path, tmp_p
     """A peer that hangs up (a Zenoh TLS session refused mid-handshake) raises SIGPIPE
     where its stack writes with writev(): an EPIPE for that write, not the end of the
     flight. Sent outright, it must not end the daemon either."""
-    proc = start(
-        kf_bin,
-        tmp_path,
-        f"camera.path={short_nadir / 'video.avi'}",
-        f"telemetry.url=udpin:127.0.0.1:{free_port()}",
-        "telemetry.start_wait_ms=30000",
-    )
+    proc = start_without_autopilot(kf_bin, tmp_path, short_nadir)
     time.sleep(1.0)
     proc.send_signal(signal.SIGPIPE)
     time.sleep(0.5)

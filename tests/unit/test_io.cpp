@@ -801,6 +801,44 @@ TEST(FlightOutputs, AFailedKeyframePublishDoesNotStopTheNextOnes) {
   EXPECT_NE(warnings[1].find("3 keyframe puts failed"), std::string::npos) << warnings[1];
 }
 
+// A congested link for FlightOutputs' keyframe puts: each put notes its sequence
+// number, and the first hangs (as a Block put waits for room) until release().
+class CongestedLink {
+ public:
+  explicit CongestedLink(FlightOutputs& outputs) {
+    outputs.setKeyframePutForTesting(
+        [this](std::span<const std::uint8_t>, const std::string& meta, std::string&) {
+          std::unique_lock lock(m_);
+          const auto at = meta.find("\"sequence\":");
+          tried_.push_back(std::stoll(meta.substr(at + 11)));
+          cv_.notify_all();
+          cv_.wait(lock, [this] { return released_; });
+          return true;
+        });
+  }
+  [[nodiscard]] bool waitForFirstPut() {
+    std::unique_lock lock(m_);
+    return cv_.wait_for(lock, std::chrono::seconds(10), [this] { return !tried_.empty(); });
+  }
+  void release() {
+    {
+      std::lock_guard lock(m_);
+      released_ = true;
+    }
+    cv_.notify_all();
+  }
+  [[nodiscard]] std::vector<std::int64_t> tried() {
+    std::lock_guard lock(m_);
+    return tried_;
+  }
+
+ private:
+  std::mutex m_;
+  std::condition_variable cv_;
+  bool released_ = false;
+  std::vector<std::int64_t> tried_;
+};
+
 TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   // The first put hangs (a congested link: a Block put waits for room) until released.
   std::vector<std::string> warnings;
@@ -812,19 +850,7 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   FlightOutputs outputs;
   std::string error;
   ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
-  std::mutex m;
-  std::condition_variable cv;
-  bool released = false;
-  std::vector<std::int64_t> tried;
-  outputs.setKeyframePutForTesting(
-      [&](std::span<const std::uint8_t>, const std::string& meta, std::string&) {
-        std::unique_lock lock(m);
-        const auto at = meta.find("\"sequence\":");
-        tried.push_back(std::stoll(meta.substr(at + 11)));
-        cv.notify_all();
-        cv.wait(lock, [&] { return released; });
-        return true;
-      });
+  CongestedLink link(outputs);
   const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
   const auto keyframe = [&](std::int64_t i, bool saved = true, bool indexed = true) {
     KeyframeRecord r;
@@ -835,10 +861,7 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
     outputs.keyframe(r, jpeg);
   };
   keyframe(0);
-  {
-    std::unique_lock lock(m);
-    ASSERT_TRUE(cv.wait_for(lock, std::chrono::seconds(10), [&] { return !tried.empty(); }));
-  }
+  ASSERT_TRUE(link.waitForFirstPut());
   // Keyframe 0's put hangs; the output thread goes on: 8 wait, the rest are left to
   // the queryable, and none of these calls waits.
   const auto start = std::chrono::steady_clock::now();
@@ -854,14 +877,10 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
   // The status tells a ground station of none of them yet: keyframe 0 is still on its
   // way (9 to 11, left to the queryable, are told of once 0 to 8 are out).
   EXPECT_EQ(outputs.keyframesOut(14), 0);
-  {
-    std::lock_guard lock(m);
-    released = true;
-  }
-  cv.notify_all();
+  link.release();
   // close() puts what is queued first.
   ASSERT_TRUE(outputs.close("done", error)) << error;
-  EXPECT_EQ(tried, (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13}));
+  EXPECT_EQ(link.tried(), (std::vector<std::int64_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13}));
   EXPECT_EQ(outputs.keyframesOut(14), 14);
   ASSERT_EQ(warnings.size(), 2U);
   EXPECT_NE(warnings[1].find("3 keyframes left to the queryable"), std::string::npos)
@@ -881,19 +900,7 @@ TEST(FlightOutputs, UnsavedKeyframesWaitingForASlowLinkAreBoundedInBytes) {
   FlightOutputs outputs;
   std::string error;
   ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
-  std::mutex m;
-  std::condition_variable cv;
-  bool released = false;
-  std::vector<std::int64_t> tried;
-  outputs.setKeyframePutForTesting(
-      [&](std::span<const std::uint8_t>, const std::string& meta, std::string&) {
-        std::unique_lock lock(m);
-        const auto at = meta.find("\"sequence\":");
-        tried.push_back(std::stoll(meta.substr(at + 11)));
-        cv.notify_all();
-        cv.wait(lock, [&] { return released; });
-        return true;
-      });
+  CongestedLink link(outputs);
   std::vector<std::uint8_t> jpeg(1u << 20, 0x55);  // 1 MB keyframes
   jpeg[0] = 0xFF;
   jpeg[1] = 0xD8;
@@ -905,23 +912,16 @@ TEST(FlightOutputs, UnsavedKeyframesWaitingForASlowLinkAreBoundedInBytes) {
     outputs.keyframe(r, jpeg);
   };
   keyframe(0);
-  {
-    std::unique_lock lock(m);
-    ASSERT_TRUE(cv.wait_for(lock, std::chrono::seconds(10), [&] { return !tried.empty(); }));
-  }
+  ASSERT_TRUE(link.waitForFirstPut());
   for (std::int64_t i = 1; i <= 40; ++i) keyframe(i);
   ASSERT_EQ(warnings.size(), 1U);
   EXPECT_NE(warnings[0].find("keyframe 33 left to the queryable"), std::string::npos)
       << warnings[0];
-  {
-    std::lock_guard lock(m);
-    released = true;
-  }
-  cv.notify_all();
+  link.release();
   ASSERT_TRUE(outputs.close("done", error)) << error;
   std::vector<std::int64_t> expected;
   for (std::int64_t i = 0; i <= 32; ++i) expected.push_back(i);
-  EXPECT_EQ(tried, expected);
+  EXPECT_EQ(link.tried(), expected);
 }
 
 // A live run's frame in its record: its decision (index and time) and its picture.
