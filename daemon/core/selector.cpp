@@ -139,6 +139,9 @@ bool KeyframeSelector::promoteCandidate(Decision& d) {
   d.promotedIndex = candidateIndex_;
   clearCandidate();
   ++keyframes_;
+  // A keyframe after the first: the view that one showed is no longer the reference
+  // a refocused frame would replace.
+  firstInWarmup_ = false;
   return true;
 }
 

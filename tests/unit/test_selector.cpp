@@ -294,6 +294,34 @@ TEST(Selector, BlurAroundTheTargetFallsBackToTheSharpestCandidate) {
   for (std::int64_t k : r.keyframes) EXPECT_EQ(blur.count(static_cast<int>(k)), 0u);
 }
 
+TEST(Selector, AFallbackEndsTheRefocusWindowOfAFirstKeyframeTakenWhileWarmingUp) {
+  // The first keyframe is taken while the blur statistic warms up, on a slightly
+  // defocused view; the pan then blurs past the target and the best candidate is
+  // promoted. When the camera comes back over the promoted frame's view, now in
+  // focus, that view is already a keyframe: no second one of it ("refocus").
+  std::vector<double> xs = linear(26, 100, 8.0);
+  std::map<int, double> blur;
+  for (int i = 0; i < 12; ++i) blur[i] = 1.2;
+  for (int i = 12; i < 26; ++i) blur[i] = 3.0;
+  for (int i = 0; i < 40; ++i) xs.push_back(std::max(180.0, xs.back() - 8.0));
+  const PanRun r = pan(xs, blur);
+  ASSERT_TRUE(r.decisions[0].kept);
+  ASSERT_EQ(r.decisions[0].reason, Reason::First);
+  std::int64_t promoted = -1;
+  for (const Decision& d : r.decisions)
+    if (d.promotedIndex >= 0) promoted = d.promotedIndex;
+  ASSERT_GE(promoted, 9);
+  ASSERT_LE(promoted, 11);
+  // The focused view is sharper than the first keyframe by the refocus ratio, so
+  // only the promotion stands between it and a duplicate.
+  const Decision& back = r.decisions.back();
+  ASSERT_GE(back.sharpness, KeyframeSelector::kRefocusRatio * r.decisions[0].sharpness);
+  ASSERT_GT(back.overlap, SelectorConfig{}.bandHigh);
+  EXPECT_EQ(r.keyframes, (std::vector<std::int64_t>{0, promoted}));
+  for (std::size_t i = 26; i < r.decisions.size(); ++i)
+    EXPECT_EQ(r.decisions[i].reason, Reason::Redundant) << i;
+}
+
 TEST(Selector, PaperModeFallsBackToASharpFrameWhenTIsReachedOnABlurredOne) {
   // Where a steady pan reaches t, frames are blurred from just before it for over a
   // second: the paper's rule alone would wait for the next sharp frame, far past t (a
