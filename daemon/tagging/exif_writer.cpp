@@ -98,11 +98,15 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
   if (std::isfinite(f35) && f35 >= 1.0 && f35 < 65535.0) {
     exif["Exif.Photo.FocalLengthIn35mmFilm"] = static_cast<std::uint16_t>(std::lround(f35));
   }
-  // Square pixels are assumed when only the sensor width is known.
+  // The tags carry one focal length in mm: each axis's focal length in pixels comes
+  // back through its own pixel pitch. A calibration's fx and fy then set the pitches'
+  // ratio (pixels fx / fy times as tall as wide), whatever height a datasheet gives the
+  // sensor; without one, the sensor's height, else square pixels.
   const bool sensorKnown = std::isfinite(cam.sensorWidthMm) && cam.width > 0 && cam.height > 0;
-  const double sensorH = std::isfinite(cam.sensorHeightMm)
-                             ? cam.sensorHeightMm
-                             : cam.sensorWidthMm * cam.height / std::max(cam.width, 1);
+  const double squareH = cam.sensorWidthMm * cam.height / std::max(cam.width, 1);
+  double sensorH = std::isfinite(cam.sensorHeightMm) ? cam.sensorHeightMm : squareH;
+  if (cam.calibrated() && std::isfinite(cam.fx) && std::isfinite(cam.fy) && cam.fy > 0.0)
+    sensorH = squareH * cam.fx / cam.fy;
   if (sensorKnown) {
     // Pixels per millimetre (FocalPlaneResolutionUnit 4): COLMAP, OpenSfM/ODM and
     // exiftool convert any unit, but the readers of Pix4D's PrincipalPoint (mm) that

@@ -746,10 +746,18 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     assert r.returncode == 1 and "cannot create" in r.stderr
 
 
-def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "lens",
+    ["focal_length_mm: 4.4\n", "sensor_width_mm: 6.17\nsensor_height_mm: 3.47\n"],
+    ids=["focal-mm", "sensor-size"],
+)
+def test_a_calibration_survives_the_tags_into_colmap_and_odm(
+    kf_bin: Path, tmp_path: Path, lens: str
+) -> None:
     """calibrateCamera's output (pixels only, fx != fy, k1 k2 p1 p2 k3) plus the lens's
-    focal length in mm: what the ground station makes of the keyframes' tags alone is
-    that calibration, in COLMAP's and OpenSfM's conventions."""
+    focal length in mm, or the sensor's datasheet size (whose height says square
+    pixels, which fx != fy does not): what the ground station makes of the keyframes'
+    tags alone is that calibration, in COLMAP's and OpenSfM's conventions."""
     from keyframed.ground import colmap_camera, odm_cameras, read_tags
 
     fl = flight("nadir", width=320, height=180, seconds=3.0)
@@ -762,7 +770,7 @@ def test_a_calibration_survives_the_tags_into_colmap_and_odm(kf_bin: Path, tmp_p
         f"   data: {matrix}\n"
         "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
         f"   data: {k}\n"
-        'focal_length_mm: 4.4\nmake: "Acme"\nmodel: "Acme Cam 2"\n'
+        f'{lens}make: "Acme"\nmodel: "Acme Cam 2"\n'
     )
     out = tmp_path / "tagged"
     stderr = select(kf_bin, fl / "video.avi", out, "--calibration", str(tmp_path / "calib.yaml"))
