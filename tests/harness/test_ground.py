@@ -590,6 +590,44 @@ def test_a_flight_list_decides_what_is_fetched_and_a_resumed_dataset_keeps_its_n
     assert (again.images / "000000.jpg").read_bytes() == b"b0"
 
 
+def test_a_damaged_index_line_costs_that_line_not_the_dataset(tmp_path: Path) -> None:
+    """keyframes.jsonl garbled by a power cut or a hand edit (bytes that are no UTF-8,
+    JSON that is no object, a name that is no string or not one the station gives):
+    the dataset still opens with every good line, and takes new keyframes. A flight id
+    with a path in it is kept as the station keys it, so a resume keys it the same."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav5", None)
+    assert ds.add({"flight": "x/F1", "sequence": 0, "file": "000000.jpg"}, b"f0")
+    ds.add({"flight": "x/F1", "sequence": 1, "file": "000001.jpg"}, b"f1")
+    (ds.images / "other.jpg").write_bytes(b"?")
+    index = ds.dir / "keyframes.jsonl"
+    with open(index, "ab") as f:
+        f.write(b'{"flight": "F1", "sequence": 2, "file": "00\xff\xfe2.jpg"}\n')
+        f.write(b"\xff\xfe garbage\n")
+        for bad in ("null", "[1, 2]", '"text"', '{"file": 5, "sequence": 3}'):
+            f.write(bad.encode() + b"\n")
+        f.write(b'{"file": "../uav5/images/other.jpg", "sequence": 4}\n')
+        f.write(b'{"file": "other.jpg", "sequence": "four"}\n')
+    again = VehicleDataset(tmp_path, "uav5", None)
+    assert sorted(again.meta) == [("F1", 0), ("F1", 1)]
+    assert again.missing() == []
+    assert not again.add({"flight": "x/F1", "sequence": 1, "file": "000001.jpg"}, b"f1")
+    assert again.add({"flight": "F1", "sequence": 2, "file": "000002.jpg"}, b"f2")
+    assert again.add({"flight": "G", "sequence": 0, "file": "other.jpg"}, b"o")
+    assert (again.images / "other.jpg").read_bytes() == b"?"
+    assert again.duplicates == 1
+    summary = again.finish()
+    assert summary["keyframes"] == 4 and summary["missing"] == [], summary
+    lines = [json.loads(line) for line in index.read_text().splitlines()]
+    assert [(m["flight"], m["sequence"], m["file"]) for m in lines] == [
+        ("F1", 0, "000000.jpg"),
+        ("F1", 1, "000001.jpg"),
+        ("F1", 2, "000002.jpg"),
+        ("G", 0, "G_other.jpg"),
+    ]
+
+
 def test_progress_shows_the_newest_keyframes_position(tmp_path: Path) -> None:
     """The progress line's position is the newest keyframe's that has one (the latest
     flight, its highest sequence), not that of the last one to arrive: a gap filled
@@ -1119,6 +1157,70 @@ def test_resume_computes_the_sift_features_an_earlier_run_did_not(
         assert dim == 128 and count == len(lines) - 1 and count > 50, row["file"]
 
 
+def test_a_stop_writes_the_dataset_without_waiting_for_a_sift_backlog(
+    tagged: Path, tmp_path: Path
+) -> None:
+    """A station resumed with --sift on a folder of 1080p images without features (a
+    backlog of a second or so each) and stopped at once by two SIGINTs: it writes the
+    dataset's files, leaves the features it has not got to (the summary says how many)
+    and exits, rather than computing them all first."""
+    import cv2
+    import zenoh
+
+    n = 24
+    ds = tmp_path / "dataset" / "uav9"
+    (ds / "images").mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (1080, 1920), dtype=np.uint8), (0, 0), 1.5)
+    ok, jpeg = cv2.imencode(".jpg", texture)
+    assert ok
+    with open(ds / "keyframes.jsonl", "w") as f:
+        for seq in range(n):
+            (ds / "images" / f"{seq:06d}.jpg").write_bytes(jpeg.tobytes())
+            f.write(json.dumps({"flight": "F1", "sequence": seq, "file": f"{seq:06d}.jpg"}) + "\n")
+    port = free_port()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    pub: Any = session.declare_publisher("keyframed/uav9/keyframe")
+    live = next((tagged).glob("*.jpg")).read_bytes()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(tmp_path / "dataset")]
+        + ["--quiet", "--sift", "--connect", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_until(lambda: pub.matching_status.matching)
+        time.sleep(0.3)
+        meta = {"flight": "F1", "sequence": n, "file": f"{n:06d}.jpg"}
+        pub.put(live, attachment=json.dumps(meta).encode())
+        wait_until(lambda: (ds / "images" / f"{n:06d}.jpg").exists())
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        pub.undeclare()
+        session.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["keyframes"] == n + 1 and summary["sift_failed"] == 0, summary
+    features = list((ds / "features").glob("*.txt"))
+    assert summary["sift_left"] > n // 2, (summary, len(features))
+    assert len(features) + summary["sift_left"] >= n + 1, (summary, len(features))
+    assert f"{summary['sift_left']} keyframes left without SIFT features" in stderr
+    geo = (ds / "geo.txt").read_text().splitlines()
+    assert geo[0] == "EPSG:4326" and geo[1].split()[0] == f"{n:06d}.jpg", geo
+    index = [json.loads(line) for line in (ds / "keyframes.jsonl").read_text().splitlines()]
+    assert [m["sequence"] for m in index] == list(range(n + 1))
+
+
 def test_a_station_killed_leaves_dataset_files_for_the_images_it_holds(
     tagged: Path, tmp_path: Path
 ) -> None:
@@ -1194,7 +1296,8 @@ def test_a_long_gap_on_a_slow_link_is_asked_for_in_chunks_once_each(
     radio link) and a gap of 11 keyframes: the station asks for at most 8 in one
     query, sends the next query only when the last has been answered, and asks for
     none again while its answer is on the way, though the first chunk takes longer
-    than the 5 s a query used to be given."""
+    than the 5 s a query used to be given. Each answer is stored as it arrives, not
+    when the chunk ends: a station stopped mid-chunk keeps what crossed the link."""
     folder = tmp_path / "long"
     folder.mkdir()
     base = rows(tagged)
@@ -1213,15 +1316,27 @@ def test_a_long_gap_on_a_slow_link_is_asked_for_in_chunks_once_each(
     vehicle.reply_delay = 0.7
     out = tmp_path / "dataset"
     proc = ground(out, port)
+    images = out / "uav8" / "images"
+    second_on_disk: list[float] = []  # when the chunk's second keyframe was stored
+
+    def watch() -> None:
+        while proc.poll() is None and not second_on_disk:
+            if images.is_dir() and len(list(images.glob("*.jpg"))) >= 3:  # 0, 1 and 2
+                second_on_disk.append(time.monotonic())
+            time.sleep(0.05)
+
+    watcher = threading.Thread(target=watch, daemon=True)
     try:
         wait_connected(vehicle)
         vehicle.publish(0)
         vehicle.status()  # "I have written 12"
+        watcher.start()
         stdout, stderr = proc.communicate(timeout=90)
     finally:
         if proc.poll() is None:
             proc.kill()
         vehicle.close()
+    watcher.join()
     assert proc.returncode == 0, stderr
     summary = json.loads(stdout.strip().splitlines()[-1])
     assert summary["keyframes"] == 12 and summary["fetched_by_query"] == 11, summary
@@ -1229,6 +1344,8 @@ def test_a_long_gap_on_a_slow_link_is_asked_for_in_chunks_once_each(
     assert summary["gap_queries"] == 2 and summary["duplicates_ignored"] == 0, summary
     (a_start, a_end), (b_start, _) = vehicle.spans
     assert a_end - a_start > 5.0 and b_start >= a_end, vehicle.spans
+    # Sent 1.4 s into a 5.6 s chunk: on disk seconds before the chunk's last reply
+    assert second_on_disk and second_on_disk[0] < a_end - 2.5, (second_on_disk, vehicle.spans)
     for row in long_rows:
         assert (out / "uav8" / "images" / row["file"]).read_bytes() == (
             folder / row["file"]

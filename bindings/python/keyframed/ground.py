@@ -708,7 +708,9 @@ class VehicleDataset:
             tmp.unlink(missing_ok=True)
         index = self.dir / "keyframes.jsonl"
         if index.exists():
-            text = index.read_text()
+            # Bytes a power cut or a hand edit garbled are replaced, not fatal: one bad
+            # line must not keep the vehicle's every keyframe out of the dataset.
+            text = index.read_bytes().decode("utf-8", errors="replace")
             if text and not text.endswith("\n"):
                 # A line cut short by a kill: dropped from the file, not only skipped,
                 # so that the next line appended does not run on from it (and be lost
@@ -718,13 +720,17 @@ class VehicleDataset:
             for line in text.splitlines():
                 try:
                     m = json.loads(line)
-                    if (self.images / m["file"]).exists():
-                        flight = str(m.get("flight") or "")
+                    name = m["file"]
+                    if not isinstance(name, str) or os.path.basename(name) != name:
+                        continue  # not a name this station gave an image
+                    if (self.images / name).is_file():
+                        flight = os.path.basename(str(m.get("flight") or ""))
+                        seq = int(m["sequence"])
                         self._flight(flight)
-                        self.meta[(flight, int(m["sequence"]))] = m
-                        self.names.add(m["file"])
-                except (ValueError, KeyError):
-                    continue
+                        self.meta[(flight, seq)] = dict(m, flight=flight or None)
+                        self.names.add(name)
+                except (ValueError, KeyError, TypeError):
+                    continue  # no JSON object, or not one of ours
             # The flight whose images have plain names stays the one (the index is
             # in flight-id order, which need not be the order they were stored in).
             plain = [f for (f, _), m in self.meta.items() if not m["file"].startswith(f"{f}_")]
@@ -888,7 +894,8 @@ class VehicleDataset:
                 name = f"{flight}_{name}"
             name = self._unused_name(name, flight, seq)
             self.names.add(name)
-            meta = dict(meta, file=name)
+            # The flight as it is keyed: a resume reads the same one back.
+            meta = dict(meta, file=name, flight=flight or None)
             _write_atomic(self.images / name, jpeg)
             self.meta[(flight, seq)] = meta
             if fetched:
@@ -1012,16 +1019,37 @@ class VehicleDataset:
         _write_atomic(self.dir / "geo.txt", ("\n".join(geo) + "\n").encode())
         return camera, odm, len(pairs)
 
-    def finish(self) -> dict[str, Any]:
-        """Waits for the SIFT worker, writes the dataset's files and returns the summary."""
+    def finish(self, hurry: threading.Event | None = None) -> dict[str, Any]:
+        """Writes the dataset's files, then waits for the SIFT worker (unless told to
+        hurry: the features left are computed by the next run on this folder), and
+        returns the summary."""
+        # First: the files need no features, and a backlog of SIFT (a resumed dataset
+        # of thousands) must not keep them from disk.
+        camera, odm, pairs = self.write_files()
+        hurry = hurry or threading.Event()
         sift_failed = 0
+        sift_left = 0
         for job in self.sift_jobs:
+            while not hurry.is_set() and not job.done():
+                try:
+                    job.exception(timeout=0.2)
+                except TimeoutError:
+                    pass
+            if not job.done():
+                job.cancel()  # one already running finishes (or leaves a .tmp)
+                sift_left += 1
+                continue
             try:
                 job.result()
-            except BaseException as err:  # one bad image must not cost the dataset's files
+            except BaseException as err:  # one bad image must not cost the dataset
                 sift_failed += 1
                 print(f"keyframed-ground: {self.vehicle}: SIFT failed: {err}", file=sys.stderr)
-        camera, odm, pairs = self.write_files()
+        if sift_left:
+            print(
+                f"keyframed-ground: {self.vehicle}: {sift_left} keyframes left without SIFT "
+                "features (stopped); a run on this folder computes them",
+                file=sys.stderr,
+            )
         return {
             "vehicle": self.vehicle,
             "keyframes": self.count(),
@@ -1029,6 +1057,7 @@ class VehicleDataset:
             "gap_queries": self.queries,
             "duplicates_ignored": self.duplicates,
             "sift_failed": sift_failed,
+            "sift_left": sift_left,
             "earlier_flights_skipped": self.skipped_flights,
             # sequence numbers; "FLIGHT:N" for another flight than the first
             "missing": [
@@ -1271,7 +1300,14 @@ class GroundStation:
             ds.queries += 1
         timeout = GAP_QUERY_S + GAP_QUERY_PER_KEYFRAME_S * (last - first + 1)
         try:
-            self.session.get(selector, zenoh.handlers.Callback(on_reply, on_end), timeout=timeout)
+            # Each reply as it comes: Zenoh's default (latest-value) consolidation would
+            # hold a chunk's replies back until its last one, or the timeout.
+            self.session.get(
+                selector,
+                zenoh.handlers.Callback(on_reply, on_end),
+                timeout=timeout,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
         except Exception as err:
             print(f"keyframed-ground: {ds.vehicle}: query {selector}: {err}", file=sys.stderr)
             on_end()
@@ -1392,12 +1428,12 @@ class GroundStation:
         results = []
         for ds in list(self.datasets.values()):
             try:
-                results.append(ds.finish())
+                results.append(ds.finish(self.hurry))
             except Exception as err:  # one vehicle's failure must not cost the others'
                 print(f"keyframed-ground: {ds.vehicle}: {err}", file=sys.stderr)
                 results.append({"vehicle": ds.vehicle, "keyframes": ds.count(), "error": str(err)})
         if self.pool is not None:
-            self.pool.shutdown()
+            self.pool.shutdown(wait=not self.hurry.is_set(), cancel_futures=True)
         return results
 
 
