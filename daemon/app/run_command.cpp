@@ -278,7 +278,11 @@ class RecordRepair {
     thread_ = std::thread([this, flightsDir, currentFlight] {
       setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), 19);
       for (const McapRepair& r : repairFlightRecords(flightsDir, currentFlight, stop_)) {
-        if (r.error.empty()) {
+        if (r.removed) {
+          KF_LOG(Output, Notice) << "flight record part " << r.path
+                                 << " was created but never written (a crash or power cut as "
+                                    "it began): removed";
+        } else if (r.error.empty()) {
           KF_LOG(Output, Notice) << "flight record " << r.path
                                  << " was left unfinished (a crash or power cut): rewritten "
                                     "complete with the "

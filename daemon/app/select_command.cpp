@@ -316,6 +316,12 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       }
     }
   }
+  if (replay != nullptr && replay->selectionSettings().empty()) {
+    std::fprintf(stderr,
+                 "keyframed select: warning: the record does not say which selection settings "
+                 "the flight used (a record from before they were recorded in every part?): "
+                 "replaying with the defaults and the options given\n");
+  }
   if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs || opts.videoStartAuto)) {
     s.error =
         "a flight record replays on its own recorded clock: no --realtime, "

@@ -152,16 +152,25 @@ bool McapRecorder::rotateBefore(const Item& next) const {
 bool McapRecorder::rotate(std::string& error) {
   rotationDue_.reset();
   videoInPart_ = false;
-  if (!writer_->close(error)) return false;
+  if (!writer_->close(error)) {
+    error = "closing " + partPath(part_) + ": " + error;
+    return false;
+  }
   writer_.reset();
   ++part_;
-  if (!openFile(partPath(part_), error)) return false;
-  if (!latchedCalibration_.empty()) {
-    const int t = static_cast<int>(McapTopic::Calibration);
-    const auto now =
-        static_cast<std::uint64_t>(std::max<std::int64_t>(lastTimeNs_ + options_.timeOffsetNs, 0));
-    if (!writer_->write(channels_[t], ++sequences_[t], now, now, latchedCalibration_, error))
+  if (!openFile(partPath(part_), error)) {
+    error = "rotating to " + partPath(part_) + ": " + error;
+    return false;
+  }
+  const auto now =
+      static_cast<std::uint64_t>(std::max<std::int64_t>(lastTimeNs_ + options_.timeOffsetNs, 0));
+  for (const auto& [topic, data] : {std::pair{McapTopic::Calibration, &latchedCalibration_},
+                                    std::pair{McapTopic::Settings, &latchedSettings_}}) {
+    const int t = static_cast<int>(topic);
+    if (!data->empty() && !writer_->write(channels_[t], ++sequences_[t], now, now, *data, error)) {
+      error = partPath(part_) + ": " + error;
       return false;
+    }
   }
   return true;
 }
@@ -216,9 +225,12 @@ void McapRecorder::tryRecord(McapTopic topic, std::int64_t timeNs,
 
 void McapRecorder::enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message,
                            std::uint32_t sequence, bool mayWait, bool startsGroup) {
-  if (failed_.load() || !thread_.joinable()) return;
+  if (!thread_.joinable()) return;  // never opened: nothing is being recorded
   std::unique_lock lock(mutex_);
-  if (closing_) return;
+  if (failed_.load() || closing_) {
+    ++stats_.dropped;  // the recorder stopped: the rest of the flight is not recorded
+    return;
+  }
   const std::size_t n = message.size();
   if (queuedBytes_ + n > options_.maxQueueBytes && !queue_.empty()) {
     if (!mayWait) {
@@ -229,7 +241,10 @@ void McapRecorder::enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std
       return queuedBytes_ + n <= options_.maxQueueBytes || queue_.empty() || failed_.load() ||
              closing_;
     });
-    if (failed_.load() || closing_) return;
+    if (failed_.load() || closing_) {
+      ++stats_.dropped;
+      return;
+    }
   }
   queuedBytes_ += n;
   queue_.push_back(Item{topic, sequence, timeNs, std::move(message), startsGroup});
@@ -280,7 +295,7 @@ void McapRecorder::run() {
       if (failed_.load()) break;
       if (rotateBefore(it)) {
         if (!rotate(error)) {
-          fail("rotating to " + partPath(part_) + ": " + error);
+          fail(error);
           break;
         }
         dirty = false;
@@ -299,6 +314,7 @@ void McapRecorder::run() {
       fileBytes_ += it.data.size();
       lastTimeNs_ = it.timeNs;
       if (it.topic == McapTopic::Calibration) latchedCalibration_ = it.data;
+      if (it.topic == McapTopic::Settings) latchedSettings_ = it.data;
       if (it.topic == McapTopic::Video) videoInPart_ = true;
       dirty = true;
       const bool full = options_.rotateBytes > 0 && fileBytes_ >= options_.rotateBytes;

@@ -135,7 +135,10 @@ class McapRecorder {
   std::chrono::steady_clock::time_point fileStart_;
   bool videoInPart_ = false;  // the part holds a video picture
   std::optional<std::chrono::steady_clock::time_point> rotationDue_;  // since when
-  std::vector<std::uint8_t> latchedCalibration_;  // repeated at the start of each part
+  // Repeated at the start of each part, so that one part replays and reads on its own:
+  // the camera calibration and the selection settings in force.
+  std::vector<std::uint8_t> latchedCalibration_;
+  std::vector<std::uint8_t> latchedSettings_;
 
   mutable std::mutex mutex_;
   std::condition_variable wake_;   // writer: work or closing

@@ -28,6 +28,28 @@ bool mcapComplete(const std::string& path) {
   return in.good() && tail == kMagic;
 }
 
+namespace {
+
+// A file created but never written: empty, or (a power cut after the file system
+// allocated its first block, before the data reached it) zeros only.
+bool neverWritten(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return false;
+  std::array<char, 4096> block{};
+  std::uint64_t seen = 0;
+  while (in.read(block.data(), block.size()) || in.gcount() > 0) {
+    const auto n = static_cast<std::size_t>(in.gcount());
+    if (std::any_of(block.begin(), block.begin() + static_cast<std::ptrdiff_t>(n),
+                    [](char c) { return c != 0; }))
+      return false;
+    seen += n;
+    if (seen > (1U << 20)) return false;  // a megabyte of zeros was written by someone
+  }
+  return true;
+}
+
+}  // namespace
+
 bool recoverMcap(const std::string& src, const std::string& dst, std::uint64_t& messages,
                  std::string& error, const std::atomic<int>* stop) {
   static_assert(
@@ -73,6 +95,13 @@ std::vector<McapRepair> repairFlightRecords(const std::string& flightsDir,
     if (stop.load()) break;
     McapRepair r;
     r.path = p.string();
+    if (neverWritten(r.path)) {
+      std::error_code e1;
+      r.removed = fs::remove(p, e1);
+      if (e1) r.error = "cannot remove " + r.path + " (never written): " + e1.message();
+      out.push_back(std::move(r));
+      continue;
+    }
     const std::string tmp = r.path + ".recovering";
     std::error_code e1;
     const std::uint64_t size = fs::file_size(p, e1);

@@ -247,6 +247,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   Impl& impl = *s->impl_;
   std::int64_t firstNs = 0;
   std::int64_t lastNs = 0;
+  std::string lastSettings;
   for (std::size_t part = 0; part < s->parts_.size(); ++part) {
     const auto r = McapReader::open(s->parts_[part], topics, error);
     if (!r && part == 0) return nullptr;
@@ -282,11 +283,14 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
         continue;
       }
       if (topic == 4) {
+        // Each part repeats the settings in force: a change is one that differs from
+        // the message before it.
         if (const auto text = settingsText(msg)) {
           if (s->selection_.empty())
             s->selection_ = *text;
-          else if (*text != s->selection_)
+          else if (*text != lastSettings)
             ++s->settingsChanges_;
+          lastSettings = *text;
         }
         continue;
       }

@@ -253,6 +253,8 @@ def test_rotated_record_replays_as_one_flight_and_every_part_passes_doctor(
     assert len(parts) >= 3 and parts[-1].name == "flight.mcap", parts  # flight-001, ...
     for part in parts:
         assert_doctor_clean(part)
+        # each part says how the flight selected: it replays on its own as the flight did
+        assert counts(part).get("/keyframed/settings") == 1, part
     # each rotation is a log line, recorded too
     assert "MCAP: recording continues in " + str(fd / "flight-001.mcap") in stderr, stderr
     logged = [g.message for p in parts for g in decoded(p, "/keyframed/log")]

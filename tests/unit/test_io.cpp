@@ -1,12 +1,14 @@
 // The Rust I/O crate through its C++ wrappers: MCAP writing and Zenoh in-process.
 #include <arpa/inet.h>
 #include <netinet/in.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <csignal>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -230,6 +232,20 @@ TEST(McapRepair, AFileCutShortIsRewrittenCompleteWithWhatReadsBack) {
   EXPECT_NE(bytes.find("never.Written"), std::string_view::npos);
   // Complete now: a second pass has nothing to do.
   EXPECT_TRUE(repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop).empty());
+  // A part created but never written (a kill or power cut as it began: empty, or a
+  // block of zeros) holds nothing: removed, and said so, not refused at every start.
+  const std::string empty = tempPath("flights/a/flight-001.mcap");
+  const std::string zeros = tempPath("flights/a/flight-002.mcap");
+  std::ofstream(empty).close();
+  std::ofstream(zeros, std::ios::binary) << std::string(4096, '\0');
+  const auto stillborn = repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop);
+  ASSERT_EQ(stillborn.size(), 2U);
+  for (const McapRepair& r : stillborn) {
+    EXPECT_TRUE(r.removed) << r.path;
+    EXPECT_EQ(r.error, "") << r.path;
+    EXPECT_FALSE(std::filesystem::exists(r.path)) << r.path;
+  }
+  EXPECT_TRUE(repairFlightRecords(tempPath("flights"), tempPath("flights/b"), stop).empty());
   // What is not an MCAP file stays as it is.
   const std::string text = tempPath("flights/a/notes.mcap");
   std::ofstream(text) << "not a record";
@@ -342,6 +358,8 @@ TEST(McapWriter, WriteErrorIsReportedOnce) {
   ASSERT_TRUE(w) << error;
   EXPECT_FALSE(w->flush(false, error));
   EXPECT_NE(error.find("/dev/full"), std::string::npos) << error;
+  // The OS's reason, not only the mcap crate's "I/O error from writing, ...".
+  EXPECT_NE(error.find("No space left on device"), std::string::npos) << error;
   EXPECT_FALSE(w->close(error));
 }
 
@@ -430,6 +448,59 @@ TEST(McapRecorder, AVideoThatStopsDoesNotHoldTheRotationBackForLong) {
   }
   ASSERT_TRUE(rec.close(error)) << error;
   EXPECT_EQ(mcapParts(path).size(), 2U);  // rotated after the wait, not never
+}
+
+TEST(McapRecorder, EveryMessageNotRecordedAfterAWriteErrorIsCounted) {
+  // Files may grow to 64 kB here (as a disk that fills up): the recorder stops at the
+  // first write past it, and what the flight records after that is counted as lost.
+  const std::string path = tempPath("efbig.mcap");
+  McapRecorder rec;
+  std::string error;
+  McapRecorderOptions o;
+  o.path = path;
+  o.compression = "none";
+  o.chunkSize = 4096;
+  o.flushIntervalMs = 10;
+  o.blockWhenFull = true;
+  std::mutex m;
+  std::condition_variable cv;
+  std::string failure;
+  o.onFailure = [&](const std::string& line) {
+    std::lock_guard lock(m);
+    failure = line;
+    cv.notify_all();
+  };
+  ASSERT_TRUE(rec.open(o, error)) << error;
+  rlimit old{};
+  ASSERT_EQ(getrlimit(RLIMIT_FSIZE, &old), 0);
+  rlimit small = old;
+  small.rlim_cur = 64 * 1024;
+  const auto previous = std::signal(SIGXFSZ, SIG_IGN);  // EFBIG, not a signal
+  ASSERT_EQ(setrlimit(RLIMIT_FSIZE, &small), 0);
+  const std::vector<std::uint8_t> data(2000, 0x42);
+  int sent = 0;
+  for (; sent < 100; ++sent) {
+    rec.record(McapTopic::Decision, sent * 1'000'000LL, data);
+    std::unique_lock lock(m);
+    if (!failure.empty()) break;
+  }
+  {
+    std::unique_lock lock(m);
+    cv.wait_for(lock, std::chrono::seconds(10), [&] { return !failure.empty(); });
+  }
+  for (int i = 0; i < 50; ++i, ++sent) rec.record(McapTopic::Decision, sent * 1'000'000LL, data);
+  rec.tryRecord(McapTopic::Log, 0, data);
+  ++sent;
+  EXPECT_FALSE(rec.close(error));
+  setrlimit(RLIMIT_FSIZE, &old);
+  std::signal(SIGXFSZ, previous);
+  ASSERT_NE(failure, "");
+  EXPECT_NE(failure.find("File too large"), std::string::npos) << failure;
+  const McapRecorderStats st = rec.stats();
+  EXPECT_LT(st.written, 40U);
+  EXPECT_EQ(st.written + st.dropped, static_cast<std::uint64_t>(sent))
+      << st.written << " written, " << st.dropped << " dropped";
+  std::filesystem::remove(path);
 }
 
 TEST(McapRecorder, OpenFailsOnUnwritablePath) {
@@ -965,6 +1036,48 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
     EXPECT_EQ(replay->format(), "jpeg");  // the image's format, not its frame_id
   }
   EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9})) << error;
+}
+
+TEST(McapRecorder, EveryPartCarriesTheCalibrationAndTheSettingsInForce) {
+  // A part replays on its own as the flight selected at its start; a whole rotated
+  // record still says the settings changed once, not once a part.
+  const std::string path = tempPath("rotate-settings.mcap");
+  for (const std::string& p : mcapParts(path)) std::filesystem::remove(p);
+  const std::int64_t start = 1'000'000'000;
+  {
+    FlightOutputOptions o;
+    o.mcapPath = path;
+    o.startNs = start;
+    o.mcapRotateBytes = 3000;
+    FlightOutputs outputs;
+    std::string error;
+    ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
+    outputs.settings(start, "selection.target=0.75\n");
+    std::vector<std::uint8_t> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    for (std::int64_t i = 0; i < 60; ++i) {
+      if (i == 30) outputs.settings(start + i * 33'333'333, "selection.target=0.8\n");
+      recordFrame(outputs, i, start + i * 33'333'333, jpeg, "jpeg");
+    }
+    ASSERT_TRUE(outputs.close("done", error)) << error;
+  }
+  const std::vector<std::string> parts = mcapParts(path);
+  ASSERT_GE(parts.size(), 4U);
+  std::string error;
+  const auto whole = McapReplaySource::open(path, error);
+  ASSERT_TRUE(whole) << error;
+  EXPECT_EQ(whole->selectionSettings(), "selection.target=0.75\n");
+  EXPECT_EQ(whole->settingsChanges(), 1);
+  for (const std::string& part : parts) {
+    const ReadBack r = readMcap(part, {"/keyframed/settings"});
+    ASSERT_EQ(r.error, "") << part;
+    EXPECT_FALSE(r.messages.empty()) << part;
+  }
+  const auto last = McapReplaySource::open(parts.back(), error);
+  ASSERT_TRUE(last) << error;
+  EXPECT_EQ(last->selectionSettings(), "selection.target=0.8\n");
+  EXPECT_EQ(last->settingsChanges(), 0);
+  for (const std::string& p : parts) std::filesystem::remove(p);
 }
 
 TEST(McapReplay, AnEmptyLastPartEndsTheRecordInsteadOfFailingIt) {

@@ -42,6 +42,23 @@ fn set_error(err: *mut c_char, err_len: usize, msg: &str) {
     }
 }
 
+/// An error with its causes: the `mcap` crate's I/O error says "I/O error from
+/// writing, or reading a compression stream" and keeps the OS's reason (a full disk,
+/// a read-only file system) in its source.
+fn describe(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let more = c.to_string();
+        if !text.ends_with(&more) {
+            text += ": ";
+            text += &more;
+        }
+        cause = c.source();
+    }
+    text
+}
+
 fn panic_message(p: Box<dyn std::any::Any + Send>) -> String {
     if let Some(s) = p.downcast_ref::<&str>() {
         format!("internal error (panic): {s}")
@@ -154,7 +171,7 @@ impl KfioMcap {
             Ok(v) => Ok(v),
             Err(e) => {
                 // A failed chunk leaves the file in an unknown state: stop writing to it.
-                let msg = format!("{}: {e}", self.path);
+                let msg = format!("{}: {}", self.path, describe(&e));
                 if matches!(e, mcap::McapError::Io(_)) {
                     // Dropping tries to finish the file once more and ignores errors.
                     drop(guard.take());
@@ -375,7 +392,7 @@ pub unsafe extern "C" fn kfio_mcap_open(
                 256 * 1024,
                 SharedFile(Arc::clone(&file)),
             ))
-            .map_err(|e| format!("cannot start MCAP file {path}: {e}"))?;
+            .map_err(|e| format!("cannot start MCAP file {path}: {}", describe(&e)))?;
         Ok(Box::into_raw(Box::new(KfioMcap {
             writer: Mutex::new(Some(writer)),
             file,
@@ -534,7 +551,7 @@ pub unsafe extern "C" fn kfio_mcap_close(
         };
         let finished = w.finish().map(|_| ());
         let inner = w.into_inner();
-        finished.map_err(|e| format!("{}: {e}", m.path))?;
+        finished.map_err(|e| format!("{}: {}", m.path, describe(&e)))?;
         let shared = inner
             .into_inner()
             .map_err(|e| format!("{}: {}", m.path, e.error()))?;
@@ -624,7 +641,7 @@ pub unsafe extern "C" fn kfio_mcap_recover(
                 1 << 20,
                 SharedFile(Arc::clone(&file)),
             ))
-            .map_err(|e| format!("cannot start MCAP file {dst}: {e}"))?;
+            .map_err(|e| format!("cannot start MCAP file {dst}: {}", describe(&e)))?;
         let mut count: u64 = 0;
         for m in reader.by_ref() {
             // The first record that does not read is where the file was cut.
@@ -632,7 +649,9 @@ pub unsafe extern "C" fn kfio_mcap_recover(
             if stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed) != 0) {
                 return Err(format!("{src}: recovery stopped"));
             }
-            writer.write(&m).map_err(|e| format!("{dst}: {e}"))?;
+            writer
+                .write(&m)
+                .map_err(|e| format!("{dst}: {}", describe(&e)))?;
             count += 1;
         }
         // Channels the file declared that carried no message before the cut (a topic
@@ -661,7 +680,9 @@ pub unsafe extern "C" fn kfio_mcap_recover(
                 &channel.metadata,
             );
         }
-        writer.finish().map_err(|e| format!("{dst}: {e}"))?;
+        writer
+            .finish()
+            .map_err(|e| format!("{dst}: {}", describe(&e)))?;
         writer
             .into_inner()
             .into_inner()
