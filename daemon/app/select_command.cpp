@@ -68,6 +68,43 @@ std::vector<std::filesystem::path> earlierRunFiles(const std::string& dir) {
   return files;
 }
 
+// Whether two paths name one file: the same inode where both exist (a link, another
+// spelling), else the same absolute path.
+bool samePath(const std::string& a, const std::string& b) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  if (fs::equivalent(a, b, ec) && !ec) return true;
+  const fs::path ca = fs::weakly_canonical(a, ec);
+  if (ec) return false;
+  const fs::path cb = fs::weakly_canonical(b, ec);
+  return !ec && ca == cb;
+}
+
+// --mcap names a file the run reads, or one it writes in --out: the record would
+// destroy it (a flight record replayed into itself reads nothing and ends "done").
+std::string mcapClashes(const SelectOptions& opts) {
+  if (opts.mcap.empty()) return {};
+  std::vector<std::pair<std::string, const char*>> taken;
+  if (isMcapFile(opts.video)) {
+    for (const std::string& part : mcapParts(opts.video)) taken.emplace_back(part, "the record");
+  }
+  taken.emplace_back(opts.video, "the video");
+  if (!opts.telemetry.empty()) {
+    const std::string t = opts.telemetry;
+    taken.emplace_back(t.starts_with("tlog:") ? t.substr(5) : t, "--telemetry");
+  }
+  if (!opts.calibration.empty()) taken.emplace_back(opts.calibration, "--calibration");
+  if (!opts.zenohConfig.empty()) taken.emplace_back(opts.zenohConfig, "--zenoh-config");
+  for (const char* name : {"summary.json", "keyframes.csv", "decisions.csv", "decisions.jsonl"})
+    taken.emplace_back(opts.outDir + "/" + name, "the run's own output");
+  for (const auto& [path, what] : taken) {
+    if (samePath(opts.mcap, path))
+      return "--mcap " + opts.mcap + " is " + what + " (" + path +
+             "): the record would overwrite it; give another file";
+  }
+  return {};
+}
+
 std::string earlierRunRefused(const std::string& dir, std::size_t files) {
   return dir + " holds an earlier run's output (" + std::to_string(files) +
          " files: keyframes, decisions, summary): choose another --out, or --overwrite to "
@@ -204,6 +241,10 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   SelectSummary s;
   cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);
   std::string error;
+  if (auto clash = mcapClashes(opts); !clash.empty()) {
+    s.error = std::move(clash);
+    return s;
+  }
   // Said before any work: an earlier run's keyframes would mix with this run's.
   if (const auto earlier = earlierRunFiles(opts.outDir); !earlier.empty() && !opts.overwrite) {
     s.error = earlierRunRefused(opts.outDir, earlier.size());
@@ -488,6 +529,11 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   if (!outputs.open(fo, source->info().width, source->info().height, camera ? &*camera : nullptr,
                     error)) {
     s.error = error;
+    // Nothing was selected: the empty lists go, or the same command, corrected, would
+    // be refused for an earlier run's output. (Open files: unlinked, they write nowhere.)
+    std::error_code removeEc;
+    std::filesystem::remove(s.decisionsPath, removeEc);
+    std::filesystem::remove(opts.outDir + "/keyframes.csv", removeEc);
     return s;
   }
   const LogToRecord logToRecord(outputs);

@@ -451,6 +451,38 @@ def test_unwritable_mcap_path_is_a_clear_error(kf_bin: Path, pan_video: Path, tm
     assert r.returncode != 0
     assert "--mcap" in r.stderr and str(bad) in r.stderr, r.stderr
     assert r.stderr.count("\n") <= 2, r.stderr
+    # nothing was selected: the same command corrected is not refused for an earlier run
+    r = select(kf_bin, pan_video, tmp_path / "out", "--max-frames", "5")
+    assert r.returncode == 0, r.stderr
+
+
+def test_an_mcap_path_naming_an_input_or_output_is_refused(
+    kf_bin: Path, pan_video: Path, tmp_path: Path
+):
+    """--mcap onto the video, the record being replayed, the calibration or the run's
+    own summary would destroy it: refused before anything is opened, the file intact."""
+    video = tmp_path / "video.avi"
+    shutil.copyfile(pan_video, video)
+    (tmp_path / "link.avi").symlink_to(video)
+    record = tmp_path / "rec.mcap"
+    r = select(kf_bin, pan_video, tmp_path / "first", "--mcap", str(record), "--max-frames", "5")
+    assert r.returncode == 0, r.stderr
+    calib = tmp_path / "calib.yaml"
+    calib.write_text("%YAML:1.0\n---\nimage_width: 320\n")
+    out = tmp_path / "out"
+    cases = [
+        (video, [], tmp_path / "link.avi"),  # another spelling of the same file
+        (record, [], record),
+        (video, ["--calibration", str(calib)], calib),
+        (video, [], out / "summary.json"),
+    ]
+    for source, extra, mcap in cases:
+        before = Path(mcap).resolve().read_bytes() if Path(mcap).exists() else None
+        r = select(kf_bin, source, out, "--mcap", str(mcap), *extra)
+        assert r.returncode != 0 and "would overwrite it" in r.stderr, (mcap, r.stderr)
+        if before is not None:
+            assert Path(mcap).resolve().read_bytes() == before, mcap
+        assert not out.exists() or not list(out.iterdir()), list(out.iterdir())
 
 
 @pytest.mark.parametrize(
@@ -471,6 +503,9 @@ def test_bad_zenoh_config_is_a_clear_error(
     assert r.returncode != 0
     assert "--zenoh-config" in r.stderr and words in r.stderr, r.stderr
     assert "panic" not in r.stderr
+    # nothing was selected: no earlier run's output is left to refuse the next run for
+    assert not (tmp_path / "out" / "keyframes.csv").exists()
+    assert not (tmp_path / "out" / "decisions.csv").exists()
 
 
 def test_bad_vehicle_name_is_rejected(kf_bin: Path, pan_video: Path, tmp_path: Path):
