@@ -8,6 +8,7 @@
 #include <map>
 
 #include "app/config.h"
+#include "tagging/camera_model.h"
 #include "telemetry/link.h"
 
 namespace keyframed {

@@ -827,12 +827,53 @@ int Daemon::run() {
   }
   videoClock_ = videoStartNs.has_value();
   if (videoStartNs) clockOffsetNs_.store(*videoStartNs - monotonicNowNs());  // until a frame
-  source_ = openSource(config_.camera, videoClock_, placedStartNs, error);
+  if (config_.camera.source == DaemonConfig::Source::File) {
+    // A file source may be a FIFO (MJPEG from another program), whose open waits for a
+    // writer however long: it opens beside this thread, which keeps answering signals.
+    // The state is shared, not borrowed: a stop leaves the open behind, unfinished.
+    struct Opening {
+      std::unique_ptr<FrameSource> source;
+      std::string error;
+      std::atomic<bool> done{false};
+    };
+    auto opening = std::make_shared<Opening>();
+    std::thread([opening, camera = config_.camera, clock = videoClock_, placedStartNs] {
+      try {
+        opening->source = openSource(camera, clock, placedStartNs, opening->error);
+      } catch (const std::exception& e) {  // never std::terminate from a worker
+        opening->error = e.what();
+      }
+      opening->done.store(true);
+    }).detach();
+    while (!opening->done.load()) {
+      timespec wait{0, 50'000'000};
+      const int sig = sigtimedwait(&sigs, nullptr, &wait);
+      if (sig == SIGINT || sig == SIGTERM) {
+        KF_LOG(App, Notice) << (sig == SIGINT ? "SIGINT" : "SIGTERM") << ": stopping while "
+                            << config_.camera.path << " was still opening (nothing recorded)";
+        return 0;
+      }
+      if (sig == SIGHUP) {
+        KF_LOG(App, Notice) << "SIGHUP: the configuration is reloaded once the video is open";
+        reloadPending_ = true;
+      }
+    }
+    source_ = std::move(opening->source);
+    error = opening->error;
+  } else {
+    source_ = openSource(config_.camera, videoClock_, placedStartNs, error);
+  }
   if (!source_) {
     KF_LOG(Capture, Error) << toString(config_.camera.source) << ": " << error;
     return 1;
   }
   const SourceInfo& info = source_->info();
+  if (const std::string small =
+          tooSmallToAnalyse(info.width, info.height, config_.selection.analysisWidth);
+      !small.empty()) {
+    KF_LOG(Capture, Error) << info.description << ": " << small << " (selection.analysis_width)";
+    return 1;
+  }
   KF_LOG(Capture, Notice) << "capturing from " << info.description << " (" << info.width << "x"
                           << info.height << " @ " << info.fps << " fps)";
   preview_ = std::make_unique<PreviewEncoder>(static_cast<int>(config_.output.previewWidth),
@@ -862,6 +903,7 @@ int Daemon::run() {
       KF_LOG(Tagging, Warning) << w;
     if (const std::string w = camera_->physicalSizeWarning(); !w.empty())
       KF_LOG(Tagging, Warning) << w;
+    if (const std::string w = camera_->lensWarning(); !w.empty()) KF_LOG(Tagging, Warning) << w;
   }
   if (!makeFlightDir(config_.output.stateDir, flightDir_, error)) {
     KF_LOG(Output, Error) << error;
@@ -1172,8 +1214,11 @@ int Daemon::run() {
   const CaptureThread::Stats cs = capture_->stats();
   KF_LOG(App, Notice) << "stopped (" << state << "): " << cs.captured << " frames captured, "
                       << queue_->dropped() + cs.noBuffer << " dropped, " << lostInCamera()
-                      << " lost in the camera, " << writer_.count() << " keyframes in "
-                      << flightDir_;
+                      << " lost in the camera, " << writer_.count() << " keyframes"
+                      << (writer_.saved() != writer_.count()
+                              ? " (" + std::to_string(writer_.saved()) + " saved)"
+                              : std::string())
+                      << " in " << flightDir_;
   const int rc = !ok || state == "capture_failed" || state == "failed" ? 1 : 0;
   if (!captureStopped) {
     // Everything is flushed; the capture thread still holds the source, the pool and

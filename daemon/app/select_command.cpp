@@ -23,6 +23,7 @@
 #include "app/log_to_record.h"
 #include "app/mavlink_record.h"
 #include "app/paced_source.h"
+#include "app/settings.h"
 #include "app/telemetry_log.h"
 #include "app/text_io.h"
 #include "app/video_sync.h"
@@ -212,10 +213,6 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
   return writeFileAtomically(path, std::string_view(text), error);
 }
 
-// The smallest analysis image, each way: ORB's pyramid and the corner tracker need
-// room (a 4000x8 strip scaled to 640 wide is one row).
-constexpr int kMinAnalysisSide = 32;
-
 std::atomic<bool> gStop{false};
 // Set while the video is being opened: an open can block for good (a FIFO that no
 // writer opens, a stalled network mount), and nothing is written yet to flush.
@@ -384,19 +381,16 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
     const std::string size = camera->physicalSizeWarning();
     if (!size.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
+    const std::string lens = camera->lensWarning();
+    if (!lens.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", lens.c_str());
   }
-  {
-    // Too small to analyse (a strip of a few rows, a thumbnail): said before any
-    // output, not an OpenCV exception part-way.
-    const int w = source->info().width, h = source->info().height;
-    const int aw = opts.selector.analysisWidth > 0 ? std::min(opts.selector.analysisWidth, w) : w;
-    const long ah = w > 0 ? std::lround(static_cast<double>(h) * aw / w) : 0;
-    if (w > 0 && (aw < kMinAnalysisSide || ah < kMinAnalysisSide)) {
-      s.error = opts.video + ": frames of " + std::to_string(w) + "x" + std::to_string(h) +
-                " are too small to analyse (at least " + std::to_string(kMinAnalysisSide) +
-                " pixels each way at the analysis width, --analysis-width)";
-      return s;
-    }
+  // Too small to analyse (a strip of a few rows, a thumbnail): said before any output,
+  // not an OpenCV exception part-way.
+  if (const std::string small = tooSmallToAnalyse(source->info().width, source->info().height,
+                                                  opts.selector.analysisWidth);
+      !small.empty()) {
+    s.error = opts.video + ": " + small + ", --analysis-width";
+    return s;
   }
   std::error_code ec;
   if (opts.overwrite && !removeEarlierRun(opts.outDir, s.error)) return s;

@@ -133,12 +133,14 @@ bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
   return true;
 }
 
-std::string exifTextError(std::string_view text) {
-  const bool printable = std::all_of(text.begin(), text.end(), [](char ch) {
-    return static_cast<unsigned char>(ch) >= 0x20 && static_cast<unsigned char>(ch) < 0x7f;
-  });
-  if (printable && text.size() <= 63) return {};
-  return "must be at most 63 printable ASCII characters, as EXIF holds them";
+std::string tooSmallToAnalyse(int w, int h, int analysisWidth) {
+  constexpr int kMinSide = 32;
+  const int aw = analysisWidth > 0 ? std::min(analysisWidth, w) : w;
+  const long ah = w > 0 ? std::lround(static_cast<double>(h) * aw / w) : 0;
+  if (w <= 0 || (aw >= kMinSide && ah >= kMinSide)) return {};
+  return "frames of " + std::to_string(w) + "x" + std::to_string(h) +
+         " are too small to analyse (at least " + std::to_string(kMinSide) +
+         " pixels each way at the analysis width)";
 }
 
 }  // namespace keyframed

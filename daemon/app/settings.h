@@ -85,8 +85,9 @@ std::string parseAutopilot(std::string_view text, int& system, int& component);
 // of unix seconds into unix nanoseconds.
 bool parseUtcTime(const std::string& text, std::int64_t& unixNs);
 
-// An EXIF ASCII value set by the user (Make, Model): at most 63 printable ASCII
-// characters. Empty on success, else why not (without the value).
-std::string exifTextError(std::string_view text);
+// "" when frames of w x h can be analysed at `analysisWidth` (0: full width), else
+// why not: the smallest analysis image is 32 pixels each way (ORB's pyramid and the
+// corner tracker need room; a 4000x8 strip scaled to 640 wide is one row).
+std::string tooSmallToAnalyse(int w, int h, int analysisWidth);
 
 }  // namespace keyframed

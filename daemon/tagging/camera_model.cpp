@@ -7,6 +7,7 @@
 #include <cctype>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <set>
 #include <sstream>
@@ -69,6 +70,36 @@ std::string CameraModel::physicalSizeWarning() const {
          "exact focal need them); add either";
 }
 
+std::string CameraModel::lensWarning() const {
+  const LensModel lm = lensModel();
+  if (!lm.active() || lm.invalidReason()[0] != '\0') return {};
+  const double reach = lm.monotonicRadius();
+  // How far out, in the corners' directions, the lens still draws rays (on the
+  // normalised image plane, distorted), against how far out the corners are.
+  double worst = 1e9;
+  for (const auto& [u, v] : {std::pair{-0.5, -0.5},
+                             {width - 0.5, -0.5},
+                             {-0.5, height - 0.5},
+                             {width - 0.5, height - 0.5}}) {
+    const double dx = (u - cx) / fx, dy = (v - cy) / fy;
+    const double corner = std::hypot(dx, dy);
+    if (!(corner > 0.0)) continue;
+    const cv::Point2d edge =
+        lm.distort({cx + reach * fx * dx / corner, cy + reach * fy * dy / corner});
+    const double drawn = std::hypot((edge.x - cx) / fx, (edge.y - cy) / fy);
+    worst = std::min(worst, drawn / corner);
+  }
+  if (worst >= 0.999) return {};
+  char buf[320];
+  std::snprintf(buf, sizeof buf,
+                "the calibration's distortion folds back %.0f %% of the way to the image's "
+                "corners: beyond, the image cannot be undistorted and the overlap analysis "
+                "loses it (check the calibration: a k3 fitted without points near the edge "
+                "does this)",
+                100.0 * worst);
+  return buf;
+}
+
 LensModel CameraModel::lensModel() const {
   LensModel out;
   const bool distorted =
@@ -107,12 +138,35 @@ bool finish(const std::string& path, CameraModel& m, std::string& error) {
   };
   if (m.width < 0 || m.height < 0) return bad("negative image size");
   if ((m.width > 0) != (m.height > 0)) return bad("image width and height go together");
+  if (m.width > 100000 || m.height > 100000) return bad("image size over 100000 pixels");
   for (double v : {m.fx, m.fy}) {
     if (!std::isnan(v) && !(v > 0.0 && std::isfinite(v))) return bad("focal length must be > 0");
   }
-  if (std::isfinite(m.fx) && m.width == 0) return bad("intrinsics need the image size");
-  for (double v : {m.sensorWidthMm, m.sensorHeightMm, m.focalLengthMm}) {
-    if (!std::isnan(v) && !(v > 0.0 && std::isfinite(v))) return bad("sizes in mm must be > 0");
+  // Partial intrinsics are a mistake in the file (a NaN in the camera matrix, a key
+  // left out), not "uncalibrated": the keyframes would lose the lens without a word.
+  const int known =
+      std::isfinite(m.fx) + std::isfinite(m.fy) + std::isfinite(m.cx) + std::isfinite(m.cy);
+  if (known != 0 && known != 4) return bad("fx, fy, cx, cy go together (four finite numbers)");
+  if (known == 4 && m.width == 0) return bad("intrinsics need the image size");
+  if (known == 4) {
+    // Far beyond any lens: a typo or a unit mix-up, which would reach the tags as is.
+    const double side = std::max(m.width, m.height);
+    for (double f : {m.fx, m.fy}) {
+      if (f < 0.01 * side || f > 1000.0 * side)
+        return bad("fx and fy must lie between 1 % and 1000 times the image's longer side");
+    }
+    if (m.cx < -m.width || m.cx > 2.0 * m.width || m.cy < -m.height || m.cy > 2.0 * m.height)
+      return bad("the principal point (cx, cy) must lie within an image size of the image");
+  }
+  for (double v : {m.sensorWidthMm, m.sensorHeightMm}) {
+    if (!std::isnan(v) && !(v > 0.0 && v <= 1000.0))
+      return bad("sensor sizes in mm must be > 0 and at most 1000");
+  }
+  if (!std::isnan(m.focalLengthMm) && !(m.focalLengthMm > 0.0 && m.focalLengthMm <= 10000.0))
+    return bad("focal length in mm must be > 0 and at most 10000");
+  for (const std::string* text : {&m.make, &m.model}) {
+    if (std::string e = exifTextError(*text); !e.empty())
+      return bad(std::string(text == &m.make ? "make " : "model ") + e);
   }
   if (m.lens == CameraModel::Lens::Fisheye) {
     // cv::fisheye::calibrate's D is exactly k1..k4.
@@ -349,6 +403,10 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
 std::string readSmallText(const std::string& path, std::string& text) {
   constexpr std::size_t kMaxBytes = 1 << 20;
   constexpr std::size_t kMaxNesting = 64;
+  // A FIFO or a device would block the open, or never end: refused unread.
+  std::error_code ec;
+  if (std::filesystem::exists(path, ec) && !std::filesystem::is_regular_file(path, ec))
+    return "not a regular file";
   std::ifstream in(path, std::ios::binary);
   if (!in.good()) return "cannot open";
   in.seekg(0, std::ios::end);
@@ -387,6 +445,14 @@ bool loadCameraModel(const std::string& path, CameraModel& out, std::string& err
   if (!finish(path, m, error)) return false;
   out = std::move(m);
   return true;
+}
+
+std::string exifTextError(std::string_view text) {
+  const bool printable = std::all_of(text.begin(), text.end(), [](char ch) {
+    return static_cast<unsigned char>(ch) >= 0x20 && static_cast<unsigned char>(ch) < 0x7f;
+  });
+  if (printable && text.size() <= 63) return {};
+  return "must be at most 63 printable ASCII characters, as EXIF holds them";
 }
 
 bool checkCameraModel(const std::string& origin, CameraModel& m, std::string& error) {

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "core/lens.h"
@@ -52,10 +53,18 @@ struct CameraModel {
   // "" unless the calibration is in pixels only (no sensor size, no focal length in
   // mm): then the tags cannot carry the principal point and the focal length in mm.
   [[nodiscard]] std::string physicalSizeWarning() const;
+  // "" unless the distortion folds back (or a fisheye passes 80 degrees) before the
+  // image's corners: the image beyond cannot be undistorted, and the overlap analysis
+  // loses it (a k3 fitted without points near the edge does this).
+  [[nodiscard]] std::string lensWarning() const;
   // The lens as the overlap analysis takes it: none unless calibrated with a fisheye
   // or a non-zero distortion (a distortion-free pinhole changes no homography).
   [[nodiscard]] LensModel lensModel() const;
 };
+
+// An EXIF ASCII value set by the user (Make, Model): at most 63 printable ASCII
+// characters. Empty on success, else why not (without the value).
+std::string exifTextError(std::string_view text);
 
 // Reads a camera model from:
 //  - OpenCV FileStorage YAML/XML as OpenCV's calibration sample writes it

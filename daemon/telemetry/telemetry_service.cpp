@@ -7,6 +7,8 @@
 #include <limits>
 #include <vector>
 
+#include "telemetry/tlog.h"
+
 namespace keyframed {
 
 namespace {
@@ -86,6 +88,12 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
     while (link_->read(buf.data(), buf.size(), n, t, 0, error) == MavlinkLink::Status::Data)
       replayPackets_.push_back({t, std::vector<std::uint8_t>(buf.begin(), buf.begin() + n)});
     error.clear();
+    if (const std::size_t mended = mendRecordTimes(replayPackets_); mended > 0) {
+      log(TelemetryLogLevel::Warning,
+          config_.url + ": " + std::to_string(mended) +
+              " record time(s) out of line with the records around them (a corrupt "
+              "timestamp?) taken as the record's before");
+    }
     std::lock_guard lock(mutex_);
     stats_.replayDone = true;
     stats_.truncated = link_->truncated();

@@ -1,5 +1,7 @@
 #include "telemetry/tlog.h"
 
+#include <cstdlib>
+
 namespace keyframed {
 
 namespace {
@@ -97,6 +99,32 @@ bool TlogReader::next(std::int64_t& unixNs, std::vector<std::uint8_t>& packet) {
     unixNs = static_cast<std::int64_t>(us) * 1000;
     return true;
   }
+}
+
+std::size_t mendRecordTimes(std::vector<TimedPacket>& packets) {
+  constexpr std::int64_t kJumpNs = 1'000'000'000;
+  constexpr std::size_t kMaxRun = 3;
+  const auto near = [](std::int64_t a, std::int64_t b) { return std::llabs(a - b) <= kJumpNs; };
+  std::size_t mended = 0;
+  const std::size_t n = packets.size();
+  // The first record: out of line with the two after it, which agree.
+  if (n >= 3 && !near(packets[0].timeNs, packets[1].timeNs) &&
+      near(packets[1].timeNs, packets[2].timeNs)) {
+    packets[0].timeNs = packets[1].timeNs;
+    ++mended;
+  }
+  for (std::size_t i = 1; i < n; ++i) {
+    const std::int64_t before = packets[i - 1].timeNs;
+    if (near(packets[i].timeNs, before)) continue;
+    // Back in line within kMaxRun records: those in between were the outliers.
+    std::size_t back = i + 1;
+    while (back < n && back <= i + kMaxRun && !near(packets[back].timeNs, before)) ++back;
+    if (back >= n || back > i + kMaxRun) continue;  // a step, or the end: kept
+    for (std::size_t j = i; j < back; ++j) packets[j].timeNs = before;
+    mended += back - i;
+    i = back - 1;
+  }
+  return mended;
 }
 
 }  // namespace keyframed

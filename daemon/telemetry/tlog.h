@@ -5,6 +5,8 @@
 #include <string>
 #include <vector>
 
+#include "telemetry/timed_packet.h"
+
 namespace keyframed {
 
 // A MAVLink telemetry log (.tlog) as QGroundControl and MAVProxy write it: each
@@ -31,5 +33,13 @@ class TlogReader {
   bool truncated_ = false;
   std::uint64_t resyncedBytes_ = 0;
 };
+
+// Record times out of line with the records around them (one to three records whose
+// time jumps by more than a second and then returns: a corrupt timestamp, a ground
+// station's clock hiccup) set to the time of the record before them; returns how
+// many. A step that stays (the station's clock set) is kept. One such time would
+// otherwise hold back every packet after it (fed in record order, as time passes)
+// or pull the clock estimate seconds away.
+std::size_t mendRecordTimes(std::vector<TimedPacket>& packets);
 
 }  // namespace keyframed

@@ -404,6 +404,32 @@ def test_a_tlog_recorded_on_a_wrong_clock_is_placed_by_gps_time(
 
 
 @needs_exiftool
+@pytest.mark.parametrize("shift_s", [-3.0, 30.0, 2 * 86400.0])
+def test_one_record_time_out_of_line_costs_no_tag(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, shift_s: float
+) -> None:
+    """One record's time off by seconds or days (a corrupt timestamp; the rest of the
+    log on time) would hold every packet after it back, or pull the clock estimate
+    away: it is taken as the record's before, said once, and every keyframe is tagged
+    as with the clean log."""
+    tlog = tmp_path / "one-off.tlog"
+    records = read_tlog(short_nadir / "flight.tlog")
+    records[100] = TlogRecord(records[100].unix_us + round(shift_s * 1e6), records[100].msg)
+    write_tlog(tlog, records)
+    out = tmp_path / "out"
+    errs = tag_errors_with_tlog(kf_bin, short_nadir, tlog, out)
+    assert errs[:, 0].max() < 0.1 and errs[:, 1].max() < 0.1, errs
+    assert errs[:, 2].max() < 0.2, errs
+    r = run_select(
+        kf_bin,
+        short_nadir,
+        tmp_path / "again",
+        *["--telemetry", str(tlog), "--video-start", str(synth.EPOCH_UNIX_S)],
+    )
+    assert r.stderr.count("1 record time(s) out of line") == 1, r.stderr
+
+
+@needs_exiftool
 def test_no_fix_means_no_gps_tags_and_the_decision_says_why(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:

@@ -809,6 +809,56 @@ def test_corrupt_video_is_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
     assert "Sanitizer" not in stderr and "runtime error" not in stderr
 
 
+def test_frames_too_small_to_analyse_are_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
+    """A thumbnail-sized video (as `select` refuses it): one error and exit 1, not a
+    run that keeps nothing and says it went well."""
+    video = tmp_path / "tiny.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30, (16, 16))
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        w.write(rng.integers(0, 255, (16, 16, 3), dtype=np.uint8))
+    w.release()
+    proc = start(any_bin, tmp_path, f"camera.path={video}")
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1, stderr
+    assert "frames of 16x16 are too small to analyse" in stderr, stderr
+    assert "Sanitizer" not in stderr and "runtime error" not in stderr
+
+
+def test_a_fifo_with_no_writer_yet_does_not_keep_a_stop_waiting(
+    any_bin: Path, tmp_path: Path
+) -> None:
+    """camera.path may be a FIFO (MJPEG from another program), whose open waits for a
+    writer: SIGTERM meanwhile stops the daemon (systemctl stop), not only SIGKILL. A
+    calibration that is a FIFO is refused unread, not waited on."""
+    fifo = tmp_path / "camera.fifo"
+    os.mkfifo(fifo)
+    proc = start(any_bin, tmp_path, f"camera.path={fifo}")
+    try:
+        time.sleep(1.5)  # in the open, waiting for a writer
+        assert proc.poll() is None, proc.communicate()[1]
+        stderr, _ = sigterm(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, stderr
+    assert "SIGTERM: stopping while" in stderr and "still opening" in stderr, stderr
+    assert "Sanitizer" not in stderr and "runtime error" not in stderr
+
+    calib = tmp_path / "calib.fifo"
+    os.mkfifo(calib)
+    (tmp_path / "etc").mkdir(exist_ok=True)
+    r = subprocess.run(
+        [str(any_bin), "check-config", "--config-dir", str(tmp_path / "etc")]
+        + ["--set", f"tagging.calibration={calib}"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert r.returncode != 0 and "not a regular file" in r.stderr, r.stderr
+
+
 @pytest.mark.parametrize("realtime", [False, True], ids=["fast", "realtime"])
 def test_cut_video_ends_promptly_with_the_keyframes_before_the_cut(
     kf_bin: Path, short_nadir: Path, tmp_path: Path, realtime: bool
@@ -1682,6 +1732,7 @@ def test_full_disk_loses_no_keyframe_on_the_link(
         stopped = [ln for ln in stderr.splitlines() if "MCAP recorder stopped" in ln]
         assert stopped and "No space left on device" in stopped[0], stderr
         assert "keyframes not saved" in stderr, stderr  # said once more at the end
+        assert re.search(r" keyframes \(\d+ saved\) in ", stderr), stderr  # the last line too
         errors = [ln for ln in stderr.splitlines() if "No space left" in ln]
         assert len(errors) < 10, f"{len(errors)} error lines: logged per frame"
 

@@ -1,8 +1,12 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <numbers>
+#include <tuple>
+#include <vector>
 
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <gtest/gtest.h>
@@ -218,6 +222,102 @@ TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
   std::string error;
   EXPECT_FALSE(loadCameraModel("/nonexistent/cam.yaml", m, error));
   EXPECT_NE(error.find("cannot open"), std::string::npos);
+}
+
+TEST(CameraModel, ImplausibleIntrinsicsAreRefusedNotTagged) {
+  // An intrinsics.json with one value changed: each is refused, naming the rule.
+  const auto json = [](const std::string& field, const std::string& value) {
+    std::map<std::string, std::string> v = {{"width", "960"},
+                                            {"height", "540"},
+                                            {"fx", "685.5"},
+                                            {"fy", "685.5"},
+                                            {"cx", "479.5"},
+                                            {"cy", "269.5"},
+                                            {"make", "\"Acme\""},
+                                            {"sensor_width_mm", "6.17"},
+                                            {"focal_length_mm", "4.405"}};
+    if (value.empty())
+      v.erase(field);
+    else
+      v[field] = value;
+    std::string text = "{";
+    for (const auto& [k, x] : v) text += (text.size() > 1 ? ", \"" : "\"") + k + "\": " + x;
+    return text + "}";
+  };
+  CameraModel m;
+  std::string error;
+  ASSERT_TRUE(loadCameraModel(tempFile("ok.json", json("fx", "685.5")).string(), m, error))
+      << error;
+  EXPECT_EQ(m.lensWarning(), "");
+  const std::vector<std::tuple<std::string, std::string, std::string>> cases = {
+      {"cx", "", "go together"},           // left out: not "uncalibrated"
+      {"cx", ".nan", "go together"},       // NaN in the file
+      {"fx", ".nan", "go together"},       //
+      {"cx", "1e300", "principal point"},  // a principal point of 1e62 mm in the tags
+      {"cy", "-600", "principal point"},   //
+      {"fx", "1e300", "fx and fy"},        //
+      {"fy", "1e-300", "fx and fy"},       //
+      {"sensor_width_mm", "1e308", "sensor sizes"},
+      {"focal_length_mm", "50000", "focal length in mm"},
+      {"width", "2147483647", "image size"},
+  };
+  for (const auto& [field, value, words] : cases) {
+    SCOPED_TRACE(field + " = " + value);
+    const fs::path p = tempFile("bad.json", json(field, value));
+    error.clear();
+    EXPECT_FALSE(loadCameraModel(p.string(), m, error));
+    EXPECT_NE(error.find(words), std::string::npos) << error;
+    EXPECT_EQ(error.find('\n'), std::string::npos) << error;
+  }
+  // The same in OpenCV's calibrateCamera layout: a NaN in the camera matrix.
+  const fs::path yaml = tempFile("nan.yaml",
+                                 "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
+                                 "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+                                 "   dt: d\n   data: [ 500., 0., .nan, 0., 500., 240., "
+                                 "0., 0., 1. ]\n");
+  EXPECT_FALSE(loadCameraModel(yaml.string(), m, error));
+  EXPECT_NE(error.find("go together"), std::string::npos) << error;
+  // A make or model EXIF cannot hold (as --make and tagging.make refuse it).
+  for (const std::string& make : {std::string(64, 'A'), std::string("Cam\xc3\xa9ra")}) {
+    const fs::path p = tempFile("make.yaml",
+                                "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
+                                "make: \"" +
+                                    make +
+                                    "\"\n"
+                                    "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+                                    "   dt: d\n   data: [ 500., 0., 320., 0., 500., 240., "
+                                    "0., 0., 1. ]\n");
+    EXPECT_FALSE(loadCameraModel(p.string(), m, error)) << make;
+    EXPECT_NE(error.find("make must be at most 63 printable ASCII"), std::string::npos) << error;
+  }
+}
+
+TEST(CameraModel, ADistortionThatFoldsBeforeTheCornersIsWarnedAbout) {
+  CameraModel c;
+  c.width = 480;
+  c.height = 270;
+  c.fx = c.fy = 300.0;
+  c.cx = 239.5;
+  c.cy = 134.5;
+  c.distortion = {-0.3, 0.1, 0.0, 0.0, 0.0};  // a wide lens, monotonic across the image
+  EXPECT_EQ(c.lensWarning(), "");
+  c.distortion = {-10.0, 0.0, 0.0, 0.0, 0.0};  // folds at r = 0.18, the corners at 0.9
+  const std::string w = c.lensWarning();
+  EXPECT_NE(w.find("folds back"), std::string::npos) << w;
+  EXPECT_EQ(CameraModel{}.lensWarning(), "");  // no calibration, nothing to say
+}
+
+TEST(CameraModel, AFifoOrADirectoryIsRefusedUnread) {
+  const fs::path fifo = tempDir() / "calib.fifo";
+  fs::remove(fifo);
+  ASSERT_EQ(mkfifo(fifo.c_str(), 0600), 0);  // no writer: an open would wait forever
+  CameraModel m;
+  std::string error;
+  EXPECT_FALSE(loadCameraModel(fifo.string(), m, error));
+  EXPECT_NE(error.find("not a regular file"), std::string::npos) << error;
+  EXPECT_FALSE(loadCameraModel(tempDir().string(), m, error));
+  EXPECT_NE(error.find("not a regular file"), std::string::npos) << error;
+  fs::remove(fifo);
 }
 
 TEST(CameraModel, FisheyeCalibrationReadsAsFisheye) {

@@ -1317,6 +1317,41 @@ TEST(TelemetryDecoder, LegacyYawLockMeansEarthFrame) {
   EXPECT_NEAR(angleBetween(*p.gimbal, quaternionFromEuler(0, -60 * kDeg, 10 * kDeg)), 0.0, 1e-6);
 }
 
+TEST(Tlog, RecordTimesOutOfLineAreMendedAndAStepIsKept) {
+  constexpr std::int64_t s = 1'000'000'000;
+  const auto packets = [](const std::vector<std::int64_t>& times) {
+    std::vector<TimedPacket> out;
+    for (std::int64_t t : times) out.push_back({t, {}});
+    return out;
+  };
+  const auto times = [](const std::vector<TimedPacket>& ps) {
+    std::vector<std::int64_t> out;
+    for (const TimedPacket& p : ps) out.push_back(p.timeNs);
+    return out;
+  };
+  const std::int64_t t0 = 1'780'000'000 * s;
+  const std::int64_t ms = s / 1000;
+  // One record 3 s early, two 30 s late, and a jitter of a few ms that stays.
+  auto ps = packets({t0, t0 + 20 * ms, t0 - 3 * s, t0 + 60 * ms, t0 + 30 * s, t0 + 30 * s,
+                     t0 + 120 * ms, t0 + 110 * ms, t0 + 160 * ms});
+  EXPECT_EQ(mendRecordTimes(ps), 3U);
+  EXPECT_EQ(times(ps),
+            (std::vector<std::int64_t>{t0, t0 + 20 * ms, t0 + 20 * ms, t0 + 60 * ms, t0 + 60 * ms,
+                                       t0 + 60 * ms, t0 + 120 * ms, t0 + 110 * ms, t0 + 160 * ms}));
+  // The station's clock set back 30 s for good, and the first record out of line.
+  ps = packets({t0 + 5 * s, t0, t0 + 20 * ms, t0 + 40 * ms, t0 - 30 * s, t0 - 30 * s + 20 * ms,
+                t0 - 30 * s + 40 * ms, t0 - 30 * s + 60 * ms});
+  EXPECT_EQ(mendRecordTimes(ps), 1U);
+  EXPECT_EQ(times(ps), (std::vector<std::int64_t>{t0, t0, t0 + 20 * ms, t0 + 40 * ms, t0 - 30 * s,
+                                                  t0 - 30 * s + 20 * ms, t0 - 30 * s + 40 * ms,
+                                                  t0 - 30 * s + 60 * ms}));
+  // Too short to tell, and empty: left as they are.
+  ps = packets({t0, t0 + 9 * s});
+  EXPECT_EQ(mendRecordTimes(ps), 0U);
+  std::vector<TimedPacket> none;
+  EXPECT_EQ(mendRecordTimes(none), 0U);
+}
+
 TEST(Tlog, ReadsRecordsSkipsGarbageAndReportsATruncatedEnd) {
   MavlinkEncoder ap(1, 1);
   const auto path = std::filesystem::temp_directory_path() / "keyframed_test.tlog";
