@@ -380,7 +380,15 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     const std::string w = camera->aspectMismatch(source->info().width, source->info().height);
     if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
     const std::string size = camera->physicalSizeWarning();
-    if (!size.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
+    if (!size.empty() && !calibrated) {
+      // The record's CameraCalibration holds pixels only (K, D), no sensor size.
+      std::fprintf(stderr,
+                   "keyframed select: warning: the flight record's calibration is in pixels "
+                   "only (no sensor size, make or model): give --calibration with the file the "
+                   "flight used to tag the keyframes with all of it\n");
+    } else if (!size.empty()) {
+      std::fprintf(stderr, "keyframed select: warning: %s\n", size.c_str());
+    }
     const std::string lens = camera->lensWarning();
     if (!lens.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", lens.c_str());
   }

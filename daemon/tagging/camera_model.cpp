@@ -229,7 +229,12 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
   const auto text = [](const cv::FileNode& n, std::string& dst) {
     if (n.isString()) dst = static_cast<std::string>(n);
   };
-  const auto integer = [](const cv::FileNode& n) { return n.isInt() ? static_cast<int>(n) : 0; };
+  // A size must be an integer: 480.0 is refused by name, not taken for "missing".
+  std::string notInteger;
+  const auto integer = [&](const cv::FileNode& n) {
+    if (n.isReal() && notInteger.empty()) notInteger = n.name();
+    return n.isInt() ? static_cast<int>(n) : 0;
+  };
   // OpenCV's calibration sample writes fisheye_model: 1 for cv::fisheye::calibrate: its
   // four distortion terms are k1-k4 of the equidistant model, not k1, k2, p1, p2.
   if (const cv::FileNode f = fs["fisheye_model"];
@@ -292,6 +297,10 @@ bool readFileStorage(const std::string& path, CameraModel& m, std::string& error
   m.sensorWidthMm = number(fs["sensor_width_mm"]);
   m.sensorHeightMm = number(fs["sensor_height_mm"]);
   m.focalLengthMm = number(fs["focal_length_mm"]);
+  if (!notInteger.empty()) {
+    error = path + ": " + notInteger + " must be an integer (pixels)";
+    return false;
+  }
   if (m.width <= 0 || m.height <= 0) {
     error = path + ": image size missing (image_width/image_height or width/height)";
     return false;
@@ -427,16 +436,24 @@ bool loadCameraModel(const std::string& path, CameraModel& out, std::string& err
     error = path + ": " + why;
     return false;
   }
+  if (text.find_first_not_of(" \t\r\n") == std::string::npos) {
+    error = path + ": empty: no calibration in it";
+    return false;
+  }
   CameraModel m;
   try {
     const bool ok =
         endsWith(path, ".toml") ? readToml(path, m, error) : readFileStorage(path, m, error);
     if (!ok) return false;
   } catch (const cv::Exception& e) {
-    // FileStorage reports syntax errors by throwing; keep the first line only.
-    std::string what = e.what();
+    // FileStorage reports syntax errors by throwing, with the name of the check that
+    // failed ("parseValue", "isMap()"); keep the first line only.
+    std::string what = e.err.empty() ? e.what() : e.err;
     what.erase(std::find(what.begin(), what.end(), '\n'), what.end());
-    error = path + ": " + (e.err.empty() ? what : e.err);
+    error = path +
+            ": not a calibration OpenCV can read (YAML, XML or JSON as "
+            "calibrateCamera writes it, or keyframed's TOML): " +
+            what;
     return false;
   } catch (const std::exception& e) {
     error = path + ": " + e.what();

@@ -222,6 +222,18 @@ TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
   std::string error;
   EXPECT_FALSE(loadCameraModel("/nonexistent/cam.yaml", m, error));
   EXPECT_NE(error.find("cannot open"), std::string::npos);
+  // Said in words, not as the name of an OpenCV check ("buf", "parseValue").
+  for (const auto& [name, text, words] :
+       std::vector<std::tuple<std::string, std::string, std::string>>{
+           {"blank.yaml", " \n\n", "empty"},
+           {"syntax.yaml", "%YAML:1.0\ncamera_matrix: [1, 2\n  ::: }",
+            "not a calibration OpenCV can read"},
+           {"floatsize.json",
+            R"({"width": 480.0, "height": 270, "fx": 228.5, "fy": 228.5, "cx": 240, "cy": 135})",
+            "width must be an integer"}}) {
+    EXPECT_FALSE(loadCameraModel(tempFile(name, text).string(), m, error)) << name;
+    EXPECT_NE(error.find(words), std::string::npos) << name << ": " << error;
+  }
 }
 
 TEST(CameraModel, ImplausibleIntrinsicsAreRefusedNotTagged) {

@@ -195,14 +195,11 @@ fn open_message_stream(path: &str) -> Res<McapStream> {
     }
     file.seek(SeekFrom::Start(0))
         .map_err(|e| format!("cannot read {path}: {e}"))?;
-    let size = file
-        .metadata()
-        .map_err(|e| format!("cannot read {path}: {e}"))?
-        .len();
-    // A corrupt record length must be an error, not a huge allocation: no record is
-    // longer than the file, or (decompressed, inside a chunk) than the file plus a
-    // generous 256 MiB.
-    let limit = usize::try_from(size.saturating_add(256 << 20)).unwrap_or(usize::MAX);
+    // A corrupt record length must be an error, not a huge allocation (which a Pi's
+    // memory would refuse with an abort, in the repair of a flying daemon): no record
+    // the recorder writes comes near 128 MiB, decompressed or not (chunks of 256 KiB,
+    // or of one message: a keyframe of a few MB).
+    let limit: usize = 128 << 20;
     // A chunk is checked against its CRC before any of its messages is given out: a
     // corrupt one ends the stream there (replay stops, a repair keeps what precedes
     // it) instead of passing on damaged messages, which a repair would sign afresh.
