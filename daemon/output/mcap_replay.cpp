@@ -394,9 +394,10 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
     const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
     const std::int64_t index = [&] {
       // The live run's index for this frame (the frames it dropped leave the same
-      // gaps), else the position in the stream.
+      // gaps); for a frame whose decision is not in the record (the live queue full),
+      // the one after the frame before's: indices never go back or repeat.
       const auto live = impl.indexAt.find(t);
-      return live != impl.indexAt.end() ? live->second : index_;
+      return live != impl.indexAt.end() ? live->second : std::max(index_, lastIndex_ + 1);
     }();
     if (impl.video) {
       if (!impl.started && !h264HasIdr(*field)) continue;  // as the first pass did
@@ -442,6 +443,7 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       format_ = format ? std::string(format->begin(), format->end()) : std::string("jpeg");
     }
     commanded_ = impl.commandedAt.contains(t);
+    lastIndex_ = index;
     ++index_;
     impl.encoded.assign(field->begin(), field->end());
     return ReadStatus::Frame;

@@ -62,6 +62,7 @@ class McapReplaySource final : public FrameSource {
   std::vector<TimedPacket> mavlink_;
   bool truncated_ = false;
   std::int64_t index_ = 0;
+  std::int64_t lastIndex_ = -1;  // the index the frame before was given
   std::vector<std::string> parts_;
   std::size_t part_ = 0;  // the part next() reads
   std::int64_t unixOffsetNs_ = 0;

@@ -1019,8 +1019,11 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
     outputs.settings(start, "selection.target=0.75\nselection.mode=\"paper\"\n");
     std::vector<std::uint8_t> jpeg;
     ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
-    for (const std::int64_t index : {0, 5, 9})  // the live run dropped 1-4 and 6-8
+    for (const std::int64_t index : {0, 5, 9}) {  // the live run dropped 1-4 and 6-8
       recordFrame(outputs, index, start + index * 33'333'333, jpeg, "jpeg");
+      // ... and recorded a preview without its decision (its queue full): frame 12
+      if (index == 9) outputs.preview(start + 12 * 33'333'333, jpeg, "jpeg");
+    }
     outputs.settings(start + 400'000'000, "selection.target=0.8\n");  // a SIGHUP reload
     ASSERT_TRUE(outputs.close("done", error)) << error;
   }
@@ -1035,7 +1038,9 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
     indices.push_back(f.index);
     EXPECT_EQ(replay->format(), "jpeg");  // the image's format, not its frame_id
   }
-  EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9})) << error;
+  // The one without a decision follows the frame before it, never goes back to its
+  // position in the stream (3, before 5 and 9).
+  EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9, 10})) << error;
 }
 
 TEST(McapRecorder, EveryPartCarriesTheCalibrationAndTheSettingsInForce) {
