@@ -95,7 +95,11 @@ bool KeyframeOutput::handle(const KeyframeEvent& ev, std::string& error) {
   };
   auto write = [&](const Frame& f) {
     std::string e;
-    if (!writeKeyframe(f, ev.decidedNs, note, e)) failed(e);
+    try {
+      if (!writeKeyframe(f, ev.decidedNs, note, e)) failed(e);
+    } catch (const std::exception& x) {  // (out of memory): the other keyframe still goes
+      failed("keyframe " + std::to_string(f.index) + ": " + x.what());
+    }
   };
   if (ev.endOfStream) {
     if (!ev.promoted) return true;

@@ -1,5 +1,7 @@
 #include "app/mavlink_record.h"
 
+#include <array>
+
 namespace keyframed {
 
 bool MavlinkRecord::fromKnownSender(const mavlink_message_t& msg) {
@@ -13,9 +15,12 @@ bool MavlinkRecord::fromKnownSender(const mavlink_message_t& msg) {
 
 void MavlinkRecord::message(const mavlink_message_t& msg, std::int64_t timeNs) {
   if (!fromKnownSender(msg)) return;  // line noise that looked like a frame
-  std::uint8_t buf[MAVLINK_MAX_PACKET_LEN];
-  const std::uint16_t n = mavlink_msg_to_send_buffer(buf, &msg);
-  outputs_.mavlink(timeNs, msg.sysid, msg.compid, msg.msgid, std::span<const std::uint8_t>(buf, n));
+  // As it came (mavlink_msg_to_send_buffer would trim an untrimmed payload and break
+  // its checksum).
+  std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN> buf{};
+  const std::size_t n = wireBytes(msg, buf);
+  outputs_.mavlink(timeNs, msg.sysid, msg.compid, msg.msgid,
+                   std::span<const std::uint8_t>(buf.data(), n));
   vehicle(msg, timeNs);
 }
 

@@ -316,6 +316,7 @@ class Daemon {
   bool placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, bool& stopped);
   void analysisLoop();
   void outputLoop();
+  void outputOne(const KeyframeEvent& event, std::string& error, LogThrottle& errorLog);
   void reload();
   void publishPose();
   bool writeSummary(double seconds, const std::string& state, std::string& error);
@@ -494,42 +495,52 @@ void Daemon::outputLoop() {
   std::string error;
   LogThrottle errorLog;  // once per kind, then every 10 s
   while (std::optional<KeyframeEvent> ev = events_.pop()) {
-    const Decision& d = ev->decision;
-    if (d.kept) {
-      KF_LOG(Select, Debug) << "keyframe " << d.index << ": " << toString(d.reason) << ", overlap "
-                            << (std::isfinite(d.overlap) ? formatFixed(d.overlap, 3) : "none")
-                            << ", sharpness " << formatFixed(d.sharpness, 1) << " (threshold "
-                            << formatFixed(d.threshold, 1) << ")";
-    }
-    if (ev->promoted) {
-      KF_LOG(Select, Debug) << "keyframe " << d.promotedIndex
-                            << ": gap fill, the sharpest since the last keyframe";
-    }
-    bool handled = false;
+    // Whatever fails with one event (out of memory), the events queued after it are
+    // still written: never std::terminate with keyframes in the queue.
     try {
-      handled = output_->handle(*ev, error);
-    } catch (const std::exception& e) {  // one keyframe's failure, not the rest's
-      error = std::string("keyframe output failed: ") + e.what();
-    }
-    if (!handled) {
-      // Something could not be saved (disk full, ...): selection, recording and
-      // publishing of what can be go on.
+      outputOne(*ev, error, errorLog);
+    } catch (const std::exception& e) {
       stats_.writeErrors.fetch_add(1);
-      // The kind: the reason after the last ": " ("No space left on device"), not the path.
-      const auto colon = error.rfind(": ");
-      const std::string_view kind = colon == std::string::npos
-                                        ? std::string_view(error)
-                                        : std::string_view(error).substr(colon + 2);
-      if (const auto held = errorLog.pass(kind, monotonicNowNs())) {
-        KF_LOG(Output, Error) << error
-                              << (*held > 0
-                                      ? " (and " + std::to_string(*held) + " more write errors)"
-                                      : std::string());
-      }
+      KF_LOG(Output, Error) << "keyframe output failed: " << e.what();
     }
-    stats_.written.store(writer_.count());
-    outputs_.progress(stats_.analysed.load(), writer_.count());
   }
+}
+
+void Daemon::outputOne(const KeyframeEvent& event, std::string& error, LogThrottle& errorLog) {
+  const Decision& d = event.decision;
+  if (d.kept) {
+    KF_LOG(Select, Debug) << "keyframe " << d.index << ": " << toString(d.reason) << ", overlap "
+                          << (std::isfinite(d.overlap) ? formatFixed(d.overlap, 3) : "none")
+                          << ", sharpness " << formatFixed(d.sharpness, 1) << " (threshold "
+                          << formatFixed(d.threshold, 1) << ")";
+  }
+  if (event.promoted) {
+    KF_LOG(Select, Debug) << "keyframe " << d.promotedIndex
+                          << ": gap fill, the sharpest since the last keyframe";
+  }
+  bool handled = false;
+  try {
+    handled = output_->handle(event, error);
+  } catch (const std::exception& e) {  // one keyframe's failure, not the rest's
+    error = std::string("keyframe output failed: ") + e.what();
+  }
+  if (!handled) {
+    // Something could not be saved (disk full, ...): selection, recording and
+    // publishing of what can be go on.
+    stats_.writeErrors.fetch_add(1);
+    // The kind: the reason after the last ": " ("No space left on device"), not the path.
+    const auto colon = error.rfind(": ");
+    const std::string_view kind = colon == std::string::npos
+                                      ? std::string_view(error)
+                                      : std::string_view(error).substr(colon + 2);
+    if (const auto held = errorLog.pass(kind, monotonicNowNs())) {
+      KF_LOG(Output, Error) << error
+                            << (*held > 0 ? " (and " + std::to_string(*held) + " more write errors)"
+                                          : std::string());
+    }
+  }
+  stats_.written.store(writer_.count());
+  outputs_.progress(stats_.analysed.load(), writer_.count());
 }
 
 void Daemon::logTimestampOrigin() const {

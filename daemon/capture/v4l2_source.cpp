@@ -453,6 +453,17 @@ bool V4l2Source::start(std::string& error) {
     shutdown();
     return false;
   }
+  // 4:2:0 chroma covers pixel pairs: an odd size leaves a half pair that the preview
+  // and the keyframes' colour conversion cannot take (every frame would fail).
+  if ((pixelFormat_ == PixelFormat::NV12 || pixelFormat_ == PixelFormat::YUV420) &&
+      (width % 2 != 0 || height % 2 != 0)) {
+    error = who + " delivers " + std::to_string(width) + "x" + std::to_string(height) + " " +
+            toString(pixelFormat_) +
+            ": 4:2:0 needs an even width and height (set camera.width/height, or "
+            "camera.pixel_format = \"YUYV\" or \"MJPEG\")";
+    shutdown();
+    return false;
+  }
   const int minStride = pixelFormat_ == PixelFormat::YUYV ? info_.width * 2 : info_.width;
   stride_ = std::max(static_cast<int>(bytesPerLine), minStride);
 

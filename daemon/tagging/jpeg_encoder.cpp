@@ -96,6 +96,12 @@ bool JpegEncoder::encode(const Frame& f, int quality, std::vector<std::uint8_t>&
     error = std::string("frame stride too small for ") + toString(f.format);
     return false;
   }
+  // An odd-width I420 frame whose rows are not padded has chroma rows (stride / 2)
+  // shorter than its chroma is wide: nothing to read the last sample from.
+  if (f.format == PixelFormat::YUV420 && f.stride / 2 < (f.width + 1) / 2) {
+    error = "YUV420 frame of odd width " + std::to_string(f.width) + " without row padding";
+    return false;
+  }
   const int cw = (f.width + 1) / 2;
   const int ch = (f.height + 1) / 2;
   const std::uint8_t* y = f.data;
@@ -122,7 +128,9 @@ bool JpegEncoder::encode(const Frame& f, int quality, std::vector<std::uint8_t>&
         for (int c = 0; c < f.width; ++c) dst[c] = lumaLut_[src[c]];
       }
       const std::uint8_t* chroma = y + ySize;
-      const int cs = f.format == PixelFormat::NV12 ? f.stride : (f.stride + 1) / 2;
+      // Chroma rows as planeSizes lays them out: NV12's as long as luma's, I420's
+      // half as long, rounded down.
+      const int cs = f.format == PixelFormat::NV12 ? f.stride : f.stride / 2;
       for (int r = 0; r < ch; ++r) {
         std::uint8_t* u = up + static_cast<std::size_t>(r) * cw;
         std::uint8_t* v = vp + static_cast<std::size_t>(r) * cw;

@@ -1,5 +1,6 @@
 #include "telemetry/mavlink_codec.h"
 
+#include <algorithm>
 #include <cstring>
 
 namespace keyframed {
@@ -102,6 +103,39 @@ void MavlinkEncoder::setMavlink1(bool mavlink1) {
   } else {
     status_.flags &= static_cast<std::uint8_t>(~MAVLINK_STATUS_FLAG_OUT_MAVLINK1);
   }
+}
+
+std::size_t wireBytes(const mavlink_message_t& msg,
+                      std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN>& out) {
+  std::size_t n = 0;
+  out[n++] = msg.magic;
+  out[n++] = msg.len;
+  if (msg.magic == MAVLINK_STX) {  // MAVLink 2
+    out[n++] = msg.incompat_flags;
+    out[n++] = msg.compat_flags;
+    out[n++] = msg.seq;
+    out[n++] = msg.sysid;
+    out[n++] = msg.compid;
+    out[n++] = static_cast<std::uint8_t>(msg.msgid & 0xFF);
+    out[n++] = static_cast<std::uint8_t>((msg.msgid >> 8) & 0xFF);
+    out[n++] = static_cast<std::uint8_t>((msg.msgid >> 16) & 0xFF);
+  } else {
+    out[n++] = msg.seq;
+    out[n++] = msg.sysid;
+    out[n++] = msg.compid;
+    out[n++] = static_cast<std::uint8_t>(msg.msgid & 0xFF);
+  }
+  const auto* payload = reinterpret_cast<const std::uint8_t*>(msg.payload64);
+  std::copy_n(payload, msg.len, out.begin() + static_cast<std::ptrdiff_t>(n));
+  n += msg.len;
+  out[n++] = static_cast<std::uint8_t>(msg.checksum & 0xFF);
+  out[n++] = static_cast<std::uint8_t>(msg.checksum >> 8);
+  if (msg.magic == MAVLINK_STX && (msg.incompat_flags & MAVLINK_IFLAG_SIGNED) != 0) {
+    std::copy_n(msg.signature, MAVLINK_SIGNATURE_BLOCK_LEN,
+                out.begin() + static_cast<std::ptrdiff_t>(n));
+    n += MAVLINK_SIGNATURE_BLOCK_LEN;
+  }
+  return n;
 }
 
 }  // namespace keyframed

@@ -114,6 +114,13 @@ class MavlinkParser {
   std::size_t replayPos_ = 0;
 };
 
+// A received message's frame as it came on the wire: its length as received (a
+// sender need not trim a MAVLink 2 payload's trailing zeros; mavlink_msg_to_send_buffer
+// trims them and keeps the checksum of the untrimmed frame, which then fails), its
+// checksum and signature. Returns the byte count written to `out`.
+std::size_t wireBytes(const mavlink_message_t& msg,
+                      std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN>& out);
+
 // Encodes outgoing messages of one component with its own sequence counter.
 class MavlinkEncoder {
  public:

@@ -68,30 +68,52 @@ bool TelemetryDecoder::accept(const mavlink_message_t& msg) {
   return msg.sysid == system_ && msg.compid == component_;
 }
 
-void TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localNs) {
+bool TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localNs) {
   // A boot clock that goes back means the autopilot rebooted when it goes back by more
   // than a few seconds, or when it lags the time that passed here by more than two
   // (an autopilot that reboots seconds after it started: a reboot takes a second or
-  // more). A datagram that overtook another goes back by no more than the jitter.
-  const std::int64_t back = lastBootMs_ - static_cast<std::int64_t>(bootMs);
+  // more). A datagram that overtook another goes back by no more than the jitter. So
+  // may a copy of the stream over a slower path (a radio and LTE merged by a router)
+  // or a stream that stalled: those are followed by newer messages at once, so a
+  // reboot is believed only once the clock has stayed behind, and gone on consistently
+  // from where it went back, for kRebootConfirmNs with at least three messages.
+  const auto boot = static_cast<std::int64_t>(bootMs);
+  // A reboot's messages come after the silence of the reboot: a candidate from before
+  // a silence (the link, or this thread, stalled) starts afresh.
+  if (localNs - lastMessageLocalNs_ > 1'000'000'000) reboot_.reset();
+  lastMessageLocalNs_ = localNs;
+  const std::int64_t back = lastBootMs_ - boot;
   const std::int64_t expected = lastBootMs_ + (localNs - lastBootLocalNs_) / kMs;
-  if (lastBootMs_ >= 0 && back > 0 &&
-      (back > 5000 || expected - static_cast<std::int64_t>(bootMs) > 2000)) {
-    previous_ = PreviousBoot{store_, clock_, localNs};
+  if (lastBootMs_ >= 0 && back > 0 && (back > 5000 || expected - boot > 2000)) {
+    const bool goesOn =
+        reboot_ && boot >= reboot_->bootMs - 100 &&
+        std::llabs((boot - reboot_->bootMs) - (localNs - reboot_->localNs) / kMs) <= 1000;
+    if (!goesOn) reboot_ = RebootCandidate{boot, localNs, 0};
+    if (++reboot_->count < 3 || localNs - reboot_->localNs < kRebootConfirmNs) {
+      ++stats_.staleBootTimes;
+      return false;
+    }
+    previous_ = PreviousBoot{store_, clock_, reboot_->localNs};
     store_ = std::make_shared<PoseStore>(config_.store);
     clock_ = ClockMapper(config_.clock);
     clock_.setLocalIsUtc(localClockIsUtc_);
     quaternions_ = {};
     euler_ = {};
     ++stats_.reboots;
+    lastBootMs_ = -1;  // the new boot's clock from here
+    reboot_.reset();
   }
-  lastBootMs_ = bootMs;
-  lastBootLocalNs_ = localNs;
+  if (back <= 100) reboot_.reset();  // on time (or a reordered datagram): no reboot
+  if (boot > lastBootMs_) {
+    lastBootMs_ = boot;
+    lastBootLocalNs_ = localNs;
+  }
   clock_.observeArrival(bootMs, localNs);
   if (pendingGps_) {
-    store_->addGps(static_cast<std::int64_t>(bootMs) * kMs, *pendingGps_);
+    store_->addGps(boot * kMs, *pendingGps_);
     pendingGps_.reset();
   }
+  return true;
 }
 
 void TelemetryDecoder::StreamTiming::observe(std::int64_t ms) {
@@ -176,7 +198,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
     case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
       mavlink_attitude_quaternion_t a;
       mavlink_msg_attitude_quaternion_decode(&msg, &a);
-      observeBootTime(a.time_boot_ms, localNs);
+      if (!observeBootTime(a.time_boot_ms, localNs)) break;
       // Normalising a zero or NaN quaternion would make it level, facing north.
       if (!store_->addAttitude(a.time_boot_ms * kMs, {a.q1, a.q2, a.q3, a.q4})) {
         ++stats_.badAttitudes;
@@ -189,7 +211,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
     case MAVLINK_MSG_ID_ATTITUDE: {
       mavlink_attitude_t a;
       mavlink_msg_attitude_decode(&msg, &a);
-      observeBootTime(a.time_boot_ms, localNs);
+      if (!observeBootTime(a.time_boot_ms, localNs)) break;
       if (!std::isfinite(a.roll) || !std::isfinite(a.pitch) || !std::isfinite(a.yaw)) {
         ++stats_.badAttitudes;
         break;
@@ -203,7 +225,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
     case MAVLINK_MSG_ID_GLOBAL_POSITION_INT: {
       mavlink_global_position_int_t p;
       mavlink_msg_global_position_int_decode(&msg, &p);
-      observeBootTime(p.time_boot_ms, localNs);
+      if (!observeBootTime(p.time_boot_ms, localNs)) break;
       if (!plausiblePosition(p)) {
         ++stats_.badPositions;
         break;
@@ -247,7 +269,7 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
     case MAVLINK_MSG_ID_SYSTEM_TIME: {
       mavlink_system_time_t s;
       mavlink_msg_system_time_decode(&msg, &s);
-      observeBootTime(s.time_boot_ms, localNs);
+      if (!observeBootTime(s.time_boot_ms, localNs)) break;
       clock_.observeSystemTime(s.time_unix_usec, s.time_boot_ms);
       break;
     }

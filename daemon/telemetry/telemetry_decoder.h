@@ -26,8 +26,11 @@ struct TelemetryStats {
   std::uint64_t attitude = 0;
   std::uint64_t position = 0;
   std::uint64_t gps = 0;
-  std::uint64_t gimbal = 0;        // GIMBAL_DEVICE_ATTITUDE_STATUS used
-  std::uint64_t reboots = 0;       // time_boot_ms went backwards: history cleared
+  std::uint64_t gimbal = 0;   // GIMBAL_DEVICE_ATTITUDE_STATUS used
+  std::uint64_t reboots = 0;  // time_boot_ms went backwards: history cleared
+  // Messages seconds behind the boot clock (a slower path's copy, a stalled stream)
+  // or the first of a reboot not yet believed: not used.
+  std::uint64_t staleBootTimes = 0;
   std::uint64_t badPositions = 0;  // GLOBAL_POSITION_INT at 0,0 or out of range: not used
   // ATTITUDE with a NaN or infinite angle, ATTITUDE_QUATERNION or the gimbal's with a
   // NaN or zero quaternion: no rotation, not used
@@ -95,7 +98,12 @@ class TelemetryDecoder {
 
   bool accept(const mavlink_message_t& msg);
   void handleGimbal(const mavlink_message_t& msg, std::int64_t localNs);
-  void observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
+  // False when the message's samples are not to be used: it lies seconds behind the
+  // boot clock (a copy over a slower path, a stalled stream) and may be the first of a
+  // reboot, which is believed once such messages have gone on for kRebootConfirmNs
+  // with nothing newer in between.
+  [[nodiscard]] bool observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
+  static constexpr std::int64_t kRebootConfirmNs = 500'000'000;
   [[nodiscard]] bool quaternionsStandFor(std::int64_t attitudeMs) const;
   // The boot whose history answers for localNs (the previous one before a reboot),
   // its clock's offset and UTC there. Takes mutex_.
@@ -126,8 +134,17 @@ class TelemetryDecoder {
   std::int64_t autopilotSinceNs_ = std::numeric_limits<std::int64_t>::max();
   int gimbalComponent_ = -1;  // the first gimbal heard (component, device id) is used
   int gimbalDevice_ = -1;
-  std::int64_t lastBootMs_ = -1;
-  std::int64_t lastBootLocalNs_ = 0;      // when lastBootMs_ arrived
+  std::int64_t lastBootMs_ = -1;      // the newest boot time of this boot
+  std::int64_t lastBootLocalNs_ = 0;  // when lastBootMs_ arrived
+  // Messages seconds behind lastBootMs_, consistent with one another: a reboot, once
+  // they have gone on long enough with nothing newer in between.
+  struct RebootCandidate {
+    std::int64_t bootMs = 0;
+    std::int64_t localNs = 0;  // when the first of them came
+    int count = 0;
+  };
+  std::optional<RebootCandidate> reboot_;
+  std::int64_t lastMessageLocalNs_ = 0;   // when the last message with a boot time came
   std::optional<GpsQuality> pendingGps_;  // a GPS_RAW_INT before any boot time
   StreamTiming quaternions_;              // ATTITUDE_QUATERNION
   StreamTiming euler_;                    // ATTITUDE

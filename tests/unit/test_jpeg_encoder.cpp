@@ -1,3 +1,6 @@
+#include <algorithm>
+#include <vector>
+
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -61,6 +64,28 @@ TEST_F(JpegEncoderTest, Yuv420) {
   cv::cvtColor(bgr_, i420, cv::COLOR_BGR2YUV_I420);
   const Frame f{PixelFormat::YUV420, i420.data, bgr_.cols, bgr_.rows, bgr_.cols, 0, 0};
   roundTrip(f, bgr_, cv::IMREAD_COLOR);
+}
+
+TEST_F(JpegEncoderTest, Yuv420WithAnOddRowStride) {
+  // Rows padded to an odd stride, chroma rows stride / 2 apart (rounded down, as
+  // planeSizes and the capture lay them out), in a buffer of exactly that size.
+  cv::Mat i420;
+  cv::cvtColor(bgr_, i420, cv::COLOR_BGR2YUV_I420);
+  const int w = bgr_.cols, h = bgr_.rows, cw = w / 2, ch = h / 2;
+  const int stride = w + 1, cs = stride / 2;
+  ASSERT_EQ(cs, cw);
+  std::vector<std::uint8_t> padded(static_cast<std::size_t>(stride) * h +
+                                   2 * static_cast<std::size_t>(cs) * ch);
+  for (int r = 0; r < h; ++r) std::copy_n(i420.data + r * w, w, padded.data() + r * stride);
+  const std::uint8_t* u = i420.data + w * h;
+  const std::uint8_t* v = u + cw * ch;
+  std::uint8_t* pu = padded.data() + static_cast<std::size_t>(stride) * h;
+  std::uint8_t* pv = pu + static_cast<std::size_t>(cs) * ch;
+  for (int r = 0; r < ch; ++r) {
+    std::copy_n(u + r * cw, cw, pu + r * cs);
+    std::copy_n(v + r * cw, cw, pv + r * cs);
+  }
+  roundTrip(Frame{PixelFormat::YUV420, padded.data(), w, h, stride, 0, 0}, bgr_, cv::IMREAD_COLOR);
 }
 
 TEST_F(JpegEncoderTest, Nv12) {

@@ -401,6 +401,44 @@ TEST(TelemetryDecoder, AnAutopilotRebootedSecondsAfterItStartedIsSeen) {
   EXPECT_NEAR(angleBetween(*now.attitude, after), 0.0, 1e-6);
 }
 
+// The same autopilot heard over two paths (a radio, and LTE through a router that
+// does not drop duplicates), the second seconds behind: its copies go back on the
+// boot clock at once, but newer messages follow them; no reboot, and the history
+// and clock stay as the fast path makes them. So for a stream that stalled two
+// seconds and goes on with a message sampled just before the last.
+TEST(TelemetryDecoder, ACopyOverASlowerPathOrAStallIsNoReboot) {
+  for (const std::int64_t lagMs : {2'500, 6'000}) {
+    SCOPED_TRACE(lagMs);
+    TelemetryDecoder dec;
+    MavlinkEncoder ap(1, 1);
+    Feeder push{dec};
+    push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+    const Quaternion q = quaternionFromEuler(0, 0, 30 * kDeg);
+    constexpr std::uint32_t kBootMs = 600'000;
+    for (std::int64_t i = 0; i <= 200; ++i) {  // 10 s at 20 Hz
+      push.now = (10'000 + i * 50) * kMs;
+      push(gpsRaw(ap, 3));
+      push(attitudeQ(ap, static_cast<std::uint32_t>(kBootMs + i * 50), q));
+      push(position(ap, static_cast<std::uint32_t>(kBootMs + i * 50), 10.0, 20.0, 50.0));
+      const std::int64_t lagged = i * 50 - lagMs;
+      if (lagged >= 0) {  // the slow path's copy
+        push(attitudeQ(ap, static_cast<std::uint32_t>(kBootMs + lagged), q));
+        push(position(ap, static_cast<std::uint32_t>(kBootMs + lagged), 10.0, 20.0, 50.0));
+      }
+    }
+    EXPECT_EQ(dec.stats().reboots, 0U);
+    EXPECT_GT(dec.stats().staleBootTimes, 100U);
+    const Pose p = dec.poseAt(19'900 * kMs);
+    ASSERT_TRUE(p.attitude && p.position) << p.staleReason;
+    // A stall: 2.1 s without a message, then one sampled 4 ms before the last.
+    push.now = (10'000 + 200 * 50 + 2'100) * kMs;
+    push(position(ap, kBootMs + 200 * 50 - 4, 10.0, 20.0, 50.0));
+    push.now += 50 * kMs;
+    push(attitudeQ(ap, kBootMs + 200 * 50 + 2'150, q));
+    EXPECT_EQ(dec.stats().reboots, 0U);
+  }
+}
+
 TEST(TelemetryDecoder, ASlowQuaternionStreamDoesNotHideAFastEulerOne) {
   // ATTITUDE at 20 Hz (what the daemon asks for) and ATTITUDE_QUATERNION at 1 Hz
   // (another ground station on a shared router asked for it): the quaternions alone
@@ -1045,6 +1083,43 @@ TEST(MavlinkParser, ReadsMavlink1AndMavlink2) {
   parser.feed(a.data(), a.size(), [&](const mavlink_message_t&) { ++n; });
   EXPECT_EQ(n, 2);
   EXPECT_EQ(parser.stats().mavlink1, 1U);
+}
+
+TEST(MavlinkParser, AFrameIsRecordedAsItCameUntrimmedOrNot) {
+  // SYSTEM_TIME early in a flight: time_boot_ms < 2^24, its payload's last byte 0. A
+  // sender that does not trim sends all 12 bytes (MAVLink 2 allows it); rebuilt with
+  // mavlink_msg_to_send_buffer it would be trimmed to 11 under the old checksum.
+  std::vector<std::uint8_t> frame = {MAVLINK_STX, 12, 0, 0, 7, 1, 1, MAVLINK_MSG_ID_SYSTEM_TIME,
+                                     0,           0};
+  const std::uint64_t unixUs = 1'780'000'000'000'000ULL;
+  const std::uint32_t bootMs = 123'456;
+  for (int i = 0; i < 8; ++i) frame.push_back(static_cast<std::uint8_t>(unixUs >> (8 * i)));
+  for (int i = 0; i < 4; ++i) frame.push_back(static_cast<std::uint8_t>(bootMs >> (8 * i)));
+  std::uint16_t crc = 0;
+  crc_init(&crc);
+  crc_accumulate_buffer(&crc, reinterpret_cast<const char*>(frame.data() + 1), frame.size() - 1);
+  crc_accumulate(MAVLINK_MSG_ID_SYSTEM_TIME_CRC, &crc);
+  frame.push_back(static_cast<std::uint8_t>(crc & 0xFF));
+  frame.push_back(static_cast<std::uint8_t>(crc >> 8));
+
+  MavlinkEncoder v1(1, 1, true);
+  const std::vector<std::uint8_t> trimmed = heartbeat(v1, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4);
+  MavlinkEncoder v2(1, 1, false);
+  const std::vector<std::uint8_t> heartbeat2 = heartbeat(v2, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4);
+  for (const std::vector<std::uint8_t>& sent : {frame, trimmed, heartbeat2}) {
+    MavlinkParser parser;
+    std::vector<std::uint8_t> recorded;
+    parser.feed(sent.data(), sent.size(), [&](const mavlink_message_t& m) {
+      std::array<std::uint8_t, MAVLINK_MAX_PACKET_LEN> buf{};
+      recorded.assign(buf.begin(), buf.begin() + static_cast<std::ptrdiff_t>(wireBytes(m, buf)));
+    });
+    EXPECT_EQ(recorded, sent);
+    // ... and reads back as the message it was.
+    MavlinkParser again;
+    int n = 0;
+    again.feed(recorded.data(), recorded.size(), [&](const mavlink_message_t&) { ++n; });
+    EXPECT_EQ(n, 1);
+  }
 }
 
 TEST(MavlinkParser, RandomBytesNeverCrash) {

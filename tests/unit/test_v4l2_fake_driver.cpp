@@ -263,6 +263,19 @@ TEST(V4l2FakeDriver, AnImplausibleFrameSizeIsRefused) {
   EXPECT_NE(err.find("unusable frame size: 70000x48"), std::string::npos) << err;
 }
 
+TEST(V4l2FakeDriver, AnOddSizeIn420IsRefusedSayingWhatToSet) {
+  for (const std::uint32_t fourcc : {V4L2_PIX_FMT_NV12, V4L2_PIX_FMT_YUV420}) {
+    auto driver = std::make_shared<FakeDriver>(fourcc);
+    driver->width = 641;  // granted by a driver: the preview's conversion would throw
+    V4l2Options o;
+    o.device = "/dev/video-fake";
+    o.io = driver;
+    std::string err;
+    EXPECT_EQ(V4l2Source::open(o, err), nullptr);
+    EXPECT_NE(err.find("4:2:0 needs an even width and height"), std::string::npos) << err;
+  }
+}
+
 TEST(V4l2FakeDriver, FramesTheDriverHadNoBufferForAreCountedLost) {
   auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_YUYV);
   auto src = openFake(driver);
