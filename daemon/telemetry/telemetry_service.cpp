@@ -598,9 +598,7 @@ void TelemetryService::onTimesync(const mavlink_message_t& msg, std::int64_t tim
   decoder_.handleTimesync(ts.tc1, ts.ts1, timeNs);
 }
 
-void TelemetryService::onCommand(const mavlink_message_t& msg) {
-  mavlink_command_long_t c;
-  mavlink_msg_command_long_decode(&msg, &c);
+void TelemetryService::onCommand(const mavlink_command_long_t& c, const mavlink_message_t& msg) {
   const bool forUs = (c.target_system == 0 || c.target_system == systemId()) &&
                      (c.target_component == 0 || c.target_component == config_.componentId);
   if (!forUs) return;
@@ -640,7 +638,28 @@ void TelemetryService::onMessage(const mavlink_message_t& msg, std::int64_t time
     return;
   }
   if (msg.msgid == MAVLINK_MSG_ID_COMMAND_LONG && config_.camera) {
-    onCommand(msg);
+    mavlink_command_long_t c;
+    mavlink_msg_command_long_decode(&msg, &c);
+    onCommand(c, msg);
+    return;
+  }
+  if (msg.msgid == MAVLINK_MSG_ID_COMMAND_INT && config_.camera) {
+    // The camera protocol's commands take no position: the same as a COMMAND_LONG
+    // (answered with the same COMMAND_ACK), rather than left unanswered.
+    mavlink_command_int_t ci;
+    mavlink_msg_command_int_decode(&msg, &ci);
+    mavlink_command_long_t c{};
+    c.target_system = ci.target_system;
+    c.target_component = ci.target_component;
+    c.command = ci.command;
+    c.param1 = ci.param1;
+    c.param2 = ci.param2;
+    c.param3 = ci.param3;
+    c.param4 = ci.param4;
+    c.param5 = static_cast<float>(ci.x);
+    c.param6 = static_cast<float>(ci.y);
+    c.param7 = ci.z;
+    onCommand(c, msg);
     return;
   }
   if (msg.msgid == MAVLINK_MSG_ID_COMMAND_ACK) onCommandAck(msg);

@@ -163,7 +163,8 @@ class TelemetryService {
   void sendHeartbeat();
   void sendTimesync(std::int64_t nowNs);
   void onTimesync(const mavlink_message_t& msg, std::int64_t timeNs);
-  void onCommand(const mavlink_message_t& msg);
+  // A COMMAND_LONG, or a COMMAND_INT read as one (x, y, z as params 5-7), for us.
+  void onCommand(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   void onCommandAck(const mavlink_message_t& msg);
   void requestMessageRates(std::int64_t nowNs);
   void resendCaptures(const mavlink_command_long_t& c, const mavlink_message_t& msg);

@@ -381,6 +381,35 @@ TEST(TelemetryService, CameraInformationSaysNaNForWhatItDoesNotKnow) {
   EXPECT_EQ(svc.stats().infoSent, 1U);
 }
 
+TEST(TelemetryService, ACommandIntIsAnsweredAsACommandLong) {
+  // MAVLink's command protocol lets a ground station send any command as COMMAND_INT:
+  // the camera answers it, rather than leave it to time out.
+  Peer peer;
+  CameraDescription cam;
+  cam.width = 1920;
+  cam.height = 1080;
+  TelemetryService svc(serviceConfig(), cam);
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder gcs(255, 190);
+  peer.push(
+      gcs.encode([&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
+        mavlink_msg_command_int_pack_status(s, c, st, m, 0, MAV_COMP_ID_CAMERA, MAV_FRAME_GLOBAL,
+                                            MAV_CMD_REQUEST_MESSAGE, 0, 0,
+                                            MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0);
+      }));
+  const auto infos = peer.waitFor(MAVLINK_MSG_ID_CAMERA_INFORMATION);
+  const auto acks = peer.waitFor(MAVLINK_MSG_ID_COMMAND_ACK);
+  svc.stop();
+  EXPECT_EQ(infos.size(), 1U);
+  ASSERT_EQ(acks.size(), 1U);
+  mavlink_command_ack_t a;
+  mavlink_msg_command_ack_decode(&acks[0], &a);
+  EXPECT_EQ(a.command, MAV_CMD_REQUEST_MESSAGE);
+  EXPECT_EQ(a.result, MAV_RESULT_ACCEPTED);
+  EXPECT_EQ(a.target_system, 255);
+}
+
 TEST(MavlinkEncoder, IdsAbove255GoAsMavlink2InMavlink1Mode) {
   MavlinkEncoder enc(1, 100, /*mavlink1=*/true);
   const auto hb = heartbeat(enc, MAV_TYPE_CAMERA, MAV_AUTOPILOT_INVALID);
