@@ -270,6 +270,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     po.flightsDir = o.flightsDir;
     po.retryMs = o.zenohRetryMs;
     po.onLate = [impl = impl_.get()](const std::string& message) { impl->note(message); };
+    po.keyframesOut = [impl = impl_.get()](std::int64_t n) { return impl->keyframesOut(n); };
     impl_->publisher = KeyframePublisher::open(po, error);
     if (!impl_->publisher) {
       error = o.zenohSetting + ": " + error;
@@ -453,6 +454,9 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     impl_->put(rec.sequence, jpeg, meta);
     return;
   }
+  // Its metadata for a query from now on: one that overtakes the put (the ground
+  // station asking for a gap) gets the same as the live message.
+  impl_->publisher->remember(rec.sequence, meta);
   {
     std::lock_guard lock(impl_->putMutex);
     // One that could not be saved (a full disk) is not on disk for the queryable: the

@@ -175,6 +175,7 @@ std::unique_ptr<KeyframePublisher> KeyframePublisher::open(const KeyframePublish
   p->dir_ = o.keyframeDir;
   p->flight_ = o.flight;
   p->flightsDir_ = o.flightsDir;
+  p->keyframesOut_ = o.keyframesOut;
   ZenohSession::Options so;
   so.configFile = o.configFile;
   so.overrides = o.overrides;
@@ -230,8 +231,9 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
     const std::string dir = flightsDir_, current = flight_;
     flightsQueryable_ = ZenohQueryable::declare(
         *session_, prefix_ + "/flights",
-        [dir, current](const std::string&, const std::string&, ZenohReply& reply) {
-          const std::string json = flightCatalogue(dir, current);
+        [dir, current, out = keyframesOut_](const std::string&, const std::string&,
+                                            ZenohReply& reply) {
+          const std::string json = flightCatalogue(dir, current, out);
           std::string ignored;
           reply.ok({}, asBytes(json), {}, ignored);
         },
@@ -291,7 +293,8 @@ void KeyframePublisher::retryLoop(const std::shared_ptr<Retry>& retry,
   }
 }
 
-std::string flightCatalogue(const std::string& flightsDir, const std::string& current) {
+std::string flightCatalogue(const std::string& flightsDir, const std::string& current,
+                            const std::function<std::int64_t(std::int64_t)>& keyframesOut) {
   namespace fs = std::filesystem;
   std::vector<std::string> names;
   std::error_code ec;
@@ -334,6 +337,10 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
             seq + 1 > count)
           count = seq + 1;
       }
+    }
+    if (name == current && keyframesOut) {
+      count = static_cast<std::size_t>(std::clamp<std::int64_t>(
+          keyframesOut(static_cast<std::int64_t>(count)), 0, static_cast<std::int64_t>(count)));
     }
     std::error_code e2;
     const auto changed = fs::last_write_time(index, e2);

@@ -37,6 +37,10 @@ struct KeyframePublisherOptions {
   int retryMs = 0;
   // Told when a session opens on a retry, or turns out unusable (any thread).
   std::function<void(const std::string&)> onLate;
+  // Of the running flight's N keyframes on disk, how many are out on the link (the
+  // rest wait in the put queue): the flights catalogue says no more, as the status
+  // does, so that a ground station does not fetch what is on its way. None: all.
+  std::function<std::int64_t(std::int64_t)> keyframesOut;
 };
 
 // Publishes keyframes and status under keyframed/<vehicle>/ and answers queries for
@@ -124,6 +128,7 @@ class KeyframePublisher {
   std::string dir_;
   std::string flight_;
   std::string flightsDir_;
+  std::function<std::int64_t(std::int64_t)> keyframesOut_;
   std::unique_ptr<ZenohSession> session_;
   std::unique_ptr<ZenohPublisher> keyframes_;
   std::unique_ptr<ZenohPublisher> status_;
@@ -187,7 +192,8 @@ std::string keyframeQueryFlight(const std::string& parameters);
 // with a keyframe index, by name (the UTC time it started), as JSON:
 // {"flights":[{"flight":ID,"keyframes":N,"age_s":S,"current":B},...]}: N keyframes
 // in its keyframes.csv, S seconds since that file last changed (its last keyframe),
-// current for the running flight.
-std::string flightCatalogue(const std::string& flightsDir, const std::string& current);
+// current for the running flight (counted as `keyframesOut` says, when given).
+std::string flightCatalogue(const std::string& flightsDir, const std::string& current,
+                            const std::function<std::int64_t(std::int64_t)>& keyframesOut = {});
 
 }  // namespace keyframed

@@ -605,6 +605,20 @@ TEST(KeyframeIndex, FlightCatalogueListsTheFlightsOnDiskByName) {
   const std::string gap = flightCatalogue(root, "");
   EXPECT_NE(gap.find("{\"flight\":\"20261202T102000Z\",\"keyframes\":4,"), std::string::npos)
       << gap;
+  // The running flight's keyframes still queued for the link are not announced (a
+  // ground station would fetch them by query while they are on their way); the
+  // earlier flights' are all out.
+  const auto out = [](std::int64_t n) { return std::min<std::int64_t>(n, 2); };
+  const std::string running = flightCatalogue(root, "20261202T102000Z", out);
+  EXPECT_NE(running.find("{\"flight\":\"20261202T102000Z\",\"keyframes\":2,"), std::string::npos)
+      << running;
+  EXPECT_NE(running.find("{\"flight\":\"20261202T101500Z\",\"keyframes\":2,"), std::string::npos)
+      << running;
+  const std::string none = flightCatalogue(root, "20261202T102000Z", [](std::int64_t) {
+    return std::int64_t{-1};  // nothing out yet
+  });
+  EXPECT_NE(none.find("{\"flight\":\"20261202T102000Z\",\"keyframes\":0,"), std::string::npos)
+      << none;
 }
 
 TEST(KeyframeIndex, QueryParameters) {
