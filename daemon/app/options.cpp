@@ -207,8 +207,9 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          if (!parsePair(v, a, b)) return "expected LO,HI";
          double lo = 0, hi = 0;
          if (!parseDouble(a, lo) || !parseDouble(b, hi)) return "expected two numbers LO,HI";
-         if (!limits::kOverlapBand.contains(lo) || !limits::kOverlapBand.contains(hi) || lo >= hi)
-           return "band must satisfy 0 < LO < HI < 1";
+         // As the TOML keys: a band of one value (LO = HI = the target) is allowed.
+         if (!limits::kOverlapBand.contains(lo) || !limits::kOverlapBand.contains(hi) || lo > hi)
+           return "band must satisfy 0 < LO <= HI < 1";
          c.bandLow = lo;
          c.bandHigh = hi;
          return {};

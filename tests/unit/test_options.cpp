@@ -57,6 +57,17 @@ TEST(Options, ParsesEverySetting) {
   EXPECT_EQ(o.selector.blur.analysisWidth, 960);
 }
 
+TEST(Options, ABandOfOneValueIsAllowedAsInTheConfiguration) {
+  // band_low = band_high = target passes check-config: the command line takes it too.
+  SelectOptions o;
+  const auto r = parse(
+      {"v.avi", "--out", "d", "--target", "0.7", "--band", "0.7,0.7", "--min-overlap", "0.5"}, o);
+  ASSERT_TRUE(r.ok) << r.error;
+  EXPECT_DOUBLE_EQ(o.selector.bandLow, 0.7);
+  EXPECT_DOUBLE_EQ(o.selector.bandHigh, 0.7);
+  EXPECT_EQ(o.selector.validate(), "");
+}
+
 TEST(Options, RejectsBadInputWithOneLine) {
   const std::vector<std::vector<std::string>> bad = {
       {"v.avi"},                                      // no --out
