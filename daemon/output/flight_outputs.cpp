@@ -99,6 +99,7 @@ struct FlightOutputs::Impl {
     std::int64_t sequence;
     std::vector<std::uint8_t> jpeg;
     std::string meta;
+    bool onDisk = true;  // the queryable can serve it (else the link is its only way out)
   };
   static constexpr std::size_t kMaxQueuedPuts = 8;
   // Keyframes the disk did not take wait for the link past kMaxQueuedPuts (the link is
@@ -122,6 +123,8 @@ struct FlightOutputs::Impl {
     return out;
   }
   bool putStop = false;
+  std::chrono::steady_clock::time_point putDrainEnd;  // (stopping) put nothing after it
+  std::int64_t putsSkippedAtStop = 0;                 // left to the queryable at close()
   std::thread putThread;
   std::int64_t putsSkipped = 0;  // left to the queryable (output thread)
   LogThrottle putSkipLog;
@@ -146,6 +149,17 @@ struct FlightOutputs::Impl {
     while (true) {
       putCv.wait(lock, [this] { return putStop || !puts.empty(); });
       if (puts.empty()) return;  // stopping, all put
+      if (putStop && std::chrono::steady_clock::now() >= putDrainEnd) {
+        // Stopping and out of time: those on disk are left to the queryable; one the
+        // disk did not take has no other way out, and is still put.
+        const auto before = puts.size();
+        std::erase_if(puts, [this](const Put& q) {
+          if (q.onDisk) putBytes -= q.jpeg.size();
+          return q.onDisk;
+        });
+        putsSkippedAtStop += static_cast<std::int64_t>(before - puts.size());
+        if (puts.empty()) return;
+      }
       Put p = std::move(puts.front());
       puts.pop_front();
       putBytes -= p.jpeg.size();
@@ -161,6 +175,8 @@ struct FlightOutputs::Impl {
     {
       std::lock_guard lock(putMutex);
       putStop = true;
+      putDrainEnd = std::chrono::steady_clock::now() +
+                    std::chrono::milliseconds(std::max(options.stopDrainMs, 0));
     }
     putCv.notify_all();
     if (putThread.joinable()) putThread.join();
@@ -464,7 +480,7 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     if (impl_->puts.size() < Impl::kMaxQueuedPuts ||
         (!rec.indexed && impl_->putBytes + jpeg.size() <= Impl::kMaxQueuedPutBytes)) {
       impl_->putBytes += jpeg.size();
-      impl_->puts.push_back({rec.sequence, {jpeg.begin(), jpeg.end()}, meta});
+      impl_->puts.push_back({rec.sequence, {jpeg.begin(), jpeg.end()}, meta, rec.indexed});
       impl_->putCv.notify_one();
       return;
     }
@@ -511,7 +527,13 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
-  impl_->stopPuts();  // what is queued goes out before the final status
+  impl_->stopPuts();  // what is queued goes out before the final status (for a while)
+  if (impl_->putsSkippedAtStop > 0) {
+    impl_->warn("zenoh: " + std::to_string(impl_->putsSkippedAtStop) +
+                " keyframes still queued for the link at the stop left to the queryable "
+                "(on disk; the next run serves them with flight=ID)");
+    impl_->putsSkippedAtStop = 0;
+  }
   if (impl_->putsSkipped > 0) {
     impl_->warn("zenoh: " + std::to_string(impl_->putsSkipped) +
                 " keyframes left to the queryable in this flight (the link was too slow)");

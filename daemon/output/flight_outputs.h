@@ -26,8 +26,13 @@ struct FlightOutputOptions {
   std::uint64_t mcapRotateBytes = 0;   // a new MCAP part after this many bytes (0: never)
   std::int64_t mcapRotateSeconds = 0;  // ... or seconds (0: never)
   std::string zenohSetting = "--zenoh-config";  // how the user named the Zenoh config
-  int zenohRetryMs = 0;    // a session that cannot open: 0 fails open(), else tried again
-  bool mcapFsync = false;  // output.mcap_fsync: fsync at each timed flush
+  int zenohRetryMs = 0;  // a session that cannot open: 0 fails open(), else tried again
+  // A live run's close(): keyframes still queued for the link are put for this long at
+  // most, the rest left to the queryable (they are on disk, served to a ground station
+  // by the next run too), so that a stop on a congested link ends inside systemd's
+  // TimeoutStopSec (15 s) with the record and summary written.
+  int stopDrainMs = 4000;
+  bool mcapFsync = false;                // output.mcap_fsync: fsync at each timed flush
   std::string mcapCompression = "zstd";  // zstd | lz4 | none
   // The clock of the times given to decision(), keyframe(), ...: liveClock means
   // CLOCK_MONOTONIC (a live run), mapped onto unix time with the offset measured at

@@ -972,6 +972,55 @@ TEST(FlightOutputs, ALiveRunNeverWaitsForASlowLink) {
       << warnings[1];
 }
 
+TEST(FlightOutputs, AStopOnASlowLinkLeavesWhatIsOnDiskToTheQueryable) {
+  // Each put takes 300 ms (a congested radio); at the stop six wait. close() puts
+  // them for stopDrainMs at most, then leaves those on disk to the queryable, so that
+  // it ends inside systemd's stop timeout; one the disk did not take is still put.
+  std::vector<std::string> warnings;
+  FlightOutputOptions o;
+  o.zenohConfig = isolatedZenohConfig();
+  o.vehicle = "unit";
+  o.offline = false;
+  o.stopDrainMs = 200;
+  o.warn = [&warnings](const std::string& m) { warnings.push_back(m); };
+  FlightOutputs outputs;
+  std::string error;
+  ASSERT_TRUE(outputs.open(o, 64, 48, nullptr, error)) << error;
+  std::mutex m;
+  std::vector<std::int64_t> tried;
+  outputs.setKeyframePutForTesting(
+      [&](std::span<const std::uint8_t>, const std::string& meta, std::string&) {
+        {
+          std::lock_guard lock(m);
+          tried.push_back(std::stoll(meta.substr(meta.find("\"sequence\":") + 11)));
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(300));
+        return true;
+      });
+  const std::uint8_t jpeg[] = {0xFF, 0xD8, 0xFF, 0xD9};
+  for (std::int64_t i = 0; i < 7; ++i) {
+    KeyframeRecord r;
+    r.sequence = i;
+    r.frameIndex = 10 * i;
+    r.file = "/state/keyframes/" + std::to_string(10 * i) + ".jpg";
+    r.indexed = i != 5;  // 5: its index row did not fit on the disk
+    outputs.keyframe(r, jpeg);
+  }
+  ASSERT_TRUE(outputs.close("stopped", error)) << error;
+  std::lock_guard lock(m);
+  ASSERT_GE(tried.size(), 2U);
+  EXPECT_EQ(tried.front(), 0);
+  EXPECT_EQ(tried.back(), 5);  // the one not on disk, put whatever the time
+  EXPECT_LT(tried.size(), 7U);
+  const std::size_t left = 7 - tried.size();
+  bool said = false;
+  for (const std::string& w : warnings)
+    said |= w.find(std::to_string(left) +
+                   " keyframes still queued for the link at the stop "
+                   "left to the queryable") != std::string::npos;
+  EXPECT_TRUE(said) << ::testing::PrintToString(warnings);
+}
+
 // A full disk over a slow link: keyframes the disk did not take wait for the link
 // past the usual 8, but only up to 32 MB of them; the rest are left to the queryable,
 // which serves them from memory, so the queue does not grow for as long as it lasts.
