@@ -1165,7 +1165,6 @@ def test_a_stop_writes_the_dataset_without_waiting_for_a_sift_backlog(
     dataset's files, leaves the features it has not got to (the summary says how many)
     and exits, rather than computing them all first."""
     import cv2
-    import zenoh
 
     n = 24
     ds = tmp_path / "dataset" / "uav9"
@@ -1174,31 +1173,21 @@ def test_a_stop_writes_the_dataset_without_waiting_for_a_sift_backlog(
     texture = cv2.GaussianBlur(rng.integers(0, 256, (1080, 1920), dtype=np.uint8), (0, 0), 1.5)
     ok, jpeg = cv2.imencode(".jpg", texture)
     assert ok
+    # Sequences 1..n of the flight stored earlier; the vehicle then sends 0 live.
     with open(ds / "keyframes.jsonl", "w") as f:
-        for seq in range(n):
-            (ds / "images" / f"{seq:06d}.jpg").write_bytes(jpeg.tobytes())
-            f.write(json.dumps({"flight": "F1", "sequence": seq, "file": f"{seq:06d}.jpg"}) + "\n")
+        for seq in range(1, n + 1):
+            (ds / "images" / f"old{seq:06d}.jpg").write_bytes(jpeg.tobytes())
+            meta = {"flight": "F1", "sequence": seq, "file": f"old{seq:06d}.jpg"}
+            f.write(json.dumps(meta) + "\n")
     port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    pub: Any = session.declare_publisher("keyframed/uav9/keyframe")
-    live = next((tagged).glob("*.jpg")).read_bytes()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "keyframed.ground", "--out", str(tmp_path / "dataset")]
-        + ["--quiet", "--sift", "--connect", f"tcp/127.0.0.1:{port}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    vehicle = Vehicle("uav9", tagged, port)
+    vehicle.flight = "F1"
+    live = vehicle.rows[0]["file"]
+    proc = ground(tmp_path / "dataset", port, "--sift")
     try:
-        wait_until(lambda: pub.matching_status.matching)
-        time.sleep(0.3)
-        meta = {"flight": "F1", "sequence": n, "file": f"{n:06d}.jpg"}
-        pub.put(live, attachment=json.dumps(meta).encode())
-        wait_until(lambda: (ds / "images" / f"{n:06d}.jpg").exists())
+        wait_connected(vehicle)
+        vehicle.publish(0)
+        wait_until(lambda: (ds / "images" / live).exists())
         proc.send_signal(signal.SIGINT)
         time.sleep(0.5)
         proc.send_signal(signal.SIGINT)
@@ -1206,8 +1195,7 @@ def test_a_stop_writes_the_dataset_without_waiting_for_a_sift_backlog(
     finally:
         if proc.poll() is None:
             proc.kill()
-        pub.undeclare()
-        session.close()
+        vehicle.close()
     assert proc.returncode == 0, stderr
     summary = json.loads(stdout.strip().splitlines()[-1])
     assert summary["keyframes"] == n + 1 and summary["sift_failed"] == 0, summary
@@ -1216,7 +1204,7 @@ def test_a_stop_writes_the_dataset_without_waiting_for_a_sift_backlog(
     assert len(features) + summary["sift_left"] >= n + 1, (summary, len(features))
     assert f"{summary['sift_left']} keyframes left without SIFT features" in stderr
     geo = (ds / "geo.txt").read_text().splitlines()
-    assert geo[0] == "EPSG:4326" and geo[1].split()[0] == f"{n:06d}.jpg", geo
+    assert geo[0] == "EPSG:4326" and geo[1].split()[0] == live, geo
     index = [json.loads(line) for line in (ds / "keyframes.jsonl").read_text().splitlines()]
     assert [m["sequence"] for m in index] == list(range(n + 1))
 

@@ -281,25 +281,19 @@ TEST(CameraModel, ImplausibleIntrinsicsAreRefusedNotTagged) {
     EXPECT_NE(error.find(words), std::string::npos) << error;
     EXPECT_EQ(error.find('\n'), std::string::npos) << error;
   }
-  // The same in OpenCV's calibrateCamera layout: a NaN in the camera matrix.
-  const fs::path yaml = tempFile("nan.yaml",
-                                 "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
-                                 "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
-                                 "   dt: d\n   data: [ 500., 0., .nan, 0., 500., 240., "
-                                 "0., 0., 1. ]\n");
-  EXPECT_FALSE(loadCameraModel(yaml.string(), m, error));
+  // The same in OpenCV's calibrateCamera layout: a NaN in the camera matrix, and a
+  // make or model EXIF cannot hold (as --make and tagging.make refuse it).
+  const auto yaml = [](const std::string& cx, const std::string& make) {
+    return "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\nmake: \"" + make +
+           "\"\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+           "   data: [ 500., 0., " +
+           cx + ", 0., 500., 240., 0., 0., 1. ]\n";
+  };
+  EXPECT_FALSE(loadCameraModel(tempFile("nan.yaml", yaml(".nan", "Acme")).string(), m, error));
   EXPECT_NE(error.find("go together"), std::string::npos) << error;
-  // A make or model EXIF cannot hold (as --make and tagging.make refuse it).
   for (const std::string& make : {std::string(64, 'A'), std::string("Cam\xc3\xa9ra")}) {
-    const fs::path p = tempFile("make.yaml",
-                                "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
-                                "make: \"" +
-                                    make +
-                                    "\"\n"
-                                    "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
-                                    "   dt: d\n   data: [ 500., 0., 320., 0., 500., 240., "
-                                    "0., 0., 1. ]\n");
-    EXPECT_FALSE(loadCameraModel(p.string(), m, error)) << make;
+    EXPECT_FALSE(loadCameraModel(tempFile("make.yaml", yaml("320.", make)).string(), m, error))
+        << make;
     EXPECT_NE(error.find("make must be at most 63 printable ASCII"), std::string::npos) << error;
   }
 }
