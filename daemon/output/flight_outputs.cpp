@@ -470,8 +470,8 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
     impl_->put(rec.sequence, jpeg, meta);
     return;
   }
-  // Its metadata for a query from now on: one that overtakes the put (the ground
-  // station asking for a gap) gets the same as the live message.
+  // Its metadata for a query from now on, queued or left to the queryable: one that
+  // overtakes the put (the ground station asking for a gap) gets the live message's.
   impl_->publisher->remember(rec.sequence, meta);
   {
     std::lock_guard lock(impl_->putMutex);
@@ -485,7 +485,6 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
       return;
     }
   }
-  impl_->publisher->remember(rec.sequence, meta);
   ++impl_->putsSkipped;
   if (const auto held = impl_->putSkipLog.pass("", wallNs())) {
     impl_->warn("zenoh: the link is too slow, keyframe " + std::to_string(rec.sequence) +
