@@ -18,6 +18,7 @@
 #include <toml++/toml.h>
 
 #include "app/settings.h"
+#include "output/flight_outputs.h"
 #include "output/h264.h"
 #include "tagging/camera_model.h"
 #include "tagging/camera_model_toml.h"
@@ -272,8 +273,16 @@ std::string checkExifText(const std::string& s) {
   return e.empty() ? e : e + " (got " + quote(s) + ")";
 }
 
+std::string checkAbsolutePath(const std::string& s) {
+  if (!s.empty() && s[0] == '/') return {};
+  return "must be an absolute path (got " + quote(s) + ")";
+}
+
+// Files named in a configuration file: absolute, as the service starts in / (a
+// relative name would pass check-config run elsewhere); --set makes them absolute.
 std::string checkCalibration(const std::string& s) {
   if (s.empty()) return {};
+  if (std::string e = checkAbsolutePath(s); !e.empty()) return e;
   CameraModel model;
   std::string e;
   if (!loadCameraModel(s, model, e)) return e;  // names the file
@@ -294,9 +303,19 @@ std::string checkReadableFile(const std::string& s) {
   return "cannot be read: " + s + ": " + std::strerror(errno);
 }
 
-std::string checkAbsolutePath(const std::string& s) {
-  if (!s.empty() && s[0] == '/') return {};
-  return "must be an absolute path (got " + quote(s) + ")";
+// The Zenoh configuration: readable, and a configuration zenoh takes (a typo found
+// by check-config and at the start, exit 78, not by the session after the camera
+// opened: a restart loop under systemd).
+std::string checkZenohConfig(const std::string& s) {
+  if (s.empty()) return {};
+  if (std::string e = checkAbsolutePath(s); !e.empty()) return e;
+  if (std::string e = checkReadableFile(s); !e.empty()) return e;
+  return zenohConfigError(s);
+}
+
+// Keys that name a file or directory.
+bool isFileKey(std::string_view name) {
+  return name == "tagging.calibration" || name == "zenoh.config" || name == "output.state_dir";
 }
 
 // A chunk of the key expression keyframed/<vehicle>/...
@@ -616,7 +635,7 @@ std::vector<Field> makeSchema() {
   f.push_back(boolean(
       "zenoh", "enabled", [](auto& c) -> auto& { return c.zenoh.enabled; }));
   f.push_back(text(
-      "zenoh", "config", [](auto& c) -> auto& { return c.zenoh.config; }, checkReadableFile));
+      "zenoh", "config", [](auto& c) -> auto& { return c.zenoh.config; }, checkZenohConfig));
   f.push_back(text(
       "zenoh", "vehicle", [](auto& c) -> auto& { return c.zenoh.vehicle; }, checkVehicle));
   f.push_back(integer(
@@ -777,10 +796,14 @@ class Loader {
     ++layer_;
     const std::string where = "--set " + assignment;
     out_.layers.push_back(where);
+    if (assignment.find_first_of("\r\n") != std::string::npos) {
+      fail(0, "--set " + quote(assignment) + ": one line, SECTION.KEY=VALUE");
+      return;
+    }
     const auto eq = assignment.find('=');
     const std::string name = assignment.substr(0, eq);
     const auto dot = name.find('.');
-    if (eq == std::string::npos || dot == std::string::npos) {
+    if (eq == std::string::npos || dot == std::string::npos || dot == 0) {
       fail(0, where + ": expected --set SECTION.KEY=VALUE");
       return;
     }
@@ -796,9 +819,16 @@ class Loader {
       return;
     }
     const std::string value = assignment.substr(eq + 1);
-    // Strings need no quotes on a command line: --set camera.source=file.
+    // Strings need no quotes on a command line: --set camera.source=file. A file
+    // named relative to the working directory, as a command line's names are.
     if (field->kind == Kind::String && (value.empty() || (value[0] != '"' && value[0] != '\''))) {
-      apply(*field, toml::value<std::string>(value), where, 0);
+      std::string text = value;
+      if (isFileKey(name) && !text.empty() && text[0] != '/') {
+        std::error_code ec;
+        const fs::path absolute = fs::absolute(text, ec);
+        if (!ec) text = absolute.lexically_normal().string();
+      }
+      apply(*field, toml::value<std::string>(text), where, 0);
       return;
     }
     toml::table doc;
@@ -911,8 +941,18 @@ class Loader {
   }
 
   void finish() {
-    relaxDependentDefaults(out_.config.selection, origins_.contains("selection.min_tracks"),
-                           origins_.contains("selection.blur_warmup"));
+    // A dependent key set in an earlier file than the key it depends on follows it as
+    // its default would (the shipped keyframed.toml spells out min_tracks = 80; a
+    // conf.d file's max_tracks = 50 alone lowers it).
+    const auto setSince = [this](const char* dependent, const char* controlling) {
+      const auto d = origins_.find(dependent);
+      if (d == origins_.end()) return false;
+      const auto c = origins_.find(controlling);
+      return c == origins_.end() || d->second.layer >= c->second.layer;
+    };
+    relaxDependentDefaults(out_.config.selection,
+                           setSince("selection.min_tracks", "selection.max_tracks"),
+                           setSince("selection.blur_warmup", "selection.blur_window"));
     crossChecks();
     std::stable_sort(errors_.begin(), errors_.end(), [](const Error& a, const Error& b) {
       return a.layer != b.layer ? a.layer < b.layer : a.line < b.line;
@@ -1062,6 +1102,8 @@ std::string toToml(const DaemonConfig& config) {
   if (const auto& cam = config.tagging.camera) {
     out += "\n[tagging.camera]\n";
     out += "make = " + quote(cam->make) + "\nmodel = " + quote(cam->model) + "\n";
+    out += std::string("lens = ") +
+           (cam->lens == CameraModel::Lens::Fisheye ? "\"fisheye\"" : "\"pinhole\"") + "\n";
     if (cam->width > 0) {
       out += "width = " + std::to_string(cam->width) + "\nheight = " + std::to_string(cam->height) +
              "\n";

@@ -8,6 +8,7 @@
 #include <map>
 
 #include "app/config.h"
+#include "output/mcap_replay.h"
 #include "tagging/camera_model.h"
 #include "telemetry/link.h"
 
@@ -43,7 +44,7 @@ its recorded MAVLink as telemetry.
 
 selection:
   --mode geometric|paper     overlap test (default geometric)
-  --target F                 overlap to keep a frame at, 0..1 (default 0.70)
+  --target F                 overlap to keep a frame at, 0.01..0.99 (default 0.70)
   --band LO,HI               overlap band for fallbacks (default 0.60,0.85)
   --min-overlap F            hard floor: a blurry fallback is kept rather than
                              let overlap fall under F (default 0.50)
@@ -119,6 +120,41 @@ recording and streaming:
   --vehicle NAME             vehicle name in Zenoh keys (default uav)
   -h, --help                 this text
 )";
+}
+
+// Settings that must agree with each other, named by their options (the defaults
+// count too: --target 0.5 alone is under the default band).
+std::string checkSelectSettings(const SelectorConfig& c) {
+  const auto num = [](double v) {
+    char buf[32];
+    const auto [end, ec] = std::to_chars(buf, buf + sizeof buf, v);
+    return std::string(buf, ec == std::errc() ? end : buf);
+  };
+  if (c.bandLow > c.target)
+    return "--band LO (" + num(c.bandLow) + ") must not exceed --target (" + num(c.target) + ")";
+  if (c.target > c.bandHigh)
+    return "--target (" + num(c.target) + ") must not exceed --band HI (" + num(c.bandHigh) + ")";
+  if (c.minOverlap > c.bandLow)
+    return "--min-overlap (" + num(c.minOverlap) + ") must not exceed --band LO (" +
+           num(c.bandLow) + ")";
+  if (c.overlap.minTracks > c.overlap.maxTracks)
+    return "--min-tracks (" + std::to_string(c.overlap.minTracks) +
+           ") must not exceed --max-tracks (" + std::to_string(c.overlap.maxTracks) + ")";
+  if (c.overlap.minInliers > c.overlap.minTracks)
+    return "--min-inliers (" + std::to_string(c.overlap.minInliers) +
+           ") must not exceed --min-tracks (" + std::to_string(c.overlap.minTracks) +
+           "): tracks are replenished only below it";
+  if (c.overlap.paperMinMatches > c.overlap.orbFeatures)
+    return "--paper-min-matches (" + std::to_string(c.overlap.paperMinMatches) +
+           ") must not exceed --orb-features (" + std::to_string(c.overlap.orbFeatures) + ")";
+  if (c.blur.warmup > c.blur.window)
+    return "--blur-warmup (" + std::to_string(c.blur.warmup) + ") must not exceed --blur-window (" +
+           std::to_string(c.blur.window) + ")";
+  if (c.motionRatio > 0.0 && c.motionRatio < 1.0)
+    return "--motion-ratio (" + num(c.motionRatio) + ") must be 0 (off) or at least 1";
+  // The core's own rules as a last line of defence.
+  if (std::string e = c.validate(); !e.empty()) return "selection settings: " + e;
+  return {};
 }
 
 ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptions& o) {
@@ -209,7 +245,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
          if (!parseDouble(a, lo) || !parseDouble(b, hi)) return "expected two numbers LO,HI";
          // As the TOML keys: a band of one value (LO = HI = the target) is allowed.
          if (!limits::kOverlapBand.contains(lo) || !limits::kOverlapBand.contains(hi) || lo > hi)
-           return "band must satisfy 0 < LO <= HI < 1";
+           return "band must satisfy 0.01 <= LO <= HI <= 0.99 (got " + v + ")";
          c.bandLow = lo;
          c.bandHigh = hi;
          return {};
@@ -422,39 +458,11 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (o.video.empty()) return fail("no video given (usage: keyframed select VIDEO --out DIR)");
   if (o.outDir.empty()) return fail("--out DIR is required");
   relaxDependentDefaults(c, minTracksSet, warmupSet);
-  // Settings that must agree with each other, named by their options (the
-  // defaults count too: --target 0.5 alone is under the default band).
-  const auto num = [](double v) {
-    char buf[32];
-    const auto [end, ec] = std::to_chars(buf, buf + sizeof buf, v);
-    return std::string(buf, ec == std::errc() ? end : buf);
-  };
-  if (c.bandLow > c.target)
-    return fail("--band LO (" + num(c.bandLow) + ") must not exceed --target (" + num(c.target) +
-                ")");
-  if (c.target > c.bandHigh)
-    return fail("--target (" + num(c.target) + ") must not exceed --band HI (" + num(c.bandHigh) +
-                ")");
-  if (c.minOverlap > c.bandLow)
-    return fail("--min-overlap (" + num(c.minOverlap) + ") must not exceed --band LO (" +
-                num(c.bandLow) + ")");
-  if (c.overlap.minTracks > c.overlap.maxTracks)
-    return fail("--min-tracks (" + std::to_string(c.overlap.minTracks) +
-                ") must not exceed --max-tracks (" + std::to_string(c.overlap.maxTracks) + ")");
-  if (c.overlap.minInliers > c.overlap.minTracks)
-    return fail("--min-inliers (" + std::to_string(c.overlap.minInliers) +
-                ") must not exceed --min-tracks (" + std::to_string(c.overlap.minTracks) +
-                "): tracks are replenished only below it");
-  if (c.overlap.paperMinMatches > c.overlap.orbFeatures)
-    return fail("--paper-min-matches (" + std::to_string(c.overlap.paperMinMatches) +
-                ") must not exceed --orb-features (" + std::to_string(c.overlap.orbFeatures) + ")");
-  if (c.blur.warmup > c.blur.window)
-    return fail("--blur-warmup (" + std::to_string(c.blur.warmup) +
-                ") must not exceed --blur-window (" + std::to_string(c.blur.window) + ")");
-  if (c.motionRatio > 0.0 && c.motionRatio < 1.0)
-    return fail("--motion-ratio (" + num(c.motionRatio) + ") must be 0 (off) or at least 1");
-  // The core's own rules as a last line of defence.
-  if (std::string e = c.validate(); !e.empty()) return fail("selection settings: " + e);
+  // A flight record's own settings are the base its options go on top of: the replay
+  // checks them once it has read the record (checkSelectSettings).
+  if (!isMcapFile(o.video)) {
+    if (std::string e = checkSelectSettings(c); !e.empty()) return fail(e);
+  }
   if (!o.telemetrySets.empty()) {
     const ConfigLoadResult loaded = loadOverrides(o.telemetrySets);
     if (!loaded.ok()) return fail(loaded.errors.front());

@@ -69,6 +69,11 @@ struct ParseResult {
 // Parses the arguments after `select`.
 ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptions& out);
 
+// The selection settings' agreement with each other (band, target, tracks, ...), named
+// by their options; empty when they agree. parseSelectOptions checks them, except over
+// a flight record, whose own settings the options go on top of.
+std::string checkSelectSettings(const SelectorConfig& selector);
+
 std::string selectUsage();
 
 }  // namespace keyframed

@@ -151,8 +151,9 @@ bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& e
 constexpr int kStateDirPermanent = 2;
 
 // 0 when stateDir/flights exists (made if need be) and may be written; else the error
-// and 2 when restarting will not help (read-only, not permitted), 1 when it may (a
-// full disk, an I/O error).
+// and 2 when restarting will not help (read-only, not permitted, a path through a
+// file, a name too long), 1 when it may (a full disk, an I/O error, a disk not yet
+// mounted).
 int checkStateDir(const std::string& stateDir, std::string& error) {
   namespace fs = std::filesystem;
   const fs::path flights = fs::path(stateDir) / "flights";
@@ -166,6 +167,9 @@ int checkStateDir(const std::string& stateDir, std::string& error) {
     error +=
         " (under systemd only the unit's StateDirectory, /var/lib/keyframed, is writable: "
         "add the directory with ReadWritePaths= in a drop-in, docs/deploy.md)";
+    return kStateDirPermanent;
+  }
+  if (err == ENOTDIR || err == EEXIST || err == ENAMETOOLONG || err == ELOOP) {
     return kStateDirPermanent;
   }
   return 1;

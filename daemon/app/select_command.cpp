@@ -332,6 +332,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.error = error;
     return s;
   }
+  bool overRecord = false;  // the selector is the record's settings + the options
   if (replay != nullptr && !replay->selectionSettings().empty()) {
     // Select as the flight did: its settings, with the selection options given here on
     // top of them.
@@ -343,9 +344,18 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                    "keyframed select: warning: the record's selection settings do not load "
                    "(%s): replaying with the defaults and the options given\n",
                    r.errors.front().c_str());
-    } else if (opts.args.empty() ? !opts.selectorGiven
-                                 : parseSelectOptions(opts.args, recorded).ok) {
+    } else if (!opts.args.empty() || !opts.selectorGiven) {
+      if (!opts.args.empty()) {
+        // The options again, now over the record's settings (they parsed once
+        // already; their agreement with these settings is checked below).
+        if (const ParseResult again = parseSelectOptions(opts.args, recorded); !again.ok) {
+          s.error = again.error;
+          s.badOptions = true;
+          return s;
+        }
+      }
       opts.selector = recorded.selector;
+      overRecord = true;
       if (replay->settingsChanges() > 0) {
         std::fprintf(stderr,
                      "keyframed select: warning: the selection settings changed %d time(s) "
@@ -359,6 +369,13 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                  "keyframed select: warning: the record does not say which selection settings "
                  "the flight used (a record from before they were recorded in every part?): "
                  "replaying with the defaults and the options given\n");
+  }
+  if (replay != nullptr && !opts.selectorGiven) {
+    if (std::string e = checkSelectSettings(opts.selector); !e.empty()) {
+      s.error = e + (overRecord ? " (over the record's settings)" : "");
+      s.badOptions = true;
+      return s;
+    }
   }
   if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs || opts.videoStartAuto)) {
     s.error =
@@ -767,7 +784,7 @@ int selectMain(const std::vector<std::string>& args) {
   }
   if (!s.error.empty()) {
     std::fprintf(stderr, "keyframed select: %s\n", s.error.c_str());
-    return 3;
+    return s.badOptions ? 2 : 3;
   }
   if (gStop.load()) return 130;
   return 0;

@@ -21,6 +21,7 @@ struct SelectSummary {
   bool truncated = false;       // the video ended before its announced length
   bool interrupted = false;     // stopped by a signal or --max-frames
   std::string error;            // non-empty: the run failed (one line)
+  bool badOptions = false;      // ... because the options do not fit the flight record
   struct Telemetry {
     std::string source;  // empty: no telemetry
     std::int64_t geotagged = 0;

@@ -574,7 +574,17 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
   return ok;
 }
 
+std::string zenohConfigError(const std::string& path) {
+  std::string error;
+  if (ZenohSession::checkConfigFile(path, error)) return {};
+  return error;
+}
+
 #else  // built without the Rust I/O crate
+
+std::string zenohConfigError(const std::string&) {
+  return {};
+}
 
 struct FlightOutputs::Impl {};
 

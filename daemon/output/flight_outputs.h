@@ -14,6 +14,10 @@
 
 namespace keyframed {
 
+// What is wrong with a Zenoh configuration file as zenoh reads it (empty: nothing, or
+// a build without Zenoh), so that a configuration check finds it before a run starts.
+std::string zenohConfigError(const std::string& path);
+
 struct FlightOutputOptions {
   std::string mcapPath;                // --mcap FILE; empty: no recording
   std::string zenohConfig;             // --zenoh-config FILE; empty: no Zenoh

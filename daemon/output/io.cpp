@@ -164,6 +164,13 @@ std::unique_ptr<ZenohSession> ZenohSession::open(const Options& o, std::string& 
   return std::unique_ptr<ZenohSession>(new ZenohSession(h));
 }
 
+bool ZenohSession::checkConfigFile(const std::string& path, std::string& error) {
+  Err e;
+  if (kfio_zenoh_config_check(path.c_str(), e.data(), e.size()) == 0) return true;
+  error = e.str();
+  return false;
+}
+
 ZenohSession::~ZenohSession() {
   kfio_session_close(handle_);
 }

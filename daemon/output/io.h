@@ -82,6 +82,8 @@ class ZenohSession {
     std::vector<std::pair<std::string, std::string>> overrides;  // key -> JSON5 value
   };
   static std::unique_ptr<ZenohSession> open(const Options& options, std::string& error);
+  // Reads a JSON5 configuration file as open() does, without opening a session.
+  static bool checkConfigFile(const std::string& path, std::string& error);
   ~ZenohSession();
   ZenohSession(const ZenohSession&) = delete;
   ZenohSession& operator=(const ZenohSession&) = delete;

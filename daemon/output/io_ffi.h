@@ -66,6 +66,9 @@ kfio_session* kfio_session_open(const char* config_path, const char* config_json
                                 const char* const* keys, const char* const* values, size_t count,
                                 char* err, size_t err_len);
 void kfio_session_close(kfio_session* session);
+/* Reads a JSON5 configuration file as kfio_session_open does, without opening a
+ * session: 0 when zenoh takes it, -1 with the reason in err. */
+int kfio_zenoh_config_check(const char* config_path, char* err, size_t err_len);
 /* Writes the session's zenoh id (hex) into out. */
 int kfio_session_zid(kfio_session* session, char* out, size_t out_len);
 

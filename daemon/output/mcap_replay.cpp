@@ -164,6 +164,9 @@ std::vector<std::string> mcapParts(const std::string& path) {
 }
 
 bool isMcapFile(const std::string& path) {
+  // Only a regular file is read: a FIFO's open would wait for a writer.
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) return false;
   std::ifstream f(path, std::ios::binary);
   char magic[8] = {};
   f.read(magic, sizeof magic);

@@ -86,8 +86,10 @@ std::string CameraModel::lensWarning() const {
     if (!(corner > 0.0)) continue;
     const cv::Point2d edge =
         lm.distort({cx + reach * fx * dx / corner, cy + reach * fy * dy / corner});
-    const double drawn = std::hypot((edge.x - cx) / fx, (edge.y - cy) / fy);
-    worst = std::min(worst, drawn / corner);
+    // How far out along the corner's direction (a point thrown across the centre
+    // counts as none, as does one the arithmetic lost).
+    const double drawn = ((edge.x - cx) / fx * dx + (edge.y - cy) / fy * dy) / corner;
+    worst = std::isfinite(drawn) ? std::min(worst, std::max(0.0, drawn) / corner) : 0.0;
   }
   if (worst >= 0.999) return {};
   char buf[320];
@@ -186,6 +188,9 @@ bool finish(const std::string& path, CameraModel& m, std::string& error) {
   }
   for (double d : m.distortion) {
     if (!std::isfinite(d)) return bad("distortion terms must be finite");
+    // No lens has terms this large; arithmetic on them overflows (calibrateCamera on
+    // points that do not constrain them gives tens, hundreds at most).
+    if (std::abs(d) > 1e6) return bad("distortion terms must be within -1e6..1e6");
   }
   if (std::isnan(m.focalLengthMm) && std::isfinite(m.fx) && std::isfinite(m.sensorWidthMm)) {
     m.focalLengthMm = m.fx * m.sensorWidthMm / m.width;

@@ -117,3 +117,39 @@ def test_single_file_and_usage_errors(kf_bin: Path, tmp_path: Path):
     unknown = check(kf_bin, "--frobnicate")
     assert unknown.returncode == 2 and "unknown option --frobnicate" in unknown.stderr
     assert check(kf_bin, "--help").returncode == 0
+
+
+def test_files_it_names_are_absolute_and_a_zenoh_config_is_read(
+    kf_bin: Path, tmp_path: Path
+) -> None:
+    """check-config reads the Zenoh configuration as zenoh does (a typo found there, not
+    by `run` after the camera opened: exit 78, no restart loop), and takes only absolute
+    file names from files: the service starts in /, wherever check-config ran."""
+    bad = tmp_path / "zenoh.json5"
+    bad.write_text("{ mode: 'peer', this is not json5 ")
+    p = check(kf_bin, "--config-dir", tmp_path, "--set", f"zenoh.config={bad}")
+    assert p.returncode == 1 and f"zenoh.config: zenoh config {bad}" in p.stderr, p.stderr
+    assert len(p.stderr.splitlines()) == 1, p.stderr
+    r = subprocess.run(
+        [str(kf_bin), "run", "--config-dir", str(tmp_path), "--set", f"zenoh.config={bad}",
+         "--set", f"output.state_dir={tmp_path / 'state'}"],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert r.returncode == 78, r.stderr
+    assert not (tmp_path / "state").exists(), "no flight directory for a configuration error"
+
+    good = tmp_path / "good.json5"
+    good.write_text('{ mode: "peer" }')
+    (tmp_path / "keyframed.toml").write_text('[zenoh]\nconfig = "good.json5"\n')
+    rel = check(kf_bin, "--config-dir", tmp_path)
+    assert rel.returncode == 1, rel.stderr
+    assert 'zenoh.config: must be an absolute path (got "good.json5")' in rel.stderr, rel.stderr
+    # On a command line a name is the working directory's, as any other argument.
+    (tmp_path / "keyframed.toml").unlink()
+    cwd = subprocess.run(
+        [str(kf_bin), "check-config", "--config-dir", str(tmp_path), "--set",
+         "zenoh.config=good.json5"],
+        capture_output=True, text=True, timeout=30, cwd=tmp_path,
+    )  # fmt: skip
+    assert cwd.returncode == 0, cwd.stderr
+    assert tomllib.loads(cwd.stdout)["zenoh"]["config"] == str(good)

@@ -164,6 +164,40 @@ def test_run_record_is_in_unix_time_holds_the_log_and_passes_doctor(
     assert overlaps and float(np.median(overlaps)) > 0.8, overlaps
 
 
+def test_options_on_a_replay_go_on_top_of_the_records_settings(
+    kf_bin: Path, pan_video: Path, tmp_path: Path
+) -> None:
+    """A replay's options are checked against the record's settings, not the built-in
+    defaults: one that fits them is taken, one that does not is refused (exit 2,
+    nothing written) instead of the record's settings being dropped for the defaults."""
+    run(
+        kf_bin, tmp_path, f"camera.path={pan_video}", "camera.realtime=false",
+        "telemetry.url=", "selection.target=0.5", "selection.band_low=0.4",
+        "selection.band_high=0.8", "selection.min_overlap=0.3",
+    )  # fmt: skip
+    rec = (tmp_path / "state" / "latest" / "flight.mcap").resolve()
+
+    def select(out: str, *args: str) -> subprocess.CompletedProcess[str]:
+        cmd = [str(kf_bin), "select", str(rec), "--out", str(tmp_path / out), "--quiet", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+    # --band 0.45,0.8 is under the default min-overlap (0.5), over the record's (0.3).
+    fits = select("fits", "--band", "0.45,0.8")
+    assert fits.returncode == 0, fits.stderr
+    settings = json.loads((tmp_path / "fits/summary.json").read_text())["settings"]
+    assert (settings["target"], settings["band"], settings["min_overlap"]) == (
+        0.5,
+        [0.45, 0.8],
+        0.3,
+    )
+    # --band 0.55,0.8 fits the defaults (target 0.7) but not the record's target (0.5).
+    clash = select("clash", "--band", "0.55,0.8")
+    assert clash.returncode == 2, clash.stderr
+    assert "--band LO (0.55) must not exceed --target (0.5)" in clash.stderr, clash.stderr
+    assert "over the record's settings" in clash.stderr, clash.stderr
+    assert not (tmp_path / "clash").exists() or not list((tmp_path / "clash").iterdir())
+
+
 def test_a_fisheye_calibration_is_recorded_and_replayed_as_fisheye(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:

@@ -272,6 +272,8 @@ TEST(CameraModel, ImplausibleIntrinsicsAreRefusedNotTagged) {
       {"sensor_width_mm", "1e308", "sensor sizes"},
       {"focal_length_mm", "50000", "focal length in mm"},
       {"width", "2147483647", "image size"},
+      {"distortion", "[-1e300, 0, 0, 0, 0]", "distortion terms must be within"},
+      {"distortion", "[0.1, 2e6, 0, 0]", "distortion terms must be within"},
   };
   for (const auto& [field, value, words] : cases) {
     SCOPED_TRACE(field + " = " + value);
@@ -310,6 +312,10 @@ TEST(CameraModel, ADistortionThatFoldsBeforeTheCornersIsWarnedAbout) {
   c.distortion = {-10.0, 0.0, 0.0, 0.0, 0.0};  // folds at r = 0.18, the corners at 0.9
   const std::string w = c.lensWarning();
   EXPECT_NE(w.find("folds back"), std::string::npos) << w;
+  // A fold so close to the centre that the first step past it throws the point across
+  // the centre (the distorted radius comes out negative): folded, not far out.
+  c.distortion = {-1e6, 0.0, 0.0, 0.0, 0.0};
+  EXPECT_NE(c.lensWarning().find("folds back 0 %"), std::string::npos) << c.lensWarning();
   EXPECT_EQ(CameraModel{}.lensWarning(), "");  // no calibration, nothing to say
 }
 

@@ -460,6 +460,33 @@ TEST(Config, SmallValuesLowerTheDefaultsThatDependOnThem) {
                  "selection.orb_features");
 }
 
+TEST(Config, ADependentKeyFromAnEarlierFileFollowsALaterOne) {
+  // The shipped keyframed.toml spells out min_tracks = 80 and blur_warmup = 5; a
+  // drop-in that lowers max_tracks or blur_window alone lowers them as it would
+  // the defaults.
+  TempDir dir;
+  std::ifstream shipped(kSource + "/config/keyframed.toml");
+  std::stringstream text;
+  text << shipped.rdbuf();
+  dir.write("keyframed.toml", text.str());
+  dir.write("conf.d/10-small.toml", "[selection]\nmax_tracks = 50\nblur_window = 3\n");
+  const ConfigLoadResult r = loadDir(dir);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(r.config.selection.overlap.minTracks, 20);  // 2/5 of 50
+  EXPECT_EQ(r.config.selection.blur.warmup, 3);
+  // Set again in the later file, the conflict is the user's and is reported.
+  dir.write("conf.d/10-small.toml", "[selection]\nmax_tracks = 50\nmin_tracks = 80\n");
+  const ConfigLoadResult both = loadDir(dir);
+  ASSERT_EQ(both.errors.size(), 1u) << joined(both.errors);
+  EXPECT_NE(both.errors[0].find("10-small.toml:3: selection.min_tracks"), std::string::npos)
+      << both.errors[0];
+  // And --set counts as a later layer than any file.
+  dir.write("conf.d/10-small.toml", "");
+  const ConfigLoadResult set = loadDir(dir, {"selection.max_tracks=40"});
+  ASSERT_TRUE(set.ok()) << joined(set.errors);
+  EXPECT_EQ(set.config.selection.overlap.minTracks, 16);
+}
+
 TEST(Config, MalformedTomlGivesTheLine) {
   TempDir dir;
   const ConfigLoadResult r = loadText(dir, "[camera]\nfps = 30\nwidth = = 3\n");
@@ -522,6 +549,16 @@ TEST(Config, IntrinsicsInlineInTaggingCamera) {
   ASSERT_TRUE(b.ok()) << joined(b.errors);
   EXPECT_EQ(toToml(b.config), toToml(r.config));
   EXPECT_EQ(b.config.tagging.camera->distortion, c.distortion);
+  // A fisheye stays a fisheye (the lens is printed too).
+  const ConfigLoadResult fish =
+      loadText(dir,
+               "[tagging.camera]\nlens = \"fisheye\"\nwidth = 1280\nheight = 960\nfx = 330.0\n"
+               "fy = 330.0\ncx = 640.0\ncy = 480.0\ndistortion = [0.05, -0.01, 0.002, -0.0003]\n");
+  ASSERT_TRUE(fish.ok()) << joined(fish.errors);
+  s.files = {dir.write("printed.toml", toToml(fish.config))};
+  const ConfigLoadResult fishBack = loadConfig(s);
+  ASSERT_TRUE(fishBack.ok()) << joined(fishBack.errors);
+  EXPECT_EQ(fishBack.config.tagging.camera->lens, CameraModel::Lens::Fisheye);
 
   expectOneError(dir, "[tagging.camera]\nfz = 1.0\n", "2: unknown key 'tagging.camera.fz'");
   expectOneError(dir, "[tagging.camera]\nwidth = 640\nheight = 480\nfx = 500.0\n",

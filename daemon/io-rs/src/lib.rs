@@ -59,6 +59,45 @@ fn describe(e: &dyn std::error::Error) -> String {
     text
 }
 
+/// A zenoh configuration error on one line: a JSON5 syntax error comes as pest's
+/// multi-line report (" --> 1:9", the line, a caret, "= expected ..."), a wrong value
+/// as serde's Debug text, and both end with where in zenoh's source they were made.
+fn zenoh_config_error(e: &dyn std::fmt::Display) -> String {
+    let mut text = e.to_string();
+    if let Some(i) = text.rfind(" at /") {
+        if text[i..].contains(".rs:") {
+            text.truncate(i);
+        }
+    }
+    let (mut position, mut message) = (None, None);
+    for line in text.lines().map(str::trim) {
+        if let Some(p) = line.strip_prefix("--> ") {
+            position = Some(p.to_owned());
+        } else if let Some(m) = line.strip_prefix("= ") {
+            message = Some(m.to_owned());
+        }
+    }
+    if let (Some(p), Some(m)) = (position, message) {
+        let (line, column) = p.split_once(':').unwrap_or((&p, "?"));
+        return format!("line {line}, column {column}: {m}");
+    }
+    if let (Some(a), Some(b)) = (text.find("msg: \""), text.find("\", location")) {
+        if a + 6 <= b {
+            let m = &text[a + 6..b];
+            let at = text
+                .find("line: ")
+                .map(|i| &text[i..])
+                .and_then(|t| t.split_once(" }"))
+                .map(|(t, _)| t.replace("line: ", "line ").replace("column: ", "column "));
+            return match at {
+                Some(at) => format!("{at}: {m}"),
+                None => m.to_owned(),
+            };
+        }
+    }
+    text.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
 fn panic_message(p: Box<dyn std::any::Any + Send>) -> String {
     if let Some(s) = p.downcast_ref::<&str>() {
         format!("internal error (panic): {s}")
@@ -748,9 +787,11 @@ pub unsafe extern "C" fn kfio_session_open(
 ) -> *mut KfioSession {
     guard(err, err_len, std::ptr::null_mut(), || {
         let mut config = if let Some(path) = opt_cstr(config_path, "config path")? {
-            zenoh::Config::from_file(path).map_err(|e| format!("zenoh config {path}: {e}"))?
+            zenoh::Config::from_file(path)
+                .map_err(|e| format!("zenoh config {path}: {}", zenoh_config_error(&e)))?
         } else if let Some(text) = opt_cstr(config_json5, "config")? {
-            zenoh::Config::from_json5(text).map_err(|e| format!("zenoh config: {e}"))?
+            zenoh::Config::from_json5(text)
+                .map_err(|e| format!("zenoh config: {}", zenoh_config_error(&e)))?
         } else {
             zenoh::Config::default()
         };
@@ -770,6 +811,25 @@ pub unsafe extern "C" fn kfio_session_open(
             .wait()
             .map_err(|e| format!("cannot open zenoh session: {e}"))?;
         Ok(Box::into_raw(Box::new(KfioSession { session })))
+    })
+}
+
+/// Reads a Zenoh JSON5 configuration file as kfio_session_open does, without opening
+/// a session: 0 when zenoh takes it, else -1 with zenoh's reason in err.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
+#[no_mangle]
+pub unsafe extern "C" fn kfio_zenoh_config_check(
+    config_path: *const c_char,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let path = cstr(config_path, "config path")?;
+        zenoh::Config::from_file(path)
+            .map_err(|e| format!("zenoh config {path}: {}", zenoh_config_error(&e)))?;
+        Ok(0)
     })
 }
 
