@@ -43,7 +43,8 @@ path = "$ROOT/$SAMPLE/video.avi"
 realtime = true
 
 [telemetry]
-url = "udpin:127.0.0.1:$MPORT"
+url = "udpout:127.0.0.1:$MPORT"
+start_wait_ms = 0
 
 [tagging]
 calibration = "$ROOT/$SAMPLE/calibration.yaml"
@@ -62,10 +63,18 @@ echo "==> ground station: keyframed-ground --out $DEMO/dataset"
 .venv/bin/keyframed-ground --out "$DEMO/dataset" --connect "tcp/127.0.0.1:$ZPORT" \
   --until-done --quiet > "$DEMO/ground.json" &
 GROUND_PID=$!
-echo "==> fake autopilot: replaying $SAMPLE/flight.tlog to udp 127.0.0.1:$MPORT"
+# The video stands in for a camera that films as the vehicle flies: the daemon starts
+# its camera as its MAVLink link opens (start_wait_ms = 0), and the autopilot's replay
+# starts when it first hears the daemon, at the tlog's moment of the video's first
+# frame, with the second before it as history, so that each frame is where the tlog
+# says the vehicle was.
+EPOCH="$(.venv/bin/python -c 'import json, sys; print(json.load(open(sys.argv[1]))["epoch_unix_s"])' "$SAMPLE/meta.json")"
+echo "==> fake autopilot: replaying $SAMPLE/flight.tlog on udp 127.0.0.1:$MPORT"
+rm -f "$DEMO/autopilot.ready"
 .venv/bin/python tests/harness/fake_autopilot.py "$SAMPLE/flight.tlog" \
-  --target "127.0.0.1:$MPORT" --start-delay 0.5 &
+  --listen "$MPORT" --from-unix "$EPOCH" --ready-file "$DEMO/autopilot.ready" &
 AP_PID=$!
+for _ in $(seq 300); do [ -e "$DEMO/autopilot.ready" ] && break; sleep 0.1; done
 SECS="$(.venv/bin/python -c 'import json, sys; print(round(json.load(open(sys.argv[1]))["seconds"]))' "$SAMPLE/meta.json")"
 echo "==> keyframed run --config-dir $DEMO/etc   (the daemon; the flight takes ${SECS} s in real time)"
 build/release/daemon/keyframed run --config-dir "$DEMO/etc"

@@ -54,10 +54,14 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
       // carried on at its velocity over that time it is off by half the acceleration
       // times its square (2 cm at 2 m/s^2 over 150 ms), well inside GPS's own error,
       // where waiting for the next one would hold every keyframe up to 100-200 ms.
+      // A link opened less than that long ago counts as delivering: a camera started
+      // with it (telemetry.start_wait_ms = 0) takes its first keyframe before the
+      // autopilot's first messages, a few ms away.
       const TelemetryDecoder& d = telemetry_->decoder();
+      const std::int64_t young = telemetry_->startedNs() + telemetryWaitMs_ * 1'000'000LL;
       while (!d.covers(frame.timestampNs, gimbal, limits_.maxHoldNs) || !d.clockSettled()) {
         const std::int64_t now = monotonicNowNs();
-        if (now >= deadline || !linkDelivers(now, gimbal)) break;
+        if (now >= deadline || (now >= young && !linkDelivers(now, gimbal))) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

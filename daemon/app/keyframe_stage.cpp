@@ -74,7 +74,8 @@ void KeyframeStage::finish() {
 }
 
 void KeyframeStage::reconfigure(const SelectorConfig& config) {
-  finish();
+  // A new chain: the candidate of the old one is kept first, as at the end of a run.
+  if (selector_.reconfigureRestartsChain(config)) finish();
   selector_.reconfigure(config);
 }
 

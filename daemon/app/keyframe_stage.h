@@ -43,8 +43,9 @@ class KeyframeStage {
   // End of the stream: the pending candidate becomes a keyframe (emitted with
   // endOfStream) so the last stretch is covered too.
   void finish();
-  // New settings (SIGHUP). The pending candidate is kept first, as at the end of a
-  // stream, so changing settings never opens a coverage gap.
+  // New settings (SIGHUP). When they start a new chain (KeyframeSelector::reconfigure)
+  // the pending candidate is kept first, as at the end of a stream, so changing
+  // settings never opens a coverage gap; otherwise the chain goes on.
   void reconfigure(const SelectorConfig& config);
   // A capture asked for (MAVLink): see KeyframeSelector::requestCapture().
   bool requestCapture() { return selector_.requestCapture(); }

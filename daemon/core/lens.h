@@ -22,6 +22,7 @@ struct LensModel {
   double fx = 0, fy = 0, cx = 0, cy = 0;  // OpenCV's pixel-centre convention
   std::array<double, 5> k{};              // pinhole: k1 k2 p1 p2 k3; fisheye: k1 k2 k3 k4
 
+  bool operator==(const LensModel&) const = default;
   [[nodiscard]] bool active() const { return kind != Kind::None; }
   // The same lens for images of w x h (same field of view).
   [[nodiscard]] LensModel scaledTo(int w, int h) const;

@@ -36,6 +36,7 @@ struct OverlapConfig {
   // the analysis size. None: pixels are taken as a distortion-free pinhole's.
   LensModel lens;
 
+  bool operator==(const OverlapConfig&) const = default;
   [[nodiscard]] std::string validate() const;
 };
 

@@ -61,10 +61,26 @@ bool KeyframeSelector::motionTooFast(double motionPx, int analysisWidth) {
   return fast;
 }
 
+bool KeyframeSelector::reconfigureRestartsChain(const SelectorConfig& config) const {
+  return !(config.overlap == config_.overlap && config.analysisWidth == config_.analysisWidth);
+}
+
 void KeyframeSelector::reconfigure(const SelectorConfig& config) {
+  const bool restart = reconfigureRestartsChain(config);
+  const SelectorConfig before = config_;
   config_ = config;
-  sharpness_ = SharpnessScorer(config.blur);
-  motion_ = RunningQuantile(static_cast<std::size_t>(std::max(1, config.motionWindow)));
+  // What the new settings leave as it was carries on: the blur statistic (a fresh one
+  // judges against the floor alone for its warm-up, where a blurred frame can start
+  // a chain), the motion reference, and the chain with its reference and candidate
+  // (a new target or band applies to the frames that follow).
+  if (!(config.blur == before.blur)) {
+    sharpness_ = SharpnessScorer(config.blur);
+    keyframesSinceScorer_ = 0;
+  }
+  if (config.motionWindow != before.motionWindow) {
+    motion_ = RunningQuantile(static_cast<std::size_t>(std::max(1, config.motionWindow)));
+  }
+  if (!restart) return;
   // A new estimator has no reference: the next sharp frame starts a new chain.
   overlap_ = OverlapEstimator::create(config.overlap);
   haveKeyframe_ = false;
@@ -84,6 +100,7 @@ bool KeyframeSelector::requestCapture() {
 void KeyframeSelector::clearCandidate() {
   candidateIndex_ = -1;
   candidateSharpness_ = 0.0;
+  candidateGrade_ = 0;
   candidateSharp_ = false;
 }
 
@@ -96,10 +113,11 @@ void KeyframeSelector::keepCurrent(Decision& d, Reason reason) {
   keyframeFeatures_ = d.features;
   chainTracked_ = false;
   needAnchor_ = false;
-  firstInWarmup_ = reason == Reason::First && keyframes_ == 0 && warmingUp_;
+  firstInWarmup_ = reason == Reason::First && keyframesSinceScorer_ == 0 && warmingUp_;
   firstSharpness_ = d.sharpness;
   clearCandidate();
   ++keyframes_;
+  ++keyframesSinceScorer_;
 }
 
 int KeyframeSelector::minTrackable() const {
@@ -111,12 +129,17 @@ void KeyframeSelector::noteCandidate(Decision& d) {
   // The fallback: a sharp frame beats a blurry one, then the higher score wins.
   // Scores are compared among neighbours rather than against the threshold, which a
   // drop in ground texture can leave out of reach.
-  const bool better = candidateIndex_ < 0 || (d.sharp && !candidateSharp_) ||
-                      (d.sharp == candidateSharp_ && d.sharpness > candidateSharpness_);
+  // A frame that measures sharp but moved fast (motion gate) ranks between: not kept
+  // at the target, but good enough to fall back on at the band's edge, so that a
+  // speed-up the gate has not adapted to yet does not push keyframes under the band.
+  const int grade = d.sharp ? 2 : (d.fastMotion && d.sharpness >= d.threshold ? 1 : 0);
+  const bool better = candidateIndex_ < 0 || grade > candidateGrade_ ||
+                      (grade == candidateGrade_ && d.sharpness > candidateSharpness_);
   if (d.sharpness < config_.blur.floor || !better) return;
   candidateIndex_ = d.index;
   candidateSharpness_ = d.sharpness;
-  candidateSharp_ = d.sharp;
+  candidateGrade_ = grade;
+  candidateSharp_ = grade > 0;
   d.candidate = true;
   overlap_->markCandidate();
 }
@@ -139,6 +162,7 @@ bool KeyframeSelector::promoteCandidate(Decision& d) {
   d.promotedIndex = candidateIndex_;
   clearCandidate();
   ++keyframes_;
+  ++keyframesSinceScorer_;
   // A keyframe after the first: the view that one showed is no longer the reference
   // a refocused frame would replace.
   firstInWarmup_ = false;

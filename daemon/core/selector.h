@@ -120,8 +120,12 @@ class KeyframeSelector {
   // last stretch of the flight is covered too. Returns its index, or -1.
   std::int64_t finish();
 
-  // Apply new settings (SIGHUP); selection restarts at the next sharp frame.
-  // Requested captures still pending stay so.
+  // Apply new settings (SIGHUP). A new overlap mode, tracking setting or analysis
+  // size restarts selection at the next sharp frame (call finish() first to keep the
+  // candidate); a new target, band or blur setting applies to the frames that follow,
+  // against the same last keyframe. The blur statistic starts again only when a blur
+  // setting changed. Requested captures still pending stay so.
+  [[nodiscard]] bool reconfigureRestartsChain(const SelectorConfig& config) const;
   void reconfigure(const SelectorConfig& config);
 
   // A capture was asked for (e.g. by the autopilot or a ground station): the next
@@ -174,10 +178,12 @@ class KeyframeSelector {
   double firstSharpness_ = 0.0;
   bool warmingUp_ = false;  // the frame being decided was judged in the warm-up
   std::int64_t keyframes_ = 0;
+  std::int64_t keyframesSinceScorer_ = 0;  // since the blur statistic began (reconfigure)
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;
-  bool candidateSharp_ = false;
-  RunningQuantile motion_;               // recent frame motions (analysis px)
+  int candidateGrade_ = 0;       // 2 sharp, 1 sharp but moved fast, 0 blurry (noteCandidate)
+  bool candidateSharp_ = false;  // grade > 0: fallen back on at the band's low edge
+  RunningQuantile motion_;       // recent frame motions (analysis px)
   std::atomic<int> captureRequests_{0};  // requestCapture() may come from another thread
   std::int64_t captureWaitFromNs_ = -1;  // first frame seen with a request pending
 };

@@ -151,10 +151,13 @@ std::string SharpnessConfig::validate() const {
 }
 
 SharpnessScorer::SharpnessScorer(const SharpnessConfig& config)
-    : config_(config), history_(static_cast<std::size_t>(std::max(1, config.window))) {}
+    : config_(config),
+      history_(static_cast<std::size_t>(std::max(1, config.window))),
+      fallPerFrame_(std::pow(0.5, 2.0 / std::max(1, config.window))) {}
 
 void SharpnessScorer::reset() {
   history_.clear();
+  applied_ = 0.0;
 }
 
 double SharpnessScorer::score(GrayView gray) {
@@ -169,7 +172,9 @@ double SharpnessScorer::score(GrayView gray) {
 double SharpnessScorer::threshold() const {
   if (config_.mode == BlurMode::Absolute) return config_.absoluteThreshold;
   if (history_.size() < static_cast<std::size_t>(std::max(1, config_.warmup))) return config_.floor;
-  return std::max(config_.floor, config_.ratio * history_.quantile(config_.quantile));
+  const double recent =
+      std::max(config_.floor, config_.ratio * history_.quantile(config_.quantile));
+  return std::max(recent, applied_ * fallPerFrame_);
 }
 
 bool SharpnessScorer::warmingUp() const {
@@ -178,7 +183,9 @@ bool SharpnessScorer::warmingUp() const {
 }
 
 void SharpnessScorer::observe(double s) {
-  history_.push(s);
+  // A frame under the floor can never pass: it says nothing about what sharp looks
+  // like here, and a dark start-up would otherwise end the warm-up.
+  if (s >= config_.floor) history_.push(s);
 }
 
 SharpnessScorer::Result SharpnessScorer::evaluate(GrayView gray) {
@@ -186,6 +193,7 @@ SharpnessScorer::Result SharpnessScorer::evaluate(GrayView gray) {
   r.score = score(gray);
   r.threshold = threshold();
   r.sharp = r.score >= r.threshold;
+  if (config_.mode == BlurMode::Adaptive && !warmingUp()) applied_ = r.threshold;
   observe(r.score);
   return r;
 }

@@ -44,6 +44,7 @@ struct SharpnessConfig {
   int warmup = 5;                    // Adaptive: frames before the statistic is trusted
   int analysisWidth = 0;             // 0: score at full resolution; else downscale first
 
+  bool operator==(const SharpnessConfig&) const = default;
   // Empty when valid; otherwise a one-line description of the bad setting.
   [[nodiscard]] std::string validate() const;
 };
@@ -68,7 +69,8 @@ class SharpnessScorer {
 
   // The threshold the next frame will be judged against.
   [[nodiscard]] double threshold() const;
-  // Adaptive mode, before `warmup` frames were seen: the threshold is only the floor.
+  // Adaptive mode, before `warmup` frames at or above the floor were seen (dark or
+  // blank frames do not end it): the threshold is only the floor.
   [[nodiscard]] bool warmingUp() const;
 
   void reset();
@@ -78,7 +80,14 @@ class SharpnessScorer {
   void observe(double score);
 
   SharpnessConfig config_;
-  RunningQuantile history_;  // recent scores
+  RunningQuantile history_;  // recent scores, those under the floor left out
+  // Adaptive: the threshold the last frame was judged against once warmed up (0
+  // before). The next one is at least this times fallPerFrame_: the threshold falls
+  // by half over half a `window` at most, so that a stretch of blur (vibration, a
+  // long exposure) is not learnt as the new normal within the window, while a plainer
+  // ground still brings it down in seconds.
+  double applied_ = 0.0;
+  double fallPerFrame_ = 1.0;
   DownScaler scaler_;
 };
 

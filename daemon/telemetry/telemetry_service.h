@@ -120,6 +120,8 @@ class TelemetryService {
 
   [[nodiscard]] const TelemetryDecoder& decoder() const { return decoder_; }
   [[nodiscard]] bool isReplay() const { return replay_; }
+  // CLOCK_MONOTONIC when start() opened the link (0 before).
+  [[nodiscard]] std::int64_t startedNs() const { return startNs_; }
   // A replay's packets as recorded, in order (empty for a live link), so that an
   // offline run's flight record can carry them on.
   [[nodiscard]] const std::vector<TimedPacket>& replayPackets() const { return replayPackets_; }

@@ -288,13 +288,25 @@ class FakeAutopilot:
         answer_timesync: bool = True,
         rogue_timesync: bool = False,
         latency_ms: tuple[float, float] | None = None,
+        from_unix_us: float | None = None,
+        wait_for_peer: bool = False,
     ) -> None:
         if speed <= 0.0:
             raise ValueError("speed must be positive")
-        if start_delay_s < 0.0:
+        if start_delay_s < 0.0 and not wait_for_peer:
             raise ValueError("start_delay_s must be >= 0")
         self.tlog = Path(tlog)
         self.records = read_tlog(self.tlog)
+        if from_unix_us is not None:
+            # The replay begins at this tlog time (e.g. a video's first frame).
+            self.records = [r for r in self.records if r.unix_us >= from_unix_us]
+            if not self.records:
+                raise ValueError(f"{tlog} has no record at or after unix {from_unix_us / 1e6}")
+        # The replay starts when the daemon is first heard (udpout: it sends first),
+        # start_delay_s after that: no record is lost to a link not open yet, and the
+        # flight begins as the daemon starts listening for it. A negative delay: the
+        # records of that many seconds are due already then, and go at once.
+        self.wait_for_peer = wait_for_peer
         self.boot_offset_ms = int(boot_offset_ms)
         self.noise = noise
         self.seed = seed
@@ -442,7 +454,8 @@ class FakeAutopilot:
             raise RuntimeError("FakeAutopilot already stopped")
         if self._thread is not None:
             raise RuntimeError("FakeAutopilot already started")
-        self._start_ns = time.monotonic_ns() + int(self.start_delay_s * 1e9)
+        if not self.wait_for_peer:
+            self._start_ns = time.monotonic_ns() + int(self.start_delay_s * 1e9)
         self._thread = threading.Thread(
             target=self._run, name=f"fake-autopilot-{self.port}", daemon=True
         )
@@ -776,6 +789,13 @@ class FakeAutopilot:
                 self._cond.notify_all()
 
     def _loop(self) -> None:
+        if self.wait_for_peer:
+            while self._peer is None and not self._stop.is_set():
+                if select.select([self._sock], [], [], _POLL_S)[0]:
+                    self._drain()
+            self._start_ns = time.monotonic_ns() + int(self.start_delay_s * 1e9)
+        if self._stop.is_set():
+            return
         due = [self.monotonic_ns_for_unix_us(r.unix_us) for r in self._planned]
         nxt = 0
         while not self._stop.is_set():
@@ -837,11 +857,35 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("tlog", type=Path)
-    p.add_argument("--target", required=True, help="HOST:PORT the daemon listens on (udpin)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--target", help="HOST:PORT the daemon listens on (udpin)")
+    where.add_argument(
+        "--listen",
+        type=int,
+        help="UDP port on 127.0.0.1 the daemon sends to (udpout); the replay starts when "
+        "the daemon is first heard",
+    )
     p.add_argument("--start-delay", type=float, default=0.0, help="seconds before the first record")
+    p.add_argument(
+        "--from-unix",
+        type=float,
+        help="the tlog time (unix seconds) to replay when the replay starts (--listen: when "
+        "the daemon is first heard; the second before it is sent at once, as history)",
+    )
+    p.add_argument("--ready-file", type=Path, help="created once the socket is bound")
     args = p.parse_args(argv)
-    host, _, port = args.target.rpartition(":")
-    ap = FakeAutopilot(args.tlog, target=(host, int(port)), start_delay_s=args.start_delay)
+    history_s = 1.0 if args.listen is not None and args.from_unix is not None else 0.0
+    kwargs: dict[str, Any] = {
+        "start_delay_s": args.start_delay - history_s,
+        "from_unix_us": None if args.from_unix is None else (args.from_unix - history_s) * 1e6,
+    }
+    if args.target is not None:
+        host, _, port = args.target.rpartition(":")
+        ap = FakeAutopilot(args.tlog, target=(host, int(port)), **kwargs)
+    else:
+        ap = FakeAutopilot(args.tlog, port=args.listen, wait_for_peer=True, **kwargs)
+    if args.ready_file is not None:
+        args.ready_file.touch()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

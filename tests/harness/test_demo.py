@@ -52,3 +52,10 @@ def test_demo_flies_the_sample_and_shows_where_the_keyframes_went() -> None:
     # the report: the run's numbers and the ground station's
     assert f"{len(rows)} keyframes, {len(rows)} geotagged" in out, out[-2000:]
     assert f"ground station: {len(rows)} keyframes of vehicle demo-nadir" in out, out[-2000:]
+    # Where each keyframe was tagged against where the flight was at its frame: the
+    # autopilot's replay follows the video's first frame (0.00-0.01 m here; a replay
+    # that ran 2 s ahead of the video put every tag 15 m up the track).
+    tagged = re.search(r"geotags of (\d+) keyframes .*: median ([\d.]+) m, max ([\d.]+) m", out)
+    assert tagged, out[-2000:]
+    assert int(tagged[1]) == len(rows)
+    assert float(tagged[3]) < 0.5, tagged[0]

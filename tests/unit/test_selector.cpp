@@ -98,6 +98,100 @@ TEST(Selector, ACameraThatOpensOutOfFocusGetsASharpFirstKeyframeToo) {
   EXPECT_STREQ(toString(Reason::Refocus), "refocus");
 }
 
+TEST(Selector, ADarkStartDoesNotEndTheRefocusWindow) {
+  // Black frames first (score 0: under the floor, no say in the statistic), then
+  // the camera opens out of focus, then focuses: the in-focus view still replaces
+  // the first keyframe as the reference.
+  const cv::Mat strip = test::photoStrip();
+  SelectorConfig cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  cv::RNG rng(5);
+  std::vector<Decision> ds;
+  for (int i = 0; i < 50; ++i) {
+    cv::Mat v = test::viewAt(strip, 100.0);
+    if (i < 8) v.setTo(0);
+    if (i >= 8 && i < 20) cv::GaussianBlur(v, v, cv::Size(), 1.5);
+    if (i >= 8) {
+      cv::Mat noise(v.size(), CV_8UC1);
+      rng.fill(noise, cv::RNG::NORMAL, 0, 2.0);
+      cv::add(v, noise, v);
+    }
+    ds.push_back(sel.process(Frame::ofGray(v, i, i * 33'333'333LL)));
+  }
+  std::vector<int> kept;
+  for (const Decision& d : ds)
+    if (d.kept) kept.push_back(static_cast<int>(d.index));
+  ASSERT_EQ(kept.size(), 2U);
+  EXPECT_EQ(kept[0], 8);
+  EXPECT_EQ(kept[1], 20);
+  EXPECT_EQ(ds[20].reason, Reason::Refocus) << toString(ds[20].reason);
+}
+
+TEST(Selector, ANewTargetGoesOnFromTheLastKeyframeWithTheBlurStatisticItHad) {
+  // A reload that changes only the target: the chain and the blur statistic carry
+  // on, so a blurred frame right after it is rejected (a fresh statistic would judge
+  // it against the floor alone and start a new chain with it), and the next keyframe
+  // is at the new target from the last one. A new overlap mode starts a new chain.
+  const cv::Mat strip = test::photoStrip();
+  SelectorConfig cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  cv::RNG rng(3);
+  const auto view = [&](int i, double sigma) {
+    cv::Mat v = test::viewAt(strip, 100.0 + 8.0 * i);
+    if (sigma > 0) cv::GaussianBlur(v, v, cv::Size(), sigma);
+    cv::Mat noise(v.size(), CV_8UC1);
+    rng.fill(noise, cv::RNG::NORMAL, 0, 1.5);
+    cv::add(v, noise, v);
+    return Frame::ofGray(v, i, i * 33'333'333LL);
+  };
+  int i = 0;
+  std::int64_t last = -1;
+  for (; i < 40; ++i) {
+    const Decision d = sel.process(view(i, 0.0));
+    if (d.kept) last = d.index;
+  }
+  SelectorConfig tighter = cfg;
+  tighter.target = 0.8;
+  tighter.bandHigh = 0.9;
+  EXPECT_FALSE(sel.reconfigureRestartsChain(tighter));
+  sel.reconfigure(tighter);
+  for (; i < 45; ++i) {
+    const Decision d = sel.process(view(i, 3.0));
+    EXPECT_FALSE(d.kept) << i << " " << toString(d.reason) << " score " << d.sharpness
+                         << " threshold " << d.threshold;
+    EXPECT_EQ(d.reason, Reason::Blurry) << i;
+  }
+  Decision next;
+  for (; i < 80 && !next.kept; ++i) next = sel.process(view(i, 0.0));
+  ASSERT_TRUE(next.kept);
+  EXPECT_EQ(next.reason, Reason::OverlapTarget) << toString(next.reason);
+  // 0.8 of 480 px at 8 px a frame: 12 frames on from the last keyframe, not 18.
+  EXPECT_LE(next.index - last, 13) << last << " -> " << next.index;
+  SelectorConfig paper = tighter;
+  paper.overlap.mode = OverlapMode::Paper;
+  EXPECT_TRUE(sel.reconfigureRestartsChain(paper));
+}
+
+TEST(Selector, ASpeedUpTheMotionGateHasNotLearntKeepsKeyframesInTheBand) {
+  // 2 px a frame for 5 s, then 14: for a while every frame counts as too fast for
+  // the old reference, although each measures sharp. Those are fallen back on at
+  // the band's low edge, as sharp frames are, not only at the minimum overlap.
+  std::vector<double> xs = linear(150, 100, 2.0);
+  for (int k = 0; k < 110; ++k) xs.push_back(xs.back() + 14.0);
+  const PanRun r = pan(xs);
+  int fast = 0;
+  for (const Decision& d : r.decisions) fast += d.fastMotion ? 1 : 0;
+  EXPECT_GT(fast, 20);  // the gate does flag them (the case under test)
+  ASSERT_GE(r.keyframes.size(), 6U);
+  for (std::size_t k = 1; k < r.keyframes.size(); ++k) {
+    const double dx = xs[static_cast<std::size_t>(r.keyframes[k])] -
+                      xs[static_cast<std::size_t>(r.keyframes[k - 1])];
+    EXPECT_GE(1.0 - dx / 480.0, 0.58) << r.keyframes[k - 1] << " -> " << r.keyframes[k];
+  }
+}
+
 TEST(Selector, ACameraSharpFromTheStartIsNeverRefocused) {
   const PanRun r = pan(linear(120, 100, 8.0));
   for (const Decision& d : r.decisions) EXPECT_NE(d.reason, Reason::Refocus) << d.index;

@@ -133,6 +133,58 @@ TEST(Sharpness, AdaptiveThresholdFollowsTheSourceAndRejectsBlurredFrames) {
   }
 }
 
+TEST(Sharpness, AStretchOfBlurIsNotLearntButAPlainerGroundIs) {
+  // The statistic follows what it sees, blurred frames too: a long stretch of blur
+  // would become the new normal. The threshold falls by half over half a window at
+  // most, so blur a third as sharp stays rejected for the window and more; a ground
+  // with half the contrast (a quarter of the score, every frame sharp) is taken
+  // again within two windows.
+  const cv::Mat g = test::photo("aero1.jpg");
+  cv::Mat small;
+  cv::resize(g, small, cv::Size(480, 270), 0, 0, cv::INTER_AREA);
+  cv::Mat blurred, plain;
+  cv::GaussianBlur(small, blurred, cv::Size(), 1.5);
+  small.convertTo(plain, -1, 0.5, 64);
+  const SharpnessConfig cfg;
+  for (const bool blur : {true, false}) {
+    SCOPED_TRACE(blur ? "blur" : "plainer ground");
+    SharpnessScorer s{cfg};
+    cv::RNG rng(7);
+    const auto frame = [&rng](const cv::Mat& base) {
+      cv::Mat n(base.size(), CV_8UC1), f;
+      rng.fill(n, cv::RNG::NORMAL, 0, 1.0);
+      cv::add(base, n, f);
+      return f;
+    };
+    double sharpScore = 0;
+    for (int i = 0; i < cfg.window; ++i) sharpScore = s.evaluate(GrayView::of(frame(small))).score;
+    int firstTaken = -1;
+    for (int i = 0; i < 3 * cfg.window && firstTaken < 0; ++i) {
+      const auto r = s.evaluate(GrayView::of(frame(blur ? blurred : plain)));
+      if (i == 0) {
+        EXPECT_FALSE(r.sharp);
+        EXPECT_LT(r.score, (blur ? 0.35 : 0.3) * sharpScore) << r.score << " vs " << sharpScore;
+      }
+      if (r.sharp) firstTaken = i;
+    }
+    if (blur) {
+      EXPECT_TRUE(firstTaken < 0 || firstTaken > cfg.window) << firstTaken;
+    } else {
+      EXPECT_GE(firstTaken, 0);
+      EXPECT_LE(firstTaken, 2 * cfg.window);
+    }
+  }
+}
+
+TEST(Sharpness, FramesUnderTheFloorNeitherEndTheWarmUpNorLowerTheStatistic) {
+  // A dark start (auto-exposure settling, a lens cap): black frames score 0.
+  SharpnessScorer s{SharpnessConfig{}};
+  const cv::Mat black = cv::Mat::zeros(270, 480, CV_8UC1);
+  for (int i = 0; i < 20; ++i) EXPECT_FALSE(s.evaluate(GrayView::of(black)).sharp);
+  EXPECT_TRUE(s.warmingUp());
+  EXPECT_EQ(s.threshold(), SharpnessConfig{}.floor);
+}
+
 TEST(Sharpness, OneAdaptiveSettingWorksAcrossResolutions) {
   // The same scene at 1/4, 1/2 and full size: the Laplacian's variance changes
   // several-fold with the scale, so no absolute threshold fits all three; the

@@ -5,7 +5,8 @@
 FLIGHT_DIR is what ``keyframed.synth`` wrote; OUT_DIR is what ``keyframed select``
 wrote (``decisions.csv`` or ``decisions.jsonl``). Reports the ground-truth
 overlap between consecutive keyframes, the share inside the band, kept frames
-labelled blurry, and keyframes added while hovering.
+labelled blurry, keyframes added while hovering, and, where the keyframe index
+(``keyframes.csv``) holds geotags, how far each is from where the flight was.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,6 +33,9 @@ class Evaluation:
     blurry_kept_fraction: float = 0.0
     hover_keyframes: int = 0  # redundant keyframes in a hover (see evaluate())
     band: tuple[float, float] = (0.60, 0.85)
+    # Horizontal distance (m) of each geotagged keyframe's position from the flight's
+    # at that frame, in keyframes.csv order.
+    geotag_errors_m: list[float] = field(default_factory=list)
 
 
 def read_decisions(out_dir: Path) -> list[dict[str, str]]:
@@ -67,6 +72,33 @@ def kept_frames(out_dir: Path) -> list[int]:
     return sorted(keys)
 
 
+def geotag_errors(flight_dir: Path, out_dir: Path) -> list[float]:
+    """Horizontal error (m) of each geotagged row of the keyframe index against the
+    ground truth's position at its frame (local flat earth: metres at this scale)."""
+    index = next(
+        (
+            p
+            for p in (out_dir / "keyframes.csv", out_dir / "keyframes" / "keyframes.csv")
+            if p.exists()
+        ),
+        None,
+    )
+    if index is None:
+        return []
+    with (flight_dir / "groundtruth.csv").open(newline="") as f:
+        truth = {int(r["index"]): (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(f)}
+    errors = []
+    with index.open(newline="") as f:
+        for row in csv.DictReader(f):
+            if not row.get("lat") or not row.get("lon") or int(row["index"]) not in truth:
+                continue
+            lat, lon = truth[int(row["index"])]
+            north = math.radians(float(row["lat"]) - lat) * 6_371_000.0
+            east = math.radians(float(row["lon"]) - lon) * 6_371_000.0 * math.cos(math.radians(lat))
+            errors.append(math.hypot(north, east))
+    return errors
+
+
 def evaluate(
     flight_dir: Path, out_dir: Path, band: tuple[float, float] = (0.60, 0.85)
 ) -> Evaluation:
@@ -90,6 +122,7 @@ def evaluate(
         same_hover = all(hover[i] for i in range(prev, k + 1))
         if same_hover or flight.overlap(prev, k) > band[1]:
             ev.hover_keyframes += 1
+    ev.geotag_errors_m = geotag_errors(flight_dir, out_dir)
     return ev
 
 
@@ -118,6 +151,12 @@ def main(argv: list[str] | None = None) -> int:
         f"blurry kept {ev.blurry_kept} ({100 * ev.blurry_kept_fraction:.1f}%); "
         f"extra keyframes while hovering {ev.hover_keyframes}"
     )
+    if ev.geotag_errors_m:
+        errs = sorted(ev.geotag_errors_m)
+        print(
+            f"geotags of {len(errs)} keyframes against the flight's positions: "
+            f"median {errs[len(errs) // 2]:.2f} m, max {errs[-1]:.2f} m"
+        )
     return 0
 
 
