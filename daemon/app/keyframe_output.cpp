@@ -113,13 +113,15 @@ bool KeyframeOutput::handle(const KeyframeEvent& ev, std::string& error) {
     return ok;
   }
   const Decision& d = ev.decision;
-  if (outputs_.active()) outputs_.decision(d, DecisionLog::jsonRow(d));
+  if (outputs_.active()) outputs_.decision(d);
   if (ev.promoted) {
     write(ev.promoted->frame);
     log_.setGeotag(ev.promoted->frame.index, note);
   }
   note.clear();
   if (d.kept && ev.keyframe) write(ev.keyframe->frame);
+  // The record's row as the decisions file's: a kept frame's with its geotag note.
+  if (outputs_.active()) outputs_.recordDecision(d, DecisionLog::jsonRow(d, note));
   std::string e;
   if (!log_.add(d, e, note)) failed(e);
   return ok;

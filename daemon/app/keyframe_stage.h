@@ -47,6 +47,9 @@ class KeyframeStage {
   // the pending candidate is kept first, as at the end of a stream, so changing
   // settings never opens a coverage gap; otherwise the chain goes on.
   void reconfigure(const SelectorConfig& config);
+  [[nodiscard]] bool restartsChain(const SelectorConfig& config) const {
+    return selector_.reconfigureRestartsChain(config);
+  }
   // A capture asked for (MAVLink): see KeyframeSelector::requestCapture().
   bool requestCapture() { return selector_.requestCapture(); }
   [[nodiscard]] int pendingCaptures() const { return selector_.pendingCaptures(); }

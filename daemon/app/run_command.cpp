@@ -425,8 +425,12 @@ void Daemon::analyse() {
       settings.swap(pendingSelection_);
     }
     if (settings) {
+      const bool restart = stage_->restartsChain(*settings);
       stage_->reconfigure(*settings);
-      KF_LOG(Select, Notice) << "selection settings reloaded";
+      KF_LOG(Select, Notice) << "selection settings reloaded after frame "
+                             << stage_->counts().framesRead - 1
+                             << (restart ? ": a new overlap chain starts at the next sharp frame"
+                                         : ": the overlap chain goes on");
     }
     if (stopAnalysis_.load()) break;
     if (const int refused = captureRequests_.drainInto(*stage_); refused > 0) {

@@ -69,6 +69,17 @@ std::vector<std::filesystem::path> earlierRunFiles(const std::string& dir) {
   return files;
 }
 
+// Pictures in `dir` named as keyframes are.
+std::size_t numberedPictures(const std::string& dir) {
+  std::error_code ec;
+  std::size_t n = 0;
+  for (std::filesystem::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    std::error_code typeEc;
+    if (it->is_regular_file(typeEc) && isKeyframeName(it->path().filename().string())) ++n;
+  }
+  return n;
+}
+
 // Whether two paths name one file: the same inode where both exist (a link, another
 // spelling), else the same absolute path.
 bool samePath(const std::string& a, const std::string& b) {
@@ -103,6 +114,11 @@ std::string mcapClashes(const SelectOptions& opts) {
       return "--mcap " + opts.mcap + " is " + what + " (" + path +
              "): the record would overwrite it; give another file";
   }
+  const std::filesystem::path mcap(opts.mcap);
+  if (isKeyframeName(mcap.filename().string()) &&
+      samePath(mcap.parent_path().empty() ? "." : mcap.parent_path().string(), opts.outDir))
+    return "--mcap " + opts.mcap + " has a keyframe's name in --out: a keyframe would " +
+           "overwrite the record; give another file";
   return {};
 }
 
@@ -242,9 +258,18 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.error = std::move(clash);
     return s;
   }
-  // Said before any work: an earlier run's keyframes would mix with this run's.
+  // Said before any work: an earlier run's keyframes would mix with this run's, and
+  // so would someone else's numbered pictures (one a keyframe's name would replace).
   if (const auto earlier = earlierRunFiles(opts.outDir); !earlier.empty() && !opts.overwrite) {
     s.error = earlierRunRefused(opts.outDir, earlier.size());
+    return s;
+  }
+  if (const std::size_t pictures = numberedPictures(opts.outDir); pictures > 0 && !opts.overwrite) {
+    s.error = opts.outDir + " holds " + std::to_string(pictures) +
+              " picture(s) named as keyframes are (six digits, .jpg) but no run's record: "
+              "they would mix with this run's keyframes, or be replaced by one; choose another "
+              "--out, or --overwrite to run there anyway (they stay unless a keyframe takes "
+              "the name)";
     return s;
   }
   // A video file, or a flight record (MCAP from `keyframed run`) to replay.

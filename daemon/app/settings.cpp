@@ -112,6 +112,11 @@ bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
       tm.tm_sec < 0 || tm.tm_sec > 60) {
     return false;
   }
+  // A day the month has (timegm would roll 2026-02-30 over into March).
+  const int y = tm.tm_year;
+  const bool leap = (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
+  constexpr int kDays[] = {31, 28, 31, 30, 31, 30, 31, 31, 30, 31, 30, 31};
+  if (tm.tm_mday > kDays[tm.tm_mon - 1] + (tm.tm_mon == 2 && leap ? 1 : 0)) return false;
   std::string rest = text.substr(static_cast<std::size_t>(consumed));
   std::int64_t fracNs = 0;
   if (!rest.empty() && rest[0] == '.') {

@@ -309,7 +309,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
   return true;
 }
 
-void FlightOutputs::decision(const Decision& d, const std::string& decisionJson) {
+void FlightOutputs::decision(const Decision& d) {
   if (!impl_->options.liveClock) impl_->frameNs.store(d.timestampNs);
   if (active()) {
     auto& scores = impl_->scores;
@@ -321,6 +321,9 @@ void FlightOutputs::decision(const Decision& d, const std::string& decisionJson)
       scores.erase(oldest);
     }
   }
+}
+
+void FlightOutputs::recordDecision(const Decision& d, const std::string& decisionJson) {
   if (impl_->recorder)
     impl_->recorder->recordText(McapTopic::Decision, d.timestampNs, decisionJson);
 }
@@ -606,7 +609,8 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
   }
   return true;
 }
-void FlightOutputs::decision(const Decision&, const std::string&) {}
+void FlightOutputs::decision(const Decision&) {}
+void FlightOutputs::recordDecision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
 void FlightOutputs::preview(std::int64_t, std::span<const std::uint8_t>, const char*) {}
 bool FlightOutputs::previewStillDue() const {

@@ -69,8 +69,11 @@ class FlightOutputs {
   // An MCAP file is being written (false once a write error, a full disk, stopped it).
   [[nodiscard]] bool recording() const;
 
-  // Every analysed frame; decisionJson as DecisionLog::jsonRow writes it.
-  void decision(const Decision& d, const std::string& decisionJson);
+  // Every analysed frame, before its keyframe (the scores a keyframe is published
+  // with); then its row, decisionJson as DecisionLog::jsonRow writes it, for the
+  // record, once the keyframe's geotag note is known.
+  void decision(const Decision& d);
+  void recordDecision(const Decision& d, const std::string& decisionJson);
   // Every keyframe written, with its tagged JPEG bytes.
   void keyframe(const KeyframeRecord& record, std::span<const std::uint8_t> jpeg);
   // A raw MAVLink packet as received (thread-safe; the telemetry thread calls it).

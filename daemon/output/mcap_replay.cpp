@@ -339,8 +339,9 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
   }
   if (impl.frames == 0) {
     error = path +
-            ": no preview stream (/camera/preview or /camera/video) to replay: record with "
-            "output.preview_width > 0";
+            ": no preview stream (/camera/preview or /camera/video) to replay: a record "
+            "of `keyframed run` with output.preview_width > 0 has one (`select --mcap` "
+            "records no stream)";
     return nullptr;
   }
   cv::Mat first;
@@ -399,8 +400,11 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       // The live run's index for this frame (the frames it dropped leave the same
       // gaps); for a frame whose decision is not in the record (the live queue full),
       // the one after the frame before's: indices never go back or repeat.
+      // (A record whose frames share a time, edited or from a camera that stamps
+      // badly, would map each to the first one's index: two keyframes, one name.)
       const auto live = impl.indexAt.find(t);
-      return live != impl.indexAt.end() ? live->second : std::max(index_, lastIndex_ + 1);
+      const std::int64_t next = std::max(index_, lastIndex_ + 1);
+      return live != impl.indexAt.end() && live->second >= next ? live->second : next;
     }();
     if (impl.video) {
       if (!impl.started && !h264HasIdr(*field)) continue;  // as the first pass did

@@ -18,8 +18,13 @@ TelemetryDecoder::TelemetryDecoder(TelemetryConfig config)
       component_(config.autopilotComponent) {}
 
 bool plausiblePosition(const mavlink_global_position_int_t& p) {
+  // Altitudes from the Dead Sea's shore to a stratospheric balloon's (-1 km .. 50 km
+  // above the sea, and as far from home): past them a field is garbage or unset
+  // (INT32_MAX), not a place to tag.
+  const auto altitude = [](std::int32_t mm) { return mm >= -1'000'000 && mm <= 50'000'000; };
   return !(p.lat == 0 && p.lon == 0) && p.lat >= -900'000'000 && p.lat <= 900'000'000 &&
-         p.lon >= -1'800'000'000 && p.lon <= 1'800'000'000;
+         p.lon >= -1'800'000'000 && p.lon <= 1'800'000'000 && altitude(p.alt) &&
+         p.relative_alt >= -51'000'000 && p.relative_alt <= 51'000'000;
 }
 
 namespace {

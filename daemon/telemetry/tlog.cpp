@@ -1,5 +1,7 @@
 #include "telemetry/tlog.h"
 
+#include <sys/stat.h>
+
 #include <cstdlib>
 
 namespace keyframed {
@@ -17,6 +19,13 @@ TlogReader::~TlogReader() {
 }
 
 bool TlogReader::open(const std::string& path, std::string& error) {
+  // A FIFO's open would wait for a writer (and no signal ends that wait), a
+  // directory reads as "too short": a recorded log is a file.
+  struct stat st {};
+  if (::stat(path.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
+    error = "telemetry log " + path + " is not a regular file";
+    return false;
+  }
   std::FILE* file = std::fopen(path.c_str(), "rb");
   if (file == nullptr) {
     error = "cannot open telemetry log " + path;

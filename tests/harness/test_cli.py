@@ -95,13 +95,22 @@ def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, 
     assert len(kept) == summary["kept"]
     assert (out / "notes.txt").read_text() == "the pilot's notes\n"
     assert (out / "0042.jpg").is_file()  # not a keyframe's name (six digits or more)
-    # numbered pictures without a run's record are someone else's: not refused
+    # numbered pictures without a run's record are someone else's: they would mix
+    # with the keyframes (or one be replaced): refused, and with --overwrite left be
     photos = tmp_path / "photos"
     photos.mkdir()
     (photos / "100001.jpg").write_bytes(b"a camera's picture")
     p = run(any_bin, "select", pan_video, "--out", photos, "--max-frames", "10")
+    assert_clean_failure(p, "picture(s) named as keyframes are")
+    assert sorted(f.name for f in photos.iterdir()) == ["100001.jpg"]
+    p = run(any_bin, "select", pan_video, "--out", photos, "--max-frames", "10", "--overwrite")
     assert p.returncode == 0, p.stderr
     assert (photos / "100001.jpg").read_bytes() == b"a camera's picture"
+    # nor can the record be given a keyframe's name in --out (a keyframe would replace it)
+    p = run(
+        any_bin, "select", pan_video, "--out", tmp_path / "o3", "--mcap", tmp_path / "o3/000000.jpg"
+    )
+    assert_clean_failure(p, "has a keyframe's name in --out")
 
 
 def test_a_fifo_no_one_writes_to_ends_on_ctrl_c(any_bin: Path, tmp_path):

@@ -770,9 +770,14 @@ def test_bad_command_lines(tmp_path: Path) -> None:
 
     r = run("--out", str(tmp_path), "--zenoh-config", str(tmp_path / "nope.json5"))
     assert r.returncode == 2 and "no such file" in r.stderr
-    for name in ("a/b", ".."):
+    # the daemon's rule for zenoh.vehicle; '*' and '?' would be Zenoh wildcards
+    for name in ("a/b", "..", "a*b", "uav?x", "a b", "x" * 65):
         r = run("--out", str(tmp_path), "--vehicle", name)
-        assert r.returncode == 2 and "bad vehicle" in r.stderr
+        assert r.returncode == 2 and "bad vehicle" in r.stderr, (name, r.stderr)
+        assert "Traceback" not in r.stderr
+    for flag, value in (("--duration", "nan"), ("--duration", "-5"), ("--until-idle", "-1")):
+        r = run("--out", str(tmp_path), flag, value)
+        assert r.returncode == 2 and f"{flag} must be" in r.stderr, (flag, value, r.stderr)
     r = run("--out", str(tmp_path), "--earlier-flights", "-1")
     assert r.returncode == 2 and "--earlier-flights" in r.stderr
     bad = tmp_path / "bad.json5"

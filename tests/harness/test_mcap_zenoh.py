@@ -123,6 +123,10 @@ def test_mcap_record_is_valid_and_complete(kf_bin: Path, short_nadir: Path, tmp_
     # Every analysed frame has its decision.
     dec = [json.loads(m.data) for m in by_topic(msgs, "/keyframed/decision")]
     assert sorted(x["index"] for x in dec) == list(range(summary["frames_read"]))
+    # a kept frame's row says how it was tagged, as decisions.csv does
+    kept_rows = {int(r["index"]): r for r in csv.DictReader((out / "decisions.csv").open())}
+    kept = [x for x in dec if x["kept"]]
+    assert kept and all(x["geotag"] == kept_rows[x["index"]]["geotag"] for x in kept), kept
 
     # Poses and calibration, also with Foxglove's schemas.
     fixes = [LocationFix.FromString(m.data) for m in by_topic(msgs, "/keyframed/location")]

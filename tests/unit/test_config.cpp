@@ -593,11 +593,15 @@ TEST(ParseUtcTime, IsoAndUnixSecondsWithinTheRangeAnInt64OfNanosecondsHolds) {
   EXPECT_EQ(ns, 1'796'253'300'500'000'000);
   ASSERT_TRUE(parseUtcTime("2099-12-31T23:59:59Z", ns));
   // A typo'd year past 2262 overflowed the nanoseconds; before 1970 is no video's.
-  for (const char* bad : {"2300-01-01T00:00:00Z", "9999-12-31T23:59:59Z", "1969-12-31T23:59:59Z",
-                          "2026-12-02T-1:15:00Z", "2026-12-02T23:-5:00Z", "2026-13-02T23:15:00Z",
-                          "2026-12-02T23:15:00+01:00", "2026-12-02", "-5", "5e9"}) {
+  for (const char* bad :
+       {"2300-01-01T00:00:00Z", "9999-12-31T23:59:59Z", "1969-12-31T23:59:59Z",
+        "2026-12-02T-1:15:00Z", "2026-12-02T23:-5:00Z", "2026-13-02T23:15:00Z",
+        "2026-12-02T23:15:00+01:00", "2026-12-02", "-5", "5e9", "2026-02-30T00:00:00Z",
+        "2026-02-29T00:00:00Z", "2100-02-29T00:00:00Z", "2026-04-31T00:00:00Z"}) {
     EXPECT_FALSE(parseUtcTime(bad, ns)) << bad;
   }
+  EXPECT_TRUE(parseUtcTime("2028-02-29T12:00:00Z", ns));  // a leap day
+  EXPECT_TRUE(parseUtcTime("2000-02-29T12:00:00Z", ns));
 }
 
 }  // namespace

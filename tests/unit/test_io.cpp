@@ -1064,8 +1064,9 @@ void recordFrame(FlightOutputs& outputs, std::int64_t index, std::int64_t t,
   Decision d;
   d.index = index;
   d.timestampNs = t;
-  outputs.decision(d, "{\"index\":" + std::to_string(index) +
-                          ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
+  outputs.decision(d);
+  outputs.recordDecision(d, "{\"index\":" + std::to_string(index) +
+                                ",\"timestamp_ns\":" + std::to_string(t) + ",\"kept\":false}");
   outputs.preview(t, picture, format);
 }
 
@@ -1259,7 +1260,8 @@ TEST(FlightOutputs, LiveRecordIsInUnixTimeWithTheLogInIt) {
   Decision d;
   d.index = 0;
   d.timestampNs = mono;
-  outputs.decision(d, "{}");
+  outputs.decision(d);
+  outputs.recordDecision(d, "{}");
   outputs.log(4, "test", "something to warn about");
   ASSERT_TRUE(outputs.close("done", error)) << error;
   const std::int64_t after = unixNowNs();

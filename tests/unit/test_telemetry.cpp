@@ -284,6 +284,14 @@ TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   // A lone 0 on one axis is a real place (the equator, the prime meridian).
   push(position(ap, 1100, 0.0, 20.0, 50.0));
   EXPECT_EQ(dec.stats().badPositions, 6U);
+  // An altitude no aircraft flies at (an unset field: INT32_MAX mm) is no place either;
+  // the Dead Sea's shore and a balloon's 40 km are.
+  push(position(ap, 1200, 10.0, 20.0, 2147483.647));
+  push(position(ap, 1300, 10.0, 20.0, -2000.0));
+  EXPECT_EQ(dec.stats().badPositions, 8U);
+  push(position(ap, 1400, 10.0, 20.0, -430.0));
+  push(position(ap, 1500, 10.0, 20.0, 40000.0));
+  EXPECT_EQ(dec.stats().badPositions, 8U);
 }
 
 // The camera starts on hasPose(): the clock estimate must have settled too, or the

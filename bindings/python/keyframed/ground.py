@@ -1486,9 +1486,22 @@ def main(argv: list[str] | None = None) -> int:
     if not args.earlier_flights >= 0:
         print("keyframed-ground: --earlier-flights must be 0 or more seconds", file=sys.stderr)
         return 2
-    if "/" in args.vehicle or args.vehicle in ("", ".", ".."):
-        print(f"keyframed-ground: bad vehicle name {args.vehicle!r}", file=sys.stderr)
+    # As the daemon takes them (zenoh.vehicle): a key chunk, a folder name.
+    if args.vehicle != "*" and (
+        not re.fullmatch(r"[A-Za-z0-9._-]{1,64}", args.vehicle) or args.vehicle in (".", "..")
+    ):
+        print(
+            f"keyframed-ground: bad vehicle name {args.vehicle!r} (letters, digits, '-', '_' "
+            "and '.', at most 64; or * for all)",
+            file=sys.stderr,
+        )
         return 2
+    for name in ("duration", "until_idle"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            flag = "--" + name.replace("_", "-")
+            print(f"keyframed-ground: {flag} must be a number of seconds > 0", file=sys.stderr)
+            return 2
     try:
         args.out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
