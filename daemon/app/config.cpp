@@ -318,14 +318,11 @@ bool isFileKey(std::string_view name) {
   return name == "tagging.calibration" || name == "zenoh.config" || name == "output.state_dir";
 }
 
-// A chunk of the key expression keyframed/<vehicle>/...
+// A chunk of the key expression keyframed/<vehicle>/... ("": the host's name).
 std::string checkVehicle(const std::string& s) {
-  const bool ok = s.size() <= 64 && std::all_of(s.begin(), s.end(), [](char ch) {
-                    return (ch >= 'a' && ch <= 'z') || (ch >= 'A' && ch <= 'Z') ||
-                           (ch >= '0' && ch <= '9') || ch == '-' || ch == '_' || ch == '.';
-                  });
-  return ok ? ""
-            : "may hold only letters, digits, '-', '_' and '.', at most 64 (got " + quote(s) + ")";
+  if (s.empty()) return {};
+  const std::string e = vehicleNameError(s);
+  return e.empty() ? e : e + " (got " + quote(s) + ")";
 }
 
 Field autopilot() {

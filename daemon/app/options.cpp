@@ -214,6 +214,12 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     o.telemetrySets.push_back(v);
     return {};
   };
+  auto vehicleName = [&o](const std::string& v) -> std::string {
+    if (std::string e = vehicleNameError(v); !e.empty())
+      return "vehicle name " + e + " (got '" + v + "')";
+    o.vehicle = v;
+    return {};
+  };
   // Settings whose defaults give way to a smaller explicit setting they depend on.
   bool minTracksSet = false;
   bool warmupSet = false;
@@ -393,15 +399,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
                                        o.zenohConfig = v;
                                        return {};
                                      }},
-      {"--vehicle",
-       [&](const std::string& v)
-           -> std::
-               string {
-                 if (v.empty() || v.find_first_of("/*$?# ") != std::string::npos)
-                   return "vehicle name must be one key chunk (no / * $ ? # or spaces)";
-                 o.vehicle = v;
-                 return {};
-               }},
+      {"--vehicle", vehicleName},
   };
 
   for (std::size_t i = 0; i < args.size(); ++i) {

@@ -11,6 +11,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cctype>
 #include <cerrno>
 #include <chrono>
 #include <cmath>
@@ -646,7 +647,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
         "\"geotagged\": %lld, \"clock\": \"%s\", "
         "\"clock_offset_ms\": %s, \"clock_uncertainty_ms\": %s, \"messages\": %llu, "
         "\"rejected_frames\": %llu, "
-        "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"captures_sent\": %llu, "
+        "\"unknown_ids\": %llu, \"skipped_bytes\": %llu, \"other_sources\": %llu, "
+        "\"captures_sent\": %llu, "
         "\"captures_pending\": %llu, "
         "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
         "\"captures_requested\": %llu, \"captures_refused\": %llu, "
@@ -659,6 +661,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
         static_cast<unsigned long long>(ts.parser.rejected),
         static_cast<unsigned long long>(ts.parser.unknownIds),
         static_cast<unsigned long long>(ts.parser.skippedBytes),
+        static_cast<unsigned long long>(ts.decoder.otherSources),
         static_cast<unsigned long long>(ts.capturesSent),
         static_cast<unsigned long long>(ts.capturesPending),
         static_cast<unsigned long long>(ts.capturesDropped),
@@ -893,6 +896,10 @@ int Daemon::run() {
     KF_LOG(Capture, Error) << info.description << ": " << small << " (selection.analysis_width)";
     return 1;
   }
+  if (const std::string large = tooLargeToAnalyse(info.width, info.height); !large.empty()) {
+    KF_LOG(Capture, Error) << info.description << ": " << large;
+    return 1;
+  }
   KF_LOG(Capture, Notice) << "capturing from " << info.description << " (" << info.width << "x"
                           << info.height << " @ " << info.fps << " fps)";
   preview_ = std::make_unique<PreviewEncoder>(static_cast<int>(config_.output.previewWidth),
@@ -1008,7 +1015,14 @@ int Daemon::run() {
   if (fo.vehicle.empty()) {
     char host[256] = {};
     gethostname(host, sizeof host - 1);
-    fo.vehicle = host[0] != '\0' ? host : "uav";
+    // A host name is letters, digits and '-' (and '.' between labels), 63 at most: a
+    // vehicle's name as it is; anything else (an odd hostname) becomes '_'.
+    std::string name(host);
+    for (char& ch : name) {
+      if (!(std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '.')) ch = '_';
+    }
+    if (name.size() > 64) name.resize(64);
+    fo.vehicle = vehicleNameError(name).empty() ? name : "uav";
   }
   fo.keyframeDir = wc.dir;
   // The ground station tells this run's keyframes (sequence numbers from 0 again)

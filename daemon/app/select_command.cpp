@@ -442,6 +442,11 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     s.error = opts.video + ": " + small + ", --analysis-width";
     return s;
   }
+  if (const std::string large = tooLargeToAnalyse(source->info().width, source->info().height);
+      !large.empty()) {
+    s.error = opts.video + ": " + large;
+    return s;
+  }
   std::error_code ec;
   if (opts.overwrite && !removeEarlierRun(opts.outDir, s.error)) return s;
   std::filesystem::create_directories(opts.outDir, ec);
@@ -742,6 +747,15 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                   formatUtcIso(tlogFirst) + " to " + formatUtcIso(tlogLast) +
                   "): check --video-start (UTC; a time without a zone is taken as UTC), or "
                   "use --video-start auto";
+      } else if (telemetry->decoder().autopilotSinceNs() == INT64_MAX &&
+                 s.telemetry.otherSources > 0) {
+        // Messages, but no HEARTBEAT that says which sender flies: none was followed.
+        std::fprintf(stderr,
+                     "keyframed select: warning: none of the %lld keyframes was geotagged: "
+                     "the tlog names no autopilot (no HEARTBEAT of one), so its %llu messages "
+                     "were not taken as the vehicle's; give --autopilot SYS[:COMP]\n",
+                     static_cast<long long>(s.kept),
+                     static_cast<unsigned long long>(s.telemetry.otherSources));
       } else {
         std::fprintf(stderr,
                      "keyframed select: warning: none of the %lld keyframes was geotagged; why: "

@@ -138,6 +138,23 @@ bool parseUtcTime(const std::string& text, std::int64_t& unixNs) {
   return true;
 }
 
+std::string tooLargeToAnalyse(int w, int h) {
+  constexpr long kMaxSide = 16384;
+  constexpr long kMaxPixels = 64L * 1024 * 1024;
+  if (w <= kMaxSide && h <= kMaxSide && static_cast<long>(w) * h <= kMaxPixels) return {};
+  return "frames of " + std::to_string(w) + "x" + std::to_string(h) +
+         " are too large to analyse (at most 16384 pixels a side and 64 megapixels)";
+}
+
+std::string vehicleNameError(const std::string& s) {
+  const bool ok = !s.empty() && s.size() <= 64 && s != "." && s != ".." &&
+                  std::all_of(s.begin(), s.end(), [](char ch) {
+                    return (ch >= 'a' && ch <= 'z') || (ch >= 'A' && ch <= 'Z') ||
+                           (ch >= '0' && ch <= '9') || ch == '-' || ch == '_' || ch == '.';
+                  });
+  return ok ? "" : "may hold only letters, digits, '-', '_' and '.', 1 to 64 of them";
+}
+
 std::string tooSmallToAnalyse(int w, int h, int analysisWidth) {
   constexpr int kMinSide = 32;
   const int aw = analysisWidth > 0 ? std::min(analysisWidth, w) : w;

@@ -89,5 +89,12 @@ bool parseUtcTime(const std::string& text, std::int64_t& unixNs);
 // why not: the smallest analysis image is 32 pixels each way (ORB's pyramid and the
 // corner tracker need room; a 4000x8 strip scaled to 640 wide is one row).
 std::string tooSmallToAnalyse(int w, int h, int analysisWidth);
+// ... and too large: at most 16384 pixels a side (as camera.width/height) and 64
+// megapixels (8K UHD is 33): a frame is held three times over in BGR.
+std::string tooLargeToAnalyse(int w, int h);
+
+// "" when `name` may be a vehicle's name (keyframed/<name>/... keys, a ground
+// station's folder): letters, digits, '-', '_' and '.', 1 to 64 of them.
+std::string vehicleNameError(const std::string& name);
 
 }  // namespace keyframed

@@ -381,7 +381,7 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
       (k == "make" ? m.make : m.model) = *v;
     } else if (k == "width" || k == "height") {
       const auto v = node.value_exact<std::int64_t>();
-      if (!v || *v <= 0 || *v > 100000) return wrongType("a positive integer");
+      if (!v || *v <= 0 || *v > 100000) return wrongType("an integer from 1 to 100000");
       (k == "width" ? m.width : m.height) = static_cast<int>(*v);
     } else if (k == "distortion") {
       const toml::array* a = node.as_array();
@@ -411,7 +411,8 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
     error = path + ": " + prefix + ".fx, fy, cx, cy go together";
     return false;
   }
-  return finish(path, m, error);
+  // The table's line and name before what the shared checks find wrong in it.
+  return finish(where(cam) + prefix, m, error);
 }
 
 std::string readSmallText(const std::string& path, std::string& text) {

@@ -321,6 +321,20 @@ def test_frames_too_small_to_analyse(any_bin: Path, tmp_path, size: tuple[int, i
         assert not (tmp_path / mode).exists()
 
 
+def test_frames_too_large_to_analyse(any_bin: Path, tmp_path):
+    """Past 16384 pixels a side (or 64 megapixels): one line, exit 3, before any
+    output, not gigabytes of frame buffers on a companion computer."""
+    video = tmp_path / "wide.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30, (16400, 64))
+    for _ in range(3):
+        w.write(np.random.default_rng(3).integers(0, 255, (64, 16400, 3), dtype=np.uint8))
+    w.release()
+    p = run(any_bin, "select", video, "--out", tmp_path / "o", "--analysis-width", "0")
+    assert p.returncode == 3, p.stderr
+    assert_clean_failure(p, "frames of 16400x64 are too large to analyse")
+    assert not (tmp_path / "o").exists()
+
+
 def test_unknown_command_and_help(any_bin: Path):
     assert_clean_failure(run(any_bin, "frobnicate"), "unknown command")
     h = run(any_bin, "select", "--help")

@@ -7,6 +7,7 @@ import copy
 import csv
 import json
 import math
+import os
 import shutil
 import socket
 import struct
@@ -429,6 +430,25 @@ def test_one_record_time_out_of_line_costs_no_tag(
     assert r.stderr.count("1 record time(s) out of line") == 1, r.stderr
 
 
+def test_a_tlog_naming_no_autopilot_says_to_give_one(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """Without a HEARTBEAT no sender is known to fly the vehicle: nothing is followed,
+    and the warning says so and what to give, not only "no telemetry"; with
+    --autopilot the same log tags every keyframe."""
+    tlog = tmp_path / "nohb.tlog"
+    write_tlog(tlog, [r for r in read_tlog(short_nadir / "flight.tlog") if r.type != "HEARTBEAT"])
+    start = ("--telemetry", str(tlog), "--video-start", str(synth.EPOCH_UNIX_S))
+    r = run_select(kf_bin, short_nadir, tmp_path / "o", *start)
+    assert r.returncode == 0, r.stderr
+    assert "names no autopilot (no HEARTBEAT of one)" in r.stderr, r.stderr
+    assert "--autopilot SYS[:COMP]" in r.stderr
+    r = run_select(kf_bin, short_nadir, tmp_path / "o2", *start, "--autopilot", "1:1")
+    assert r.returncode == 0, r.stderr
+    kfs = keyframes(tmp_path / "o2")
+    assert kfs and all(k["geotag"] == "ok" for k in kfs), [k["geotag"] for k in kfs]
+
+
 @needs_exiftool
 def test_no_fix_means_no_gps_tags_and_the_decision_says_why(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
@@ -659,6 +679,9 @@ def test_bad_telemetry_options(
         (lambda p: p.write_bytes(b""), "not a MAVLink tlog"),
         (lambda p: p.write_bytes(np.random.default_rng(1).bytes(50_000)), "not a MAVLink tlog"),
         (lambda p: None, "cannot open"),
+        # no writer will come: refused, not waited for past any signal
+        (lambda p: os.mkfifo(p), "is not a regular file"),
+        (lambda p: p.mkdir(), "is not a regular file"),
     ],
 )
 def test_bad_tlog_files(

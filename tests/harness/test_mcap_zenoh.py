@@ -513,6 +513,8 @@ def test_bad_zenoh_config_is_a_clear_error(
 
 
 def test_bad_vehicle_name_is_rejected(kf_bin: Path, pan_video: Path, tmp_path: Path):
-    r = select(kf_bin, pan_video, tmp_path / "out", "--vehicle", "a/b", "--zenoh-config", "x")
-    assert r.returncode == 2
-    assert "--vehicle" in r.stderr
+    # the rule of zenoh.vehicle and keyframed-ground's --vehicle, one for all three
+    for name in ("a/b", "@x", "uav:1", "x" * 65, "..", "ü"):
+        r = select(kf_bin, pan_video, tmp_path / "out", "--vehicle", name, "--zenoh-config", "x")
+        assert r.returncode == 2, (name, r.stderr)
+        assert "--vehicle: vehicle name may hold only" in r.stderr, (name, r.stderr)

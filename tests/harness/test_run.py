@@ -1090,6 +1090,8 @@ def test_whole_chain_autopilot_daemon_zenoh_ground_station(
     ok = [k for k in kfs if k["geotag"] == "ok"]
     assert len(ok) >= len(kfs) - 1, [k["geotag"] for k in kfs]
     assert summary["telemetry"]["captures_sent"] == len(kfs)
+    # as select's summary: what a second vehicle or a ground station on the link sent
+    assert isinstance(summary["telemetry"]["other_sources"], int), summary["telemetry"]
     acks = [m for m in ap.received("COMMAND_ACK") if m.command == mav2.MAV_CMD_IMAGE_START_CAPTURE]
     assert [a.result for a in acks] == [mav2.MAV_RESULT_ACCEPTED] * 3
     assert summary["telemetry"]["captures_requested"] == 2, summary["telemetry"]

@@ -377,8 +377,8 @@ TEST(Config, OutOfRangeAndBadValues) {
   expectOneError(dir, "[output]\nstate_dir = \"var/lib\"\n",
                  "2: output.state_dir: must be an absolute path (got \"var/lib\")");
   expectOneError(dir, "[zenoh]\nvehicle = \"a/b\"\n",
-                 "2: zenoh.vehicle: may hold only letters, digits, '-', '_' and '.', at most 64 "
-                 "(got \"a/b\")");
+                 "2: zenoh.vehicle: may hold only letters, digits, '-', '_' and '.', 1 to 64 of "
+                 "them (got \"a/b\")");
   expectOneError(dir, "[log]\ntelemetry = \"loud\"\n",
                  "2: log.telemetry: must be \"\" (follow log.level) or one of debug, info, "
                  "notice, warning, error (got \"loud\")");
@@ -563,6 +563,11 @@ TEST(Config, IntrinsicsInlineInTaggingCamera) {
   expectOneError(dir, "[tagging.camera]\nfz = 1.0\n", "2: unknown key 'tagging.camera.fz'");
   expectOneError(dir, "[tagging.camera]\nwidth = 640\nheight = 480\nfx = 500.0\n",
                  " tagging.camera.fx, fy, cx, cy go together");
+  // The checks every calibration passes name the table's line and the table.
+  expectOneError(dir, "[tagging.camera]\nwidth = 640\nheight = 480\ndistortion = [1.0]\n",
+                 "1: tagging.camera: distortion needs 4 or 5 terms");
+  expectOneError(dir, "[tagging.camera]\nwidth = 100001\n",
+                 "2: tagging.camera.width must be an integer from 1 to 100000");
   expectOneError(dir, "[tagging]\ncamera = 5\n",
                  "2: tagging.camera: expected a [tagging.camera] table, got an integer");
   const std::string yaml = kSource + "/config/camera-example.yaml";

@@ -1107,6 +1107,36 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
   EXPECT_EQ(indices, (std::vector<std::int64_t>{0, 5, 9, 10})) << error;
 }
 
+TEST(McapReplay, FramesThatShareATimeStillGetIndicesOfTheirOwn) {
+  // Pairs of frames stamped alike (an edited record, a camera that stamps badly): the
+  // decisions map both to the first one's index; each replayed frame gets its own,
+  // or two keyframes would share a file name.
+  const std::string path = tempPath("replay-sametime.mcap");
+  const std::int64_t start = 1'000'000'000;
+  {
+    FlightOutputOptions o;
+    o.mcapPath = path;
+    o.startNs = start;
+    FlightOutputs outputs;
+    std::string error;
+    ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
+    std::vector<std::uint8_t> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    for (const std::int64_t index : {0, 1, 2, 3})
+      recordFrame(outputs, index, start + (index / 2) * 33'333'333, jpeg, "jpeg");
+    ASSERT_TRUE(outputs.close("done", error)) << error;
+  }
+  std::string error;
+  const auto replay = McapReplaySource::open(path, error);
+  ASSERT_TRUE(replay) << error;
+  std::vector<std::int64_t> indices;
+  Frame f;
+  while (replay->next(f, error) == ReadStatus::Frame) indices.push_back(f.index);
+  ASSERT_EQ(indices.size(), 4U) << error;
+  for (std::size_t i = 1; i < indices.size(); ++i) EXPECT_GT(indices[i], indices[i - 1]);
+  std::filesystem::remove(path);
+}
+
 TEST(McapRecorder, EveryPartCarriesTheCalibrationAndTheSettingsInForce) {
   // A part replays on its own as the flight selected at its start; a whole rotated
   // record still says the settings changed once, not once a part.
