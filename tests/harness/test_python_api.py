@@ -188,6 +188,11 @@ def test_select_video_from_python(pan_video: Path, tmp_path):
             keyframed.select_video(str(pan_video), str(tmp_path / "o4"), max_frames=bad)
     with pytest.raises(RuntimeError, match="no such file"):
         keyframed.select_video(str(tmp_path / "missing.avi"), str(tmp_path / "o2"))
+    # paths as pathlib gives them; a NUL is refused, not cut at
+    assert keyframed.select_video(pan_video, tmp_path / "o5", max_frames=10)["frames_read"] == 10
+    with pytest.raises((TypeError, ValueError)):  # (nanobind's path caster refuses it)
+        keyframed.select_video(str(pan_video) + "\0.avi", tmp_path / "o6")
+    assert not (tmp_path / "o6").exists()
     # An output that fails part-way (the first keyframe's name taken by a directory):
     # raised, not a summary that reads like success.
     blocked = tmp_path / "o3"

@@ -4,6 +4,7 @@
 # The dicts the functions return are plain dicts at run time, typed here by their keys
 # (these TypedDicts are for the type checker only: the module has no such names).
 
+from os import PathLike
 from typing import TypedDict
 
 import numpy as np
@@ -125,12 +126,12 @@ class KeyframeSelector:
     def keyframes(self) -> int: ...
 
 def select_video(
-    video: str,
-    out_dir: str,
+    video: str | PathLike[str],
+    out_dir: str | PathLike[str],
     config: SelectorConfig | None = None,
     decisions: str = "csv",
     jpeg_quality: int = 92,
     max_frames: int = -1,
-    calibration: str = "",
+    calibration: str | PathLike[str] = "",
     overwrite: bool = False,
 ) -> _SelectSummary: ...

@@ -6,6 +6,7 @@
 
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
+#include <nanobind/stl/filesystem.h>
 #include <nanobind/stl/optional.h>
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
@@ -305,14 +306,19 @@ NB_MODULE(_core, m) {
 
   m.def(
       "select_video",
-      [](const std::string& video, const std::string& outDir, std::optional<SelectorConfig> config,
-         const std::string& decisions, int jpegQuality, std::int64_t maxFrames,
-         const std::string& calibration, bool overwrite) {
+      [](const std::filesystem::path& video, const std::filesystem::path& outDir,
+         std::optional<SelectorConfig> config, const std::string& decisions, int jpegQuality,
+         std::int64_t maxFrames, const std::filesystem::path& calibration, bool overwrite) {
+        // str or os.PathLike; a NUL would cut the name short at the C library.
+        for (const auto* p : {&video, &outDir, &calibration}) {
+          if (p->native().find('\0') != std::string::npos)
+            throw nb::value_error("a path must not contain a NUL character");
+        }
         SelectOptions o;
-        o.video = video;
-        o.outDir = outDir;
+        o.video = video.string();
+        o.outDir = outDir.string();
         o.overwrite = overwrite;
-        o.calibration = calibration;
+        o.calibration = calibration.string();
         if (config) {
           o.selector = *config;
           o.selectorGiven = true;
