@@ -138,8 +138,9 @@ TEST(Selector, ANewTargetGoesOnFromTheLastKeyframeWithTheBlurStatisticItHad) {
   cfg.analysisWidth = 0;
   KeyframeSelector sel(cfg);
   cv::RNG rng(3);
+  cv::Mat v;  // a Frame is a view: the pixels stay here while it is decided
   const auto view = [&](int i, double sigma) {
-    cv::Mat v = test::viewAt(strip, 100.0 + 8.0 * i);
+    v = test::viewAt(strip, 100.0 + 8.0 * i);
     if (sigma > 0) cv::GaussianBlur(v, v, cv::Size(), sigma);
     cv::Mat noise(v.size(), CV_8UC1);
     rng.fill(noise, cv::RNG::NORMAL, 0, 1.5);
