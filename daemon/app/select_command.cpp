@@ -764,6 +764,16 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       }
     }
   }
+  if (file != nullptr && file->repeatedFrom() >= 0) {
+    std::fprintf(stderr,
+                 "keyframed select: warning: frames %lld to %lld (%lld) repeat one picture: a "
+                 "still, or a video whose frame size changes part-way (OpenCV's reader then "
+                 "hands back the last picture of the first size, and the rest of the video "
+                 "is not seen)\n",
+                 static_cast<long long>(file->repeatedFrom()),
+                 static_cast<long long>(file->repeatedFrom() + file->repeatedFrames() - 1),
+                 static_cast<long long>(file->repeatedFrames()));
+  }
   s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   s.framesPerSecond = s.seconds > 0 ? static_cast<double>(s.framesRead) / s.seconds : 0.0;
   s.analysisMsMean =

@@ -32,6 +32,13 @@ class FileSource final : public FrameSource {
   // True when the stream ended before the frame count its header announced.
   [[nodiscard]] bool truncated() const { return truncated_; }
   [[nodiscard]] std::int64_t framesRead() const { return index_; }
+  // The first frame of the longest run of 30 or more frames that repeat one picture
+  // (by a sample of its bytes), and its length; -1 and 0 when there is none. OpenCV's
+  // reader hands back the last picture again when the stream changes size part-way
+  // (FFmpeg's scaler refuses the new size, and OpenCV does not say): what follows is
+  // lost, not a hover. (A still video repeats its picture too.)
+  [[nodiscard]] std::int64_t repeatedFrom() const { return repeatedFrom_; }
+  [[nodiscard]] std::int64_t repeatedFrames() const { return repeatedFrames_; }
   // Deliver frames as a camera would: YUV420 (I420) or NV12, converted from the
   // decoded picture (BT.601, limited range, as cameras' video streams are), instead
   // of BGR24 as decoded. False with a one-line error for another format or a frame
@@ -54,7 +61,11 @@ class FileSource final : public FrameSource {
   bool truncated_ = false;
   std::size_t packetSize_ = 0;  // MPEG-TS packet size (188, 192), 0 for other containers
   std::uintmax_t fileSize_ = 0;
-  std::string failure_;  // the permanent error, once there is one
+  std::string failure_;           // the permanent error, once there is one
+  std::uint64_t lastSample_ = 0;  // sampleHash() of the frame before
+  std::int64_t runFrom_ = 0;      // the current run of repeats began there
+  std::int64_t repeatedFrom_ = -1;
+  std::int64_t repeatedFrames_ = 0;
 };
 
 }  // namespace keyframed

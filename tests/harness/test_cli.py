@@ -335,6 +335,22 @@ def test_frames_too_large_to_analyse(any_bin: Path, tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_frame_size_that_changes_part_way_is_not_silent(any_bin: Path, tmp_path):
+    """A raw MJPEG stream whose pictures grow part-way: OpenCV's reader hands back the
+    last picture of the first size for every later frame (FFmpeg's scaler refuses the
+    new size, and OpenCV does not say), so the rest is not seen. The run says so."""
+    rng = np.random.default_rng(5)
+    video = tmp_path / "grow.mjpeg"
+    with video.open("wb") as f:
+        for i in range(60):
+            w, h = (480, 270) if i < 30 else (960, 540)
+            img = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+            f.write(cv2.imencode(".jpg", img)[1].tobytes())
+    p = run(any_bin, "select", video, "--out", tmp_path / "o")
+    assert "repeat one picture" in p.stderr and "frame size changes part-way" in p.stderr, p.stderr
+    assert "Sanitizer" not in p.stderr
+
+
 def test_unknown_command_and_help(any_bin: Path):
     assert_clean_failure(run(any_bin, "frobnicate"), "unknown command")
     h = run(any_bin, "select", "--help")
