@@ -32,7 +32,13 @@ set(CPACK_DEBIAN_PACKAGE_SECTION video)
 # postinst makes the user with systemd-sysusers, or adduser where systemd is absent.
 set(CPACK_DEBIAN_PACKAGE_DEPENDS "systemd | adduser")
 set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)  # the rest of Depends: from dpkg-shlibdeps
-set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "systemd")
+# libcamera's IPA modules: a Pi camera does not start without them (Debian's
+# libcamera0.0.3 only suggests libcamera-ipa).
+if(KEYFRAMED_WITH_LIBCAMERA)
+  set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "systemd, libcamera-ipa")
+else()
+  set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "systemd")
+endif()
 set(CPACK_STRIP_FILES ON)
 # /etc is outside the prefix: install through DESTDIR so absolute paths land in the package.
 set(CPACK_SET_DESTDIR ON)

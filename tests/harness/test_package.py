@@ -86,6 +86,10 @@ def test_debian_package(deb: Path, tmp_path: Path):
     # what postinst makes the user with
     assert "systemd | adduser" in depends, depends
     assert "Package: keyframed" in info
+    # a Pi camera does not start without libcamera's IPA modules (Debian only suggests them)
+    if "libcamera" in depends:
+        recommends = subprocess.check_output(["dpkg-deb", "-f", str(deb), "Recommends"], text=True)
+        assert "libcamera-ipa" in recommends, recommends
 
 
 def _dpkg(*args: str) -> subprocess.CompletedProcess[str]:
