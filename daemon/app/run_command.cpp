@@ -1265,6 +1265,14 @@ int Daemon::run() {
 }  // namespace
 
 int runMain(const std::vector<std::string>& argsIn) {
+  // Blocked from the start, before the configuration loads and OpenCV starts its
+  // threads (which inherit the mask): a SIGHUP (systemctl reload) or SIGTERM in the
+  // first few hundred ms would otherwise kill the process with the default action.
+  // Daemon::run takes them with sigtimedwait.
+  sigset_t early;
+  sigemptyset(&early);
+  for (const int s : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&early, s);
+  pthread_sigmask(SIG_BLOCK, &early, nullptr);
   std::vector<std::string> args = argsIn;
   ConfigSources sources;
   if (std::string e = takeConfigArgs(args, sources); !e.empty()) {
