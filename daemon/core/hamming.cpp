@@ -40,8 +40,9 @@ inline void keepNearest(int d, int index, int& bestD, int& bestIndex) {
 // update: a 2,500 x 2,500 match a third faster than one query at a time on x86-64
 // (where the four do not all fit in registers; arm64 has twice as many). Cloned for
 // popcnt on x86 so the same binary runs on CPUs without it; other targets use the
-// default.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+// default. (Not under ThreadSanitizer: the clones' resolver runs while the loader
+// relocates, before TSan's runtime is up, and the binary crashes before main.)
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(__SANITIZE_THREAD__)
 __attribute__((target_clones("popcnt", "default")))
 #endif
 void matchBlock(const std::uint8_t* query, int nq, std::size_t qStep, const std::uint8_t* train,
