@@ -48,36 +48,28 @@ bool isKeyframeName(const std::string& name) {
   return std::all_of(name.begin(), name.end() - 4, [](char c) { return c >= '0' && c <= '9'; });
 }
 
-// The files of an earlier run in `dir` (its record and its keyframes), or none when
-// no record of one is there: numbered pictures alone are someone else's.
-std::vector<std::filesystem::path> earlierRunFiles(const std::string& dir) {
+// What a run's output directory already holds: an earlier run's record and
+// keyframes, or, with no record, numbered pictures that are someone else's.
+struct EarlierFiles {
+  std::vector<std::filesystem::path> files;  // the record's files and the pictures
+  bool record = false;                       // a run's record is among them
+};
+
+EarlierFiles earlierFiles(const std::string& dir) {
   std::error_code ec;
-  std::vector<std::filesystem::path> files;
-  bool record = false;
+  EarlierFiles out;
   for (std::filesystem::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
     const std::string name = it->path().filename().string();
     std::error_code typeEc;
     if (!it->is_regular_file(typeEc)) continue;
     if (isRunRecord(name)) {
-      record = true;
-      files.push_back(it->path());
+      out.record = true;
+      out.files.push_back(it->path());
     } else if (isKeyframeName(name)) {
-      files.push_back(it->path());
+      out.files.push_back(it->path());
     }
   }
-  if (!record) files.clear();
-  return files;
-}
-
-// Pictures in `dir` named as keyframes are.
-std::size_t numberedPictures(const std::string& dir) {
-  std::error_code ec;
-  std::size_t n = 0;
-  for (std::filesystem::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
-    std::error_code typeEc;
-    if (it->is_regular_file(typeEc) && isKeyframeName(it->path().filename().string())) ++n;
-  }
-  return n;
+  return out;
 }
 
 // Whether two paths name one file: the same inode where both exist (a link, another
@@ -131,7 +123,9 @@ std::string earlierRunRefused(const std::string& dir, std::size_t files) {
 // With --overwrite, the earlier run's files go (other files in `dir` stay).
 bool removeEarlierRun(const std::string& dir, std::string& error) {
   std::error_code ec;
-  for (const auto& p : earlierRunFiles(dir)) {
+  const EarlierFiles earlier = earlierFiles(dir);
+  if (!earlier.record) return true;  // someone else's pictures stay
+  for (const auto& p : earlier.files) {
     if (!std::filesystem::remove(p, ec) && ec) {
       error = "cannot remove " + p.string() + ": " + ec.message();
       return false;
@@ -260,12 +254,11 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   }
   // Said before any work: an earlier run's keyframes would mix with this run's, and
   // so would someone else's numbered pictures (one a keyframe's name would replace).
-  if (const auto earlier = earlierRunFiles(opts.outDir); !earlier.empty() && !opts.overwrite) {
-    s.error = earlierRunRefused(opts.outDir, earlier.size());
+  if (const EarlierFiles earlier = earlierFiles(opts.outDir); earlier.record && !opts.overwrite) {
+    s.error = earlierRunRefused(opts.outDir, earlier.files.size());
     return s;
-  }
-  if (const std::size_t pictures = numberedPictures(opts.outDir); pictures > 0 && !opts.overwrite) {
-    s.error = opts.outDir + " holds " + std::to_string(pictures) +
+  } else if (!earlier.files.empty() && !opts.overwrite) {
+    s.error = opts.outDir + " holds " + std::to_string(earlier.files.size()) +
               " picture(s) named as keyframes are (six digits, .jpg) but no run's record: "
               "they would mix with this run's keyframes, or be replaced by one; choose another "
               "--out, or --overwrite to run there anyway (they stay unless a keyframe takes "

@@ -1058,6 +1058,13 @@ TEST(FlightOutputs, UnsavedKeyframesWaitingForASlowLinkAreBoundedInBytes) {
   EXPECT_EQ(link.tried(), expected);
 }
 
+// The picture of a 32x24 record's preview frames.
+std::vector<std::uint8_t> previewJpeg() {
+  std::vector<std::uint8_t> jpeg;
+  EXPECT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+  return jpeg;
+}
+
 // A live run's frame in its record: its decision (index and time) and its picture.
 void recordFrame(FlightOutputs& outputs, std::int64_t index, std::int64_t t,
                  std::span<const std::uint8_t> picture, const char* format) {
@@ -1081,8 +1088,7 @@ TEST(McapReplay, FramesKeepTheLiveIndicesAndTheRecordItsSettings) {
     std::string error;
     ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
     outputs.settings(start, "selection.target=0.75\nselection.mode=\"paper\"\n");
-    std::vector<std::uint8_t> jpeg;
-    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    const std::vector<std::uint8_t> jpeg = previewJpeg();
     for (const std::int64_t index : {0, 5, 9}) {  // the live run dropped 1-4 and 6-8
       recordFrame(outputs, index, start + index * 33'333'333, jpeg, "jpeg");
       // ... and recorded a preview without its decision (its queue full): frame 12
@@ -1120,8 +1126,7 @@ TEST(McapReplay, FramesThatShareATimeStillGetIndicesOfTheirOwn) {
     FlightOutputs outputs;
     std::string error;
     ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
-    std::vector<std::uint8_t> jpeg;
-    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    const std::vector<std::uint8_t> jpeg = previewJpeg();
     for (const std::int64_t index : {0, 1, 2, 3})
       recordFrame(outputs, index, start + (index / 2) * 33'333'333, jpeg, "jpeg");
     ASSERT_TRUE(outputs.close("done", error)) << error;
@@ -1152,8 +1157,7 @@ TEST(McapRecorder, EveryPartCarriesTheCalibrationAndTheSettingsInForce) {
     std::string error;
     ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
     outputs.settings(start, "selection.target=0.75\n");
-    std::vector<std::uint8_t> jpeg;
-    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    const std::vector<std::uint8_t> jpeg = previewJpeg();
     for (std::int64_t i = 0; i < 60; ++i) {
       if (i == 30) outputs.settings(start + i * 33'333'333, "selection.target=0.8\n");
       recordFrame(outputs, i, start + i * 33'333'333, jpeg, "jpeg");
@@ -1192,8 +1196,7 @@ TEST(McapReplay, AnEmptyLastPartEndsTheRecordInsteadOfFailingIt) {
     FlightOutputs outputs;
     std::string error;
     ASSERT_TRUE(outputs.open(o, 32, 24, nullptr, error)) << error;
-    std::vector<std::uint8_t> jpeg;
-    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(24, 32, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    const std::vector<std::uint8_t> jpeg = previewJpeg();
     for (const std::int64_t index : {0, 1, 2})
       recordFrame(outputs, index, start + index * 33'333'333, jpeg, "jpeg");
     ASSERT_TRUE(outputs.close("done", error)) << error;

@@ -53,6 +53,16 @@ def read_decisions(out_dir: Path) -> list[dict[str, str]]:
     return rows
 
 
+def keyframe_index_rows(out_dir: Path) -> list[dict[str, str]]:
+    """The keyframe index (``keyframes.csv``: beside the decisions for ``select``, in
+    ``keyframes/`` for a daemon's flight), or no rows when there is none."""
+    for index in (out_dir / "keyframes.csv", out_dir / "keyframes" / "keyframes.csv"):
+        if index.exists():
+            with index.open(newline="") as f:
+                return list(csv.DictReader(f))
+    return []
+
+
 def kept_frames(out_dir: Path) -> list[int]:
     """The keyframes' frame indices: the rows kept, the candidates a later row promoted
     (after a long wait a candidate's row is written before it is promoted, and shows
@@ -65,37 +75,26 @@ def kept_frames(out_dir: Path) -> list[int]:
             keys.add(int(r["index"]))
         if r.get("promoted") not in (None, "", "None"):
             keys.add(int(str(r["promoted"])))
-    for index in (out_dir / "keyframes.csv", out_dir / "keyframes" / "keyframes.csv"):
-        if index.exists():
-            with index.open(newline="") as f:
-                keys.update(int(row["index"]) for row in csv.DictReader(f))
+    keys.update(int(row["index"]) for row in keyframe_index_rows(out_dir))
     return sorted(keys)
 
 
 def geotag_errors(flight_dir: Path, out_dir: Path) -> list[float]:
     """Horizontal error (m) of each geotagged row of the keyframe index against the
     ground truth's position at its frame (local flat earth: metres at this scale)."""
-    index = next(
-        (
-            p
-            for p in (out_dir / "keyframes.csv", out_dir / "keyframes" / "keyframes.csv")
-            if p.exists()
-        ),
-        None,
-    )
-    if index is None:
+    rows = keyframe_index_rows(out_dir)
+    if not rows:
         return []
     with (flight_dir / "groundtruth.csv").open(newline="") as f:
         truth = {int(r["index"]): (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(f)}
     errors = []
-    with index.open(newline="") as f:
-        for row in csv.DictReader(f):
-            if not row.get("lat") or not row.get("lon") or int(row["index"]) not in truth:
-                continue
-            lat, lon = truth[int(row["index"])]
-            north = math.radians(float(row["lat"]) - lat) * 6_371_000.0
-            east = math.radians(float(row["lon"]) - lon) * 6_371_000.0 * math.cos(math.radians(lat))
-            errors.append(math.hypot(north, east))
+    for row in rows:
+        if not row.get("lat") or not row.get("lon") or int(row["index"]) not in truth:
+            continue
+        lat, lon = truth[int(row["index"])]
+        north = math.radians(float(row["lat"]) - lat) * 6_371_000.0
+        east = math.radians(float(row["lon"]) - lon) * 6_371_000.0 * math.cos(math.radians(lat))
+        errors.append(math.hypot(north, east))
     return errors
 
 
