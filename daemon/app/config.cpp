@@ -12,6 +12,7 @@
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <span>
 #include <sstream>
 #include <system_error>
 
@@ -47,33 +48,6 @@ constexpr std::int64_t kNsPerMs = 1'000'000;
 constexpr std::int64_t kNsPerS = 1'000'000'000;
 
 // ---------------------------------------------------------------- value text
-
-std::string quote(std::string_view s) {
-  std::string out = "\"";
-  for (const char ch : s) {
-    const auto u = static_cast<unsigned char>(ch);
-    if (ch == '"' || ch == '\\') {
-      out += '\\';
-      out += ch;
-    } else if (u < 0x20 || u == 0x7f) {
-      char buf[8];
-      std::snprintf(buf, sizeof buf, "\\u%04x", u);
-      out += buf;
-    } else {
-      out += ch;
-    }
-  }
-  return out + "\"";
-}
-
-// Shortest text that reads back as the same double, always a TOML float.
-std::string realText(double v) {
-  char buf[64];
-  const auto [end, ec] = std::to_chars(buf, buf + sizeof buf, v);
-  std::string s(buf, ec == std::errc() ? end : buf);
-  if (s.find_first_of(".eEn") == std::string::npos) s += ".0";
-  return s;
-}
 
 const char* typeName(const toml::node& n) {
   switch (n.type()) {
@@ -125,7 +99,7 @@ struct ZeroOr {
     const auto number = [](double x) {
       return x == std::trunc(x) && std::fabs(x) < 1e15
                  ? std::to_string(static_cast<std::int64_t>(x))
-                 : realText(x);
+                 : tomlReal(x);
     };
     return "must be 0 (" + std::string(what) + ") or >= " + number(min) + " (got " + number(v) +
            ")";
@@ -180,7 +154,7 @@ Field real(std::string_view section, std::string_view key, Get get, SettingRange
             get(c) = d;
             return {};
           },
-          [get](const DaemonConfig& c) { return realText(get(c)); }};
+          [get](const DaemonConfig& c) { return tomlReal(get(c)); }};
 }
 
 template <typename Get>
@@ -207,7 +181,7 @@ Field text(std::string_view section, std::string_view key, Get get, Check check 
             get(c) = v->get();
             return {};
           },
-          [get](const DaemonConfig& c) { return quote(get(c)); }};
+          [get](const DaemonConfig& c) { return tomlString(get(c)); }};
 }
 
 // A string naming an enum value.
@@ -219,10 +193,11 @@ Field choice(std::string_view section, std::string_view key, Get get, Parse pars
             const auto* v = n.as_string();
             if (v == nullptr) return typeError("a string", n);
             if (!parse(v->get(), get(c)))
-              return "must be one of " + std::string(allowed) + " (got " + quote(v->get()) + ")";
+              return "must be one of " + std::string(allowed) + " (got " + tomlString(v->get()) +
+                     ")";
             return {};
           },
-          [get, name](const DaemonConfig& c) { return quote(name(get(c))); }};
+          [get, name](const DaemonConfig& c) { return tomlString(name(get(c))); }};
 }
 
 using Source = DaemonConfig::Source;
@@ -251,15 +226,15 @@ std::string checkPixelFormat(const std::string& s) {
       "NV12", "YUV420", "YU12", "I420", "YUYV", "YUY2", "MJPEG", "MJPG", "GREY", "GRAY", "GRAY8"};
   if (std::find(kNames.begin(), kNames.end(), upper(s)) != kNames.end()) return {};
   return "must be \"auto\" or one of NV12, YUV420 (YU12, I420), YUYV (YUY2), MJPEG (MJPG), "
-         "GREY (got " +
-         quote(s) + ")";
+         "GREY (GRAY, GRAY8) (got " +
+         tomlString(s) + ")";
 }
 
 std::string checkStartTime(const std::string& s) {
   std::int64_t ns = 0;
   if (s.empty() || s == "auto" || parseUtcTime(s, ns)) return {};
   return "expected a UTC time like \"2026-06-01T10:00:00Z\", unix seconds or \"auto\" (got " +
-         quote(s) + ")";
+         tomlString(s) + ")";
 }
 
 std::string checkMavlinkUrl(const std::string& s) {
@@ -270,12 +245,12 @@ std::string checkMavlinkUrl(const std::string& s) {
 
 std::string checkExifText(const std::string& s) {
   const std::string e = exifTextError(s);
-  return e.empty() ? e : e + " (got " + quote(s) + ")";
+  return e.empty() ? e : e + " (got " + tomlString(s) + ")";
 }
 
 std::string checkAbsolutePath(const std::string& s) {
   if (!s.empty() && s[0] == '/') return {};
-  return "must be an absolute path (got " + quote(s) + ")";
+  return "must be an absolute path (got " + tomlString(s) + ")";
 }
 
 // Files named in a configuration file: absolute, as the service starts in / (a
@@ -322,7 +297,7 @@ bool isFileKey(std::string_view name) {
 std::string checkVehicle(const std::string& s) {
   if (s.empty()) return {};
   const std::string e = vehicleNameError(s);
-  return e.empty() ? e : e + " (got " + quote(s) + ")";
+  return e.empty() ? e : e + " (got " + tomlString(s) + ")";
 }
 
 Field autopilot() {
@@ -344,14 +319,14 @@ Field autopilot() {
               return {};
             }
             std::string e = parseAutopilot(v->get(), t.autopilotSystem, t.autopilotComponent);
-            return e.empty() ? e : e + " (got " + quote(v->get()) + ")";
+            return e.empty() ? e : e + " (got " + tomlString(v->get()) + ")";
           },
           [](const DaemonConfig& c) {
             const TelemetryConfig& t = c.telemetry.link.decoder;
-            if (t.autopilotSystem == 0) return quote("");
+            if (t.autopilotSystem == 0) return tomlString("");
             std::string s = std::to_string(t.autopilotSystem);
             if (t.autopilotComponent != 0) s += ":" + std::to_string(t.autopilotComponent);
-            return quote(s);
+            return tomlString(s);
           }};
 }
 
@@ -369,13 +344,13 @@ Field categoryLevel(LogCategory category) {
             } else {
               return "must be \"\" (follow log.level) or one of debug, info, notice, warning, "
                      "error (got " +
-                     quote(v->get()) + ")";
+                     tomlString(v->get()) + ")";
             }
             return {};
           },
           [i](const DaemonConfig& c) {
             const auto& l = c.log.categories[i];
-            return quote(l ? toString(*l) : "");
+            return tomlString(l ? toString(*l) : "");
           }};
 }
 
@@ -506,7 +481,7 @@ std::vector<Field> makeSchema() {
   f.push_back(autopilot());
   f.push_back(integer(
       "telemetry", "mavlink_sysid", [](auto& c) -> auto& { return c.telemetry.link.systemId; },
-      R{0, L::kMavlinkId.hi}));
+      L::kOwnSystemId));
   f.push_back(integer(
       "telemetry", "component_id", [](auto& c) -> auto& { return c.telemetry.link.componentId; },
       L::kMavlinkId));
@@ -614,7 +589,7 @@ std::vector<Field> makeSchema() {
       [](const std::string& s) -> std::string {
         return s == "auto" || s == "zstd" || s == "lz4" || s == "none"
                    ? ""
-                   : "must be auto, zstd, lz4 or none (got " + quote(s) + ")";
+                   : "must be auto, zstd, lz4 or none (got " + tomlString(s) + ")";
       }));
   f.push_back(integer(
       "output", "preview_width", [](auto& c) -> auto& { return c.output.previewWidth; },
@@ -625,7 +600,7 @@ std::vector<Field> makeSchema() {
         if (s == "h264" && !h264EncoderAvailable())
           return "h264 needs libavcodec with its libx264 encoder, which this one lacks (use "
                  "\"jpeg\")";
-        return s == "jpeg" || s == "h264" ? "" : "must be jpeg or h264 (got " + quote(s) + ")";
+        return s == "jpeg" || s == "h264" ? "" : "must be jpeg or h264 (got " + tomlString(s) + ")";
       }));
 
   // [zenoh]
@@ -794,7 +769,7 @@ class Loader {
     const std::string where = "--set " + assignment;
     out_.layers.push_back(where);
     if (assignment.find_first_of("\r\n") != std::string::npos) {
-      fail(0, "--set " + quote(assignment) + ": one line, SECTION.KEY=VALUE");
+      fail(0, "--set " + tomlString(assignment) + ": one line, SECTION.KEY=VALUE");
       return;
     }
     const auto eq = assignment.find('=');
@@ -836,7 +811,7 @@ class Loader {
                              : field->kind == Kind::Real    ? "a number"
                              : field->kind == Kind::Boolean ? "true or false"
                                                             : "a string";
-      fail(0, where + ": " + name + ": expected " + expected + " (got " + quote(value) + ")");
+      fail(0, where + ": " + name + ": expected " + expected + " (got " + tomlString(value) + ")");
       return;
     }
     apply(*field, *doc.get("v"), where, 0);
@@ -856,7 +831,7 @@ class Loader {
            latest.layer);
     }
     const SelectorConfig& s = c.selection;
-    auto num = [](double v) { return realText(v); };
+    auto num = [](double v) { return tomlReal(v); };
     auto require = [this](bool ok, std::vector<std::string> keys, const std::string& message) {
       if (ok) return;
       std::string latestKey = keys.front();
@@ -900,7 +875,7 @@ class Loader {
                 !checkPixelFormat(c.camera.pixelFormat).empty(),
             {"camera.source", "camera.pixel_format"},
             "source \"file\" delivers \"auto\" (BGR, as decoded), YUV420 or NV12 (got " +
-                quote(c.camera.pixelFormat) + ")");
+                tomlString(c.camera.pixelFormat) + ")");
     {
       const std::string pf = upper(c.camera.pixelFormat);
       const bool libcameraFormat = pf == "AUTO" || pf == "NV12" || pf == "YUV420" || pf == "YU12" ||
@@ -909,7 +884,7 @@ class Loader {
                   !checkPixelFormat(c.camera.pixelFormat).empty(),
               {"camera.source", "camera.pixel_format"},
               "source \"libcamera\" delivers \"auto\", NV12, YUV420 or YUYV (got " +
-                  quote(c.camera.pixelFormat) + ")");
+                  tomlString(c.camera.pixelFormat) + ")");
     }
     std::string e;
     const std::string& url = c.telemetry.link.url;
@@ -1097,47 +1072,31 @@ std::string toToml(const DaemonConfig& config) {
     out.append(f.key).append(" = ").append(f.write(config)).append("\n");
   }
   if (const auto& cam = config.tagging.camera) {
-    out += "\n[tagging.camera]\n";
-    out += "make = " + quote(cam->make) + "\nmodel = " + quote(cam->model) + "\n";
-    out += std::string("lens = ") +
-           (cam->lens == CameraModel::Lens::Fisheye ? "\"fisheye\"" : "\"pinhole\"") + "\n";
-    if (cam->width > 0) {
-      out += "width = " + std::to_string(cam->width) + "\nheight = " + std::to_string(cam->height) +
-             "\n";
-    }
-    const std::pair<const char*, double> numbers[] = {{"fx", cam->fx},
-                                                      {"fy", cam->fy},
-                                                      {"cx", cam->cx},
-                                                      {"cy", cam->cy},
-                                                      {"sensor_width_mm", cam->sensorWidthMm},
-                                                      {"sensor_height_mm", cam->sensorHeightMm},
-                                                      {"focal_length_mm", cam->focalLengthMm}};
-    for (const auto& [key, v] : numbers) {
-      if (std::isfinite(v)) out.append(key).append(" = ").append(realText(v)).append("\n");
-    }
-    if (!cam->distortion.empty()) {
-      out += "distortion = [";
-      for (std::size_t i = 0; i < cam->distortion.size(); ++i) {
-        out += (i > 0 ? ", " : "") + realText(cam->distortion[i]);
-      }
-      out += "]\n";
-    }
+    out += "\n[tagging.camera]\n" + cameraTomlKeys(*cam);
   }
   return out;
 }
 
-std::string selectionOverrides(const SelectorConfig& selection) {
-  DaemonConfig c;
-  c.selection = selection;
+namespace {
+
+// What a flight record keeps of the configuration: every key of `section`, or the
+// keys named in `names` ("section.key"), as `section.KEY=VALUE` lines.
+std::string recordedLines(const DaemonConfig& c, std::string_view section,
+                          std::span<const std::string_view> names) {
   std::string out;
   for (const Field& f : schema()) {
-    if (f.section != "selection") continue;
-    out.append("selection.").append(f.key).append("=").append(f.write(c)).append("\n");
+    const std::string name = f.name();
+    if (names.empty() ? f.section != section
+                      : std::find(names.begin(), names.end(), name) == names.end())
+      continue;
+    out.append(name).append("=").append(f.write(c)).append("\n");
   }
   return out;
 }
 
-ConfigLoadResult loadSelectionOverrides(const std::string& lines) {
+// Those lines back, through --set's validation: any other line is an error.
+ConfigLoadResult loadRecordedLines(const std::string& lines, std::string_view section,
+                                   std::span<const std::string_view> names) {
   std::vector<std::string> overrides;
   std::size_t start = 0;
   while (start < lines.size()) {
@@ -1146,9 +1105,14 @@ ConfigLoadResult loadSelectionOverrides(const std::string& lines) {
     std::string line = lines.substr(start, end - start);
     if (!line.empty() && line.back() == '\r') line.pop_back();
     if (!line.empty()) {
-      if (!line.starts_with("selection.")) {
+      const std::size_t eq = line.find('=');
+      const std::string name = eq == std::string::npos ? std::string() : line.substr(0, eq);
+      const bool known = names.empty() ? name.starts_with(std::string(section) + ".") &&
+                                             name.size() > section.size() + 1
+                                       : std::find(names.begin(), names.end(), name) != names.end();
+      if (!known) {
         ConfigLoadResult r;
-        r.errors.push_back("not a selection setting: '" + line + "'");
+        r.errors.push_back("not a " + std::string(section) + " setting: '" + line + "'");
         return r;
       }
       overrides.push_back(std::move(line));
@@ -1156,6 +1120,35 @@ ConfigLoadResult loadSelectionOverrides(const std::string& lines) {
     start = end + 1;
   }
   return loadOverrides(overrides);
+}
+
+// What shapes a keyframe's tags beside the camera model (which comes whole): EXIF make
+// and model, the camera mount, the frame time's offset to the exposure.
+constexpr std::string_view kRecordedTagging[] = {
+    "tagging.make",        "tagging.model",     "tagging.mount",        "tagging.mount_roll",
+    "tagging.mount_pitch", "tagging.mount_yaw", "camera.time_offset_ms"};
+
+}  // namespace
+
+std::string selectionOverrides(const SelectorConfig& selection) {
+  DaemonConfig c;
+  c.selection = selection;
+  return recordedLines(c, "selection", {});
+}
+
+ConfigLoadResult loadSelectionOverrides(const std::string& lines) {
+  return loadRecordedLines(lines, "selection", {});
+}
+
+std::string taggingOverrides(const DaemonConfig::Tagging& tagging, double timeOffsetMs) {
+  DaemonConfig c;
+  c.tagging = tagging;
+  c.camera.timeOffsetMs = timeOffsetMs;
+  return recordedLines(c, "tagging", kRecordedTagging);
+}
+
+ConfigLoadResult loadTaggingOverrides(const std::string& lines) {
+  return loadRecordedLines(lines, "tagging", kRecordedTagging);
 }
 
 std::optional<PixelFormat> filePixelFormat(const std::string& name) {

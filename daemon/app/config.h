@@ -135,6 +135,10 @@ std::string toToml(const DaemonConfig& config);
 // the same validation as --set (errors name the key).
 std::string selectionOverrides(const SelectorConfig& selection);
 ConfigLoadResult loadSelectionOverrides(const std::string& lines);
+// The same for what shapes a keyframe's tags: tagging.make, model, mount, mount_roll,
+// mount_pitch, mount_yaw and camera.time_offset_ms (any other line is an error).
+std::string taggingOverrides(const DaemonConfig::Tagging& tagging, double timeOffsetMs);
+ConfigLoadResult loadTaggingOverrides(const std::string& lines);
 
 // What a video file is delivered as for camera.pixel_format (any case): "auto" BGR24,
 // as decoded; YUV420 (YU12, I420) or NV12, converted as a camera would deliver them.

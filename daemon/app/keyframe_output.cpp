@@ -83,6 +83,7 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
     report.pose = rec.pose;
     report.cameraAttitude = rec.cameraToNed;
     report.fileUrl = "file://" + rec.file;
+    report.saved = saved;
     telemetry_->reportCapture(report);
   }
   return saved;

@@ -22,6 +22,7 @@ struct State {
   std::mutex mutex;
   LogTarget target = LogTarget::Auto;
   int journal = -1;  // -1: not decided yet (Auto), 0: stderr, 1: journald
+  std::string journalSocket = "/run/systemd/journal/socket";
   logging::Sink sink;
 };
 
@@ -37,7 +38,7 @@ bool useJournal(State& s) {
     const bool wanted = s.target == LogTarget::Journal ||
                         (s.target == LogTarget::Auto &&
                          logging::isJournalStream(STDERR_FILENO, std::getenv("JOURNAL_STREAM")));
-    s.journal = wanted && access("/run/systemd/journal/socket", F_OK) == 0 ? 1 : 0;
+    s.journal = wanted && access(s.journalSocket.c_str(), F_OK) == 0 ? 1 : 0;
   }
   return s.journal == 1;
 }
@@ -156,6 +157,13 @@ void setTarget(LogTarget target) {
   State& s = state();
   std::lock_guard lock(s.mutex);
   s.target = target;
+  s.journal = -1;
+}
+
+void setJournalSocketForTesting(std::string path) {
+  State& s = state();
+  std::lock_guard lock(s.mutex);
+  s.journalSocket = std::move(path);
   s.journal = -1;
 }
 

@@ -63,6 +63,9 @@ void setAllLevels(LogLevel level);
 std::string applyLevelSpec(std::string_view spec);
 
 void setTarget(LogTarget target);
+// Where journald's socket is looked for (default /run/systemd/journal/socket), so a
+// test sees the fallback to stderr on a machine where journald runs.
+void setJournalSocketForTesting(std::string path);
 
 // Applies a configuration, then KEYFRAMED_LOG_LEVELS from the environment on top
 // (for debugging a deployed unit without editing its files). Empty, or why the

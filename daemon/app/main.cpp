@@ -22,18 +22,25 @@ constexpr const char* kUsage = R"(usage: keyframed <command> [options]
 commands:
   run                      the live daemon (see: keyframed run --help)
   select VIDEO --out DIR   pick keyframes from a video file (see: keyframed select --help)
-  check-config [FILE]      validate the daemon's configuration and print it (see --help)
+  check-config [FILE...]   validate the daemon's configuration and print it (see --help)
   probe-v4l2               V4L2 cameras, their formats and frame timing (see --help)
-  probe-libcamera          libcamera cameras and what they deliver (see --help)
-  version                  print the version
 )";
+// Only in builds with libcamera, which alone have the command.
+#ifdef KEYFRAMED_WITH_LIBCAMERA
+constexpr const char* kLibcameraUsage =
+    "  probe-libcamera          libcamera cameras and what they deliver (see --help)\n";
+#else
+constexpr const char* kLibcameraUsage = "";
+#endif
+constexpr const char* kVersionUsage = "  version                  print the version\n";
 
 }  // namespace
 
 int main(int argc, char** argv) {
   std::vector<std::string> args(argv + 1, argv + argc);
   if (args.empty() || args[0] == "-h" || args[0] == "--help" || args[0] == "help") {
-    std::fputs(kUsage, args.empty() ? stderr : stdout);
+    std::FILE* out = args.empty() ? stderr : stdout;
+    for (const char* part : {kUsage, kLibcameraUsage, kVersionUsage}) std::fputs(part, out);
     return args.empty() ? 2 : 0;
   }
   const std::string command = args[0];

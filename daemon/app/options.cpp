@@ -384,7 +384,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       {"--autopilot",
        [&](const std::string& v)
            -> std::string { return parseAutopilot(v, o.autopilotSystem, o.autopilotComponent); }},
-      {"--mavlink-sysid", integer(o.mavlinkSystemId, limits::kMavlinkId)},
+      {"--mavlink-sysid", integer(o.mavlinkSystemId, limits::kOwnSystemId)},
       {"--mcap",
        [&](const std::string& v) -> std::
                                      string {

@@ -73,7 +73,8 @@ Runs the daemon: captures from the configured camera (or video file), selects
 keyframes, tags them with the autopilot's telemetry, writes them under
 output.state_dir/flights/<UTC start time>/ (state_dir/latest points at the newest),
 records the flight to MCAP and publishes keyframes over Zenoh, until SIGINT or
-SIGTERM (or the end of a video file). SIGHUP reloads the selection settings.
+SIGTERM (or the end of a video file). SIGHUP reloads [selection] and [log]; other
+settings take a restart.
 
 Exit status: 0 stopped or the video ended; 1 the camera, link or outputs failed;
 2 bad command line; 78 bad configuration (systemd does not restart on 2 and 78).
@@ -1035,6 +1036,8 @@ int Daemon::run() {
     return 1;
   }
   logToRecord_ = std::make_unique<LogToRecord>(outputs_);
+  outputs_.tagging(taggingOverrides(config_.tagging, config_.camera.timeOffsetMs),
+                   camera_ ? &*camera_ : nullptr);
   outputs_.settings(frameClockNowNs(), selectionOverrides(config_.selection));
 
   if (telemetry_) {

@@ -382,6 +382,41 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
       }
     }
   }
+  if (replay != nullptr && !replay->taggingSettings().empty()) {
+    // Tag as the flight did (EXIF make and model, the camera mount), the options given
+    // here on top.
+    const ConfigLoadResult r = loadTaggingOverrides(replay->taggingSettings());
+    if (!r.ok()) {
+      std::fprintf(stderr,
+                   "keyframed select: warning: the record's tagging settings do not load (%s): "
+                   "tagging with the defaults and the options given\n",
+                   r.errors.front().c_str());
+    } else {
+      SelectOptions recorded;
+      const DaemonConfig::Tagging& t = r.config.tagging;
+      recorded.make = t.make;
+      recorded.model = t.model;
+      recorded.mountGimbal = t.mountGimbal;
+      recorded.mountRollDeg = t.mountRollDeg;
+      recorded.mountPitchDeg = t.mountPitchDeg;
+      recorded.mountYawDeg = t.mountYawDeg;
+      recorded.timeOffsetMs = r.config.camera.timeOffsetMs;
+      if (!opts.args.empty()) {
+        if (const ParseResult again = parseSelectOptions(opts.args, recorded); !again.ok) {
+          s.error = again.error;
+          s.badOptions = true;
+          return s;
+        }
+      }
+      opts.make = recorded.make;
+      opts.model = recorded.model;
+      opts.mountGimbal = recorded.mountGimbal;
+      opts.mountRollDeg = recorded.mountRollDeg;
+      opts.mountPitchDeg = recorded.mountPitchDeg;
+      opts.mountYawDeg = recorded.mountYawDeg;
+      opts.timeOffsetMs = recorded.timeOffsetMs;
+    }
+  }
   if (replay != nullptr && replay->selectionSettings().empty()) {
     std::fprintf(stderr,
                  "keyframed select: warning: the record does not say which selection settings "
@@ -404,6 +439,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   std::optional<CameraModel> camera;
   if (calibrated) {
     camera = calibrated;
+  } else if (replay != nullptr && replay->camera()) {
+    camera = replay->camera();  // the camera model the flight was tagged with
   } else if (replay != nullptr && replay->calibration()) {
     camera = replay->calibration();  // the intrinsics the flight was recorded with
   } else if (!opts.telemetry.empty()) {
@@ -415,8 +452,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     const std::string w = camera->aspectMismatch(source->info().width, source->info().height);
     if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
     const std::string size = camera->physicalSizeWarning();
-    if (!size.empty() && !calibrated) {
-      // The record's CameraCalibration holds pixels only (K, D), no sensor size.
+    if (!size.empty() && !calibrated && replay != nullptr && !replay->camera()) {
+      // The record's CameraCalibration holds pixels only (K, D), no sensor size (a
+      // record from before the settings kept the whole camera model).
       std::fprintf(stderr,
                    "keyframed select: warning: the flight record's calibration is in pixels "
                    "only (no sensor size, make or model): give --calibration with the file the "
@@ -579,6 +617,16 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     return s;
   }
   const LogToRecord logToRecord(outputs);
+  {
+    DaemonConfig::Tagging t;
+    t.make = opts.make;
+    t.model = opts.model;
+    t.mountGimbal = opts.mountGimbal;
+    t.mountRollDeg = opts.mountRollDeg;
+    t.mountPitchDeg = opts.mountPitchDeg;
+    t.mountYawDeg = opts.mountYawDeg;
+    outputs.tagging(taggingOverrides(t, opts.timeOffsetMs), camera ? &*camera : nullptr);
+  }
   outputs.settings(fo.liveClock ? monotonicNowNs() : fo.startNs, selectionOverrides(opts.selector));
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs,

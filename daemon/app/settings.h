@@ -58,6 +58,8 @@ inline constexpr SettingRange<std::int64_t> kBlurStep{1, 16};
 inline constexpr SettingRange<std::int64_t> kBlurWidth{0, 16384};
 // Telemetry and tags.
 inline constexpr SettingRange<std::int64_t> kMavlinkId{1, 255};
+// Our system id: 0 takes the autopilot's.
+inline constexpr SettingRange<std::int64_t> kOwnSystemId{0, 255};
 inline constexpr SettingRange<std::int64_t> kTelemetryWaitMs{0, 60000};
 inline constexpr SettingRange<std::int64_t> kTelemetryStartWaitMs{0, 600000};
 inline constexpr SettingRange<double> kMountAngleDeg{-360.0, 360.0};

@@ -7,6 +7,7 @@
 
 #include "app/log_throttle.h"
 #include "app/text_io.h"
+#include "tagging/camera_model_toml.h"
 #include "tagging/camera_mount.h"
 #include "telemetry/pose.h"
 
@@ -82,6 +83,8 @@ struct FlightOutputs::Impl {
   std::int64_t candidate = -1;
   static constexpr std::size_t kMaxScores = 1800;
   std::int64_t lastStatusNs = 0;
+  std::string taggingLines;  // tagging(): for every settings message
+  std::string cameraToml;
   std::int64_t lastPreviewNs = 0;
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
@@ -355,8 +358,16 @@ void FlightOutputs::vehicleAttitude(std::int64_t timeNs, const Quaternion& q) {
 
 void FlightOutputs::settings(std::int64_t timeNs, const std::string& selectionLines) {
   if (!impl_->recorder) return;
-  impl_->recorder->recordText(McapTopic::Settings, timeNs,
-                              "{\"selection\":\"" + jsonEscape(selectionLines) + "\"}");
+  std::string json = "{\"selection\":\"" + jsonEscape(selectionLines) + "\"";
+  if (!impl_->taggingLines.empty())
+    json += ",\"tagging\":\"" + jsonEscape(impl_->taggingLines) + "\"";
+  if (!impl_->cameraToml.empty()) json += ",\"camera\":\"" + jsonEscape(impl_->cameraToml) + "\"";
+  impl_->recorder->recordText(McapTopic::Settings, timeNs, json + "}");
+}
+
+void FlightOutputs::tagging(const std::string& taggingLines, const CameraModel* camera) {
+  impl_->taggingLines = taggingLines;
+  impl_->cameraToml = camera != nullptr ? "[camera]\n" + cameraTomlKeys(*camera) : std::string();
 }
 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
@@ -618,6 +629,7 @@ bool FlightOutputs::previewStillDue() const {
 }
 void FlightOutputs::previewStill(std::span<const std::uint8_t>) {}
 void FlightOutputs::settings(std::int64_t, const std::string&) {}
+void FlightOutputs::tagging(const std::string&, const CameraModel*) {}
 void FlightOutputs::telemetry(const std::string&) {}
 bool FlightOutputs::publishing() const {
   return false;

@@ -94,6 +94,11 @@ class FlightOutputs {
   // The selection settings in force from timeNs (selection.KEY=VALUE lines), for a
   // replay of the record to select as the flight did. Main thread.
   void settings(std::int64_t timeNs, const std::string& selectionLines);
+  // What the keyframes are tagged with, for a replay to tag as the flight did:
+  // tagging.KEY=VALUE lines (EXIF make and model, the camera mount) and the camera
+  // model, when there is one, as a [camera] table (camera_model_toml.h). Every
+  // settings() message from then on carries them. Before the first settings().
+  void tagging(const std::string& taggingLines, const CameraModel* camera);
   // The vehicle's pose (JSON) on Zenoh's .../telemetry key.
   void telemetry(const std::string& json);
   [[nodiscard]] bool publishing() const;  // a Zenoh session is open

@@ -171,6 +171,19 @@ bool ZenohSession::checkConfigFile(const std::string& path, std::string& error) 
   return false;
 }
 
+bool ZenohSession::configValue(const std::string& path, const std::string& key, std::string& value,
+                               std::string& error) {
+  Err e;
+  std::array<char, 4096> out{};
+  if (kfio_zenoh_config_get(path.empty() ? nullptr : path.c_str(), key.c_str(), out.data(),
+                            out.size(), e.data(), e.size()) != 0) {
+    error = e.str();
+    return false;
+  }
+  value = out.data();
+  return true;
+}
+
 ZenohSession::~ZenohSession() {
   kfio_session_close(handle_);
 }

@@ -84,6 +84,12 @@ class ZenohSession {
   static std::unique_ptr<ZenohSession> open(const Options& options, std::string& error);
   // Reads a JSON5 configuration file as open() does, without opening a session.
   static bool checkConfigFile(const std::string& path, std::string& error);
+  // One setting ("transport/link/tx/...") of what open() would open with from `path`
+  // (empty: the defaults), keyframed's defaults applied, as JSON; false with an error.
+  // (Keyframes block while the link is congested: zenoh's 5 s before it closes a
+  // session so blocked becomes 60 s unless the file sets it.)
+  static bool configValue(const std::string& path, const std::string& key, std::string& value,
+                          std::string& error);
   ~ZenohSession();
   ZenohSession(const ZenohSession&) = delete;
   ZenohSession& operator=(const ZenohSession&) = delete;

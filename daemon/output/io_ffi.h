@@ -69,6 +69,11 @@ void kfio_session_close(kfio_session* session);
 /* Reads a JSON5 configuration file as kfio_session_open does, without opening a
  * session: 0 when zenoh takes it, -1 with the reason in err. */
 int kfio_zenoh_config_check(const char* config_path, char* err, size_t err_len);
+/* One setting ("transport/link/tx/...") of the configuration a session would open with
+ * (config_path NULL: the defaults), keyframed's defaults applied, as JSON in out: 0, or
+ * -1 with the reason in err. */
+int kfio_zenoh_config_get(const char* config_path, const char* key, char* out, size_t out_len,
+                          char* err, size_t err_len);
 /* Writes the session's zenoh id (hex) into out. */
 int kfio_session_zid(kfio_session* session, char* out, size_t out_len);
 

@@ -228,14 +228,16 @@ bool KeyframePublisher::attach(std::unique_ptr<ZenohSession> session, std::strin
     ok = queryable_ != nullptr;
   }
   if (ok && !flight_.empty() && !flightsDir_.empty()) {
-    const std::string dir = flightsDir_, current = flight_;
+    const std::string dir = flightsDir_, current = flight_, key = prefix_ + "/flights";
     flightsQueryable_ = ZenohQueryable::declare(
-        *session_, prefix_ + "/flights",
-        [dir, current, out = keyframesOut_](const std::string&, const std::string&,
-                                            ZenohReply& reply) {
+        *session_, key,
+        [dir, current, key, out = keyframesOut_](const std::string&, const std::string&,
+                                                 ZenohReply& reply) {
           const std::string json = flightCatalogue(dir, current, out);
           std::string ignored;
-          reply.ok({}, asBytes(json), {}, ignored);
+          // On its own key, not the query's: a fleet's answers to keyframed/*/flights
+          // say which vehicle each is from.
+          reply.ok(key, asBytes(json), {}, ignored);
         },
         error);
     ok = flightsQueryable_ != nullptr;
@@ -359,6 +361,7 @@ std::string flightCatalogue(const std::string& flightsDir, const std::string& cu
 }
 
 KeyframePublisher::~KeyframePublisher() {
+  closing_.store(true, std::memory_order_release);
   bool opening = false;
   {
     std::lock_guard lock(retry_->m);
@@ -510,17 +513,23 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
   for (const StoredKeyframe& r : rows) {
     if (!all && r.sequence != wanted) continue;
     if (r.sequence < first || r.sequence > final) continue;
+    // The parameters to ask with for the rest, as they stand: the range's end and the
+    // flight kept, so that a querier that follows them gets the rest of what it asked for.
+    const auto askAgain = [&](const std::string& why) {
+      std::string ignored;
+      reply.fail(why + ": ask again with range=" + std::to_string(r.sequence) + ".." +
+                     (final == INT64_MAX ? std::string() : std::to_string(final)) +
+                     (flight.empty() ? std::string() : ";flight=" + flight),
+                 ignored);
+    };
+    if (closing_.load(std::memory_order_acquire)) {
+      askAgain("the daemon is stopping");
+      return;
+    }
     if (sent == kMaxRepliesPerQuery) {
       // A whole flight in one answer would hold a radio link for minutes, past any
       // querier's timeout, while it asked again: the rest is asked for by range.
-      std::string ignored;
-      // The parameters to ask with, as they stand: the range's end and the flight kept,
-      // so that a querier that follows them gets the rest of what it asked for.
-      reply.fail("at most " + std::to_string(kMaxRepliesPerQuery) +
-                     " keyframes a query: ask again with range=" + std::to_string(r.sequence) +
-                     ".." + (final == INT64_MAX ? std::string() : std::to_string(final)) +
-                     (flight.empty() ? std::string() : ";flight=" + flight),
-                 ignored);
+      askAgain("at most " + std::to_string(kMaxRepliesPerQuery) + " keyframes a query");
       return;
     }
     found = true;

@@ -139,6 +139,9 @@ class KeyframePublisher {
   std::unique_ptr<ZenohQueryable> flightsQueryable_;
   // Set once everything above is declared; none of it changes after.
   std::atomic<bool> live_{false};
+  // Set first by the destructor: an answer under way stops between two keyframes
+  // rather than sending up to kMaxRepliesPerQuery of them while the daemon stops.
+  std::atomic<bool> closing_{false};
   std::shared_ptr<Retry> retry_ = std::make_shared<Retry>();
   std::thread retryThread_;
   mutable std::mutex publishedMutex_;  // publishKeyframe() against answer() (a Zenoh thread)

@@ -75,11 +75,15 @@ constexpr const char* kKeyframeMetaSchema = R"json({
 
 constexpr const char* kSettingsSchema = R"json({
   "title": "keyframed.Settings",
-  "description": "The selection settings in force from this message on (start, SIGHUP reload)",
+  "description": "The selection settings in force from this message on (start, SIGHUP reload), and what keyframes are tagged with",
   "type": "object",
   "properties": {
     "selection": {"type": "string",
-                  "description": "one selection.KEY=VALUE per line, TOML values"}
+                  "description": "one selection.KEY=VALUE per line, TOML values"},
+    "tagging": {"type": "string",
+                "description": "one tagging.KEY=VALUE per line (make, model, mount, mount_roll, mount_pitch, mount_yaw), TOML values"},
+    "camera": {"type": "string",
+               "description": "the camera model as a TOML [camera] table, as a calibration file holds it"}
   }
 })json";
 

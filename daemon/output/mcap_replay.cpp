@@ -15,6 +15,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "output/h264.h"
+#include "tagging/camera_model_toml.h"
 #ifdef KEYFRAMED_HAVE_IO
 #include "output/io.h"
 #endif
@@ -186,10 +187,14 @@ bool decisionIndex(std::span<const std::uint8_t> json, std::int64_t& index, std:
   return true;
 }
 
-// The "selection" string of a /keyframed/settings message, unescaped.
-std::optional<std::string> settingsText(std::span<const std::uint8_t> json) {
-  const std::string s(reinterpret_cast<const char*>(json.data()), json.size());
-  const std::string key = "\"selection\":\"";
+// A string field of a /keyframed/settings message ("selection", "tagging",
+// "camera"), unescaped as FlightOutputs::settings escapes it (jsonEscape).
+std::optional<std::string> settingsField(std::span<const std::uint8_t> json,
+                                         std::string_view name) {
+  const std::string_view s(reinterpret_cast<const char*>(json.data()), json.size());
+  // (appended, not concatenated: GCC 12's -Wrestrict misreads "x" + std::string)
+  std::string key(1, '"');
+  key.append(name).append("\":\"");
   const auto at = s.find(key);
   if (at == std::string::npos) return std::nullopt;
   std::string out;
@@ -288,11 +293,22 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
       if (topic == 4) {
         // Each part repeats the settings in force: a change is one that differs from
         // the message before it.
-        if (const auto text = settingsText(msg)) {
-          if (s->selection_.empty())
+        if (const auto text = settingsField(msg, "selection")) {
+          if (s->selection_.empty()) {
             s->selection_ = *text;
-          else if (*text != lastSettings)
+            // What the keyframes were tagged with, from the same message.
+            s->tagging_ = settingsField(msg, "tagging").value_or("");
+            if (const auto camera = settingsField(msg, "camera")) {
+              CameraModel c;
+              std::string e;
+              if (cameraFromTomlText(*camera, "the record's camera", c, e))
+                s->camera_ = std::move(c);
+              else
+                std::fprintf(stderr, "keyframed: warning: %s\n", e.c_str());
+            }
+          } else if (*text != lastSettings) {
             ++s->settingsChanges_;
+          }
           lastSettings = *text;
         }
         continue;

@@ -52,6 +52,12 @@ class McapReplaySource final : public FrameSource {
   // selection.KEY=VALUE lines; empty for records without them), and how many times
   // they changed during it (SIGHUP reloads).
   [[nodiscard]] const std::string& selectionSettings() const { return selection_; }
+  // What its keyframes were tagged with (the same message: tagging.KEY=VALUE lines,
+  // config.h's taggingOverrides, and the whole camera model: make, model, sensor size
+  // and focal length beside K and D); empty / none for records from before they were
+  // kept, or a flight without a camera model.
+  [[nodiscard]] const std::string& taggingSettings() const { return tagging_; }
+  [[nodiscard]] const std::optional<CameraModel>& camera() const { return camera_; }
   [[nodiscard]] int settingsChanges() const { return settingsChanges_; }
 
  private:
@@ -71,6 +77,8 @@ class McapReplaySource final : public FrameSource {
   bool commanded_ = false;
   std::optional<CameraModel> calibration_;
   std::string selection_;
+  std::string tagging_;
+  std::optional<CameraModel> camera_;
   int settingsChanges_ = 0;
 };
 

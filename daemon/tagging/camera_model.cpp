@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cctype>
+#include <charconv>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -413,6 +414,85 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
   }
   // The table's line and name before what the shared checks find wrong in it.
   return finish(where(cam) + prefix, m, error);
+}
+
+std::string tomlString(std::string_view s) {
+  std::string out = "\"";
+  for (const char ch : s) {
+    const auto u = static_cast<unsigned char>(ch);
+    if (ch == '"' || ch == '\\') {
+      out += '\\';
+      out += ch;
+    } else if (u < 0x20 || u == 0x7f) {
+      char buf[8];
+      std::snprintf(buf, sizeof buf, "\\u%04x", u);
+      out += buf;
+    } else {
+      out += ch;
+    }
+  }
+  return out + "\"";
+}
+
+std::string tomlReal(double v) {
+  char buf[64];
+  const auto [end, ec] = std::to_chars(buf, buf + sizeof buf, v);
+  std::string s(buf, ec == std::errc() ? end : buf);
+  if (s.find_first_of(".eEn") == std::string::npos) s += ".0";
+  return s;
+}
+
+std::string cameraTomlKeys(const CameraModel& m) {
+  std::string out = "make = " + tomlString(m.make) + "\nmodel = " + tomlString(m.model) + "\n";
+  out += std::string("lens = ") +
+         (m.lens == CameraModel::Lens::Fisheye ? "\"fisheye\"" : "\"pinhole\"") + "\n";
+  if (m.width > 0 && m.height > 0) {
+    out += "width = " + std::to_string(m.width) + "\nheight = " + std::to_string(m.height) + "\n";
+  }
+  const std::pair<const char*, double> numbers[] = {{"fx", m.fx},
+                                                    {"fy", m.fy},
+                                                    {"cx", m.cx},
+                                                    {"cy", m.cy},
+                                                    {"sensor_width_mm", m.sensorWidthMm},
+                                                    {"sensor_height_mm", m.sensorHeightMm},
+                                                    {"focal_length_mm", m.focalLengthMm}};
+  for (const auto& [key, v] : numbers) {
+    if (std::isfinite(v)) out.append(key).append(" = ").append(tomlReal(v)).append("\n");
+  }
+  if (!m.distortion.empty()) {
+    out += "distortion = [";
+    for (std::size_t i = 0; i < m.distortion.size(); ++i) {
+      out += (i > 0 ? ", " : "") + tomlReal(m.distortion[i]);
+    }
+    out += "]\n";
+  }
+  return out;
+}
+
+bool cameraFromTomlText(const std::string& text, const std::string& origin, CameraModel& out,
+                        std::string& error) {
+  // A record is anyone's file: toml++ recurses once per level of nesting.
+  if (text.size() > (1u << 16) || textNesting(text) > 64) {
+    error = origin + ": a [camera] table over 64 KiB or nested past 64 levels";
+    return false;
+  }
+  toml::table doc;
+  try {
+    doc = toml::parse(text);
+  } catch (const toml::parse_error& e) {
+    error =
+        origin + ":" + std::to_string(e.source().begin.line) + ": " + std::string(e.description());
+    return false;
+  }
+  const toml::table* cam = doc["camera"].as_table();
+  if (cam == nullptr || doc.size() != 1) {
+    error = origin + ": not a [camera] table alone";
+    return false;
+  }
+  CameraModel m;
+  if (!cameraFromTomlTable(*cam, origin, "camera", m, error)) return false;
+  out = std::move(m);
+  return true;
 }
 
 std::string readSmallText(const std::string& path, std::string& text) {

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <string>
+#include <string_view>
 
 #include <toml++/toml.h>
 
@@ -16,5 +17,20 @@ namespace keyframed {
 [[nodiscard]] bool cameraFromTomlTable(const toml::table& table, const std::string& path,
                                        const std::string& prefix, CameraModel& out,
                                        std::string& error);
+
+// The keys of such a table for `m` (what is known of it), one `key = value` per line,
+// that cameraFromTomlTable reads back as the same model: make, model, lens, width and
+// height when known, the finite numbers, the distortion when there is one.
+std::string cameraTomlKeys(const CameraModel& m);
+
+// A [camera] table's text (cameraTomlKeys under "[camera]"), as a flight record keeps
+// it, read back; errors start with `origin`.
+[[nodiscard]] bool cameraFromTomlText(const std::string& text, const std::string& origin,
+                                      CameraModel& out, std::string& error);
+
+// A TOML basic string of `s` (quoted, escaped).
+std::string tomlString(std::string_view s);
+// The shortest text that reads back as the same double, always a TOML float.
+std::string tomlReal(double v);
 
 }  // namespace keyframed

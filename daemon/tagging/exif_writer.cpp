@@ -101,10 +101,11 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
   // The tags carry one focal length in mm: each axis's focal length in pixels comes
   // back through its own pixel pitch. A calibration's fx and fy then set the pitches'
   // ratio (pixels fx / fy times as tall as wide), whatever height a datasheet gives the
-  // sensor; without one, the sensor's height, else square pixels.
+  // sensor; without one, square pixels: a video mode crops the sensor's height (16:9
+  // of a 4:3 sensor), so the datasheet's height would make them a third too tall.
   const bool sensorKnown = std::isfinite(cam.sensorWidthMm) && cam.width > 0 && cam.height > 0;
   const double squareH = cam.sensorWidthMm * cam.height / std::max(cam.width, 1);
-  double sensorH = std::isfinite(cam.sensorHeightMm) ? cam.sensorHeightMm : squareH;
+  double sensorH = squareH;
   if (cam.calibrated() && std::isfinite(cam.fx) && std::isfinite(cam.fy) && cam.fy > 0.0)
     sensorH = squareH * cam.fx / cam.fy;
   if (sensorKnown) {

@@ -116,11 +116,14 @@ bool ClockMapper::timesyncAgreesWithArrivals() const {
   // bound than any link's least delay over the window, tc1 is not on the boot clock
   // the messages are stamped with (an autopilot that answers from another clock), and
   // the arrivals, stamped with the very clock being mapped, are believed.
-  constexpr std::int64_t kCrossingNs = 20'000'000;
+  // 20 ms, and 100 ppm of a window longer than 200 s (crystals drift 30-50 ppm: a
+  // 600 s window's bounds cross by up to 30 ms).
+  const std::int64_t crossingNs =
+      std::max<std::int64_t>(20'000'000, config_.arrivalWindowNs / 10'000);
   constexpr std::int64_t kLeastDelayNs = 500'000'000;
   if (arrivals_.empty()) return true;
   const std::int64_t arrivalUpper = arrivals_.front().offsetNs;
-  return lowerNs_ <= arrivalUpper + kCrossingNs && upperNs_ >= arrivalUpper - kLeastDelayNs;
+  return lowerNs_ <= arrivalUpper + crossingNs && upperNs_ >= arrivalUpper - kLeastDelayNs;
 }
 
 std::optional<std::pair<std::int64_t, std::int64_t>> ClockMapper::timesyncBounds() const {

@@ -253,8 +253,10 @@ void TelemetryDecoder::handle(const mavlink_message_t& msg, std::int64_t localNs
       GpsQuality q;
       q.fixType = r.fix_type;
       q.satellites = r.satellites_visible == 255 ? -1 : r.satellites_visible;
-      q.hdop = r.eph == UINT16_MAX ? NAN : r.eph / 100.0;
-      q.vdop = r.epv == UINT16_MAX ? NAN : r.epv / 100.0;
+      // UINT16_MAX is "unknown"; so is 0 (drivers that never fill it in): a DOP of 0,
+      // a perfect fix, would tag an accuracy of 0 m that bundle adjustment believes.
+      q.hdop = r.eph == UINT16_MAX || r.eph == 0 ? NAN : r.eph / 100.0;
+      q.vdop = r.epv == UINT16_MAX || r.epv == 0 ? NAN : r.epv / 100.0;
       // h_acc/v_acc are MAVLink 2 extensions (mm); 0 in MAVLink 1 frames = unknown.
       q.hAccuracyM = r.h_acc == 0 ? NAN : r.h_acc / 1000.0;
       q.vAccuracyM = r.v_acc == 0 ? NAN : r.v_acc / 1000.0;

@@ -386,7 +386,7 @@ bool TelemetryService::sendCapture(const CaptureReport& r) {
     q[3] = static_cast<float>(m.z);
   }
   char url[205] = {};  // the generated pack copies the full 205 bytes
-  std::memcpy(url, r.fileUrl.data(), std::min<std::size_t>(204, r.fileUrl.size()));
+  if (r.saved) std::memcpy(url, r.fileUrl.data(), std::min<std::size_t>(204, r.fileUrl.size()));
   const std::uint64_t utc = r.pose.utcUs ? static_cast<std::uint64_t>(*r.pose.utcUs) : 0;
   // time_boot_ms is the autopilot's clock where the mapping is known.
   std::uint32_t boot = bootMs();
@@ -398,7 +398,7 @@ bool TelemetryService::sendCapture(const CaptureReport& r) {
       encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
         mavlink_msg_camera_image_captured_pack_status(
             systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, boot, utc, 0, lat,
-            lon, alt, rel, q, r.imageIndex, 1, url);
+            lon, alt, rel, q, r.imageIndex, r.saved ? 1 : 0, url);
       }));
 }
 
@@ -572,17 +572,11 @@ void TelemetryService::sendCaptureStatus() {
 void TelemetryService::onTimesync(const mavlink_message_t& msg, std::int64_t timeNs) {
   mavlink_timesync_t ts;
   mavlink_msg_timesync_decode(&msg, &ts);
-  if (ts.tc1 == 0) {
-    if (!config_.camera) return;
-    // Someone syncs with us: answer with our clock.
-    const std::int64_t now = monotonicNowNs();
-    send(encoder_->encode(
-        [&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
-          mavlink_msg_timesync_pack_status(
-              systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, now, ts.ts1);
-        }));
-    return;
-  }
+  // A request (the autopilot's, syncing with its onboard computer) is not answered:
+  // nothing the autopilot gets from us is on our clock, and PX4 takes every answer for
+  // its one onboard computer's clock (this dialect's TIMESYNC has no target ids to say
+  // whose it is), so ours beside MAVROS's or a VIO computer's would reset its estimate.
+  if (ts.tc1 == 0) return;
   // An answer: used only when it comes from the autopilot we follow and echoes one of
   // our recent requests. Others (a ground station answering the autopilot's own
   // request, a second vehicle, a stale duplicate) would set the clock to theirs.

@@ -37,6 +37,9 @@ struct CaptureReport {
   Pose pose;                                 // position used when present
   std::optional<Quaternion> cameraAttitude;  // camera (OpenCV axes) -> NED
   std::string fileUrl;
+  // Written to disk. A keyframe that was not (a full disk; it still went out on Zenoh)
+  // is reported with capture_result 0 and no file URL.
+  bool saved = true;
 };
 
 // CAMERA_IMAGE_CAPTURED.q: the camera's attitude in MAVLink's camera frame (x along

@@ -21,8 +21,10 @@ def run(kf_bin: Path, *args: str | Path, timeout: float = 120) -> subprocess.Com
     )
 
 
-def assert_clean_failure(p: subprocess.CompletedProcess[str], needle: str) -> None:
-    assert p.returncode > 0, p  # an error exit, not success and not a signal
+def assert_clean_failure(p: subprocess.CompletedProcess[str], needle: str, code: int) -> None:
+    """One error line holding `needle`, and the documented exit status: 2 a bad command
+    line, 3 an input that could not be read or an output not written."""
+    assert p.returncode == code, (p.returncode, p.stderr)
     lines = [line for line in p.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, f"expected one error line, got: {p.stderr!r}"
     assert needle in lines[0], lines[0]
@@ -78,11 +80,11 @@ def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, 
     (out / "notes.txt").write_text("the pilot's notes\n")
     (out / "0042.jpg").write_bytes(b"a photo of the pilot's, numbered")
     again = run(any_bin, "select", pan_video, "--out", out, "--target", "0.6")
-    assert_clean_failure(again, "earlier run's output")
+    assert_clean_failure(again, "earlier run's output", 3)
     assert "--overwrite" in again.stderr
     # said at once, before the video is even looked at
     early = run(any_bin, "select", tmp_path / "missing.avi", "--out", out)
-    assert_clean_failure(early, "earlier run's output")
+    assert_clean_failure(early, "earlier run's output", 3)
     assert json.loads((out / "summary.json").read_text()) == before  # untouched
     p = run(any_bin, "select", pan_video, "--out", out, "--target", "0.6", "--overwrite")
     assert p.returncode == 0, p.stderr
@@ -101,7 +103,7 @@ def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, 
     photos.mkdir()
     (photos / "100001.jpg").write_bytes(b"a camera's picture")
     p = run(any_bin, "select", pan_video, "--out", photos, "--max-frames", "10")
-    assert_clean_failure(p, "picture(s) named as keyframes are")
+    assert_clean_failure(p, "picture(s) named as keyframes are", 3)
     assert sorted(f.name for f in photos.iterdir()) == ["100001.jpg"]
     p = run(any_bin, "select", pan_video, "--out", photos, "--max-frames", "10", "--overwrite")
     assert p.returncode == 0, p.stderr
@@ -110,7 +112,7 @@ def test_an_earlier_run_in_the_output_directory(any_bin: Path, pan_video: Path, 
     p = run(
         any_bin, "select", pan_video, "--out", tmp_path / "o3", "--mcap", tmp_path / "o3/000000.jpg"
     )
-    assert_clean_failure(p, "has a keyframe's name in --out")
+    assert_clean_failure(p, "has a keyframe's name in --out", 3)
 
 
 def test_a_fifo_no_one_writes_to_ends_on_ctrl_c(any_bin: Path, tmp_path):
@@ -156,7 +158,7 @@ def test_jsonl_decisions_and_paper_mode(kf_bin: Path, pan_video: Path, tmp_path)
 
 def test_missing_file(any_bin: Path, tmp_path):
     assert_clean_failure(
-        run(any_bin, "select", tmp_path / "nope.avi", "--out", tmp_path / "o"), "no such file"
+        run(any_bin, "select", tmp_path / "nope.avi", "--out", tmp_path / "o"), "no such file", 3
     )
 
 
@@ -164,7 +166,7 @@ def test_not_a_video(any_bin: Path, tmp_path):
     junk = tmp_path / "junk.mp4"
     junk.write_bytes(b"\x00\x01 definitely not a video " * 1000)
     assert_clean_failure(
-        run(any_bin, "select", junk, "--out", tmp_path / "o"), "not a readable video"
+        run(any_bin, "select", junk, "--out", tmp_path / "o"), "not a readable video", 3
     )
 
 
@@ -175,7 +177,9 @@ def test_a_photo_is_not_a_video(any_bin: Path, tmp_path, ext: str):
     photo = tmp_path / f"photo{ext}"
     assert cv2.imwrite(str(photo), img)
     out = tmp_path / "o"
-    assert_clean_failure(run(any_bin, "select", photo, "--out", out), "a still image, not a video")
+    assert_clean_failure(
+        run(any_bin, "select", photo, "--out", out), "a still image, not a video", 3
+    )
     assert not any(out.glob("*.jpg"))
 
 
@@ -197,7 +201,7 @@ def test_a_raw_mjpeg_file_is_a_video(kf_bin: Path, pan_video: Path, tmp_path):
 
 
 def test_directory_instead_of_video(any_bin: Path, tmp_path):
-    assert_clean_failure(run(any_bin, "select", tmp_path, "--out", tmp_path / "o"), "directory")
+    assert_clean_failure(run(any_bin, "select", tmp_path, "--out", tmp_path / "o"), "directory", 3)
 
 
 def test_an_mp4_cut_before_its_index_is_one_clear_error(any_bin: Path, tmp_path):
@@ -214,7 +218,7 @@ def test_an_mp4_cut_before_its_index_is_one_clear_error(any_bin: Path, tmp_path)
     cut = tmp_path / "cut.mp4"
     cut.write_bytes(mp4.read_bytes()[: mp4.stat().st_size // 2])
     assert_clean_failure(
-        run(any_bin, "select", cut, "--out", tmp_path / "o"), "not a readable video"
+        run(any_bin, "select", cut, "--out", tmp_path / "o"), "not a readable video", 3
     )
 
 
@@ -225,7 +229,7 @@ def test_truncated_video_keeps_what_was_read_and_fails(any_bin: Path, pan_video:
     out = tmp_path / "o"
     p = run(any_bin, "select", cut, "--out", out)
     assert p.returncode == 3
-    assert_clean_failure(p, "ended early")
+    assert_clean_failure(p, "ended early", 3)
     summary = json.loads((out / "summary.json").read_text())
     assert 10 < summary["frames_read"] < 90
     assert summary["truncated"] is True
@@ -263,7 +267,7 @@ def test_cut_transport_stream_is_truncated(any_bin: Path, tmp_path):
     out = tmp_path / "o"
     p = run(any_bin, "select", cut, "--out", out)
     assert p.returncode == 3, p.stderr
-    assert_clean_failure(p, "ended early")
+    assert_clean_failure(p, "ended early", 3)
     assert "transport packet" in p.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["truncated"] is True
@@ -301,7 +305,7 @@ def test_cut_transport_stream_is_truncated(any_bin: Path, tmp_path):
 def test_bad_options(any_bin: Path, pan_video: Path, tmp_path, args: list[str], needle: str):
     p = run(any_bin, "select", pan_video, "--out", tmp_path / "o", *args)
     assert p.returncode == 2
-    assert_clean_failure(p, needle)
+    assert_clean_failure(p, needle, 2)
 
 
 @pytest.mark.parametrize("size", [(640, 16), (4000, 8), (16, 16)])
@@ -317,7 +321,7 @@ def test_frames_too_small_to_analyse(any_bin: Path, tmp_path, size: tuple[int, i
     for mode in ("geometric", "paper"):
         p = run(any_bin, "select", video, "--out", tmp_path / mode, "--mode", mode)
         assert p.returncode == 3, p.stderr
-        assert_clean_failure(p, f"frames of {size[0]}x{size[1]} are too small to analyse")
+        assert_clean_failure(p, f"frames of {size[0]}x{size[1]} are too small to analyse", 3)
         assert not (tmp_path / mode).exists()
 
 
@@ -331,7 +335,7 @@ def test_frames_too_large_to_analyse(any_bin: Path, tmp_path):
     w.release()
     p = run(any_bin, "select", video, "--out", tmp_path / "o", "--analysis-width", "0")
     assert p.returncode == 3, p.stderr
-    assert_clean_failure(p, "frames of 16400x64 are too large to analyse")
+    assert_clean_failure(p, "frames of 16400x64 are too large to analyse", 3)
     assert not (tmp_path / "o").exists()
 
 
@@ -352,7 +356,7 @@ def test_a_frame_size_that_changes_part_way_is_not_silent(any_bin: Path, tmp_pat
 
 
 def test_unknown_command_and_help(any_bin: Path):
-    assert_clean_failure(run(any_bin, "frobnicate"), "unknown command")
+    assert_clean_failure(run(any_bin, "frobnicate"), "unknown command", 2)
     h = run(any_bin, "select", "--help")
     assert h.returncode == 0 and "--target" in h.stdout
 
@@ -361,7 +365,7 @@ def test_unwritable_output(any_bin: Path, pan_video: Path, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
     assert_clean_failure(
-        run(any_bin, "select", pan_video, "--out", blocker / "sub"), "cannot create"
+        run(any_bin, "select", pan_video, "--out", blocker / "sub"), "cannot create", 3
     )
 
 

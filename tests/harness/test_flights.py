@@ -47,7 +47,11 @@ def test_geometric_mode_meets_the_quality_bar(kf_bin: Path, sample, tmp_path):
     ev = evaluate(fdir, tmp_path / "geo")
     record(name, "geometric", ev)
     assert summary["frames_read"] == ev.frames
-    assert len(ev.keyframes) >= 5
+    # About what the README reports (25 on both; 23-25 on other seeds): neither a
+    # keyframe every few frames nor a handful.
+    assert 15 <= len(ev.keyframes) <= 40, ev.keyframes
+    median = sorted(ev.pair_overlaps)[len(ev.pair_overlaps) // 2]
+    assert 0.62 <= median <= 0.78, ev.pair_overlaps  # around the 0.70 target
     assert ev.in_band >= 0.90, ev.pair_overlaps
     assert ev.min_overlap >= 0.5, ev.pair_overlaps
     assert ev.blurry_kept_fraction < 0.02, ev.keyframes

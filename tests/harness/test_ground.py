@@ -1018,6 +1018,8 @@ def test_geo_txt_rows_never_make_up_angles() -> None:
     assert geo_row("a.jpg", tags(**acc), {"yaw": float("nan"), "pitch": 0, "roll": 0}) is None
     assert geo_row("a.jpg", tags(xy_accuracy=0.8, **xmp), meta) is None
     assert geo_row("a.jpg", ImageTags(**acc, **xmp), meta) is None
+    # a position without an altitude: no row, rather than one at 0 m
+    assert geo_row("a.jpg", ImageTags(lat=51.5, lon=-0.25), meta) is None
 
 
 def test_a_gap_the_vehicle_cannot_fill_is_reported(tagged: Path, tmp_path: Path) -> None:

@@ -170,6 +170,14 @@ def test_config_validation():
         keyframed.KeyframeSelector(cfg)
     with pytest.raises(ValueError):
         cfg.mode = "nonsense"
+    # The ranges the daemon's [selection] and `keyframed select` take, not only the
+    # core's rules: a setting Python takes can be given to them again.
+    for key, value in (("ransac_px", 0.05), ("analysis_width", 100000), ("blur_threshold", 1e12)):
+        cfg = keyframed.SelectorConfig()
+        setattr(cfg, key, value)
+        assert f"selection.{key}" in cfg.validate(), (key, cfg.validate())
+        with pytest.raises(ValueError, match=f"selection.{key}"):
+            keyframed.KeyframeSelector(cfg)
 
 
 def test_select_video_from_python(pan_video: Path, tmp_path):

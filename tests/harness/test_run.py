@@ -1301,6 +1301,9 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
         "output.preview_width=10000",
         "selection.target=0.78",
         "selection.band_high=0.9",
+        "tagging.make=Replayco",
+        "tagging.mount_yaw=10",
+        "camera.time_offset_ms=40",  # 40 ms along the track: some decimetres
     )
     time.sleep(0.3)
     ap.start()
@@ -1348,6 +1351,8 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
         )
     live_kf, replay_kf = rows(fd / "keyframes" / "keyframes.csv"), rows(out / "keyframes.csv")
     assert [k["index"] for k in live_kf] == [k["index"] for k in replay_kf]
+    # the flight's time offset applied again: the same instants tagged
+    assert [k["time_ns"] for k in live_kf] == [k["time_ns"] for k in replay_kf]
     for x, y in zip(live_kf, replay_kf, strict=True):
         if x["geotag"] == "ok":  # same poses from the recorded stream, same clock
             assert y["geotag"] == "ok"
@@ -1375,6 +1380,23 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
     settings = json.loads((other / "summary.json").read_text())["settings"]
     assert settings["target"] == 0.65 and settings["band"] == [0.6, 0.9], settings
     assert len(rows(other / "keyframes.csv")) < len(live_kf)
+    # Tagged as the flight was, with no --calibration, --make or --mount given: the
+    # record keeps the whole camera model (sensor size, focal length) and the mount.
+    from test_geotag import exif
+
+    other_kf = {k["index"]: k for k in rows(other / "keyframes.csv")}
+    both = [k for k in live_kf if k["index"] in other_kf and k["geotag"] == "ok"][:3]
+    assert both, (live_kf, other_kf)
+    live_tags = exif([fd / "keyframes" / k["file"] for k in both])
+    other_tags = exif([other / other_kf[k["index"]]["file"] for k in both])
+    for k in both:
+        x, y = live_tags[k["file"]], other_tags[other_kf[k["index"]]["file"]]
+        assert y["IFD0:Make"] == "Replayco" and x["IFD0:Make"] == "Replayco", y
+        assert y["IFD0:Model"] == x["IFD0:Model"], (x, y)
+        for tag in ("ExifIFD:FocalLength", "ExifIFD:FocalLengthIn35mmFormat"):
+            assert y[tag] == x[tag], (tag, x, y)
+        turn = float(y["XMP-Camera:Yaw"]) - float(x["XMP-Camera:Yaw"])
+        assert abs((turn + 180) % 360 - 180) < 0.05, (x, y)
 
     # The Python API, given no settings, replays with the flight's too.
     import keyframed

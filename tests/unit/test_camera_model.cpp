@@ -13,6 +13,7 @@
 #include <opencv2/core.hpp>
 
 #include "tagging/camera_model.h"
+#include "tagging/camera_model_toml.h"
 #include "tagging/camera_mount.h"
 #include "telemetry/pose_store.h"
 
@@ -408,6 +409,62 @@ distortion = [0.05, -0.01, 0.002, -0.0005]
   EXPECT_NE(error.find("bad-lens.toml:2: camera.lens must be \"pinhole\" or \"fisheye\""),
             std::string::npos)
       << error;
+}
+
+TEST(CameraModel, TomlTextRoundTripsTheWholeModel) {
+  // What a flight record keeps of the camera, read back as the same model: a replay
+  // tags with the flight's make, model, sensor size and lens.
+  CameraModel m;
+  m.make = "Acme \"Aero\"";  // quotes survive TOML's escaping
+  m.model = "X\\1";
+  m.lens = CameraModel::Lens::Fisheye;
+  m.width = 1280;
+  m.height = 720;
+  m.fx = 600.125;
+  m.fy = 599.875;
+  m.cx = 640.5;
+  m.cy = 360.25;
+  m.distortion = {0.05, -0.01, 0.002, -0.0005};
+  m.sensorWidthMm = 6.17;
+  m.sensorHeightMm = 3.47;
+  m.focalLengthMm = 2.9;
+  CameraModel back;
+  std::string error;
+  ASSERT_TRUE(cameraFromTomlText("[camera]\n" + cameraTomlKeys(m), "record", back, error))
+      << error << "\n"
+      << cameraTomlKeys(m);
+  EXPECT_EQ(back.make, m.make);
+  EXPECT_EQ(back.model, m.model);
+  EXPECT_EQ(back.lens, m.lens);
+  EXPECT_EQ(back.width, 1280);
+  EXPECT_EQ(back.height, 720);
+  EXPECT_EQ(back.fx, m.fx);  // exactly: the shortest text that reads back the same
+  EXPECT_EQ(back.fy, m.fy);
+  EXPECT_EQ(back.cx, m.cx);
+  EXPECT_EQ(back.cy, m.cy);
+  EXPECT_EQ(back.distortion, m.distortion);
+  EXPECT_EQ(back.sensorWidthMm, m.sensorWidthMm);
+  EXPECT_EQ(back.sensorHeightMm, m.sensorHeightMm);
+  EXPECT_EQ(back.focalLengthMm, m.focalLengthMm);
+
+  // Make and model alone (no calibration) stay uncalibrated.
+  CameraModel named;
+  named.make = "Acme";
+  ASSERT_TRUE(cameraFromTomlText("[camera]\n" + cameraTomlKeys(named), "record", back, error))
+      << error;
+  EXPECT_FALSE(back.calibrated());
+  EXPECT_EQ(back.make, "Acme");
+
+  // Anyone's file: what is not a [camera] table alone is an error naming the origin,
+  // never a crash (nor a recursion as deep as the text nests).
+  for (const std::string& bad :
+       {std::string("[camera]\nfx = 1\n"), std::string("[camera]\nsize = 3\n"),
+        std::string("[other]\nmake = \"a\"\n"), std::string("[camera\n"),
+        std::string("[camera]\nmake = \"a\"\n[more]\n"), "x = " + std::string(100000, '[')}) {
+    error.clear();
+    EXPECT_FALSE(cameraFromTomlText(bad, "the record's camera", back, error)) << bad;
+    EXPECT_EQ(error.rfind("the record's camera", 0), 0u) << error;
+  }
 }
 
 TEST(CameraModel, ScaledToKeepsTheFieldOfView) {

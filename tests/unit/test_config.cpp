@@ -107,6 +107,29 @@ TEST(Config, SelectionSettingsRoundTripAsOverrides) {
   EXPECT_NE(joined(bad.errors).find("selection.target"), std::string::npos) << joined(bad.errors);
 }
 
+TEST(Config, TaggingSettingsRoundTripAsOverrides) {
+  DaemonConfig c;
+  c.tagging.make = "Acme";
+  c.tagging.model = "Cam \"1\"";
+  c.tagging.mountGimbal = true;
+  c.tagging.mountRollDeg = 1.5;
+  c.tagging.mountPitchDeg = -45;
+  c.tagging.mountYawDeg = 10;
+  c.camera.timeOffsetMs = -12.5;
+  const std::string lines = taggingOverrides(c.tagging, c.camera.timeOffsetMs);
+  EXPECT_NE(lines.find("camera.time_offset_ms=-12.5\n"), std::string::npos) << lines;
+  // What shapes a keyframe's tags only: not the JPEG quality, nor a file path.
+  EXPECT_EQ(lines.find("jpeg_quality"), std::string::npos) << lines;
+  EXPECT_EQ(lines.find("calibration"), std::string::npos) << lines;
+  const ConfigLoadResult r = loadTaggingOverrides(lines);
+  ASSERT_TRUE(r.ok()) << joined(r.errors);
+  EXPECT_EQ(toToml(r.config), toToml(c));
+  for (const char* bad : {"tagging.jpeg_quality=50\n", "selection.target=0.7\n", "tagging.make\n",
+                          "camera.fps=25\n", "tagging.=1\n", "tagging.mount_pitch=\"x\"\n"}) {
+    EXPECT_FALSE(loadTaggingOverrides(bad).ok()) << bad;
+  }
+}
+
 TEST(Config, ShippedFileIsExactlyTheDefaultsAndListsEveryKey) {
   ConfigSources s;
   s.files = {kSource + "/config/keyframed.toml"};
@@ -348,11 +371,11 @@ TEST(Config, OutOfRangeAndBadValues) {
                  "2: camera.source: must be one of v4l2, libcamera, file (got \"usb\")");
   expectOneError(dir, "[camera]\npixel_format = \"yuyv422\"\n",
                  "2: camera.pixel_format: must be \"auto\" or one of NV12, YUV420 (YU12, I420), "
-                 "YUYV (YUY2), MJPEG (MJPG), GREY (got \"yuyv422\")");
+                 "YUYV (YUY2), MJPEG (MJPG), GREY (GRAY, GRAY8) (got \"yuyv422\")");
   // A well-formed FourCC that no backend decodes is as wrong as a typo.
   expectOneError(dir, "[camera]\npixel_format = \"H264\"\n",
                  "2: camera.pixel_format: must be \"auto\" or one of NV12, YUV420 (YU12, I420), "
-                 "YUYV (YUY2), MJPEG (MJPG), GREY (got \"H264\")");
+                 "YUYV (YUY2), MJPEG (MJPG), GREY (GRAY, GRAY8) (got \"H264\")");
   // A video file is delivered as decoded or as a camera's YUV, never as YUYV or MJPEG.
   expectOneError(dir, "[camera]\nsource = \"file\"\npath = \"/v.avi\"\npixel_format = \"YUYV\"\n",
                  "4: camera.pixel_format: source \"file\" delivers \"auto\" (BGR, as decoded), "

@@ -111,9 +111,13 @@ TEST(H264, BadInputIsAnErrorNotACrash) {
   ASSERT_TRUE(again.encode({big.data(), 64, 48}, 0, packet, error)) << error;
   H264Decoder fresh;
   const std::vector<std::uint8_t> cut(packet.begin(), packet.begin() + packet.size() / 2);
+  error.clear();
   if (fresh.decode(cut, back, w, h, error)) {  // concealed: still the stream's size
     EXPECT_EQ(w, 64);
     EXPECT_EQ(h, 48);
+    EXPECT_EQ(back.size(), 64u * 48u * 3u / 2u);
+  } else {
+    EXPECT_FALSE(error.empty());  // refused, saying why
   }
 }
 

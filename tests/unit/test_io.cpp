@@ -650,6 +650,28 @@ TEST(Zenoh, BadConfigIsAClearError) {
   EXPECT_TRUE(KeyframePublisher::checkVehicleName("uav-1").empty());
 }
 
+TEST(Zenoh, ABlockedKeyframeWaitsAMinuteBeforeTheSessionCloses) {
+  // Zenoh closes a session whose blocking put finds no free batch for 5 s: on a slow
+  // radio link every keyframe would. Ours waits 60 s, unless the file says otherwise.
+  const std::string key = "transport/link/tx/queue/congestion_control/block/wait_before_close";
+  std::string value, error;
+  ASSERT_TRUE(ZenohSession::configValue("", key, value, error)) << error;
+  EXPECT_EQ(value, "60000000");
+  const std::string dir = testing::TempDir() + "/kf-zenoh-" + std::to_string(getpid());
+  std::filesystem::create_directories(dir);
+  std::ofstream(dir + "/plain.json5") << "{ mode: \"peer\" }\n";
+  ASSERT_TRUE(ZenohSession::configValue(dir + "/plain.json5", key, value, error)) << error;
+  EXPECT_EQ(value, "60000000");
+  std::ofstream(dir + "/own.json5")
+      << "{ transport: { link: { tx: { queue: { congestion_control: { block: "
+         "{ wait_before_close: 2000000 } } } } } } }\n";
+  ASSERT_TRUE(ZenohSession::configValue(dir + "/own.json5", key, value, error)) << error;
+  EXPECT_EQ(value, "2000000");
+  EXPECT_FALSE(ZenohSession::configValue("", "no/such/key", value, error));
+  EXPECT_FALSE(error.empty());
+  std::filesystem::remove_all(dir);
+}
+
 TEST(Zenoh, PublisherAndQueryableDeclareAndUndeclare) {
   // One isolated session (no scouting, no listeners); queries are tested end to end
   // in tests/harness/test_mcap_zenoh.py.

@@ -96,6 +96,21 @@ TEST(Options, RejectsBadInputWithOneLine) {
   }
 }
 
+TEST(Options, MavlinkIdsTakeTheConfigurationsRanges) {
+  // --mavlink-sysid 0 is telemetry.mavlink_sysid = 0: the autopilot's system id.
+  SelectOptions o, top;
+  ASSERT_TRUE(parse({"v.avi", "--out", "d", "--mavlink-sysid", "0"}, o).ok);
+  EXPECT_EQ(o.mavlinkSystemId, 0);
+  ASSERT_TRUE(parse({"v.avi", "--out", "d", "--mavlink-sysid", "255"}, top).ok);
+  EXPECT_EQ(top.mavlinkSystemId, 255);
+  for (const char* bad : {"256", "-1", "x"}) {
+    SelectOptions b;
+    const auto r = parse({"v.avi", "--out", "d", "--mavlink-sysid", bad}, b);
+    EXPECT_FALSE(r.ok) << bad;
+    EXPECT_EQ(r.error.rfind("--mavlink-sysid", 0), 0U) << r.error;
+  }
+}
+
 TEST(Options, EveryGeometricAndBlurSettingHasAnOption) {
   SelectOptions o;
   const auto r = parse({"v.avi", "--out",

@@ -226,6 +226,23 @@ TEST_F(TaggingTest, SouthWestAndBelowSeaLevel) {
   EXPECT_EQ(field(j, "IFD0:Make"), "");
 }
 
+TEST_F(TaggingTest, UncalibratedVideoModeHasSquarePixelsNotTheSensorsAspect) {
+  if (!haveExiftool()) GTEST_SKIP() << "exiftool not installed (Debian: libimage-exiftool-perl)";
+  // A 16:9 mode of a 4:3 sensor (6.4 x 4.8 mm) crops its height: with the datasheet's
+  // height the tags would say pixels a third taller than wide.
+  CameraModel cam;
+  cam.width = 320;
+  cam.height = 180;
+  cam.sensorWidthMm = 6.4;
+  cam.sensorHeightMm = 4.8;
+  cam.focalLengthMm = 4.0;
+  TagSet t;
+  t.camera = &cam;
+  const std::string j = tagAndRead(t, "crop.jpg");
+  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneXResolution"), 50.0, 1e-3) << j;
+  EXPECT_NEAR(number(j, "ExifIFD:FocalPlaneYResolution"), 50.0, 1e-3) << j;
+}
+
 TEST_F(TaggingTest, NoPositionWritesNoGpsTags) {
   if (!haveExiftool()) GTEST_SKIP() << "exiftool not installed (Debian: libimage-exiftool-perl)";
   CameraModel lens;  // uncalibrated: only what is known

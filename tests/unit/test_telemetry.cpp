@@ -11,6 +11,7 @@
 #include <fstream>
 #include <limits>
 #include <random>
+#include <tuple>
 #include <vector>
 
 #include "telemetry/clock_mapper.h"
@@ -65,11 +66,12 @@ std::vector<std::uint8_t> position(MavlinkEncoder& enc, std::uint32_t bootMs, do
       });
 }
 
-std::vector<std::uint8_t> gpsRaw(MavlinkEncoder& enc, std::uint8_t fix) {
+std::vector<std::uint8_t> gpsRaw(MavlinkEncoder& enc, std::uint8_t fix, std::uint16_t eph = 80,
+                                 std::uint16_t epv = 120) {
   return enc.encode(
       [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-        mavlink_msg_gps_raw_int_pack_status(s, c, st, m, 0, fix, 0, 0, 0, 80, 120, 0, 0, 14, 0, 800,
-                                            1200, 0, 0, 0);
+        mavlink_msg_gps_raw_int_pack_status(s, c, st, m, 0, fix, 0, 0, 0, eph, epv, 0, 0, 14, 0,
+                                            800, 1200, 0, 0, 0);
       });
 }
 
@@ -292,6 +294,37 @@ TEST(TelemetryDecoder, RejectsPositionsAtZeroZeroAndOutOfRange) {
   push(position(ap, 1400, 10.0, 20.0, -430.0));
   push(position(ap, 1500, 10.0, 20.0, 40000.0));
   EXPECT_EQ(dec.stats().badPositions, 8U);
+}
+
+TEST(TelemetryDecoder, ADopOfZeroIsUnknownNotPerfect) {
+  // eph/epv: UINT16_MAX is "unknown", and so is 0 (a driver that never fills it in):
+  // tagged as a DOP of 0 it would claim a perfect fix.
+  for (const auto& [eph, epv, hdop, vdop] :
+       {std::tuple<std::uint16_t, std::uint16_t, double, double>{80, 120, 0.8, 1.2},
+        {0, 0, NAN, NAN},
+        {UINT16_MAX, UINT16_MAX, NAN, NAN}}) {
+    TelemetryDecoder dec;
+    MavlinkEncoder ap(1, 1);
+    Feeder push{dec};
+    push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+    for (int i = 0; i <= 5; ++i) {
+      push.now = (10'000 + i * 100) * kMs;
+      const auto boot = static_cast<std::uint32_t>(i * 100);
+      push(gpsRaw(ap, 3, eph, epv));
+      push(attitudeQ(ap, boot, Quaternion{}));
+      push(position(ap, boot, 10.0, 20.0, 50.0));
+    }
+    const Pose p = dec.poseAt(10'000 * kMs + 450 * kMs);
+    ASSERT_TRUE(p.position.has_value()) << p.staleReason;
+    EXPECT_EQ(p.gps.fixType, 3);
+    if (std::isnan(hdop)) {
+      EXPECT_TRUE(std::isnan(p.gps.hdop)) << eph << " -> " << p.gps.hdop;
+      EXPECT_TRUE(std::isnan(p.gps.vdop)) << epv << " -> " << p.gps.vdop;
+    } else {
+      EXPECT_DOUBLE_EQ(p.gps.hdop, hdop);
+      EXPECT_DOUBLE_EQ(p.gps.vdop, vdop);
+    }
+  }
 }
 
 // The camera starts on hasPose(): the clock estimate must have settled too, or the
@@ -742,6 +775,31 @@ TEST(ClockMapper, TimesyncFromAnotherClockIsNotBelieved) {
       EXPECT_FALSE(clock.uncertaintyNs().has_value());
     }
   }
+}
+
+// The longest window (telemetry.clock_window_s = 600) over an autopilot crystal 50 ppm
+// fast: the bounds from its two ends cross by 30 ms, which is drift, not another clock.
+TEST(ClockMapper, ALongWindowTakesTheClocksDriftForDriftNotAnotherClock) {
+  ClockMapper::Config config;
+  config.arrivalWindowNs = 600'000'000'000;
+  ClockMapper clock(config);
+  const std::int64_t offset = 5'000 * kMs;
+  const auto autopilotNs = [&](std::int64_t local) {
+    return static_cast<std::int64_t>(static_cast<double>(local - offset) * (1.0 + 50e-6));
+  };
+  for (std::int64_t s = 0; s <= 700; ++s) {
+    for (int k = 0; k < 10; ++k) {
+      const std::int64_t local = 10'000 * kMs + s * 1000 * kMs + k * 100 * kMs;
+      clock.observeArrival(static_cast<std::uint32_t>(autopilotNs(local) / kMs), local + kMs);
+      if (k == 0) clock.observeTimesync(autopilotNs(local + kMs / 2), local, local + kMs);
+    }
+    if (s > 10) {
+      ASSERT_EQ(clock.source(), ClockMapper::Source::Timesync) << s << " s";
+    }
+  }
+  // The estimate: the window's middle, some 15 ms from now's offset at most.
+  const std::int64_t now = 10'000 * kMs + 700'900 * kMs;
+  EXPECT_LT(std::abs(*clock.offsetNs() - (now - autopilotNs(now))), 20 * kMs);
 }
 
 // A SYSTEM_TIME that is no time (a corrupt field, a CRC-valid garbage packet) is not

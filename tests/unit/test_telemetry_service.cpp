@@ -327,6 +327,18 @@ TEST(TelemetryService, TimesyncOnlyFromTheAutopilotAndOnlyForOurOwnRequests) {
   peer.push(timesync(ap, req.ts1 + ahead + 100 * kMs, req.ts1));
   ASSERT_TRUE(eventually([&] { return svc.stats().timesyncRejected == 4; }));
   EXPECT_EQ(*svc.decoder().clockOffsetNs(), *offset);
+
+  // The autopilot's own request is not answered (PX4 would take our clock for its
+  // onboard computer's): every TIMESYNC we send is a request of ours.
+  const std::size_t before = peer.written(MAVLINK_MSG_ID_TIMESYNC).size();
+  peer.push(timesync(ap, 0, 123'456'789));
+  ASSERT_GT(peer.waitFor(MAVLINK_MSG_ID_TIMESYNC, before + 1).size(), before);
+  for (const mavlink_message_t& m : peer.written(MAVLINK_MSG_ID_TIMESYNC)) {
+    mavlink_timesync_t t;
+    mavlink_msg_timesync_decode(&m, &t);
+    EXPECT_EQ(t.tc1, 0);
+    EXPECT_NE(t.ts1, 123'456'789);
+  }
   svc.stop();
 }
 
@@ -522,9 +534,12 @@ TEST(TelemetryService, CaptureReportCarriesPoseTimeAndTheMavlinkAttitude) {
   r.cameraAttitude = cameraToNed(Quaternion{}, CameraMount{0, -90, 0});  // nadir, north
   svc.reportCapture(r);
   svc.reportCapture(capture(5));  // no pose at all
-  const auto caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 2);
+  CaptureReport unsaved = capture(6);
+  unsaved.saved = false;  // a full disk
+  svc.reportCapture(unsaved);
+  const auto caps = peer.waitFor(MAVLINK_MSG_ID_CAMERA_IMAGE_CAPTURED, 3);
   svc.stop();
-  ASSERT_EQ(caps.size(), 2U);
+  ASSERT_EQ(caps.size(), 3U);
   const auto c = decodeCapture(caps[0]);
   EXPECT_EQ(c.image_index, 4);
   EXPECT_EQ(c.lat, 473977419);
@@ -551,6 +566,11 @@ TEST(TelemetryService, CaptureReportCarriesPoseTimeAndTheMavlinkAttitude) {
   EXPECT_TRUE(std::isnan(u.q[0]));
   EXPECT_EQ(u.time_utc, 0U);
   EXPECT_EQ(u.capture_result, 1);  // the image itself was taken
+  // Not written to disk: a failed capture, with no file to point at.
+  const auto f = decodeCapture(caps[2]);
+  EXPECT_EQ(f.image_index, 6);
+  EXPECT_EQ(f.capture_result, 0);
+  EXPECT_EQ(f.file_url[0], '\0');
 }
 
 TEST(TelemetryService, CapturesWaitForTheLinkAndAreCountedWhenReallySent) {

@@ -1115,14 +1115,15 @@ def geo_row(name: str, tags: ImageTags, meta: dict[str, Any]) -> str | None:
     by the line's, by none when the line has none. So an image with an accuracy the
     line cannot carry (its attitude unknown, or only one of the two known) gets no
     line: ODM then reads position, angles and accuracies from its tags, as it would
-    without geo.txt, rather than lose the accuracies."""
-    if tags.lat is None or tags.lon is None:
+    without geo.txt, rather than lose the accuracies. Neither does one without an
+    altitude: the line has no way to leave it out, and 0 would be made up."""
+    if tags.lat is None or tags.lon is None or tags.alt is None:
         return None
     ypr = attitude(meta, tags)
     xy, z = tags.xy_accuracy, tags.z_accuracy
     if (xy is not None or z is not None) and (ypr is None or xy is None or z is None):
         return None
-    row = f"{name} {tags.lon:.9f} {tags.lat:.9f} {tags.alt if tags.alt is not None else 0.0:.3f}"
+    row = f"{name} {tags.lon:.9f} {tags.lat:.9f} {tags.alt:.3f}"
     if ypr is not None:
         row += " " + " ".join(f"{v:.6f}" for v in ypr)
     if xy is not None and z is not None:

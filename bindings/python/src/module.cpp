@@ -12,6 +12,7 @@
 #include <nanobind/stl/tuple.h>
 #include <nanobind/stl/unique_ptr.h>
 
+#include "app/config.h"
 #include "app/paced_source.h"
 #include "app/select_command.h"
 #include "app/settings.h"
@@ -68,8 +69,17 @@ Frame frameOf(const Image& a, std::int64_t index, std::int64_t ts) {
   throw nb::value_error("expected a uint8 image of shape (H, W) or (H, W, 3) with contiguous rows");
 }
 
+// What is wrong with `c`, or "": the core's rules, then the ranges and agreement that
+// the daemon's [selection] and `keyframed select` hold the same settings to (a
+// setting Python takes can be given to them again).
+std::string selectionError(const SelectorConfig& c) {
+  if (std::string e = c.validate(); !e.empty()) return e;
+  const ConfigLoadResult r = loadSelectionOverrides(selectionOverrides(c));
+  return r.ok() ? std::string() : r.errors.front();
+}
+
 void checkValid(const SelectorConfig& c) {
-  if (std::string e = c.validate(); !e.empty()) throw nb::value_error(e.c_str());
+  if (std::string e = selectionError(c); !e.empty()) throw nb::value_error(e.c_str());
 }
 
 // NaN (not measured) becomes None.
@@ -183,7 +193,7 @@ NB_MODULE(_core, m) {
               throw nb::value_error("blur_mode must be 'adaptive' or 'absolute'");
           })
       .def(
-          "validate", [](const SelectorConfig& c) { return c.validate(); },
+          "validate", [](const SelectorConfig& c) { return selectionError(c); },
           "Empty string when valid, else what is wrong.");
   // The same names as the [selection] keys of the daemon's configuration.
   const auto blur = &SelectorConfig::blur;

@@ -787,13 +787,16 @@ pub unsafe extern "C" fn kfio_session_open(
 ) -> *mut KfioSession {
     guard(err, err_len, std::ptr::null_mut(), || {
         let mut config = if let Some(path) = opt_cstr(config_path, "config path")? {
-            zenoh::Config::from_file(path)
-                .map_err(|e| format!("zenoh config {path}: {}", zenoh_config_error(&e)))?
+            load_config_file(path)?
         } else if let Some(text) = opt_cstr(config_json5, "config")? {
-            zenoh::Config::from_json5(text)
-                .map_err(|e| format!("zenoh config: {}", zenoh_config_error(&e)))?
+            let mut c = zenoh::Config::from_json5(text)
+                .map_err(|e| format!("zenoh config: {}", zenoh_config_error(&e)))?;
+            apply_link_defaults(&mut c)?;
+            c
         } else {
-            zenoh::Config::default()
+            let mut c = zenoh::Config::default();
+            apply_link_defaults(&mut c)?;
+            c
         };
         if count > 0 && (keys.is_null() || values.is_null()) {
             return Err("config override arrays are NULL".into());
@@ -827,10 +830,73 @@ pub unsafe extern "C" fn kfio_zenoh_config_check(
 ) -> c_int {
     guard(err, err_len, -1, || {
         let path = cstr(config_path, "config path")?;
-        zenoh::Config::from_file(path)
-            .map_err(|e| format!("zenoh config {path}: {}", zenoh_config_error(&e)))?;
+        load_config_file(path)?;
         Ok(0)
     })
+}
+
+/// One setting of the configuration a session opens with (`config_path` NULL: the
+/// defaults), our defaults applied, as JSON into out: 0, or -1 with the reason in err.
+///
+/// # Safety
+/// Pointer arguments follow the ABI rules at the top of this file.
+#[no_mangle]
+pub unsafe extern "C" fn kfio_zenoh_config_get(
+    config_path: *const c_char,
+    key: *const c_char,
+    out: *mut c_char,
+    out_len: usize,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    guard(err, err_len, -1, || {
+        let config = match opt_cstr(config_path, "config path")? {
+            Some(path) => load_config_file(path)?,
+            None => {
+                let mut c = zenoh::Config::default();
+                apply_link_defaults(&mut c)?;
+                c
+            }
+        };
+        let key = cstr(key, "key")?;
+        let value = config
+            .get_json(key)
+            .map_err(|e| format!("zenoh config {key}: {e}"))?;
+        set_error(out, out_len, &value);
+        Ok(0)
+    })
+}
+
+/// A configuration file as zenoh reads it, with our defaults where it sets nothing.
+fn load_config_file(path: &str) -> Res<zenoh::Config> {
+    let mut config = zenoh::Config::from_file(path)
+        .map_err(|e| format!("zenoh config {path}: {}", zenoh_config_error(&e)))?;
+    apply_link_defaults(&mut config)?;
+    Ok(config)
+}
+
+const WAIT_BEFORE_CLOSE: &str =
+    "transport/link/tx/queue/congestion_control/block/wait_before_close";
+/// Zenoh's own: 5 s.
+const ZENOH_WAIT_BEFORE_CLOSE_US: &str = "5000000";
+/// Ours: 60 s.
+const KEYFRAMED_WAIT_BEFORE_CLOSE_US: &str = "60000000";
+
+/// Keyframes are put reliably, blocking while the link is congested. Zenoh closes the
+/// whole session when such a put finds no free batch (64 KB) for
+/// block.wait_before_close, 5 s by default: on a radio link under about 13 kB/s every
+/// keyframe would drop the session (status, preview and queries with it). Unless the
+/// configuration sets another value, the wait is 60 s (a 64 KB batch at 1.1 kB/s).
+fn apply_link_defaults(config: &mut zenoh::Config) -> Res<()> {
+    let now = config
+        .get_json(WAIT_BEFORE_CLOSE)
+        .map_err(|e| format!("zenoh config {WAIT_BEFORE_CLOSE}: {e}"))?;
+    if now == ZENOH_WAIT_BEFORE_CLOSE_US {
+        config
+            .insert_json5(WAIT_BEFORE_CLOSE, KEYFRAMED_WAIT_BEFORE_CLOSE_US)
+            .map_err(|e| format!("zenoh config {WAIT_BEFORE_CLOSE}: {e}"))?;
+    }
+    Ok(())
 }
 
 /// Closes the session (publishers and queryables declared on it stop working) and
