@@ -41,8 +41,9 @@ ReadStatus PacedSource::next(Frame& frame, std::string& error) {
     // gone on delivering. The pacing restarts at this frame, one frame period on.
     const std::int64_t period =
         inner_->info().fps > 0.0 ? static_cast<std::int64_t>(1e9 / inner_->info().fps) : 33'333'333;
-    if (lastDueNs_ >= 0 &&
-        (due > std::max(now, lastDueNs_) + kMaxGapNs || due < lastDueNs_ - kMaxGapNs)) {
+    // A step back of any size is one too (an MPEG-TS's half-second step back, a
+    // repeated timestamp): frame times never go backwards, as a camera's do not.
+    if (lastDueNs_ >= 0 && (due > std::max(now, lastDueNs_) + kMaxGapNs || due <= lastDueNs_)) {
       due = std::max(now, lastDueNs_ + period);
       startNs_ = due - frame.timestampNs;
     }

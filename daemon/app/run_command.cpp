@@ -376,8 +376,11 @@ class Daemon {
   std::unique_ptr<KeyframeStage> stage_;
   std::unique_ptr<KeyframeOutput> output_;
   // Analysis -> output: blocks the analysis when the output falls behind, so that no
-  // keyframe is ever dropped (frames are dropped earlier, at the capture queue).
-  BoundedQueue<KeyframeEvent> events_{16};
+  // keyframe is ever dropped (frames are dropped earlier, at the capture queue). Every
+  // frame sends one (its decision, a few hundred bytes; a keyframe's pixels from
+  // KeyframeStage's pool): 96 are 3 s at 30 fps, past a keyframe's wait for telemetry
+  // (telemetry.wait_ms, 1 s) and its fsyncs on an SD card, which 16 (0.5 s) were not.
+  BoundedQueue<KeyframeEvent> events_{96};
   RunStats stats_;
   std::atomic<bool> stopAnalysis_{false};
   std::mutex reloadMutex_;
@@ -895,11 +898,11 @@ int Daemon::run() {
           tooSmallToAnalyse(info.width, info.height, config_.selection.analysisWidth);
       !small.empty()) {
     KF_LOG(Capture, Error) << info.description << ": " << small << " (selection.analysis_width)";
-    return 1;
+    return kExitConfig;  // the camera's mode or the setting: a restart changes neither
   }
   if (const std::string large = tooLargeToAnalyse(info.width, info.height); !large.empty()) {
-    KF_LOG(Capture, Error) << info.description << ": " << large;
-    return 1;
+    KF_LOG(Capture, Error) << info.description << ": " << large << " (camera.width, height)";
+    return kExitConfig;
   }
   KF_LOG(Capture, Notice) << "capturing from " << info.description << " (" << info.width << "x"
                           << info.height << " @ " << info.fps << " fps)";
@@ -1235,11 +1238,13 @@ int Daemon::run() {
     telemetry_->stop();
     telemetry_->setRawSink({});
   }
-  if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
+  // The summary before the flight record and the link close: a congested link may hold
+  // the stop for seconds, and the summary is on disk whatever happens then.
   if (!writeSummary(seconds, state, error)) {
     KF_LOG(Output, Error) << error;
     ok = false;
   }
+  if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
   // A keyframe or decision row that could not be saved (a full disk, an I/O error):
   // the run's outputs are not complete, whatever else went well.
   if (const std::int64_t failed = stats_.writeErrors.load(); failed > 0) {

@@ -253,10 +253,20 @@ void GeometricOverlap::replenish(GrayView gray) {
       if (best[i].response < best[weakest].response) weakest = i;
     if (k.response > best[weakest].response) best[weakest] = k;
   }
+  // In rounds, each cell's strongest corner first: taken cell by cell, maxTracks would
+  // run out part-way down the grid (200 tracks, 2 slots in each of 144 cells: the
+  // bottom third of the image without any) and the homography would be fitted on the
+  // top of the image alone.
   for (std::size_t cell = 0; cell < cellBestCount_.size(); ++cell) {
-    for (int i = 0; i < cellBestCount_[cell]; ++i) {
+    cv::KeyPoint* best = &cellBest_[cell * slots];
+    std::sort(best, best + cellBestCount_[cell],
+              [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
+  }
+  for (int round = 0; round < perCell; ++round) {
+    for (std::size_t cell = 0; cell < cellBestCount_.size(); ++cell) {
+      if (round >= cellBestCount_[cell]) continue;
       if (static_cast<int>(curPts_.size()) >= config_.maxTracks) return;
-      curPts_.push_back(cellBest_[cell * slots + static_cast<std::size_t>(i)].pt);
+      curPts_.push_back(cellBest_[cell * slots + static_cast<std::size_t>(round)].pt);
     }
   }
 }

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <span>
 #include <vector>
 
 #include <opencv2/core/matx.hpp>
@@ -27,6 +28,8 @@ class GeometricOverlap final : public OverlapEstimator {
   void markCandidate() override;
   OverlapResult setReferenceToCandidate() override;
   void reset() override;
+  // The corners tracked into the frame last observed (for tests: how they spread).
+  [[nodiscard]] std::span<const cv::Point2f> tracks() const { return prevPts_; }
 
  private:
   void replenish(GrayView gray);

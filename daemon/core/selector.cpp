@@ -132,10 +132,12 @@ void KeyframeSelector::noteCandidate(Decision& d) {
   // A frame that measures sharp but moved fast (motion gate) ranks between: not kept
   // at the target, but good enough to fall back on at the band's edge, so that a
   // speed-up the gate has not adapted to yet does not push keyframes under the band.
-  const int grade = d.sharp ? 2 : (d.fastMotion && d.sharpness >= d.threshold ? 1 : 0);
+  const int grade =
+      d.sharp ? 2 : (d.fastMotion && d.sharpness >= d.threshold && d.sharpness > 0.0 ? 1 : 0);
   const bool better = candidateIndex_ < 0 || grade > candidateGrade_ ||
                       (grade == candidateGrade_ && d.sharpness > candidateSharpness_);
-  if (d.sharpness < config_.blur.floor || !better) return;
+  // (a uniform frame, score 0, is no candidate even with a floor of 0)
+  if (d.sharpness < config_.blur.floor || !(d.sharpness > 0.0) || !better) return;
   candidateIndex_ = d.index;
   candidateSharpness_ = d.sharpness;
   candidateGrade_ = grade;
@@ -169,9 +171,17 @@ bool KeyframeSelector::promoteCandidate(Decision& d) {
   return true;
 }
 
+bool KeyframeSelector::candidateAcceptable() const {
+  // Geometric mode falls back on a blurry frame only at the band's hard floor, where
+  // coverage would otherwise break; at a loss or the end the overlap there is unknown,
+  // and a blurred frame between two views adds little but trouble for matching. Paper
+  // mode, which has no floor, keeps the best frame there was.
+  return candidateSharp_ || config_.overlap.mode == OverlapMode::Paper;
+}
+
 std::int64_t KeyframeSelector::finish() {
   Decision d;
-  if (!promoteCandidate(d)) return -1;
+  if (!candidateAcceptable() || !promoteCandidate(d)) return -1;
   haveKeyframe_ = false;
   overlap_->reset();
   return d.promotedIndex;
@@ -183,7 +193,7 @@ void KeyframeSelector::serveCaptureRequest(Decision& d) {
     captureWaitFromNs_ = d.timestampNs;
   const bool waited =
       d.timestampNs - captureWaitFromNs_ >= std::int64_t{config_.captureWaitMs} * 1'000'000;
-  if (!d.kept && (d.sharp || (waited && d.sharpness >= config_.blur.floor))) {
+  if (!d.kept && (d.sharp || (waited && d.sharpness >= config_.blur.floor && d.sharpness > 0.0))) {
     // Whatever state the decision above left (a new chain, a promoted candidate, a
     // featureless scene), this frame becomes the reference, as any keyframe does.
     keepCurrent(d, Reason::Commanded);
@@ -250,8 +260,10 @@ Decision KeyframeSelector::process(const Frame& frame) {
     }
   } else if (!ov.valid) {
     // Tracking lost: keep the best frame seen since the last keyframe so that no
-    // gap opens, then start a new chain at the next sharp frame.
-    promoteCandidate(d);
+    // gap opens (a sharp one: candidateAcceptable), then start a new chain at the
+    // next sharp frame.
+    if (candidateAcceptable()) promoteCandidate(d);
+    clearCandidate();
     haveKeyframe_ = false;
     overlap_->reset();
     // A keyframe lost before any frame was tracked against it: the scene may not be

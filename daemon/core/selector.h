@@ -117,7 +117,8 @@ class KeyframeSelector {
   Decision process(const Frame& frame);
 
   // End of the stream: the candidate, if any, becomes a keyframe so that the
-  // last stretch of the flight is covered too. Returns its index, or -1.
+  // last stretch of the flight is covered too (in geometric mode a sharp one only:
+  // candidateAcceptable). Returns its index, or -1.
   std::int64_t finish();
 
   // Apply new settings (SIGHUP). A new overlap mode, tracking setting or analysis
@@ -147,6 +148,9 @@ class KeyframeSelector {
   [[nodiscard]] std::int64_t now() const { return clock_ ? clock_->nowNs() : 0; }
   void keepCurrent(Decision& d, Reason reason);
   bool promoteCandidate(Decision& d);
+  // The candidate may be kept at a loss of tracking or at the end (where no overlap
+  // says a gap would open): sharp, or any in paper mode.
+  [[nodiscard]] bool candidateAcceptable() const;
   // The candidate becomes a keyframe (promoted with this decision) and the reference.
   void fallBackToCandidate(Decision& d);
   // This frame, not kept, becomes the fallback candidate if it is the best since the

@@ -185,14 +185,16 @@ bool SharpnessScorer::warmingUp() const {
 void SharpnessScorer::observe(double s) {
   // A frame under the floor can never pass: it says nothing about what sharp looks
   // like here, and a dark start-up would otherwise end the warm-up.
-  if (s >= config_.floor) history_.push(s);
+  if (s >= config_.floor && s > 0.0) history_.push(s);
 }
 
 SharpnessScorer::Result SharpnessScorer::evaluate(GrayView gray) {
   Result r;
   r.score = score(gray);
   r.threshold = threshold();
-  r.sharp = r.score >= r.threshold;
+  // A score of 0 is a uniform frame (a lens cap, a black frame): never sharp, also
+  // with a floor or an absolute threshold of 0.
+  r.sharp = r.score >= r.threshold && r.score > 0.0;
   if (config_.mode == BlurMode::Adaptive && !warmingUp()) applied_ = r.threshold;
   observe(r.score);
   return r;

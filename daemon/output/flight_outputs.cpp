@@ -126,6 +126,14 @@ struct FlightOutputs::Impl {
     return out;
   }
   bool putStop = false;
+  bool putDone = false;  // putLoop has returned (putDoneCv)
+  std::condition_variable putDoneCv;
+  // A put still blocked on a congested link this long after the drain time is left
+  // behind (the thread, this Impl and the publisher it uses with it): a stop must end
+  // within systemd's TimeoutStopSec (15 s), and Zenoh holds a blocked put for
+  // block.wait_before_close (60 s) per batch.
+  static constexpr auto kStopGrace = std::chrono::seconds(3);
+  bool abandoned = false;
   std::chrono::steady_clock::time_point putDrainEnd;  // (stopping) put nothing after it
   std::int64_t putsSkippedAtStop = 0;                 // left to the queryable at close()
   std::thread putThread;
@@ -173,16 +181,31 @@ struct FlightOutputs::Impl {
       putting = -1;
     }
   }
-  // The keyframes still queued are put before it returns.
-  void stopPuts() {
-    {
-      std::lock_guard lock(putMutex);
-      putStop = true;
-      putDrainEnd = std::chrono::steady_clock::now() +
-                    std::chrono::milliseconds(std::max(options.stopDrainMs, 0));
-    }
+  // The keyframes still queued are put before it returns, for the drain time (and
+  // kStopGrace more for the put under way); false when a put was still blocked then,
+  // and the thread was left to it (abandoned).
+  bool stopPuts() {
+    std::unique_lock lock(putMutex);
+    putStop = true;
+    putDrainEnd = std::chrono::steady_clock::now() +
+                  std::chrono::milliseconds(std::max(options.stopDrainMs, 0));
     putCv.notify_all();
-    if (putThread.joinable()) putThread.join();
+    if (!putThread.joinable()) return true;
+    if (!putDoneCv.wait_until(lock, putDrainEnd + kStopGrace, [this] { return putDone; })) {
+      lock.unlock();
+      putThread.detach();
+      abandoned = true;
+      return false;
+    }
+    lock.unlock();
+    putThread.join();
+    return true;
+  }
+  void runPuts() {
+    putLoop();
+    std::lock_guard lock(putMutex);
+    putDone = true;
+    putDoneCv.notify_all();
   }
   // The record's "now" on the callers' clock: a live run reads CLOCK_MONOTONIC,
   // an offline run the time of the latest frame.
@@ -222,6 +245,9 @@ FlightOutputs::FlightOutputs() : impl_(std::make_unique<Impl>()) {}
 FlightOutputs::~FlightOutputs() {
   std::string ignored;
   close("stopped", ignored);
+  // A put left blocked at the stop still uses the Impl (and its publisher): kept for
+  // it, as the process ends.
+  if (impl_->abandoned) static_cast<void>(impl_.release());
 }
 
 bool FlightOutputs::active() const {
@@ -307,7 +333,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     std::string ignored;
     impl_->publisher->publishStatus(
         "{\"state\":\"running\",\"frames\":0,\"kept\":0" + impl_->flightField() + "}", ignored);
-    if (!o.offline) impl_->putThread = std::thread([impl = impl_.get()] { impl->putLoop(); });
+    if (!o.offline) impl_->putThread = std::thread([impl = impl_.get()] { impl->runPuts(); });
   }
   return true;
 }
@@ -540,7 +566,12 @@ void FlightOutputs::progress(std::int64_t framesRead, std::int64_t kept) {
 
 bool FlightOutputs::close(const std::string& state, std::string& error) {
   bool ok = true;
-  impl_->stopPuts();  // what is queued goes out before the final status (for a while)
+  // What is queued goes out before the final status (for a while).
+  if (!impl_->abandoned && !impl_->stopPuts()) {
+    impl_->warn(
+        "zenoh: a keyframe put still blocked on the congested link after the stop's drain "
+        "time was left behind (the keyframe is on disk: a later run's queryable serves it)");
+  }
   if (impl_->putsSkippedAtStop > 0) {
     impl_->warn("zenoh: " + std::to_string(impl_->putsSkippedAtStop) +
                 " keyframes still queued for the link at the stop left to the queryable "
@@ -563,11 +594,12 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
     impl_->publishFailureLog.reset();
   }
   if (impl_->publisher) {
+    // Reliable, waiting, unless a put was left blocked: then it would wait behind it.
     std::string ignored;
     impl_->publisher->publishStatus(
         "{\"state\":\"" + state + "\",\"frames\":" + std::to_string(impl_->framesRead) +
             ",\"kept\":" + std::to_string(impl_->kept) + impl_->flightField() + "}",
-        ignored, /*last=*/true);
+        ignored, /*last=*/!impl_->abandoned);
   }
   std::unique_ptr<McapRecorder> recorder;
   {
@@ -583,8 +615,12 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
     }
   }
   // The publisher last: closing its queryable answers the queries already queued,
-  // which on a slow link can take long, and the record is complete by then.
-  impl_->publisher.reset();
+  // which on a slow link can take long, and the record is complete by then. One a put
+  // left blocked still uses stays, as the process ends.
+  if (impl_->abandoned)
+    static_cast<void>(impl_->publisher.release());
+  else
+    impl_->publisher.reset();
   return ok;
 }
 

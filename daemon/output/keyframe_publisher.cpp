@@ -462,6 +462,12 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     reply.fail(error, ignored);
     return;
   }
+  if (!all && (wanted < first || wanted > final)) {
+    // keyframes/5?range=0..3 asks for nothing: said so, not "no keyframe 5 (yet)".
+    std::string ignored;
+    reply.fail("keyframe " + last + " is outside the range asked for", ignored);
+    return;
+  }
   // flight=ID: an earlier run's keyframes (its own sequence numbers), from its directory.
   const std::string flight = keyframeQueryFlight(parameters);
   const bool own = flight.empty() || flight == flight_;

@@ -217,6 +217,12 @@ std::uint32_t TelemetryService::bootMs() const {
   return static_cast<std::uint32_t>((monotonicNowNs() - startNs_) / 1'000'000);
 }
 
+std::uint32_t TelemetryService::bootMsAt(std::int64_t localNs) const {
+  if (const auto off = decoder_.clockOffsetNs(); off && localNs >= *off)
+    return static_cast<std::uint32_t>((localNs - *off) / 1'000'000);
+  return bootMs();
+}
+
 std::uint8_t TelemetryService::systemId() const {
   if (config_.systemId > 0) return static_cast<std::uint8_t>(config_.systemId);
   const int sys = decoder_.autopilotSystem();
@@ -267,8 +273,9 @@ void TelemetryService::sendCameraInformation() {
   send(
       encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
         mavlink_msg_camera_information_pack_status(
-            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, bootMs(), vendor,
-            model, 0, camera_.focalLengthMm, camera_.sensorWidthMm, camera_.sensorHeightMm,
+            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m,
+            bootMsAt(monotonicNowNs()), vendor, model, 0, camera_.focalLengthMm,
+            camera_.sensorWidthMm, camera_.sensorHeightMm,
             static_cast<std::uint16_t>(camera_.width), static_cast<std::uint16_t>(camera_.height),
             0, captureSink_ ? CAMERA_CAP_FLAGS_CAPTURE_IMAGE : 0, 0, uri, 0, 0);
       }));
@@ -388,12 +395,10 @@ bool TelemetryService::sendCapture(const CaptureReport& r) {
   char url[205] = {};  // the generated pack copies the full 205 bytes
   if (r.saved) std::memcpy(url, r.fileUrl.data(), std::min<std::size_t>(204, r.fileUrl.size()));
   const std::uint64_t utc = r.pose.utcUs ? static_cast<std::uint64_t>(*r.pose.utcUs) : 0;
-  // time_boot_ms is the autopilot's clock where the mapping is known.
-  std::uint32_t boot = bootMs();
-  // A frame from before the autopilot's boot (queued across a reboot) keeps bootMs().
-  if (const auto off = decoder_.clockOffsetNs(); off && r.timeNs >= *off) {
-    boot = static_cast<std::uint32_t>((r.timeNs - *off) / 1'000'000);
-  }
+  // time_boot_ms is the autopilot's clock where the mapping is known, as in every
+  // message of the camera's. A frame from before the autopilot's boot (queued across a
+  // reboot) keeps bootMs().
+  const std::uint32_t boot = bootMsAt(r.timeNs);
   return send(
       encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
         mavlink_msg_camera_image_captured_pack_status(
@@ -562,8 +567,8 @@ void TelemetryService::sendCaptureStatus() {
   send(
       encoder_->encode([&](std::uint8_t, std::uint8_t, mavlink_status_t* st, mavlink_message_t* m) {
         mavlink_msg_camera_capture_status_pack_status(
-            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m, bootMs(),
-            interval ? 3 : 0, 0,
+            systemId(), static_cast<std::uint8_t>(config_.componentId), st, m,
+            bootMsAt(monotonicNowNs()), interval ? 3 : 0, 0,
             interval ? static_cast<float>(static_cast<double>(captureIntervalNs_) / 1e9) : 0.0F, 0,
             NAN, images, 0);
       }));

@@ -186,6 +186,9 @@ class TelemetryService {
                       std::uint8_t targetComp);
   bool sendCapture(const CaptureReport& report);
   std::uint32_t bootMs() const;
+  // The camera protocol's time_boot_ms of an instant on our clock: the autopilot's boot
+  // clock once mapped (one base for every message of the camera's), else bootMs().
+  std::uint32_t bootMsAt(std::int64_t localNs) const;
   std::uint8_t systemId() const;
 
   TelemetryServiceConfig config_;

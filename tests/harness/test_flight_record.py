@@ -4,6 +4,7 @@ it, doctor-clean files, rotated parts that replay as one flight."""
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import shutil
@@ -536,7 +537,12 @@ def test_sigkill_of_the_daemon_loses_about_the_last_second(
     index = sorted(
         json.loads(m.data)["index"] for _, ch, m in recovered if ch.topic == "/keyframed/decision"
     )
-    assert index == list(range(len(index))) and len(index) >= 60, index[:5]
+    # Every decision up to the torn end, in order, none twice: a chunk lost inside the
+    # file would leave a second's gap (some 30 frames). Frames the capture dropped on a
+    # loaded machine (their numbers skipped, as in decisions.csv) leave a few.
+    assert len(index) >= 60 and index[0] == 0, index[:5]
+    pairs = list(itertools.pairwise(index))
+    assert all(1 <= b - a <= 8 for a, b in pairs), [(a, b) for a, b in pairs if b - a != 1]
 
     # Every channel the cut file declared, with messages before the cut or not.
     declared: set[str] = set()

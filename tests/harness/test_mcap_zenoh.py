@@ -284,6 +284,10 @@ def test_zenoh_subscriber_receives_every_keyframe_and_can_query(
         missing = list(session.get("keyframed/test1/keyframes/999999", timeout=5.0))
         assert missing and missing[0].err is not None
         assert "no keyframe" in missing[0].err.payload.to_string()
+        # A number outside the query's own range: said so, stored or not.
+        outside = list(session.get("keyframed/test1/keyframes/0?range=1..3", timeout=5.0))
+        assert outside and outside[0].err is not None
+        assert "outside the range" in outside[0].err.payload.to_string()
         # "00" parses as 0, but a reply on keyframes/0 would not match the query's key
         # and it would go unanswered: refused, saying why.
         odd = list(session.get("keyframed/test1/keyframes/00", timeout=5.0))

@@ -133,9 +133,17 @@ def _install_run_and_purge(deb: Path) -> None:
         assert "/etc/keyframed/keyframed.toml" in p.stdout + p.stderr
         conf = Path("/etc/keyframed/keyframed.toml")
         conf.write_text(conf.read_text() + "\n# edited by the operator\n")
+        # enabled by the operator (systemctl edits the links without a running systemd)
+        wants = Path("/etc/systemd/system/multi-user.target.wants/keyframed.service")
+        enable = subprocess.run(
+            ["systemctl", "enable", "keyframed.service"], capture_output=True, text=True
+        )
+        assert enable.returncode == 0 and wants.is_symlink(), enable.stdout + enable.stderr
         p = _dpkg("-r", "keyframed")
         assert p.returncode == 0, p.stdout + p.stderr
         assert not Path("/usr/bin/keyframed").exists()
+        # no enable link left dangling, to start a reinstalled daemon unasked
+        assert not wants.is_symlink()
         assert "edited by the operator" in conf.read_text()  # a conffile survives removal
         p = _dpkg("-P", "keyframed")
         assert p.returncode == 0, p.stdout + p.stderr

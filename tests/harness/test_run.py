@@ -814,8 +814,9 @@ def test_corrupt_video_is_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
 
 
 def test_frames_too_small_to_analyse_are_a_clear_error(any_bin: Path, tmp_path: Path) -> None:
-    """A thumbnail-sized video (as `select` refuses it): one error and exit 1, not a
-    run that keeps nothing and says it went well."""
+    """A thumbnail-sized video (as `select` refuses it): one error and exit 78 (the
+    camera's mode or selection.analysis_width; systemd does not restart it), not a run
+    that keeps nothing and says it went well."""
     video = tmp_path / "tiny.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30, (16, 16))
     rng = np.random.default_rng(5)
@@ -824,7 +825,7 @@ def test_frames_too_small_to_analyse_are_a_clear_error(any_bin: Path, tmp_path: 
     w.release()
     proc = start(any_bin, tmp_path, f"camera.path={video}")
     _, stderr = proc.communicate(timeout=60)
-    assert proc.returncode == 1, stderr
+    assert proc.returncode == 78, stderr
     assert "frames of 16x16 are too small to analyse" in stderr, stderr
     assert "Sanitizer" not in stderr and "runtime error" not in stderr
 

@@ -274,6 +274,24 @@ TEST(PacedSource, AJumpInTheTimestampsRestartsThePacing) {
   EXPECT_GE(at.back() - at.front(), 180 * ms);  // six periods: 200 ms
 }
 
+// A step back under the jump limit (half a second: MPEG-TS, files joined) and a
+// repeated timestamp: frame times still only go forward, a period apart.
+TEST(PacedSource, FrameTimesNeverGoBackwards) {
+  const std::int64_t ms = 1'000'000;
+  PacedSource src(std::make_unique<GapSource>(std::vector<std::int64_t>{
+                      0, 33 * ms, 600 * ms, 633 * ms, 133 * ms, 133 * ms, 166 * ms}),
+                  /*realtime=*/true, std::nullopt);
+  Frame f;
+  std::string err;
+  std::vector<std::int64_t> at;
+  while (src.next(f, err) == ReadStatus::Frame) at.push_back(f.timestampNs);
+  ASSERT_EQ(at.size(), 7U) << err;
+  for (std::size_t i = 1; i < at.size(); ++i) EXPECT_GT(at[i], at[i - 1]) << i;
+  // The step back and the repeat: a period on from the frame before.
+  EXPECT_GE(at[4] - at[3], 30 * ms);
+  EXPECT_GE(at[5] - at[4], 30 * ms);
+}
+
 // A camera delivers a frame after it captured it, never before: each frame is
 // handed over no earlier than the monotonic time it is stamped with, so that a
 // keyframe's capture time never follows the time it was decided at. Frame times

@@ -1,8 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
 
+#include "core/geometric_overlap.h"
 #include "core/overlap.h"
 #include "photos.h"
 
@@ -50,6 +52,31 @@ TEST(GeometricOverlap, AStillCameraStaysAtFullOverlap) {
     const OverlapResult r = est->observe(GrayView::of(f));
     ASSERT_TRUE(r.valid);
     EXPECT_GT(r.overlap, 0.97) << "drifted at frame " << i;
+  }
+}
+
+TEST(GeometricOverlap, NewTracksSpreadOverTheWholeImage) {
+  // Textured from top to bottom: each third of the image gets its share of the
+  // tracks, or the homography is fitted on part of the image and guessed for the rest.
+  const cv::Mat strip = test::photoStrip();
+  ASSERT_FALSE(strip.empty());
+  for (const int maxTracks : {200, 120, 400}) {
+    OverlapConfig c = geometric();
+    c.maxTracks = maxTracks;
+    c.minTracks = std::min(c.minTracks, maxTracks);
+    GeometricOverlap est(c);
+    const cv::Mat v = test::viewAt(strip, 900);
+    est.observe(GrayView::of(v));
+    const auto tracks = est.tracks();
+    ASSERT_GE(static_cast<int>(tracks.size()), maxTracks * 3 / 4) << maxTracks;
+    int thirds[3] = {0, 0, 0};
+    for (const cv::Point2f& p : tracks)
+      ++thirds[std::clamp(static_cast<int>(p.y * 3 / v.rows), 0, 2)];
+    for (int i = 0; i < 3; ++i) {
+      EXPECT_GE(thirds[i], static_cast<int>(tracks.size()) / 5)
+          << "third " << i << " of " << maxTracks << " tracks: " << thirds[0] << " " << thirds[1]
+          << " " << thirds[2];
+    }
   }
 }
 

@@ -641,6 +641,46 @@ TEST(Selector, LostTrackingKeepsTheCandidateAndRestartsAtTheNextSharpFrame) {
   EXPECT_EQ(sel.keyframes(), 3);
 }
 
+TEST(Selector, LostTrackingOrTheEndKeepsNoBlurredCandidate) {
+  // As above, but every frame after the keyframe blurred (a defocus, a vibration):
+  // the band's best frame is a blurred one. At the loss, and at the end of a stream,
+  // none is kept: where no overlap says a gap would open, a blurred frame between
+  // two views adds little but trouble for matching.
+  const BlurredHover bh;  // the absolute threshold that makes sigma 2.5 blurry
+  const cv::Mat strip = test::photoStrip();
+  SelectorConfig cfg = bh.cfg;
+  cfg.analysisWidth = 0;
+  KeyframeSelector sel(cfg);
+  cv::RNG rng(5);
+  std::vector<Decision> ds;
+  auto feed = [&](cv::Mat v, bool blur) {
+    cv::Mat noise(v.size(), CV_8UC1);
+    rng.fill(noise, cv::RNG::NORMAL, 0, 1.5);
+    cv::add(v, noise, v);
+    if (blur) cv::GaussianBlur(v, v, cv::Size(), 2.5);
+    const auto i = static_cast<std::int64_t>(ds.size());
+    ds.push_back(sel.process(Frame::ofGray(v, i, i * 33333333)));
+  };
+  for (int i = 0; i < 12; ++i) feed(test::viewAt(strip, 100 + 8.0 * i), i > 0);
+  ASSERT_TRUE(ds[0].kept);
+  for (int i = 1; i < 12; ++i) {
+    ASSERT_FALSE(ds[i].kept) << i;
+    ASSERT_FALSE(ds[i].sharp) << i;
+    ASSERT_TRUE(ds[i].tracking) << i;
+  }
+  ASSERT_GE(sel.candidateIndex(), 9);                        // a blurred candidate in the band
+  feed(cv::Mat(270, 480, CV_8UC1, cv::Scalar(128)), false);  // nothing to track
+  EXPECT_EQ(ds[12].reason, Reason::Lost);
+  EXPECT_EQ(ds[12].promotedIndex, -1);
+  EXPECT_EQ(sel.keyframes(), 1);
+  // A new chain, blurred after its first frame, to the end of the stream.
+  for (int i = 0; i < 12; ++i) feed(test::viewAt(strip, 700 + 8.0 * i), i > 0);
+  EXPECT_EQ(ds[13].reason, Reason::First);
+  ASSERT_GE(sel.candidateIndex(), 0);
+  EXPECT_EQ(sel.finish(), -1);
+  EXPECT_EQ(sel.keyframes(), 2);
+}
+
 TEST(Selector, MotionGateJudgesACruiseAfterAHoverByTheCruise) {
   // Cruise at 8 px a frame (1.7 % of the view: above the gate's floor), hover for 2 s,
   // cruise again; and a flight that starts in a hover. Standing still is no

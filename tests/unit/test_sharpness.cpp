@@ -100,6 +100,31 @@ TEST(Sharpness, TinyAndEmptyImagesScoreZero) {
   EXPECT_EQ(sampledLaplacianVariance(GrayView{}, 2, 3).variance, 0.0);
 }
 
+TEST(Sharpness, AUniformFrameIsNeverSharpWhateverTheThreshold) {
+  // A lens cap or a black frame scores 0: with a floor (adaptive) or a threshold
+  // (absolute) of 0 it would pass 0 >= 0, and count in the adaptive statistic.
+  const cv::Mat black(270, 480, CV_8UC1, cv::Scalar(0));
+  const cv::Mat photo = test::photo("baboon.jpg");
+  for (const BlurMode mode : {BlurMode::Adaptive, BlurMode::Absolute}) {
+    SharpnessConfig c;
+    c.mode = mode;
+    c.floor = 0.0;
+    c.absoluteThreshold = 0.0;
+    c.warmup = 1;
+    SharpnessScorer s(c);
+    for (int i = 0; i < 3; ++i) {
+      const auto r = s.evaluate(GrayView::of(black));
+      EXPECT_EQ(r.score, 0.0);
+      EXPECT_FALSE(r.sharp) << static_cast<int>(mode);
+    }
+    // and counted no frame towards the warm-up: still warming up
+    if (mode == BlurMode::Adaptive) {
+      EXPECT_TRUE(s.warmingUp());
+    }
+    EXPECT_TRUE(s.evaluate(GrayView::of(photo)).sharp);
+  }
+}
+
 TEST(Sharpness, AbsoluteModeUsesTheFixedThreshold) {
   SharpnessConfig c;
   c.mode = BlurMode::Absolute;

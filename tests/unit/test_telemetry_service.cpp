@@ -364,6 +364,14 @@ TEST(TelemetryService, AnAnswerToARequestASecondOldSetsTheClock) {
   const std::int64_t offset = *svc.decoder().clockOffsetNs();
   EXPECT_GE(offset, -ahead);
   EXPECT_LE(offset, -ahead + 2'000 * kMs);
+  // The camera's messages are on the autopilot's clock from now on, as its capture
+  // reports are: CAMERA_INFORMATION's time_boot_ms too.
+  const std::int64_t asked = monotonicNowNs();
+  peer.push(requestMessage(ap, 0, 0, MAVLINK_MSG_ID_CAMERA_INFORMATION, 0));
+  const auto infos = peer.waitFor(MAVLINK_MSG_ID_CAMERA_INFORMATION);
+  ASSERT_FALSE(infos.empty());
+  const auto expectedMs = static_cast<double>((asked - offset) / kMs);
+  EXPECT_NEAR(mavlink_msg_camera_information_get_time_boot_ms(&infos.back()), expectedMs, 1000.0);
   svc.stop();
 }
 

@@ -24,7 +24,7 @@ class _Decision(TypedDict):
     timestamp_ns: int
     kept: bool
     # first, overlap_target, paper_distance, gap_fill, blurry, redundant, lost,
-    # featureless or commanded
+    # featureless, commanded or refocus
     reason: str
     candidate: bool
     promoted: int | None

@@ -75,16 +75,24 @@ Frame frameOf(const Image& a, std::int64_t index, std::int64_t ts) {
 std::string selectionError(const SelectorConfig& c) {
   if (std::string e = c.validate(); !e.empty()) return e;
   const ConfigLoadResult r = loadSelectionOverrides(selectionOverrides(c));
-  return r.ok() ? std::string() : r.errors.front();
+  if (r.ok()) return {};
+  // "--set selection.KEY=VALUE: selection.KEY: why": the attribute and why, not the
+  // command line's assignment that was never typed.
+  std::string e = r.errors.front();
+  if (e.starts_with("--set ")) {
+    if (const auto colon = e.find(": "); colon != std::string::npos) e.erase(0, colon + 2);
+  }
+  return e;
 }
 
 void checkValid(const SelectorConfig& c) {
   if (std::string e = selectionError(c); !e.empty()) throw nb::value_error(e.c_str());
 }
 
-// NaN (not measured) becomes None.
+// NaN (not measured) becomes None; infinity stays (a step that sent a point behind the
+// camera: motion_px inf, fast_motion True).
 nb::object optional(double v) {
-  return std::isfinite(v) ? nb::object(nb::float_(v)) : nb::none();
+  return std::isnan(v) ? nb::none() : nb::object(nb::float_(v));
 }
 
 nb::dict overlapDict(const OverlapResult& r) {
