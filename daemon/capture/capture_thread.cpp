@@ -149,6 +149,13 @@ void CaptureThread::loop() {
   ErrorLog log;
   std::string error;
   bool fresh = discardBeforeNs_ == std::numeric_limits<std::int64_t>::min();
+  if (!fresh) {
+    // What the device filled before the start goes back unread: the timestamp test
+    // below cannot tell it from now where the camera stamps a frame as it is read.
+    const std::uint64_t waiting = source_.discardQueued();
+    std::lock_guard lock(mutex_);
+    stats_.stale += waiting;
+  }
   while (!stop_) {
     Frame frame;
     const auto called = SteadyClock::now();

@@ -32,8 +32,9 @@ class CaptureThread {
     std::uint64_t captured = 0;  // frames read from the source
     std::uint64_t noBuffer = 0;  // frames dropped because every pooled buffer was in use
     std::uint64_t errors = 0;    // Error results from the source
-    // Frames the camera held from before start(discardBeforeNs): read and thrown away,
-    // not part of the stream (neither captured nor dropped).
+    // Frames the camera held from before start(discardBeforeNs): handed back unread
+    // (FrameSource::discardQueued) or read and thrown away, not part of the stream
+    // (neither captured nor dropped).
     std::uint64_t stale = 0;
     // The source's lostFrames() at the first frame kept: what the camera could not
     // deliver while nobody read it (its buffers full of stale frames), before start.

@@ -62,6 +62,12 @@ class FrameSource {
   // device returns at once (Error, "interrupted"), and so does every later one.
   // Sources whose next() never waits long (files) need not do anything.
   virtual void interrupt() {}
+  // Frames that already wait in the device (filled while no one read, before the
+  // capture started) are handed back to it unread; how many. A camera that stamps
+  // frames when they are read rather than when they are taken would otherwise give
+  // a view from seconds ago the time of now. Sources that hold none need not do
+  // anything. The reading thread calls it.
+  virtual std::uint64_t discardQueued() { return 0; }
 };
 
 }  // namespace keyframed

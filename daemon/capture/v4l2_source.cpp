@@ -586,6 +586,10 @@ bool V4l2Source::reopen(std::string& error) {
   const SourceInfo before = info_;
   const int stride = stride_;
   const std::string fourcc = fourcc_;
+  // Which camera it was: another of the same mode on the node (a second UVC camera
+  // plugged in meanwhile) would be tagged with this one's calibration and mount.
+  const std::string card = device_.card;
+  const std::string busInfo = device_.busInfo;
   shutdown();
   if (!start(error)) {
     // start() may have got as far as a new format before failing: the next attempt
@@ -594,6 +598,17 @@ bool V4l2Source::reopen(std::string& error) {
     info_ = before;
     stride_ = stride;
     fourcc_ = fourcc;
+    return false;
+  }
+  if (device_.card != card || device_.busInfo != busInfo) {
+    error = "another camera came back: " + device_.card + " (" + device_.busInfo + "), not " +
+            card + " (" + busInfo + ")";
+    shutdown();
+    info_ = before;
+    stride_ = stride;
+    fourcc_ = fourcc;
+    device_.card = card;
+    device_.busInfo = busInfo;
     return false;
   }
   if (info_.width != before.width || info_.height != before.height || stride_ != stride ||
@@ -690,6 +705,24 @@ V4l2Source::BufferUse V4l2Source::readBuffer(const StreamLayout& layout, const s
   frame.data = data;
   frame.stride = layout.stride;
   return BufferUse::Frame;
+}
+
+std::uint64_t V4l2Source::discardQueued() {
+  if (fd_ < 0) return 0;
+  std::string ignored;
+  if (!requeueHeld(ignored)) return 0;
+  std::uint64_t n = 0;
+  // At most every buffer twice: a driver that fills them as fast as they come back
+  // is not waited out. An error here (a lost device) is next()'s to meet.
+  for (std::size_t i = 0; i < 2 * buffers_.size(); ++i) {
+    v4l2_buffer buf{};
+    buf.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    buf.memory = V4L2_MEMORY_MMAP;
+    if (io_->ioctl(fd_, VIDIOC_DQBUF, &buf) < 0) break;  // EAGAIN: none waits
+    if (io_->ioctl(fd_, VIDIOC_QBUF, &buf) < 0) break;
+    ++n;
+  }
+  return n;
 }
 
 ReadStatus V4l2Source::next(Frame& frame, std::string& error) {

@@ -97,6 +97,7 @@ class V4l2Source final : public FrameSource {
                                                reopenAttempts_ >= options_.maxReopenAttempts));
   }
 
+  std::uint64_t discardQueued() override;
   // Closes and reopens the device with the same options (after it came back).
   // Frame indices continue. False and a one-line error while it is still gone.
   [[nodiscard]] bool reopen(std::string& error);

@@ -1,6 +1,9 @@
 #include "core/polygon.h"
 
+#include <algorithm>
 #include <cmath>
+
+#include <opencv2/core.hpp>
 
 namespace keyframed {
 
@@ -65,10 +68,47 @@ Polygon clipToRectangle(const Polygon& poly, double w, double h) {
 
 double visibleFraction(const cv::Matx33d& curToRef, double w, double h) {
   Polygon quad;
-  if (!mapRectangle(curToRef, w, h, quad)) return -1.0;
-  const Polygon clipped = clipToRectangle(quad, w, h);
-  if (clipped.n < 3) return 0.0;
-  return std::fabs(clipped.area()) / (w * h);
+  if (mapRectangle(curToRef, w, h, quad)) {
+    const Polygon clipped = clipToRectangle(quad, w, h);
+    if (clipped.n < 3) return 0.0;
+    return std::fabs(clipped.area()) / (w * h);
+  }
+  // A corner of the current image maps to or past the reference's horizon (a camera
+  // tilted up from a nadir keyframe): the part of the reference in front of the
+  // current camera, mapped into the current image and clipped to it, then back.
+  const cv::Matx33d refToCur = curToRef.inv();
+  const cv::Matx33d& m = refToCur;
+  const double det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1)) -
+                     m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0)) +
+                     m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+  if (!std::isfinite(det) || !(det > 0.0)) return -1.0;  // singular, or a fold
+  Polygon ref;
+  ref.n = 4;
+  ref.pts[0] = {0, 0};
+  ref.pts[1] = {w, 0};
+  ref.pts[2] = {w, h};
+  ref.pts[3] = {0, h};
+  const double a = refToCur(2, 0), b = refToCur(2, 1), c = refToCur(2, 2);
+  const double margin = 1e-9 * (std::fabs(a) * w + std::fabs(b) * h + std::fabs(c));
+  ref = clipHalfPlane(ref, a, b, c - margin);  // w > 0: in front
+  if (ref.n < 3) return 0.0;
+  Polygon cur;
+  for (int i = 0; i < ref.n; ++i) {
+    const cv::Point2d p = ref.pts[static_cast<std::size_t>(i)];
+    const cv::Vec3d v = refToCur * cv::Vec3d(p.x, p.y, 1.0);
+    if (!(v[2] > 0.0)) return -1.0;
+    cur.pts[static_cast<std::size_t>(cur.n++)] = {v[0] / v[2], v[1] / v[2]};
+  }
+  cur = clipToRectangle(cur, w, h);
+  if (cur.n < 3) return 0.0;
+  Polygon back;
+  for (int i = 0; i < cur.n; ++i) {
+    const cv::Point2d p = cur.pts[static_cast<std::size_t>(i)];
+    const cv::Vec3d v = curToRef * cv::Vec3d(p.x, p.y, 1.0);
+    if (!(std::fabs(v[2]) > 0.0)) return -1.0;
+    back.pts[static_cast<std::size_t>(back.n++)] = {v[0] / v[2], v[1] / v[2]};
+  }
+  return std::min(1.0, std::fabs(back.area()) / (w * h));
 }
 
 }  // namespace keyframed

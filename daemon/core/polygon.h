@@ -24,8 +24,9 @@ struct Polygon {
 [[nodiscard]] Polygon clipToRectangle(const Polygon& poly, double w, double h);
 
 // Fraction of the reference image area (w x h) that is visible in the current
-// image, given the homography mapping current-image points to reference points.
-// Returns a negative value for a degenerate mapping.
+// image, given the homography mapping current-image points to reference points
+// (also when part of the current image lies past the reference's horizon).
+// Returns a negative value for a degenerate mapping (singular, or a fold).
 [[nodiscard]] double visibleFraction(const cv::Matx33d& curToRef, double w, double h);
 
 }  // namespace keyframed

@@ -100,6 +100,7 @@ bool KeyframeSelector::requestCapture() {
 void KeyframeSelector::clearCandidate() {
   candidateIndex_ = -1;
   candidateSharpness_ = 0.0;
+  candidateRank_ = 0.0;
   candidateGrade_ = 0;
   candidateSharp_ = false;
 }
@@ -132,14 +133,21 @@ void KeyframeSelector::noteCandidate(Decision& d) {
   // A frame that measures sharp but moved fast (motion gate) ranks between: not kept
   // at the target, but good enough to fall back on at the band's edge, so that a
   // speed-up the gate has not adapted to yet does not push keyframes under the band.
+  // In paper mode, of frames equally sharp by grade, the one with the most distance
+  // from the keyframe: every frame under t is offered, from the keyframe's next one
+  // on, and the sharpest of them could be a near copy of the keyframe, which would
+  // close no gap.
   const int grade =
       d.sharp ? 2 : (d.fastMotion && d.sharpness >= d.threshold && d.sharpness > 0.0 ? 1 : 0);
+  const bool paper = config_.overlap.mode == OverlapMode::Paper;
+  const double rank = paper ? d.paperDistance : d.sharpness;
   const bool better = candidateIndex_ < 0 || grade > candidateGrade_ ||
-                      (grade == candidateGrade_ && d.sharpness > candidateSharpness_);
+                      (grade == candidateGrade_ && rank > candidateRank_);
   // (a uniform frame, score 0, is no candidate even with a floor of 0)
   if (d.sharpness < config_.blur.floor || !(d.sharpness > 0.0) || !better) return;
   candidateIndex_ = d.index;
   candidateSharpness_ = d.sharpness;
+  candidateRank_ = rank;
   candidateGrade_ = grade;
   candidateSharp_ = grade > 0;
   d.candidate = true;

@@ -185,6 +185,7 @@ class KeyframeSelector {
   std::int64_t keyframesSinceScorer_ = 0;  // since the blur statistic began (reconfigure)
   std::int64_t candidateIndex_ = -1;
   double candidateSharpness_ = 0.0;
+  double candidateRank_ = 0.0;   // its sharpness (paper mode: its distance), among its grade
   int candidateGrade_ = 0;       // 2 sharp, 1 sharp but moved fast, 0 blurry (noteCandidate)
   bool candidateSharp_ = false;  // grade > 0: fallen back on at the band's low edge
   RunningQuantile motion_;       // recent frame motions (analysis px)

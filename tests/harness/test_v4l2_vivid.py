@@ -542,14 +542,14 @@ def test_daemon_stops_at_once_on_sigterm_while_the_camera_stalls(vm_run: dict) -
 
 def test_daemon_keyframe_is_the_vivid_pattern(vm_run: dict) -> None:
     d = _daemon(vm_run)
-    # The frames the camera held from before the capture started are thrown away: the
-    # first keyframe is the first frame after them (named by the source's frame index).
+    # The frames the camera held from before the capture started are thrown away:
+    # handed back to the driver unread (they take no frame index), or read and dropped
+    # by their timestamps (they do). The first keyframe is the first frame after them.
     first = min(d["keyframes"])
     assert d["keyframes"][first] == len(d["jpeg"]) > 0, d["keyframes"]
-    assert int(first.removesuffix(".jpg")) == d["summary"]["frames_stale_at_start"], (
-        first,
-        d["summary"],
-    )
+    stale = d["summary"]["frames_stale_at_start"]
+    assert stale >= 1, d["summary"]  # vivid streamed while the daemon started
+    assert int(first.removesuffix(".jpg")) <= stale, (first, d["summary"])
     assert b"Exif\0\0" in d["jpeg"][:200] and b"keyframed" in d["jpeg"][:400]
     img = cv2.imdecode(np.frombuffer(d["jpeg"], np.uint8), cv2.IMREAD_COLOR)
     assert img is not None and img.shape == (HEIGHT, WIDTH, 3)

@@ -40,7 +40,46 @@ TEST(Polygon, RotationAboutTheCentre) {
 TEST(Polygon, DegenerateMappingsAreRejected) {
   EXPECT_LT(visibleFraction(cv::Matx33d(1, 0, 0, 0, 1, 0, 0, 0, 0), 640, 360), 0.0);  // at infinity
   EXPECT_LT(visibleFraction(cv::Matx33d(-1, 0, 640, 0, 1, 0, 0, 0, 1), 640, 360), 0.0);  // mirrored
-  EXPECT_LT(visibleFraction(cv::Matx33d(1, 0, 0, 0, 1, 0, -0.01, 0, 1), 640, 360), 0.0);  // behind
+}
+
+// The fraction of reference pixels (a fine grid) that land in front of the current
+// camera and inside its image: what visibleFraction computes exactly.
+double sampledFraction(const cv::Matx33d& curToRef, double w, double h) {
+  const cv::Matx33d refToCur = curToRef.inv();
+  int in = 0, all = 0;
+  for (double y = 0.5; y < h; y += 1.0) {
+    for (double x = 0.5; x < w; x += 1.0) {
+      ++all;
+      const cv::Vec3d v = refToCur * cv::Vec3d(x, y, 1.0);
+      if (!(v[2] > 0.0)) continue;
+      const double u = v[0] / v[2], t = v[1] / v[2];
+      if (u >= 0 && u < w && t >= 0 && t < h) ++in;
+    }
+  }
+  return static_cast<double>(in) / all;
+}
+
+TEST(Polygon, PartOfTheCurrentImagePastTheReferencesHorizon) {
+  // Corners of the current image that map behind the reference (a camera tilted up
+  // from a nadir keyframe) are no reason to call the overlap lost: the whole
+  // reference is in view here, and part of it in the others.
+  const cv::Matx33d behind(1, 0, 0, 0, 1, 0, -0.01, 0, 1);
+  EXPECT_NEAR(visibleFraction(behind, 640, 360), 1.0, 1e-9);
+  EXPECT_NEAR(sampledFraction(behind, 640, 360), 1.0, 1e-9);
+  const cv::Matx33d tilted[] = {
+      {1, 0, 60, 0, 1, 20, -0.008, 0, 1},
+      {0.9, 0.1, 10, -0.05, 1.1, -8, 0, -0.015, 1},
+      {1, 0, 30, 0, 1, 10, 0.002, -0.014, 1},
+  };
+  for (const cv::Matx33d& m : tilted) {
+    Polygon corners;
+    ASSERT_FALSE(mapRectangle(m, 160, 90, corners)) << m;  // a corner past the horizon
+    const double exact = visibleFraction(m, 160, 90);
+    const double sampled = sampledFraction(m, 160, 90);
+    EXPECT_GT(sampled, 0.05) << m;
+    EXPECT_LT(sampled, 0.999) << m;
+    EXPECT_NEAR(exact, sampled, 0.01) << m;
+  }
 }
 
 }  // namespace

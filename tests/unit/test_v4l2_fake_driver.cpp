@@ -59,6 +59,8 @@ class FakeDriver final : public V4l2Io {
   std::uint32_t width = kWidth;  // the frame size S_FMT settles on
   std::uint32_t height = kHeight;
   std::vector<std::uint8_t> onStreamOn;  // a frame delivered when streaming starts
+  std::string card = "fake camera";      // (under 32 characters)
+  std::string busInfo = "usb-0000:01:00.0-1.2";
 
   bool exists(const std::string&) override { return present; }
   int open(const std::string&) override {
@@ -81,7 +83,8 @@ class FakeDriver final : public V4l2Io {
       case VIDIOC_QUERYCAP: {
         auto* c = static_cast<v4l2_capability*>(arg);
         std::strcpy(reinterpret_cast<char*>(c->driver), "fake");
-        std::strcpy(reinterpret_cast<char*>(c->card), "fake camera");
+        std::strcpy(reinterpret_cast<char*>(c->card), card.c_str());
+        std::strcpy(reinterpret_cast<char*>(c->bus_info), busInfo.c_str());
         c->capabilities = V4L2_CAP_VIDEO_CAPTURE | V4L2_CAP_STREAMING;
         return 0;
       }
@@ -328,6 +331,54 @@ TEST(V4l2FakeDriver, ALostDeviceIsReopenedAndIndicesContinue) {
   EXPECT_EQ(driver->opens, 2);
   EXPECT_EQ(f.index, 1);
   EXPECT_EQ(src->reopenCount(), 1u);
+}
+
+TEST(V4l2FakeDriver, FramesWaitingFromBeforeTheStartAreHandedBackUnread) {
+  // Filled while no one read (the daemon waited for telemetry): with the stamp of
+  // when they are read they would pass for now.
+  auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_YUYV);
+  auto src = openFake(driver);
+  ASSERT_NE(src, nullptr);
+  const std::size_t bufferCount = driver->queued();
+  ASSERT_GE(bufferCount, 2u);
+  const std::vector<std::uint8_t> old(kWidth * kHeight * 2, 10);
+  ASSERT_TRUE(driver->deliver(old));
+  ASSERT_TRUE(driver->deliver(old));
+  EXPECT_EQ(src->discardQueued(), 2u);
+  EXPECT_EQ(driver->queued(), bufferCount);  // every buffer back with the driver
+  EXPECT_EQ(src->discardQueued(), 0u);       // none waits now
+  const std::vector<std::uint8_t> now(kWidth * kHeight * 2, 200);
+  ASSERT_TRUE(driver->deliver(now));
+  Frame f;
+  std::string err;
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  EXPECT_EQ(f.data[0], 200);  // the new frame, not one from before
+}
+
+TEST(V4l2FakeDriver, AnotherCameraOnTheNodeIsNotTakenForTheLostOne) {
+  // The same mode, another camera (another USB port): its frames would be tagged
+  // with the lost camera's calibration and mount.
+  auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_MJPEG);
+  auto src = openFake(driver, /*autoReopen=*/true);
+  ASSERT_NE(src, nullptr);
+  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
+  Frame f;
+  std::string err;
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+  driver->present = false;
+  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);  // lost
+  driver->present = true;
+  driver->busInfo = "usb-0000:01:00.0-1.4";
+  EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+  EXPECT_NE(err.find("another camera came back: fake camera (usb-0000:01:00.0-1.4), not "
+                     "fake camera (usb-0000:01:00.0-1.2)"),
+            std::string::npos)
+      << err;
+  // The lost one back on its port: frames again.
+  driver->busInfo = "usb-0000:01:00.0-1.2";
+  driver->onStreamOn = jpegOf(kWidth, kHeight, 90);
+  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
 }
 
 TEST(V4l2FakeDriver, ADeviceThatComesBackAtAnotherSizeIsNotUsed) {
