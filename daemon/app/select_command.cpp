@@ -84,6 +84,29 @@ bool samePath(const std::string& a, const std::string& b) {
   return !ec && ca == cb;
 }
 
+// The options that shape the tags as the daemon's [tagging] keys a flight record keeps
+// (taggingOverrides), and back.
+DaemonConfig::Tagging taggingOf(const SelectOptions& o) {
+  DaemonConfig::Tagging t;
+  t.make = o.make;
+  t.model = o.model;
+  t.mountGimbal = o.mountGimbal;
+  t.mountRollDeg = o.mountRollDeg;
+  t.mountPitchDeg = o.mountPitchDeg;
+  t.mountYawDeg = o.mountYawDeg;
+  return t;
+}
+
+void setTagging(SelectOptions& o, const DaemonConfig::Tagging& t, double timeOffsetMs) {
+  o.make = t.make;
+  o.model = t.model;
+  o.mountGimbal = t.mountGimbal;
+  o.mountRollDeg = t.mountRollDeg;
+  o.mountPitchDeg = t.mountPitchDeg;
+  o.mountYawDeg = t.mountYawDeg;
+  o.timeOffsetMs = timeOffsetMs;
+}
+
 // --mcap names a file the run reads, or one it writes in --out: the record would
 // destroy it (a flight record replayed into itself reads nothing and ends "done").
 std::string mcapClashes(const SelectOptions& opts) {
@@ -393,14 +416,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                    r.errors.front().c_str());
     } else {
       SelectOptions recorded;
-      const DaemonConfig::Tagging& t = r.config.tagging;
-      recorded.make = t.make;
-      recorded.model = t.model;
-      recorded.mountGimbal = t.mountGimbal;
-      recorded.mountRollDeg = t.mountRollDeg;
-      recorded.mountPitchDeg = t.mountPitchDeg;
-      recorded.mountYawDeg = t.mountYawDeg;
-      recorded.timeOffsetMs = r.config.camera.timeOffsetMs;
+      setTagging(recorded, r.config.tagging, r.config.camera.timeOffsetMs);
       if (!opts.args.empty()) {
         if (const ParseResult again = parseSelectOptions(opts.args, recorded); !again.ok) {
           s.error = again.error;
@@ -408,13 +424,7 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
           return s;
         }
       }
-      opts.make = recorded.make;
-      opts.model = recorded.model;
-      opts.mountGimbal = recorded.mountGimbal;
-      opts.mountRollDeg = recorded.mountRollDeg;
-      opts.mountPitchDeg = recorded.mountPitchDeg;
-      opts.mountYawDeg = recorded.mountYawDeg;
-      opts.timeOffsetMs = recorded.timeOffsetMs;
+      setTagging(opts, taggingOf(recorded), recorded.timeOffsetMs);
     }
   }
   if (replay != nullptr && replay->selectionSettings().empty()) {
@@ -617,16 +627,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     return s;
   }
   const LogToRecord logToRecord(outputs);
-  {
-    DaemonConfig::Tagging t;
-    t.make = opts.make;
-    t.model = opts.model;
-    t.mountGimbal = opts.mountGimbal;
-    t.mountRollDeg = opts.mountRollDeg;
-    t.mountPitchDeg = opts.mountPitchDeg;
-    t.mountYawDeg = opts.mountYawDeg;
-    outputs.tagging(taggingOverrides(t, opts.timeOffsetMs), camera ? &*camera : nullptr);
-  }
+  outputs.tagging(taggingOverrides(taggingOf(opts), opts.timeOffsetMs),
+                  camera ? &*camera : nullptr);
   outputs.settings(fo.liveClock ? monotonicNowNs() : fo.startNs, selectionOverrides(opts.selector));
 
   KeyframeOutput output(writer, log, outputs, telemetry.get(), opts.telemetryWaitMs,

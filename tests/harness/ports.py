@@ -52,12 +52,14 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
     raise RuntimeError(f"no free port in {low}-{high}")
 
 
-def zenoh_listener_config(path: Path, port: int) -> Path:
+def zenoh_listener_config(path: Path, port: int, endpoint_options: str = "") -> Path:
     """A Zenoh peer configuration (JSON5) listening on tcp/127.0.0.1:PORT, no scouting:
-    the daemon's side of a loopback link."""
+    the daemon's side of a loopback link. ENDPOINT_OPTIONS ("so_sndbuf=8192") go after
+    the endpoint's #."""
+    endpoint = f"tcp/127.0.0.1:{port}" + (f"#{endpoint_options}" if endpoint_options else "")
     conf = {
         "mode": "peer",
-        "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+        "listen": {"endpoints": [endpoint]},
         "scouting": {"multicast": {"enabled": False}},
     }
     path.write_text(json.dumps(conf))

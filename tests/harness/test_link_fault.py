@@ -565,16 +565,7 @@ def test_a_stop_on_a_congested_link_ends_in_time_with_the_summary_written(
     fl = flight("nadir", width=960, height=540, seconds=20.0)
     zport, lport = free_port(), free_port()
     mport = free_port(socket.SOCK_DGRAM)
-    zconf = tmp_path / "zenoh.json5"
-    zconf.write_text(
-        json.dumps(
-            {
-                "mode": "peer",
-                "listen": {"endpoints": [f"tcp/127.0.0.1:{zport}#so_sndbuf=8192"]},
-                "scouting": {"multicast": {"enabled": False}},
-            }
-        )
-    )
+    zconf = zenoh_listener_config(tmp_path / "zenoh.json5", zport, "so_sndbuf=8192")
     relay = Relay(lport, zport)
     relay.throttle(2_000)
     ap = fake_autopilot(fl / "flight.tlog", target=("127.0.0.1", mport))

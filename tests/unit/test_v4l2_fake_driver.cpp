@@ -355,19 +355,25 @@ TEST(V4l2FakeDriver, FramesWaitingFromBeforeTheStartAreHandedBackUnread) {
   EXPECT_EQ(f.data[0], 200);  // the new frame, not one from before
 }
 
+// One frame read from an MJPEG stream that reopens itself, then the device gone.
+void loseAfterAFrame(FakeDriver& driver, V4l2Source& src, Frame& f, std::string& err) {
+  ASSERT_TRUE(driver.deliver(jpegOf(kWidth, kHeight, 90)));
+  ASSERT_EQ(src.next(f, err), ReadStatus::Frame) << err;
+  driver.present = false;
+  ASSERT_TRUE(driver.deliver(jpegOf(kWidth, kHeight, 90)));  // poll wakes, DQBUF: ENODEV
+  EXPECT_EQ(src.next(f, err), ReadStatus::Error);
+  EXPECT_TRUE(src.lost());
+}
+
 TEST(V4l2FakeDriver, AnotherCameraOnTheNodeIsNotTakenForTheLostOne) {
   // The same mode, another camera (another USB port): its frames would be tagged
   // with the lost camera's calibration and mount.
   auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_MJPEG);
   auto src = openFake(driver, /*autoReopen=*/true);
   ASSERT_NE(src, nullptr);
-  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
   Frame f;
   std::string err;
-  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
-  driver->present = false;
-  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
-  EXPECT_EQ(src->next(f, err), ReadStatus::Error);  // lost
+  loseAfterAFrame(*driver, *src, f, err);
   driver->present = true;
   driver->busInfo = "usb-0000:01:00.0-1.4";
   EXPECT_EQ(src->next(f, err), ReadStatus::Error);
@@ -385,13 +391,9 @@ TEST(V4l2FakeDriver, ADeviceThatComesBackAtAnotherSizeIsNotUsed) {
   auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_MJPEG);
   auto src = openFake(driver, /*autoReopen=*/true);
   ASSERT_NE(src, nullptr);
-  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
   Frame f;
   std::string err;
-  ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
-  driver->present = false;
-  ASSERT_TRUE(driver->deliver(jpegOf(kWidth, kHeight, 90)));
-  EXPECT_EQ(src->next(f, err), ReadStatus::Error);  // lost
+  loseAfterAFrame(*driver, *src, f, err);
   // Another camera on the node: the frames downstream were sized for the first.
   driver->present = true;
   driver->width = 32;
