@@ -1,5 +1,9 @@
 #include "app/decision_log.h"
 
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
 #include <cerrno>
 #include <cmath>
 #include <cstring>
@@ -87,35 +91,55 @@ std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
 bool DecisionLog::open(const std::string& path, DecisionFormat format, std::string& error) {
   path_ = path;
   format_ = format;
-  file_ = std::fopen(path.c_str(), "w");
-  if (file_ == nullptr) {
+  fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd_ < 0) {
     error = "cannot create " + path + ": " + std::strerror(errno);
     return false;
   }
-  if (format_ == DecisionFormat::Csv && std::fprintf(file_, "%s\n", header().c_str()) < 0) {
-    error = "cannot write " + path + ": " + std::strerror(errno);
-    return false;
+  if (format_ == DecisionFormat::Csv) {
+    const std::string head = header() + "\n";
+    if (!writeAll(fd_, head)) {
+      error = "cannot write " + path + ": " + std::strerror(errno);
+      ::close(fd_);
+      fd_ = -1;
+      return false;
+    }
+    good_ = static_cast<off_t>(head.size());
   }
   return true;
 }
 
-bool DecisionLog::flushPending(std::string& error) {
-  for (const Row& r : pending_) {
-    const std::string row = format_ == DecisionFormat::Csv ? csvRow(r.decision, r.geotag)
-                                                           : jsonRow(r.decision, r.geotag);
-    if (std::fprintf(file_, "%s\n", row.c_str()) < 0) {
-      error = "cannot write " + path_ + ": " + std::strerror(errno);
-      pending_.clear();
-      return false;
-    }
+bool DecisionLog::flushPending(std::string& error, std::size_t n) {
+  n = std::min(n, pending_.size());
+  if (n == 0) return true;
+  std::string text;
+  text.reserve(n * 200);
+  for (std::size_t i = 0; i < n; ++i) {
+    const Row& r = pending_[i];
+    text += format_ == DecisionFormat::Csv ? csvRow(r.decision, r.geotag)
+                                           : jsonRow(r.decision, r.geotag);
+    text += '\n';
   }
-  pending_.clear();
-  return std::fflush(file_) == 0 ||
-         (error = "cannot write " + path_ + ": " + std::strerror(errno), false);
+  if (!writeAll(fd_, text)) {
+    // A full disk can take part of the rows: cut back to the last whole one; the rows
+    // stay, to be written whole when there is room.
+    error = "cannot write " + path_ + ": " + std::strerror(errno);
+    if (::ftruncate(fd_, good_) != 0 || ::lseek(fd_, good_, SEEK_SET) < 0) {
+      error += "; cannot cut back a part-written row";
+    }
+    while (pending_.size() > kMaxUnwrittenRows) {
+      pending_.pop_front();
+      ++rowsLost_;
+    }
+    return false;
+  }
+  good_ += static_cast<off_t>(text.size());
+  pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(n));
+  return true;
 }
 
 bool DecisionLog::add(const Decision& d, std::string& error, const std::string& geotag) {
-  if (file_ == nullptr) return true;
+  if (fd_ < 0) return true;
   if (d.promotedIndex >= 0) {
     for (Row& r : pending_) {
       Decision& p = r.decision;
@@ -127,19 +151,18 @@ bool DecisionLog::add(const Decision& d, std::string& error, const std::string& 
     }
   }
   pending_.push_back({d, geotag});
-  // A keyframe or a promotion settles every row up to here; a new candidate
-  // settles every row before it.
-  if (d.kept || d.promotedIndex >= 0) return flushPending(error);
+  // A new candidate settles every row before it.
   if (d.candidate) {
-    const Row last = pending_.back();
-    pending_.pop_back();
-    if (!flushPending(error)) return false;
-    pending_.push_back(last);
-    return true;
+    heldCandidate_ = true;
+    heldRows_ = 1;
+    return flushPending(error, pending_.size() - 1);
   }
-  // This row alone: no candidate held, nothing can change it. Or held too long:
-  // every row is as final as it gets.
-  if (pending_.size() == 1 || pending_.size() > kMaxHeldRows) return flushPending(error);
+  // A keyframe or a promotion settles every row up to here. Without a candidate held,
+  // nothing can change this row. Held too long: every row is as final as it gets.
+  if (d.kept || d.promotedIndex >= 0 || !heldCandidate_ || ++heldRows_ > kMaxHeldRows) {
+    heldCandidate_ = false;
+    return flushPending(error);
+  }
   return true;
 }
 
@@ -161,13 +184,19 @@ void DecisionLog::markGapFill(std::int64_t index) {
 }
 
 bool DecisionLog::close(std::string& error) {
-  if (file_ == nullptr) return true;
+  if (fd_ < 0) return true;
   bool ok = flushPending(error);
-  if (std::fclose(file_) != 0 && ok) {
+  if (!ok) rowsLost_ += static_cast<std::int64_t>(pending_.size());
+  pending_.clear();
+  if (ok && rowsLost_ > 0) {
+    error = std::to_string(rowsLost_) + " rows of " + path_ + " lost to write errors";
+    ok = false;
+  }
+  if (::close(fd_) != 0 && ok) {
     error = "cannot close " + path_ + ": " + std::strerror(errno);
     ok = false;
   }
-  file_ = nullptr;
+  fd_ = -1;
   return ok;
 }
 

@@ -1,6 +1,9 @@
 #pragma once
 
-#include <cstdio>
+#include <sys/types.h>
+
+#include <cstddef>
+#include <cstdint>
 #include <deque>
 #include <string>
 
@@ -15,6 +18,8 @@ namespace keyframed {
 // hold a candidate for minutes: past kMaxHeldRows rows the held rows are written
 // as they stand (bounded memory, little lost to a power cut); a later promotion of
 // that candidate is then told only by the promoting row's `promoted` column.
+// Rows a write error (a full disk) kept out are kept and written, whole, once the
+// disk takes them (up to kMaxUnwrittenRows; past that the oldest are let go).
 class DecisionLog {
  public:
   DecisionLog() = default;
@@ -32,22 +37,34 @@ class DecisionLog {
   void setGeotag(std::int64_t index, const std::string& geotag);
   bool close(std::string& error);
 
-  static constexpr std::size_t kMaxHeldRows = 900;  // 30 s at 30 fps
+  static constexpr std::size_t kMaxHeldRows = 900;         // 30 s at 30 fps
+  static constexpr std::size_t kMaxUnwrittenRows = 18000;  // 10 min at 30 fps, ~3 MB
+
+  // Rows let go unwritten (more than kMaxUnwrittenRows waited for the disk).
+  [[nodiscard]] std::int64_t rowsLost() const { return rowsLost_; }
 
   static std::string header();
   static std::string csvRow(const Decision& d, const std::string& geotag = {});
   static std::string jsonRow(const Decision& d, const std::string& geotag = {});
 
  private:
-  bool flushPending(std::string& error);
+  // Writes the first n pending rows (all by default); on an error they stay pending
+  // and the file is cut back to its last whole row.
+  bool flushPending(std::string& error, std::size_t n = SIZE_MAX);
 
-  std::FILE* file_ = nullptr;
+  int fd_ = -1;
+  off_t good_ = 0;  // the file's length up to the last whole row
   DecisionFormat format_ = DecisionFormat::Csv;
   struct Row {
     Decision decision;
     std::string geotag;
   };
-  std::deque<Row> pending_;  // empty, or a held candidate's row and those after it
+  // Rows not yet written: a held candidate's and those after it, and any a write
+  // error kept out, in frame order.
+  std::deque<Row> pending_;
+  bool heldCandidate_ = false;  // a candidate's row is pending: it may be promoted
+  std::size_t heldRows_ = 0;    // its row and those after it
+  std::int64_t rowsLost_ = 0;
   std::string path_;
 };
 

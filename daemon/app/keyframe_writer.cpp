@@ -154,46 +154,83 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
   // sees one gap-free sequence, and what it missed is served from disk when it is there.
   ++count_;
   if (rec.pose.position && tagError.empty()) ++geotagged_;
-  if (!writeFileAtomically(rec.file, jpeg_, error)) {
+
+  const auto& p = rec.pose;
+  std::string row = std::to_string(rec.sequence) + "," + std::to_string(frameIndex) + "," +
+                    fileName(frameIndex) + "," + std::to_string(timeNs) + "," +
+                    (p.utcUs ? std::to_string(*p.utcUs) : "") + ",";
+  if (p.position) {
+    row += formatFixed(p.position->latDeg, 9) + "," + formatFixed(p.position->lonDeg, 9) + "," +
+           formatFixed(p.position->altAmslM, 4) + "," + formatFixed(p.position->altRelM, 4) + ",";
+  } else {
+    row += ",,,,";
+  }
+  if (rec.cameraToNed) {
+    const Quaternion& q = *rec.cameraToNed;
+    const Pix4dAngles a = pix4dAngles(q);
+    row += formatFixed(q.w, 9) + "," + formatFixed(q.x, 9) + "," + formatFixed(q.y, 9) + "," +
+           formatFixed(q.z, 9) + "," + formatFixed(a.yawDeg, 4) + "," + formatFixed(a.pitchDeg, 4) +
+           "," + formatFixed(a.rollDeg, 4) + ",";
+  } else {
+    row += ",,,,,,,";
+  }
+  row += formatFixed(p.gps.hdop, 2) + "," + (pose != nullptr ? std::to_string(p.gps.fixType) : "") +
+         ",\"" + rec.geotag + "\"\n";
+
+  // Those a full disk held back go first: files and index rows in sequence order.
+  if (!saveHeld(error) || !writeFileAtomically(rec.file, jpeg_, error)) {
+    held_.push_back({rec.file, jpeg_, std::move(row)});
+    heldBytes_ += jpeg_.size();
+    while (heldBytes_ > config_.maxHeldBytes && held_.size() > 1) {
+      heldBytes_ -= held_.front().jpeg.size();
+      held_.pop_front();
+      ++letGo_;
+    }
     rec.file.clear();
     ++unsaved_;
     return false;
   }
   if (!tagError.empty())
     error = "keyframe " + fileName(frameIndex) + " saved untagged: " + tagError;
-
   if (index_ >= 0) {
-    const auto& p = rec.pose;
-    std::string row = std::to_string(rec.sequence) + "," + std::to_string(frameIndex) + "," +
-                      fileName(frameIndex) + "," + std::to_string(timeNs) + "," +
-                      (p.utcUs ? std::to_string(*p.utcUs) : "") + ",";
-    if (p.position) {
-      row += formatFixed(p.position->latDeg, 9) + "," + formatFixed(p.position->lonDeg, 9) + "," +
-             formatFixed(p.position->altAmslM, 4) + "," + formatFixed(p.position->altRelM, 4) + ",";
-    } else {
-      row += ",,,,";
-    }
-    if (rec.cameraToNed) {
-      const Quaternion& q = *rec.cameraToNed;
-      const Pix4dAngles a = pix4dAngles(q);
-      row += formatFixed(q.w, 9) + "," + formatFixed(q.x, 9) + "," + formatFixed(q.y, 9) + "," +
-             formatFixed(q.z, 9) + "," + formatFixed(a.yawDeg, 4) + "," +
-             formatFixed(a.pitchDeg, 4) + "," + formatFixed(a.rollDeg, 4) + ",";
-    } else {
-      row += ",,,,,,,";
-    }
-    row += formatFixed(p.gps.hdop, 2) + "," +
-           (pose != nullptr ? std::to_string(p.gps.fixType) : "") + ",\"" + rec.geotag + "\"";
-    pendingRows_.push_back(row + "\n");
+    pendingRows_.push_back(std::move(row));
     if (!appendIndexRows(error)) return false;
   }
   rec.indexed = true;
   return tagError.empty();
 }
 
+bool KeyframeWriter::saveHeld(std::string& error) {
+  bool ok = true;
+  std::size_t saved = 0;
+  while (!held_.empty()) {
+    Held& h = held_.front();
+    if (!writeFileAtomically(h.file, h.jpeg, error)) {
+      ok = false;
+      break;
+    }
+    if (index_ >= 0) pendingRows_.push_back(std::move(h.row));
+    heldBytes_ -= h.jpeg.size();
+    held_.pop_front();
+    ++saved;
+  }
+  unsaved_ -= static_cast<std::int64_t>(saved);
+  savedLate_ += static_cast<std::int64_t>(saved);
+  // Their rows now (a row the disk does not take yet stays pending for the next).
+  std::string rowError;
+  if (saved > 0 && index_ >= 0) appendIndexRows(rowError);
+  return ok;
+}
+
 bool KeyframeWriter::close(std::string& error) {
   if (index_ < 0) return true;
-  bool ok = appendIndexRows(error);  // rows a full disk held back, if there is room now
+  // Keyframes and rows a full disk held back, if there is room now.
+  bool ok = saveHeld(error);
+  std::string rowError;
+  if (!appendIndexRows(rowError) && ok) {
+    error = rowError;
+    ok = false;
+  }
   if (::close(index_) != 0 && ok) {
     error = "cannot close " + indexPath_ + ": " + std::strerror(errno);
     ok = false;

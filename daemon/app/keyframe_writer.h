@@ -2,8 +2,10 @@
 
 #include <sys/types.h>
 
+#include <cstddef>
 #include <cstdint>
 #include <cstdio>
+#include <deque>
 #include <functional>
 #include <optional>
 #include <string>
@@ -31,6 +33,9 @@ struct KeyframeWriterConfig {
   // UTC (unix us) of a frame time, for keyframes the autopilot gave no UTC for (no
   // SYSTEM_TIME, no telemetry); unset or nullopt: none is tagged.
   std::function<std::optional<std::int64_t>(std::int64_t timeNs)> utcFallback;
+  // Keyframes a full disk did not take are held in memory up to this many bytes of
+  // JPEG, to be saved once it has room; past that the oldest are let go.
+  std::size_t maxHeldBytes = 32u << 20;
 };
 
 // What was written for one keyframe (also a row of keyframes.csv).
@@ -62,7 +67,10 @@ class KeyframeWriter {
   bool open(KeyframeWriterConfig config, std::string& error);
   // pose: nullptr when there is no telemetry. False with a one-line error. When only
   // saving failed (disk full), record.encoded is still true and the keyframe keeps
-  // its sequence number: it can be published from lastJpeg(), and file is ""..
+  // its sequence number: it can be published from lastJpeg(), and file is "". The
+  // JPEG is then held in memory (up to maxHeldBytes, the oldest let go past that) and
+  // saved, with its index row, as soon as the disk takes it: before the next
+  // keyframe is, so that files and rows stay in sequence order, and at close().
   bool write(const cv::Mat& bgr, std::int64_t frameIndex, std::int64_t timeNs, const Pose* pose,
              KeyframeRecord& record, std::string& error);
   // The same from a frame in any pixel format (JPEG straight from YUV); the
@@ -73,6 +81,11 @@ class KeyframeWriter {
   // Keyframes given a sequence number (saved or not), and those saved to disk.
   [[nodiscard]] std::int64_t count() const { return count_; }
   [[nodiscard]] std::int64_t saved() const { return count_ - unsaved_; }
+  // Of the saved: those a full disk held back, saved later.
+  [[nodiscard]] std::int64_t savedLate() const { return savedLate_; }
+  // Of the unsaved: those let go from memory (more than maxHeldBytes waited), lost
+  // to the disk for good; the others are still held.
+  [[nodiscard]] std::int64_t letGo() const { return letGo_; }
   // The tagged JPEG bytes of the last keyframe written.
   [[nodiscard]] const std::vector<std::uint8_t>& lastJpeg() const { return jpeg_; }
   [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
@@ -95,13 +108,26 @@ class KeyframeWriter {
   std::vector<std::uint8_t> jpeg_;
   std::optional<CameraModel> scaled_;
   bool appendIndexRows(std::string& error);
+  // Saves the held keyframes, oldest first; false (with the error) when one still
+  // cannot be saved.
+  bool saveHeld(std::string& error);
 
   int index_ = -1;  // keyframes.csv
   std::string indexPath_;
   off_t indexGood_ = 0;                   // its length up to the last whole row
   std::vector<std::string> pendingRows_;  // rows not yet written (a full disk), in order
+  // Keyframes a full disk did not take, in sequence order, and their bytes.
+  struct Held {
+    std::string file;  // absolute path
+    std::vector<std::uint8_t> jpeg;
+    std::string row;  // its keyframes.csv row
+  };
+  std::deque<Held> held_;
+  std::size_t heldBytes_ = 0;
   std::int64_t count_ = 0;
   std::int64_t unsaved_ = 0;
+  std::int64_t savedLate_ = 0;
+  std::int64_t letGo_ = 0;
   std::int64_t geotagged_ = 0;
 };
 

@@ -338,9 +338,10 @@ class Daemon {
   ConfigSources sources_;
   Notifier notifier_;
   std::string flightDir_;
-  bool ready_ = false;          // READY=1 sent (the first frame arrived); main thread
-  bool reloadPending_ = false;  // SIGHUP before the outputs were open; main thread
-  std::size_t leftAtStop_ = 0;  // frames still queued when the analysis stopped
+  bool ready_ = false;                // READY=1 sent (the first frame arrived); main thread
+  bool reloadPending_ = false;        // SIGHUP before the outputs were open; main thread
+  std::size_t leftAtStop_ = 0;        // frames still queued when the analysis stopped
+  std::int64_t savedLateLogged_ = 0;  // of writer_.savedLate(), on the output thread
   // Frames on a recorded flight's clock (a file with its tlog) instead of CLOCK_MONOTONIC:
   // "now" on that clock is CLOCK_MONOTONIC + the offset found at the first frame.
   bool videoClock_ = false;
@@ -552,6 +553,11 @@ void Daemon::outputOne(const KeyframeEvent& event, std::string& error, LogThrott
                                           : std::string());
     }
   }
+  if (const std::int64_t late = writer_.savedLate(); late > savedLateLogged_) {
+    KF_LOG(Output, Notice) << late - savedLateLogged_
+                           << " keyframes a full disk held back are saved now";
+    savedLateLogged_ = late;
+  }
   stats_.written.store(writer_.count());
   outputs_.progress(stats_.analysed.load(), writer_.count());
 }
@@ -689,7 +695,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       "  \"frames_lost_in_camera\": %llu,\n  \"frames_stale_at_start\": %llu,\n"
       "  \"frames_left_at_stop\": %llu,\n"
       "  \"frames_read\": %lld,\n"
-      "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"write_errors\": %lld,\n"
+      "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"saved_late\": %lld,\n"
+      "  \"write_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
       "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
       "  \"analysis_ms_mean\": %.3f,\n  \"cpu_seconds\": %.3f,\n  \"cpu_percent\": %.1f,\n"
@@ -701,6 +708,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       static_cast<long long>(c.framesRead), static_cast<long long>(c.kept),
       static_cast<long long>(writer_.saved()),
       static_cast<long long>(writer_.count() - writer_.saved()),
+      static_cast<long long>(writer_.savedLate()),
       static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
       static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
       static_cast<unsigned long long>(cs.errors), seconds,
@@ -1248,8 +1256,13 @@ int Daemon::run() {
   // A keyframe or decision row that could not be saved (a full disk, an I/O error):
   // the run's outputs are not complete, whatever else went well.
   if (const std::int64_t failed = stats_.writeErrors.load(); failed > 0) {
+    const std::int64_t unsaved = writer_.count() - writer_.saved();
     KF_LOG(Output, Error) << failed << " writes failed in this run, "
-                          << writer_.count() - writer_.saved() << " keyframes not saved";
+                          << (unsaved > 0 ? std::to_string(unsaved) + " keyframes not saved"
+                                          : "every keyframe saved in the end")
+                          << (writer_.savedLate() > 0 ? " (" + std::to_string(writer_.savedLate()) +
+                                                            " saved late, once the disk had room)"
+                                                      : std::string());
     ok = false;
   }
   const CaptureThread::Stats cs = capture_->stats();

@@ -84,6 +84,25 @@ void setByte(Exiv2::ExifData& exif, const char* key, const char* values) {
   exif[key].setValue(v.get());
 }
 
+// EXIF's "undefined" bytes, given as decimal numbers ("48 50 51 50" is "0232").
+void setUndefined(Exiv2::ExifData& exif, const char* key, const char* values) {
+  Exiv2::Value::AutoPtr v = Exiv2::Value::create(Exiv2::undefined);
+  v->read(values);
+  exif[key].setValue(v.get());
+}
+
+// The tags EXIF 2.32 requires of every compressed (JPEG) image, whatever else is known.
+void writeRequired(Exiv2::ExifData& exif) {
+  setUndefined(exif, "Exif.Photo.ExifVersion", "48 50 51 50");      // "0232": OffsetTime is 2.31
+  setUndefined(exif, "Exif.Photo.FlashpixVersion", "48 49 48 48");  // "0100"
+  setUndefined(exif, "Exif.Photo.ComponentsConfiguration", "1 2 3 0");  // Y Cb Cr
+  exif["Exif.Photo.ColorSpace"] = static_cast<std::uint16_t>(1);        // sRGB
+  exif["Exif.Image.XResolution"] = Exiv2::URational(72, 1);
+  exif["Exif.Image.YResolution"] = Exiv2::URational(72, 1);
+  exif["Exif.Image.ResolutionUnit"] = static_cast<std::uint16_t>(2);    // inches
+  exif["Exif.Image.YCbCrPositioning"] = static_cast<std::uint16_t>(1);  // centred (JFIF)
+}
+
 void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& cam) {
   if (!cam.make.empty()) exif["Exif.Image.Make"] = cam.make;
   if (!cam.model.empty()) exif["Exif.Image.Model"] = cam.model;
@@ -156,13 +175,14 @@ void writeTime(Exiv2::ExifData& exif, std::int64_t utcUs, bool gps) {
   gmtime_r(&t, &tm);
   char buf[32];
   std::strftime(buf, sizeof buf, "%Y:%m:%d %H:%M:%S", &tm);
-  // The JPEG is made on board at the capture: its DateTime is the same instant, and
-  // some readers (OpenDroneMap's) take the milliseconds from SubSecTime alone.
+  // The JPEG is made on board at the capture: its DateTime is the same instant. No
+  // SubSecTime beside it: OpenDroneMap reads that one's "066" as 0.66 s (the digits
+  // without their leading zeros), which puts keyframes out of order; without it ODM
+  // takes whole seconds, and the rest read SubSecTimeOriginal or the GPS time.
   exif["Exif.Photo.DateTimeOriginal"] = std::string(buf);
   exif["Exif.Image.DateTime"] = std::string(buf);
   std::snprintf(buf, sizeof buf, "%03d", static_cast<int>(micros / 1000));
   exif["Exif.Photo.SubSecTimeOriginal"] = std::string(buf);
-  exif["Exif.Photo.SubSecTime"] = std::string(buf);
   exif["Exif.Photo.OffsetTimeOriginal"] = std::string("+00:00");
   exif["Exif.Photo.OffsetTime"] = std::string("+00:00");
   if (!gps) return;
@@ -212,6 +232,7 @@ void buildTags(Exiv2::Image& image, const TagSet& tags) {
   Exiv2::ExifData& exif = image.exifData();
   Exiv2::XmpData& xmp = image.xmpData();
   exif["Exif.Image.Software"] = tags.software;
+  writeRequired(exif);
   if (tags.camera != nullptr) {
     // Intrinsics refer to the camera's resolution; the JPEG may be a scaled copy.
     const int w = image.pixelWidth();

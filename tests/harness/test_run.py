@@ -1717,6 +1717,48 @@ def test_full_disk_and_no_listener_yet_loses_no_keyframe(
 
 
 @mounts_tmpfs
+def test_keyframes_a_full_disk_held_back_are_saved_once_it_has_room(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The disk fills up for a while (another process's file) and then has room again:
+    the keyframes it did not take were held in memory and are saved then, with their
+    index rows, in sequence order: the keyframes offline selection keeps, all on the
+    disk. The run still says that writes failed."""
+    with small_disk(tmp_path / "state", "1m") as state:
+        filler = state / "filler"
+        filler.write_bytes(b"\0" * (1024 * 1024 - 64 * 1024))  # leaves ~64 kB: one keyframe
+        proc = start(
+            kf_bin, tmp_path, f"camera.path={short_nadir / 'video.avi'}", "output.mcap=false"
+        )
+        time.sleep(3.5)  # 8 s of flight in real time: the disk is full by now
+        assert proc.poll() is None, proc.communicate()
+        filler.unlink()
+        _, stderr = proc.communicate(timeout=60)
+        assert proc.returncode == 1, stderr  # writes failed, though nothing was lost
+        assert "No space left on device" in stderr, stderr
+        assert "held back are saved now" in stderr, stderr
+        assert "every keyframe saved in the end" in stderr, stderr
+        summary = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+        kfs = rows(flight_dir(tmp_path) / "keyframes" / "keyframes.csv")
+        saved = {p.name: p.read_bytes() for p in state.rglob("*.jpg")}
+
+    print(f"full for a while: {summary['saved_late']} of {summary['kept']} saved late")
+    assert summary["unsaved"] == 0 and summary["written"] == summary["kept"], summary
+    assert summary["saved_late"] >= 1, summary
+    assert [int(r["sequence"]) for r in kfs] == list(range(summary["kept"])), kfs
+    assert sorted(r["file"] for r in kfs) == sorted(saved), (kfs, sorted(saved))
+    offline = tmp_path / "offline"
+    r = subprocess.run(
+        [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(offline), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in offline.glob("*.jpg")) == sorted(saved)
+
+
+@mounts_tmpfs
 def test_full_disk_loses_no_keyframe_on_the_link(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:

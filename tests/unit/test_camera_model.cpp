@@ -7,7 +7,6 @@
 #include <vector>
 
 #include <sys/stat.h>
-#include <unistd.h>
 
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
@@ -16,18 +15,15 @@
 #include "tagging/camera_model_toml.h"
 #include "tagging/camera_mount.h"
 #include "telemetry/pose_store.h"
+#include "temp_dir.h"
 
 namespace keyframed {
 namespace {
 
 namespace fs = std::filesystem;
 
-// A directory of this test process's own under the system temp dir.
 fs::path tempDir() {
-  const fs::path d =
-      fs::path(testing::TempDir()) / ("keyframed-camera-" + std::to_string(getpid()));
-  fs::create_directories(d);
-  return d;
+  return test::processTempDir("keyframed-camera");
 }
 
 fs::path tempFile(const std::string& name, const std::string& text) {

@@ -107,10 +107,10 @@ TEST(DecisionLog, FullDiskIsReportedNotIgnored) {
   if (!std::filesystem::exists("/dev/full")) GTEST_SKIP() << "no /dev/full on this system";
   DecisionLog log;
   std::string err;
-  ASSERT_TRUE(log.open("/dev/full", DecisionFormat::Csv, err) || !err.empty());
+  // The header's write fails at the open already.
+  bool ok = log.open("/dev/full", DecisionFormat::Csv, err);
   Decision d;
   d.kept = true;
-  bool ok = true;
   for (int i = 0; i < 2000 && ok; ++i) {
     d.index = i;
     ok = log.add(d, err);

@@ -14,6 +14,7 @@
 #include <tuple>
 #include <vector>
 
+#include "mavlink_messages.h"
 #include "telemetry/clock_mapper.h"
 #include "telemetry/link.h"
 #include "telemetry/mavlink_codec.h"
@@ -24,16 +25,9 @@
 namespace keyframed {
 namespace {
 
-constexpr std::int64_t kMs = 1'000'000;
-constexpr double kDeg = M_PI / 180.0;
-
-std::vector<std::uint8_t> heartbeat(MavlinkEncoder& enc, std::uint8_t type,
-                                    std::uint8_t autopilot) {
-  return enc.encode(
-      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-        mavlink_msg_heartbeat_pack_status(s, c, st, m, type, autopilot, 0, 0, MAV_STATE_ACTIVE);
-      });
-}
+using test::heartbeat;
+using test::kDeg;
+using test::kMs;
 
 std::vector<std::uint8_t> attitudeQ(MavlinkEncoder& enc, std::uint32_t bootMs,
                                     const Quaternion& q) {

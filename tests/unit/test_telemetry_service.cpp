@@ -25,6 +25,7 @@
 #include <utility>
 #include <vector>
 
+#include "mavlink_messages.h"
 #include "tagging/camera_mount.h"
 #include "telemetry/link.h"
 #include "telemetry/mavlink_codec.h"
@@ -34,8 +35,9 @@
 namespace keyframed {
 namespace {
 
-constexpr std::int64_t kMs = 1'000'000;
-constexpr double kDeg = M_PI / 180.0;
+using test::heartbeat;
+using test::kDeg;
+using test::kMs;
 
 // Both ends of an in-memory link: what the "autopilot" pushes in, what the service
 // wrote, whether writes succeed, and a one-shot read error.
@@ -192,14 +194,6 @@ class Peer {
 
   std::shared_ptr<LinkState> state;
 };
-
-std::vector<std::uint8_t> heartbeat(MavlinkEncoder& enc, std::uint8_t type,
-                                    std::uint8_t autopilot) {
-  return enc.encode(
-      [&](std::uint8_t s, std::uint8_t c, mavlink_status_t* st, mavlink_message_t* m) {
-        mavlink_msg_heartbeat_pack_status(s, c, st, m, type, autopilot, 0, 0, MAV_STATE_ACTIVE);
-      });
-}
 
 std::vector<std::uint8_t> timesync(MavlinkEncoder& enc, std::int64_t tc1, std::int64_t ts1) {
   return enc.encode(

@@ -41,9 +41,8 @@ dataset whose files describe the images it held at their last writing.
   calibration, and a camera with zero distortion made of it would be held as one;
 - ``cameras.json``: the same camera for OpenDroneMap (``--camera-lens brown --cameras
   cameras.json``, or ``fisheye_opencv`` for a fisheye), keyed by the camera id
-  OpenDroneMap gives these images (and by plain OpenSfM's, where that differs), with
-  that lens or with the one their XMP ModelType says (ODM's ``auto``); absent with
-  ``cameras.txt``;
+  OpenDroneMap gives these images, with that lens or with the one their XMP ModelType
+  says (ODM's ``auto``); absent with ``cameras.txt``;
 - ``pairs.txt``: image pairs for ``colmap matches_importer --match_type pairs``, the
   edges of the overlap graph: each keyframe with its neighbours along the flight and
   with those whose ground footprints (projected from position, camera attitude and
@@ -158,7 +157,6 @@ class ImageTags:
     attitude: tuple[float, float, float] | None = None  # XMP Yaw, Pitch, Roll (Pix4D)
     make: str = ""
     model: str = ""
-    exif_size: tuple[int, int] | None = None  # PixelXDimension, PixelYDimension
     focal_35mm: float | None = None  # FocalLengthIn35mmFilm
 
 
@@ -192,8 +190,6 @@ def _read_tags(jpeg: bytes) -> ImageTags:
         tags.make = str(exif.get(0x010F, "")).strip("\x00 ")
         tags.model = str(exif.get(0x0110, "")).strip("\x00 ")
         sub = exif.get_ifd(0x8769)
-        if 0xA002 in sub and 0xA003 in sub:
-            tags.exif_size = (int(sub[0xA002]), int(sub[0xA003]))
         if sub.get(0xA405):
             tags.focal_35mm = float(sub[0xA405])
         if 0x920A in sub:
@@ -330,35 +326,18 @@ def odm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
     return " ".join(parts + [projection, ratio]).lower()
 
 
-def opensfm_camera_id(tags: ImageTags, projection: str = "brown") -> str | None:
-    """The camera id plain OpenSfM gives images with these tags (exif.camera_id_), in
-    the same form as ``odm_camera_id``: it differs in dropping a make repeated in the
-    model ("Acme" "Acme Cam" is "acme cam"), "unknown" for a missing make or model,
-    and the size from PixelX/YDimension. None without the 35 mm focal length."""
-    if not tags.focal_35mm:
-        return None
-    make = tags.make or "unknown"
-    model = tags.model or "unknown"
-    if make != "unknown":
-        model = model.replace(make, "")
-    width, height = tags.exif_size or (tags.width, tags.height)
-    ratio = str(tags.focal_35mm / 36.0)[:6]
-    parts = [make.strip(), model.strip(), str(width), str(height), projection, ratio]
-    return " ".join(parts).lower()
-
-
 def odm_cameras(tags: ImageTags) -> dict[str, Any] | None:
     """OpenDroneMap's cameras.json (``--camera-lens brown --cameras cameras.json``):
     the calibration as OpenSfM's Brown-Conrady model (``fisheye_opencv``, OpenCV's
     fisheye model, for a fisheye lens: ``--camera-lens fisheye_opencv``), normalised by
     the image's longer side with the principal point as an offset from the centre; the
-    distortion coefficients are OpenCV's (the same polynomials). Keyed by ODM's camera
-    id first, which ODM looks the images' camera up by; when plain OpenSfM's id differs
-    (a make repeated in the model), the same camera again under that one; then both
-    again with the projection the images' XMP ModelType names ("perspective",
-    "fisheye"), which is what ODM's default ``--camera-lens auto`` puts in the id. ODM
-    ignores a key no image has. None without the calibration or the tags the id is
-    made of."""
+    distortion coefficients are OpenCV's (the same polynomials). Keyed by the camera id
+    ODM looks the images' camera up by, with that projection, and again with the one
+    ODM's default ``--camera-lens auto`` puts in the id: the XMP ModelType
+    ("perspective"; a "fisheye" is ODM's "fisheye_opencv"). ODM ignores a key no image
+    has. (Plain OpenSfM's ids, "v2 " and a make repeated in the model dropped, are not
+    keys here: ODM never looks them up.) None without the calibration or the tags the
+    id is made of."""
     cam = intrinsics(tags)
     if cam is None or odm_camera_id(tags) is None:
         return None
@@ -377,10 +356,11 @@ def odm_cameras(tags: ImageTags) -> dict[str, Any] | None:
     else:
         model |= {f"k{i + 1}": v for i, v in enumerate(cam.fisheye)}
     out: dict[str, Any] = {}
-    for projection in (model["projection_type"], tags.lens):
-        for camera_id in (odm_camera_id(tags, projection), opensfm_camera_id(tags, projection)):
-            if camera_id is not None and camera_id not in out:
-                out[camera_id] = dict(model)
+    auto = "fisheye_opencv" if tags.lens == "fisheye" else tags.lens
+    for projection in (model["projection_type"], auto):
+        camera_id = odm_camera_id(tags, projection)
+        if camera_id is not None and camera_id not in out:
+            out[camera_id] = dict(model)
     return out
 
 
@@ -609,24 +589,35 @@ def _sift_worker_init() -> None:
 def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> int:
     """SIFT keypoints + descriptors of one image in COLMAP's feature import format:
     ``N 128`` then per feature ``x y scale orientation d1 ... d128`` (0-255), x and y
-    as COLMAP counts them (OpenCV's + 0.5: the first pixel's centre is 0.5, 0.5)."""
+    as COLMAP counts them (OpenCV's + 0.5: the first pixel's centre is 0.5, 0.5), the
+    descriptors normalised as COLMAP's own extractor does by default (L1-root), so that
+    they mix with features COLMAP computes."""
     import cv2
     import numpy as np
 
     img = cv2.imread(jpeg_path, cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise ValueError(f"cannot read {jpeg_path}")
-    sift = cv2.SIFT.create(nfeatures=max_features)
+    # OpenCV's SIFT doubles the image for its first octave; before 4.8 (or without
+    # precise upscaling) that resize puts every keypoint 0.25 px right of and below
+    # where it is: taken out here, so that the features land where COLMAP's would.
+    try:
+        sift = cv2.SIFT.create(nfeatures=max_features, enable_precise_upscale=True)
+        shift = 0.5
+    except TypeError:
+        sift = cv2.SIFT.create(nfeatures=max_features)
+        shift = 0.25
     # No mask: OpenCV takes None, which its stubs leave out.
     kps, desc = sift.detectAndCompute(img, None)  # type: ignore[call-overload]
     lines = [f"{len(kps)} 128"]
     if desc is not None:
-        # As COLMAP stores SIFT: L2-normalised, times 512, clipped to 0..255.
-        d = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        # As COLMAP stores SIFT by default: L1-normalised, square-rooted (RootSIFT),
+        # times 512, clipped to 0..255.
+        d = np.sqrt(desc / np.maximum(np.abs(desc).sum(axis=1, keepdims=True), 1e-12))
         d = np.clip(np.round(d * 512.0), 0, 255).astype(np.uint8)
         for kp, row in zip(kps, d, strict=True):
             lines.append(
-                f"{kp.pt[0] + 0.5:.3f} {kp.pt[1] + 0.5:.3f} {kp.size / 2.0:.3f} "
+                f"{kp.pt[0] + shift:.3f} {kp.pt[1] + shift:.3f} {kp.size / 2.0:.3f} "
                 f"{math.radians(kp.angle):.5f} " + " ".join(str(int(v)) for v in row)
             )
     tmp = out_path + ".tmp"

@@ -1,0 +1,232 @@
+#include <sys/resource.h>
+#include <unistd.h>
+
+#include <csignal>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <opencv2/core.hpp>
+
+#include "app/decision_log.h"
+#include "app/keyframe_writer.h"
+
+namespace keyframed {
+namespace {
+
+namespace fs = std::filesystem;
+
+// A disk that fills up and gets room again, without root: RLIMIT_FSIZE makes a write
+// past `bytes` fail (EFBIG; SIGXFSZ ignored meanwhile), a write across it short.
+class FullDisk {
+ public:
+  explicit FullDisk(rlim_t bytes) {
+    getrlimit(RLIMIT_FSIZE, &saved_);
+    previous_ = std::signal(SIGXFSZ, SIG_IGN);
+    rlimit small = saved_;
+    small.rlim_cur = bytes;
+    setrlimit(RLIMIT_FSIZE, &small);
+  }
+  ~FullDisk() { roomAgain(); }
+  FullDisk(const FullDisk&) = delete;
+  FullDisk& operator=(const FullDisk&) = delete;
+  void roomAgain() {
+    if (done_) return;
+    setrlimit(RLIMIT_FSIZE, &saved_);
+    std::signal(SIGXFSZ, previous_);
+    done_ = true;
+  }
+
+ private:
+  rlimit saved_{};
+  void (*previous_)(int) = SIG_DFL;
+  bool done_ = false;
+};
+
+std::string read(const fs::path& p) {
+  std::ifstream f(p, std::ios::binary);
+  std::string s(fs::exists(p) ? fs::file_size(p) : 0, '\0');
+  f.read(s.data(), static_cast<std::streamsize>(s.size()));
+  return s;
+}
+
+std::vector<std::string> lines(const fs::path& p) {
+  std::ifstream f(p);
+  std::vector<std::string> out;
+  for (std::string l; std::getline(f, l);) out.push_back(l);
+  return out;
+}
+
+class WriterTest : public testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::path(testing::TempDir()) /
+           ("keyframed-writer-" + std::to_string(getpid()) + "-" +
+            testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  // A 320x240 keyframe of noise (tens of kB of JPEG, far above the small "disk").
+  static cv::Mat noise(int seed) {
+    cv::Mat m(240, 320, CV_8UC3);
+    cv::theRNG().state = static_cast<std::uint64_t>(seed) + 1;
+    cv::randu(m, 0, 256);
+    return m;
+  }
+
+  // Writes keyframe `index`; returns whether it was saved and keeps its bytes.
+  bool write(KeyframeWriter& w, std::int64_t index, std::string& error) {
+    KeyframeRecord rec;
+    const bool saved =
+        w.write(noise(static_cast<int>(index)), index, index * 1'000'000, nullptr, rec, error);
+    EXPECT_TRUE(rec.encoded) << error;
+    EXPECT_EQ(rec.indexed, saved);
+    EXPECT_EQ(rec.file.empty(), !saved);
+    jpegs_.emplace_back(w.lastJpeg().begin(), w.lastJpeg().end());
+    return saved;
+  }
+
+  // The index's sequence and file columns, checking every row is whole.
+  std::vector<std::pair<int, std::string>> indexRows() const {
+    const auto l = lines(dir_ / "keyframes.csv");
+    EXPECT_FALSE(l.empty());
+    std::vector<std::pair<int, std::string>> rows;
+    for (std::size_t i = 1; i < l.size(); ++i) {
+      EXPECT_EQ(l[i].back(), '"') << "a row cut short: " << l[i];
+      const auto c1 = l[i].find(',');
+      const auto c2 = l[i].find(',', c1 + 1);
+      const auto c3 = l[i].find(',', c2 + 1);
+      rows.emplace_back(std::stoi(l[i].substr(0, c1)), l[i].substr(c2 + 1, c3 - c2 - 1));
+    }
+    return rows;
+  }
+
+  fs::path dir_;
+  std::vector<std::vector<std::uint8_t>> jpegs_;  // by sequence
+};
+
+TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
+  KeyframeWriter w;
+  std::string error;
+  KeyframeWriterConfig config;
+  config.dir = dir_.string();
+  ASSERT_TRUE(w.open(config, error)) << error;
+  ASSERT_TRUE(write(w, 0, error)) << error;
+  {
+    FullDisk full(8000);  // the index fits, a keyframe does not
+    EXPECT_FALSE(write(w, 5, error));
+    EXPECT_NE(error.find("000005.jpg"), std::string::npos) << error;
+    EXPECT_FALSE(write(w, 9, error));
+    EXPECT_EQ(w.count(), 3);
+    EXPECT_EQ(w.saved(), 1);
+    EXPECT_FALSE(fs::exists(dir_ / "000005.jpg"));
+    EXPECT_FALSE(fs::exists(dir_ / "000005.jpg.tmp")) << "a part-written file left behind";
+  }
+  // Room again: the held ones go first, then the new one.
+  ASSERT_TRUE(write(w, 12, error)) << error;
+  EXPECT_EQ(w.saved(), 4);
+  EXPECT_EQ(w.savedLate(), 2);
+  EXPECT_EQ(w.letGo(), 0);
+  {
+    FullDisk full(8000);
+    EXPECT_FALSE(write(w, 20, error));
+    full.roomAgain();
+    ASSERT_TRUE(w.close(error)) << error;  // saved at the close
+  }
+  EXPECT_EQ(w.saved(), 5);
+  const std::vector<std::pair<int, std::string>> expected = {{0, "000000.jpg"},
+                                                             {1, "000005.jpg"},
+                                                             {2, "000009.jpg"},
+                                                             {3, "000012.jpg"},
+                                                             {4, "000020.jpg"}};
+  EXPECT_EQ(indexRows(), expected);
+  for (const auto& [seq, file] : expected) {
+    const std::string bytes = read(dir_ / file);
+    const auto& jpeg = jpegs_[static_cast<std::size_t>(seq)];
+    EXPECT_EQ(bytes, std::string(jpeg.begin(), jpeg.end())) << file;
+  }
+}
+
+TEST_F(WriterTest, HeldKeyframesAreBoundedTheOldestLetGo) {
+  KeyframeWriter w;
+  std::string error;
+  KeyframeWriterConfig config;
+  config.dir = dir_.string();
+  config.maxHeldBytes = 1;  // one keyframe held at most
+  ASSERT_TRUE(w.open(config, error)) << error;
+  {
+    FullDisk full(8000);
+    for (std::int64_t i = 0; i < 4; ++i) EXPECT_FALSE(write(w, i, error));
+  }
+  EXPECT_EQ(w.letGo(), 3);
+  ASSERT_TRUE(w.close(error)) << error;
+  EXPECT_EQ(w.saved(), 1);
+  EXPECT_EQ(w.count() - w.saved(), 3);
+  const std::vector<std::pair<int, std::string>> expected = {{3, "000003.jpg"}};
+  EXPECT_EQ(indexRows(), expected);
+  EXPECT_FALSE(fs::exists(dir_ / "000000.jpg"));
+}
+
+TEST_F(WriterTest, AKeyframeStillHeldAtTheCloseIsAnError) {
+  KeyframeWriter w;
+  std::string error;
+  KeyframeWriterConfig config;
+  config.dir = dir_.string();
+  ASSERT_TRUE(w.open(config, error)) << error;
+  FullDisk full(8000);
+  EXPECT_FALSE(write(w, 0, error));
+  error.clear();
+  EXPECT_FALSE(w.close(error));
+  EXPECT_NE(error.find("000000.jpg"), std::string::npos) << error;
+}
+
+TEST_F(WriterTest, DecisionRowsAWriteErrorKeptOutAreWrittenWholeLater) {
+  const fs::path path = dir_ / "decisions.csv";
+  DecisionLog log;
+  std::string err;
+  ASSERT_TRUE(log.open(path.string(), DecisionFormat::Csv, err)) << err;
+  Decision d;
+  d.reason = Reason::Blurry;
+  for (d.index = 0; d.index < 5; ++d.index) ASSERT_TRUE(log.add(d, err)) << err;
+  const auto before = fs::file_size(path);
+  {
+    // Room for part of a row: the write is cut short, the file cut back.
+    FullDisk full(before + 40);
+    for (; d.index < 15; ++d.index) EXPECT_FALSE(log.add(d, err));
+    EXPECT_NE(err.find("decisions.csv"), std::string::npos) << err;
+    EXPECT_EQ(fs::file_size(path), before) << "a part-written row left in the file";
+  }
+  ASSERT_TRUE(log.add(d, err)) << err;  // index 15: all held rows go with it
+  ASSERT_TRUE(log.close(err)) << err;
+  EXPECT_EQ(log.rowsLost(), 0);
+  const auto l = lines(path);
+  ASSERT_EQ(l.size(), 1u + 16u);
+  for (int i = 0; i < 16; ++i) {
+    EXPECT_EQ(l[static_cast<std::size_t>(i) + 1].rfind(std::to_string(i) + ",", 0), 0u)
+        << l[static_cast<std::size_t>(i) + 1];
+  }
+}
+
+TEST_F(WriterTest, DecisionRowsStillUnwrittenAtTheCloseAreCountedAndAnError) {
+  const fs::path path = dir_ / "decisions.jsonl";
+  DecisionLog log;
+  std::string err;
+  ASSERT_TRUE(log.open(path.string(), DecisionFormat::JsonLines, err)) << err;
+  Decision d;
+  d.kept = true;
+  FullDisk full(10);
+  for (d.index = 0; d.index < 3; ++d.index) EXPECT_FALSE(log.add(d, err));
+  err.clear();
+  EXPECT_FALSE(log.close(err));
+  EXPECT_EQ(log.rowsLost(), 3);
+  EXPECT_NE(err.find("decisions.jsonl"), std::string::npos) << err;
+  full.roomAgain();
+  EXPECT_EQ(fs::file_size(path), 0u);
+}
+
+}  // namespace
+}  // namespace keyframed
