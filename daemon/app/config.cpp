@@ -178,6 +178,12 @@ Field text(std::string_view section, std::string_view key, Get get, Check check 
             if (check) {
               if (std::string e = check(v->get()); !e.empty()) return e;
             }
+            // TOML strings may hold "\u0000" and other control characters: a path (or
+            // a name) the C library would cut at the NUL, or a log line broken in two.
+            for (const char ch : v->get()) {
+              if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f)
+                return "must not contain control characters (a NUL, a newline, ...)";
+            }
             get(c) = v->get();
             return {};
           },

@@ -6,6 +6,7 @@
 #include <cstdlib>
 #include <functional>
 #include <map>
+#include <set>
 
 #include "app/config.h"
 #include "output/mcap_replay.h"
@@ -157,6 +158,48 @@ std::string checkSelectSettings(const SelectorConfig& c) {
   return {};
 }
 
+namespace {
+
+// The options given that the others make pointless, one line each. A flight record's
+// mode and blur settings are its own unless given, so only the link's are judged there.
+void noEffectWarnings(const SelectOptions& o, const std::set<std::string>& given,
+                      std::vector<std::string>& out) {
+  const auto warn = [&](std::initializer_list<const char*> options, const std::string& why) {
+    for (const char* opt : options) {
+      if (given.contains(opt)) out.push_back(std::string(opt) + " has no effect " + why);
+    }
+  };
+  const bool record = isMcapFile(o.video);
+  const bool live = !o.telemetry.empty() && !o.telemetry.starts_with("tlog:") &&
+                    !(o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
+  if (o.telemetry.empty() && !record)
+    warn({"--mount", "--autopilot"}, "without --telemetry (no attitude to turn)");
+  if (!live) {
+    warn({"--telemetry-wait", "--telemetry-start-wait", "--mavlink-sysid"},
+         "without a live --telemetry link");
+  }
+  // Commanded captures come over a live link (or a record's, replayed).
+  if (!live && !record) warn({"--capture-wait-ms"}, "without a live --telemetry link");
+  if (record) return;
+  const SelectorConfig& c = o.selector;
+  if (c.overlap.mode == OverlapMode::Geometric) {
+    warn({"--orb-features", "--paper-threshold", "--paper-min-matches"},
+         "in the geometric mode (--mode paper)");
+  } else {
+    warn({"--max-tracks", "--min-tracks", "--min-inliers", "--ransac-px", "--fast-threshold",
+          "--lk-window", "--lk-levels"},
+         "in the paper mode (--mode geometric)");
+  }
+  if (c.blur.mode == BlurMode::Adaptive) {
+    warn({"--blur-threshold"}, "in the adaptive blur mode (--blur-mode absolute)");
+  } else {
+    warn({"--blur-ratio", "--blur-quantile", "--blur-window", "--blur-warmup"},
+         "in the absolute blur mode (--blur-mode adaptive)");
+  }
+}
+
+}  // namespace
+
 ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptions& o) {
   ParseResult r;
   o.args = args;
@@ -229,6 +272,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
       return h(v);
     };
   };
+  std::set<std::string> given;  // the options with a value that were given
   std::map<std::string, Handler> withValue = {
       {"--out",
        [&](const std::string& v) -> std::string {
@@ -445,6 +489,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
         value = args[++i];
       }
       if (std::string e = it->second(value); !e.empty()) return fail(a + ": " + e);
+      given.insert(a);
       continue;
     }
     if (a.size() > 1 && a[0] == '-')
@@ -471,12 +516,13 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
     const bool replay =
         o.telemetry.starts_with("tlog:") ||
         (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
+    // A flight record replays its own telemetry, on its own clock.
+    if (isMcapFile(o.video))
+      return fail(
+          "a flight record replays the telemetry it recorded (/mavlink/raw), on its own "
+          "clock: no --telemetry with it");
     // Without --video-start the video is placed in the tlog by its motion, as `auto`.
-    if (replay && !o.videoStartUnixNs && !o.videoStartAuto) {
-      if (o.video.ends_with(".mcap"))
-        return fail("--video-start TIME is needed to align a flight record with a tlog");
-      o.videoStartAuto = true;
-    }
+    if (replay && !o.videoStartUnixNs && !o.videoStartAuto) o.videoStartAuto = true;
     if (!replay && (o.videoStartUnixNs || o.videoStartAuto))
       return fail(
           "--video-start aligns a video with a tlog; a live link's frames are "
@@ -485,6 +531,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   } else if (o.videoStartAuto) {
     return fail("--video-start auto lines the video up with a tlog: give --telemetry FILE.tlog");
   }
+  noEffectWarnings(o, given, r.warnings);
   r.ok = true;
   return r;
 }

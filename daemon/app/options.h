@@ -64,6 +64,9 @@ struct ParseResult {
   bool ok = false;
   bool help = false;
   std::string error;  // one line
+  // Options given that have no effect with the others (a paper-mode option in the
+  // geometric mode, a live link's without one): one line each, to be said.
+  std::vector<std::string> warnings;
 };
 
 // Parses the arguments after `select`.

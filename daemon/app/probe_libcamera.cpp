@@ -102,6 +102,7 @@ int probeLibcameraMain(const std::vector<std::string>& args) {
   const std::vector<std::string> ids = LibcameraSource::listCameras(error);
   for (const std::string& id : ids) emit("{\"event\":\"camera\",\"id\":" + jsonString(id) + "}");
   if (!error.empty()) return fail(error);
+  if (list && ids.empty()) return fail("no camera found");
   if (list) return 0;
 
   auto source = LibcameraSource::open(opt, error);

@@ -197,6 +197,10 @@ int probeV4l2Main(const std::vector<std::string>& args) {
 
   const std::vector<V4l2DeviceInfo> devices = V4l2Source::listDevices();
   for (const V4l2DeviceInfo& d : devices) emit(deviceJson(d));
+  if (listOnly && devices.empty()) {
+    emit("{\"event\":\"error\",\"reason\":\"no V4L2 device found under /dev\"}");
+    return 1;
+  }
   if (listOnly) return 0;
   if (opt.device.empty()) {
     for (const V4l2DeviceInfo& d : devices) {

@@ -134,7 +134,15 @@ bool makeFlightDir(const std::string& stateDir, std::string& dir, std::string& e
   }
   const std::string stamp = formatUtcCompact(unixNowNs(), false);
   fs::path p = flights / stamp;
-  for (int n = 1; fs::exists(p); ++n) p = flights / (stamp + "-" + std::to_string(n));
+  // A few starts in one second at most (a restart loop); past that something is wrong.
+  for (int n = 1; fs::exists(p); ++n) {
+    if (n > 1000) {
+      error = "cannot name a new flight directory in " + flights.string() + ": " + stamp + " to " +
+              p.filename().string() + " exist";
+      return false;
+    }
+    p = flights / (stamp + "-" + std::to_string(n));
+  }
   fs::create_directories(p / "keyframes", ec);
   if (ec) {
     error = "cannot create " + p.string() + ": " + ec.message();
@@ -734,7 +742,9 @@ bool Daemon::placeVideoByMotion(const sigset_t& sigs, std::int64_t& startNs, boo
   req.mount = {config_.tagging.mountRollDeg, config_.tagging.mountPitchDeg,
                config_.tagging.mountYawDeg, config_.tagging.mountGimbal};
   req.analysisWidth = config_.selection.analysisWidth;
-  req.hint = "set camera.start_time to the video's start";
+  req.hint =
+      "check tagging.mount_roll/pitch/yaw (an oblique camera's turns differ from a "
+      "nadir one's) or set camera.start_time to the video's start";
   KF_LOG(App, Notice) << "camera.start_time = auto: placing " << req.video << " in " << req.link.url
                       << " by their motion";
   // The pass runs beside this thread, which keeps answering signals.
@@ -937,8 +947,10 @@ int Daemon::run() {
                              << " (the fastest it offers at this size and format)";
   }
   if (camera_) {
-    if (const std::string w = camera_->aspectMismatch(info.width, info.height); !w.empty())
+    if (const std::string w = camera_->aspectMismatch(info.width, info.height); !w.empty()) {
       KF_LOG(Tagging, Warning) << w;
+      camera_ = camera_->withoutIntrinsics();
+    }
     if (const std::string w = camera_->physicalSizeWarning(); !w.empty())
       KF_LOG(Tagging, Warning) << w;
     if (const std::string w = camera_->lensWarning(); !w.empty()) KF_LOG(Tagging, Warning) << w;

@@ -313,6 +313,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     req.mount = {opts.mountRollDeg, opts.mountPitchDeg, opts.mountYawDeg, opts.mountGimbal};
     req.analysisWidth = opts.selector.analysisWidth;
     req.camera = calibrated;
+    req.hint =
+        "check --mount (the camera's angles on the vehicle: an oblique camera's turns "
+        "differ from a nadir one's) or give --video-start TIME";
     if (!opts.quiet)
       std::fprintf(stderr, "placing the video in %s by its motion...\n", opts.telemetry.c_str());
     // Its open may block too, and nothing is written before it ends: a signal then
@@ -442,8 +445,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   }
   if (replay != nullptr && (opts.realtime || opts.videoStartUnixNs || opts.videoStartAuto)) {
     s.error =
-        "a flight record replays on its own recorded clock: no --realtime, "
-        "--video-start or live --telemetry with it";
+        "a flight record replays on its own recorded clock: no --realtime or "
+        "--video-start with it";
+    s.badOptions = true;
     return s;
   }
   std::optional<CameraModel> camera;
@@ -460,7 +464,10 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   }
   if (camera) {
     const std::string w = camera->aspectMismatch(source->info().width, source->info().height);
-    if (!w.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
+    if (!w.empty()) {
+      std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
+      camera = camera->withoutIntrinsics();
+    }
     const std::string size = camera->physicalSizeWarning();
     if (!size.empty() && !calibrated && replay != nullptr && !replay->camera()) {
       // The record's CameraCalibration holds pixels only (K, D), no sensor size (a
@@ -792,13 +799,28 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
                   "use --video-start auto";
       } else if (telemetry->decoder().autopilotSinceNs() == INT64_MAX &&
                  s.telemetry.otherSources > 0) {
-        // Messages, but no HEARTBEAT that says which sender flies: none was followed.
-        std::fprintf(stderr,
-                     "keyframed select: warning: none of the %lld keyframes was geotagged: "
-                     "the tlog names no autopilot (no HEARTBEAT of one), so its %llu messages "
-                     "were not taken as the vehicle's; give --autopilot SYS[:COMP]\n",
-                     static_cast<long long>(s.kept),
-                     static_cast<unsigned long long>(s.telemetry.otherSources));
+        // Messages, but none from the autopilot followed: the one --autopilot names is
+        // not in the tlog, or no HEARTBEAT says which sender flies.
+        if (opts.autopilotSystem > 0) {
+          std::string which = std::to_string(opts.autopilotSystem);
+          if (opts.autopilotComponent > 0) {
+            which += ':';
+            which += std::to_string(opts.autopilotComponent);
+          }
+          std::fprintf(stderr,
+                       "keyframed select: warning: none of the %lld keyframes was geotagged: "
+                       "the tlog has no autopilot %s (--autopilot); its %llu messages are "
+                       "other senders'\n",
+                       static_cast<long long>(s.kept), which.c_str(),
+                       static_cast<unsigned long long>(s.telemetry.otherSources));
+        } else {
+          std::fprintf(stderr,
+                       "keyframed select: warning: none of the %lld keyframes was geotagged: "
+                       "the tlog names no autopilot (no HEARTBEAT of one), so its %llu "
+                       "messages were not taken as the vehicle's; give --autopilot SYS[:COMP]\n",
+                       static_cast<long long>(s.kept),
+                       static_cast<unsigned long long>(s.telemetry.otherSources));
+        }
       } else {
         std::fprintf(stderr,
                      "keyframed select: warning: none of the %lld keyframes was geotagged; why: "
@@ -838,6 +860,8 @@ int selectMain(const std::vector<std::string>& args) {
     std::fputs(selectUsage().c_str(), stdout);
     return 0;
   }
+  for (const std::string& w : pr.warnings)
+    std::fprintf(stderr, "keyframed select: warning: %s\n", w.c_str());
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   const bool showProgress = opts.progress.value_or(isatty(STDERR_FILENO) != 0);

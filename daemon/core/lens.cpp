@@ -75,8 +75,33 @@ bool LensModel::undistort(cv::Point2d pixel, cv::Point2d& ideal) const {
       const cv::Point2d b = brown(n, k);
       n = {n.x + (d.x - b.x), n.y + (d.y - b.y)};
     }
-    const cv::Point2d back = brown(n, k);
-    if (!(std::hypot((back.x - d.x) * fx, (back.y - d.y) * fy) < 0.05)) return false;
+    const auto missPx = [&](cv::Point2d p) {
+      const cv::Point2d b = brown(p, k);
+      return std::hypot((b.x - d.x) * fx, (b.y - d.y) * fy);
+    };
+    if (!(missPx(n) < 1e-4)) {
+      // Polished by Newton's method (on a numeric Jacobian, each step halved until it
+      // gets closer) where the fixed point crept (strong distortion near its limit)
+      // or overshot further each step (a strong pincushion, k1 of tens): then from
+      // the distorted point, outside the answer, where the radial curve rises ever
+      // faster.
+      if (!(missPx(n) < 0.05)) n = d;
+      for (int i = 0; i < 50 && missPx(n) >= 1e-7; ++i) {
+        const cv::Point2d b = brown(n, k);
+        const double h = 1e-7;
+        const cv::Point2d bx = brown({n.x + h, n.y}, k), by = brown({n.x, n.y + h}, k);
+        const double a11 = (bx.x - b.x) / h, a12 = (by.x - b.x) / h;
+        const double a21 = (bx.y - b.y) / h, a22 = (by.y - b.y) / h;
+        const double det = a11 * a22 - a12 * a21;
+        if (!(std::fabs(det) > 1e-12)) return false;
+        const double ex = b.x - d.x, ey = b.y - d.y;
+        cv::Point2d step((a22 * ex - a12 * ey) / det, (a11 * ey - a21 * ex) / det);
+        const double before = missPx(n);
+        for (int halve = 0; halve < 30 && !(missPx(n - step) < before); ++halve) step *= 0.5;
+        n -= step;
+      }
+      if (!(missPx(n) < 0.05)) return false;
+    }
   }
   ideal = {n.x * fx + cx, n.y * fy + cy};
   return std::isfinite(ideal.x) && std::isfinite(ideal.y);

@@ -11,6 +11,7 @@
 #include <unordered_map>
 #include <unordered_set>
 
+#include <opencv2/core/base.hpp>
 #include <opencv2/core/mat.hpp>
 #include <opencv2/imgcodecs.hpp>
 
@@ -97,6 +98,9 @@ bool forEachField(std::span<const std::uint8_t> msg, F&& f) {
 }
 
 // A google.protobuf.Timestamp in field `number` (seconds 1, nanos 2) as ns.
+// Seconds a record's times stay under: 2096 in unix time, 126 years of uptime.
+constexpr std::int64_t kMaxRecordSeconds = 4'000'000'000;
+
 [[maybe_unused]] std::optional<std::int64_t> timestampField(std::span<const std::uint8_t> msg,
                                                             std::uint64_t number) {
   const auto ts = bytesField(msg, number);
@@ -110,7 +114,22 @@ bool forEachField(std::span<const std::uint8_t> msg, F&& f) {
     return varints;
   });
   if (!ok || !varints) return std::nullopt;
+  // As a damaged record may have them: no time before 1970 or after 2096 (nor a
+  // CLOCK_MONOTONIC one that large), no nanoseconds outside a second.
+  if (seconds < 0 || seconds >= kMaxRecordSeconds || nanos < 0 || nanos >= 1'000'000'000)
+    return std::nullopt;
   return seconds * 1'000'000'000 + nanos;
+}
+
+// A message's time: its own timestamp field, else (none) its log time; nothing when
+// that is not a time a record can hold (a damaged one), so that no arithmetic on it
+// overflows and the message is skipped.
+[[maybe_unused]] std::optional<std::int64_t> messageTime(std::span<const std::uint8_t> msg,
+                                                         std::uint64_t logTimeNs) {
+  if (bytesField(msg, 1)) return timestampField(msg, 1);
+  if (logTimeNs >= static_cast<std::uint64_t>(kMaxRecordSeconds) * 1'000'000'000u)
+    return std::nullopt;
+  return static_cast<std::int64_t>(logTimeNs);
 }
 
 // foxglove.CameraCalibration (width 2, height 3: fixed32; D 5, K 6: packed doubles)
@@ -182,6 +201,8 @@ bool decisionIndex(std::span<const std::uint8_t> json, std::int64_t& index, std:
                          std::min<std::size_t>(json.size(), 96));
   long long i = 0, t = 0;
   if (std::sscanf(head.c_str(), "{\"index\":%lld,\"timestamp_ns\":%lld", &i, &t) != 2) return false;
+  // A damaged row (sscanf saturates what does not fit): not a frame of this flight.
+  if (i < 0 || i > (1LL << 40) || t < 0 || t >= kMaxRecordSeconds * 1'000'000'000LL) return false;
   index = i;
   time = t;
   return true;
@@ -315,8 +336,11 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
       }
       // CompressedImage.data is field 2, CompressedVideo.data 3, MavlinkPacket's 5.
       const auto field = bytesField(msg, topic == 0 ? 2 : topic == 5 ? 3 : 5);
-      if (!field) continue;
-      const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
+      // No data, or no time it can have been taken at: skipped (by next() too).
+      if (!field || field->empty()) continue;
+      const auto when = messageTime(msg, time);
+      if (!when) continue;
+      const std::int64_t t = *when;
       if (topic == 0 || topic == 5) {
         const bool video = topic == 5;
         if (impl.frames == 0) {
@@ -325,7 +349,9 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
           impl.video = video;
           impl.encoded.assign(field->begin(), field->end());
           firstNs = t;
-          s->unixOffsetNs_ = static_cast<std::int64_t>(time) - t;
+          // The log time is unix time (a damaged one: taken as the frame's own).
+          const bool logOk = time < static_cast<std::uint64_t>(kMaxRecordSeconds) * 1'000'000'000u;
+          s->unixOffsetNs_ = (logOk ? static_cast<std::int64_t>(time) : t) - t;
         } else if (video != impl.video) {
           continue;  // a record with both streams replays the one that starts first
         }
@@ -372,7 +398,11 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
     }
     first = cv::Mat(h, w, CV_8UC1);  // only its size is used
   } else {
-    first = cv::imdecode(impl.encoded, cv::IMREAD_COLOR);
+    try {
+      first = cv::imdecode(impl.encoded, cv::IMREAD_COLOR);
+    } catch (const cv::Exception&) {
+      first.release();  // as a picture that does not decode
+    }
     if (first.empty()) {
       error = path + ": the first preview frame is not a JPEG";
       return nullptr;
@@ -410,8 +440,10 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
     const std::span<const std::uint8_t> msg = m.data;
     const std::uint64_t time = m.logTimeNs;
     const auto field = bytesField(msg, impl.video ? 3 : 2);
-    if (!field) continue;  // skipped by the first pass too
-    const std::int64_t t = timestampField(msg, 1).value_or(static_cast<std::int64_t>(time));
+    if (!field || field->empty()) continue;  // skipped by the first pass too
+    const auto when = messageTime(msg, time);
+    if (!when) continue;  // as by the first pass
+    const std::int64_t t = *when;
     const std::int64_t index = [&] {
       // The live run's index for this frame (the frames it dropped leave the same
       // gaps); for a frame whose decision is not in the record (the live queue full),
@@ -447,9 +479,13 @@ ReadStatus McapReplaySource::next(Frame& frame, std::string& error) {
       frame.index = index;
       format_ = "h264";
     } else {
-      impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
-                                      const_cast<std::uint8_t*>(field->data())),
-                              cv::IMREAD_COLOR);
+      try {
+        impl.bgr = cv::imdecode(cv::Mat(1, static_cast<int>(field->size()), CV_8UC1,
+                                        const_cast<std::uint8_t*>(field->data())),
+                                cv::IMREAD_COLOR);
+      } catch (const cv::Exception&) {
+        impl.bgr.release();  // said below, as a picture that does not decode
+      }
       if (impl.bgr.empty()) {
         error = "preview frame " + std::to_string(index_) + " cannot be decoded";
         return ReadStatus::Error;

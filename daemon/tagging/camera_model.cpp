@@ -59,9 +59,19 @@ std::string CameraModel::aspectMismatch(int w, int h) const {
   std::snprintf(buf, sizeof buf,
                 "the calibration is for %dx%d (aspect %.3f), the frames are %dx%d (aspect "
                 "%.3f): another sensor mode crops rather than scales, so the intrinsics "
-                "scaled to it are wrong; calibrate in this mode",
+                "scaled to it would be wrong: keyframes are tagged without them; calibrate "
+                "in this mode",
                 width, height, mine, w, h, theirs);
   return buf;
+}
+
+CameraModel CameraModel::withoutIntrinsics() const {
+  CameraModel out;
+  out.make = make;
+  out.model = model;
+  out.lens = lens;
+  out.focalLengthMm = focalLengthMm;
+  return out;
 }
 
 std::string CameraModel::physicalSizeWarning() const {
@@ -389,12 +399,13 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
       if (a == nullptr) return wrongType("an array of numbers");
       for (const auto& e : *a) {
         const auto v = e.value<double>();
-        if (!v) return wrongType("an array of numbers");
+        if (!v || !std::isfinite(*v)) return wrongType("an array of finite numbers");
         m.distortion.push_back(*v);
       }
     } else {
       const auto v = node.value<double>();
-      if (!v) return wrongType("a number");
+      // TOML has nan and inf: not a measurement, and "unknown" is leaving the key out.
+      if (!v || !std::isfinite(*v)) return wrongType("a finite number");
       double* dst = k == "fx"                 ? &m.fx
                     : k == "fy"               ? &m.fy
                     : k == "cx"               ? &m.cx
@@ -409,7 +420,7 @@ bool cameraFromTomlTable(const toml::table& cam, const std::string& path, const 
   const int known =
       std::isfinite(m.fx) + std::isfinite(m.fy) + std::isfinite(m.cx) + std::isfinite(m.cy);
   if (known != 0 && known != 4) {
-    error = path + ": " + prefix + ".fx, fy, cx, cy go together";
+    error = where(cam) + prefix + ".fx, fy, cx, cy go together";
     return false;
   }
   // The table's line and name before what the shared checks find wrong in it.

@@ -50,6 +50,10 @@ struct CameraModel {
   // 0.5 %, or no calibrated size), else a one-line warning: another aspect ratio is
   // a crop of the sensor (a 16:9 mode of a 4:3 sensor), which scaling gets wrong.
   [[nodiscard]] std::string aspectMismatch(int w, int h) const;
+  // The camera's identity and its lens's focal length in mm, nothing measured in
+  // pixels or on the sensor: what is still true of a calibration made in another
+  // sensor mode (aspectMismatch), so that no wrong intrinsics are tagged.
+  [[nodiscard]] CameraModel withoutIntrinsics() const;
   // "" unless the calibration is in pixels only (no sensor size, no focal length in
   // mm): then the tags cannot carry the principal point and the focal length in mm.
   [[nodiscard]] std::string physicalSizeWarning() const;

@@ -14,7 +14,9 @@ Quaternion normalized(const Quaternion& q) {
 
 bool usableRotation(const Quaternion& q) {
   const double n2 = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z;
-  return std::isfinite(n2) && n2 >= 0.5;  // a NaN or infinite part makes n2 one too
+  // A NaN or infinite part makes n2 one too; one far from unit length is corrupt (a
+  // float quaternion from an autopilot is unit to 1e-6), not a rotation to normalise.
+  return std::isfinite(n2) && n2 >= 0.5 && n2 <= 2.0;
 }
 
 Quaternion slerp(const Quaternion& a, const Quaternion& b0, double t) {

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import glob
 import json
 import os
 import signal
@@ -466,3 +467,44 @@ def test_corrupt_video_never_crashes(any_bin: Path, pan_video: Path, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     kept = [r for r in csv.DictReader((out / "decisions.csv").open()) if r["kept"] == "1"]
     assert len(kept) == len(list(out.glob("*.jpg"))) == summary["kept"]
+
+
+@pytest.mark.skipif(
+    bool(glob.glob("/dev/video*")) or bool(glob.glob("/dev/media*")),
+    reason="this machine has a camera device: the no-camera case cannot be seen here",
+)
+def test_probe_list_without_a_camera_says_so(kf_bin: Path) -> None:
+    """An operator's first check on a new vehicle: with no camera, --list says so and
+    exits 1, as the probe without --list does, rather than printing nothing."""
+    p = run(kf_bin, "probe-v4l2", "--list")
+    assert p.returncode == 1, (p.returncode, p.stdout, p.stderr)
+    assert '"reason":"no V4L2 device found under /dev"' in p.stdout, p.stdout
+    p = run(kf_bin, "probe-libcamera", "--list")
+    assert p.returncode == 1, (p.returncode, p.stdout, p.stderr)
+    assert "no camera found" in p.stderr, p.stderr
+
+
+def test_options_that_have_no_effect_are_said(kf_bin: Path, pan_video: Path, tmp_path) -> None:
+    """An option the others make pointless (another mode's, a live link's without one)
+    is still accepted, but said, so that a user does not believe it was applied."""
+    cases = [
+        (["--orb-features", "300"], "--orb-features has no effect in the geometric mode"),
+        (["--mode", "paper", "--max-tracks", "300"], "--max-tracks has no effect in the paper"),
+        (["--blur-threshold", "50"], "--blur-threshold has no effect in the adaptive blur mode"),
+        (["--blur-mode", "absolute", "--blur-ratio", "0.5"], "--blur-ratio has no effect"),
+        (["--mount", "0,-45,0"], "--mount has no effect without --telemetry"),
+        (["--telemetry-wait", "5"], "--telemetry-wait has no effect without a live"),
+    ]
+    for i, (args, needle) in enumerate(cases):
+        p = run(
+            kf_bin, "select", pan_video, "--out", tmp_path / f"o{i}", "--max-frames", "20", *args
+        )
+        assert p.returncode == 0, (args, p.stderr)
+        warnings = [ln for ln in p.stderr.splitlines() if "has no effect" in ln]
+        assert len(warnings) == 1 and needle in warnings[0], (args, p.stderr)
+    # Options that do apply: nothing said.
+    p = run(kf_bin, "select", pan_video, "--out", tmp_path / "ok", "--max-frames", "20",
+            "--mode", "paper", "--orb-features", "300",
+            "--blur-mode", "absolute", "--blur-threshold", "5")  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert "has no effect" not in p.stderr, p.stderr

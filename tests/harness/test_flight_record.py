@@ -197,6 +197,19 @@ def test_options_on_a_replay_go_on_top_of_the_records_settings(
     assert "--band LO (0.55) must not exceed --target (0.5)" in clash.stderr, clash.stderr
     assert "over the record's settings" in clash.stderr, clash.stderr
     assert not (tmp_path / "clash").exists() or not list((tmp_path / "clash").iterdir())
+    # The record's own clock and telemetry: another tlog, a start time, the real clock
+    # are refused as a bad command line, each at once with one answer.
+    tlog = tmp_path / "other.tlog"
+    tlog.write_bytes(b"")
+    for args, needle in (
+        (["--telemetry", str(tlog)], "no --telemetry with it"),
+        (["--telemetry", str(tlog), "--video-start", "2026-06-01T10:00:00Z"], "no --telemetry"),
+        (["--video-start", "2026-06-01T10:00:00Z"], "no --realtime or --video-start"),
+        (["--realtime"], "no --realtime or --video-start"),
+    ):
+        refused = select("refused", *args)
+        assert refused.returncode == 2, (args, refused.stderr)
+        assert needle in refused.stderr, (args, refused.stderr)
 
 
 def test_a_fisheye_calibration_is_recorded_and_replayed_as_fisheye(

@@ -447,6 +447,11 @@ def test_a_tlog_naming_no_autopilot_says_to_give_one(
     assert r.returncode == 0, r.stderr
     kfs = keyframes(tmp_path / "o2")
     assert kfs and all(k["geotag"] == "ok" for k in kfs), [k["geotag"] for k in kfs]
+    # An --autopilot the log does not have: said so, not "give --autopilot".
+    r = run_select(kf_bin, short_nadir, tmp_path / "o3", *start, "--autopilot", "7")
+    assert r.returncode == 0, r.stderr
+    assert "the tlog has no autopilot 7 (--autopilot)" in r.stderr, r.stderr
+    assert "give --autopilot" not in r.stderr, r.stderr
 
 
 @needs_exiftool

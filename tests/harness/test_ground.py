@@ -791,6 +791,22 @@ def test_the_sift_worker_leaves_ctrl_c_to_the_station() -> None:
         assert pool.submit(signal.getsignal, signal.SIGINT).result() == signal.SIG_IGN
 
 
+def test_a_station_that_hears_no_vehicle_says_so(tmp_path: Path) -> None:
+    """Nobody on the link (a vehicle in peer mode on a port of its own, a wrong
+    address): not a clean exit with an empty dataset, but a line saying what to check
+    and status 4."""
+    r = subprocess.run(
+        [sys.executable, "-m", "keyframed.ground", "--out", str(tmp_path / "ds"), "--quiet"]
+        + ["--listen", f"tcp/127.0.0.1:{free_port()}", "--duration", "1.5"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 4, (r.returncode, r.stderr)
+    assert "heard no vehicle" in r.stderr and "endpoints" in r.stderr, r.stderr
+    assert r.stdout.strip() == ""
+
+
 def test_bad_command_lines(tmp_path: Path) -> None:
     def run(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
@@ -983,6 +999,34 @@ def test_a_fisheye_calibration_reaches_colmap_and_odm_as_fisheye(
     assert 160 + cam_json["c_x"] * 320 == pytest.approx(cx + 0.5, rel=1e-5)
     assert [cam_json[f"k{i}"] for i in range(1, 5)] == pytest.approx(d, rel=1e-6)
     assert "p1" not in cam_json
+
+
+def test_a_calibration_of_another_aspect_ratio_tags_no_intrinsics(
+    kf_bin: Path, tmp_path: Path
+) -> None:
+    """A 4:3 calibration on 16:9 frames is another sensor mode (a crop): scaled to the
+    frames it would give an anisotropic camera that COLMAP and ODM take for a
+    calibration. The warning says so, and the keyframes carry the camera's identity
+    and lens focal length but no intrinsics, so the station makes no camera of them."""
+    from keyframed.ground import colmap_camera, odm_cameras, read_tags
+
+    fl = flight("nadir", width=320, height=180, seconds=3.0)
+    matrix = [250.0, 0, 159.5, 0, 250.0, 119.5, 0, 0, 1]
+    (tmp_path / "calib43.yaml").write_text(
+        "%YAML:1.0\n---\nimage_width: 320\nimage_height: 240\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: {matrix}\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+        "   data: [-0.1, 0.02, 0.0, 0.0, 0.0]\n"
+        'sensor_width_mm: 6.4\nfocal_length_mm: 5.0\nmake: "Acme"\nmodel: "Four Three"\n'
+    )
+    out = tmp_path / "tagged"
+    stderr = select(kf_bin, fl / "video.avi", out, "--calibration", str(tmp_path / "calib43.yaml"))
+    assert "crops rather than scales" in stderr and "without them" in stderr, stderr
+    tags = read_tags(next(out.glob("*.jpg")).read_bytes())
+    assert (tags.make, tags.model) == ("Acme", "Four Three")
+    assert tags.focal_mm == pytest.approx(5.0)
+    assert colmap_camera(tags) is None and odm_cameras(tags) is None
 
 
 def test_an_uncalibrated_camera_gets_no_cameras_file(kf_bin: Path, tmp_path: Path) -> None:

@@ -45,6 +45,31 @@ TEST(CameraModel, AnotherAspectRatioIsACropAndSaidSo) {
   EXPECT_EQ(CameraModel{}.aspectMismatch(1920, 1080), "");  // no calibrated size
 }
 
+TEST(CameraModel, WithoutIntrinsicsKeepsOnlyWhatACropLeavesTrue) {
+  CameraModel c;
+  c.make = "Acme";
+  c.model = "Eye";
+  c.width = 4056;
+  c.height = 3040;
+  c.fx = c.fy = 3000.0;
+  c.cx = 2027.5;
+  c.cy = 1519.5;
+  c.distortion = {-0.1, 0.02, 0.0, 0.0};
+  c.sensorWidthMm = 6.287;
+  c.sensorHeightMm = 4.712;
+  c.focalLengthMm = 4.74;
+  ASSERT_TRUE(c.calibrated());
+  const CameraModel u = c.withoutIntrinsics();
+  EXPECT_FALSE(u.calibrated());
+  EXPECT_EQ(u.make, "Acme");
+  EXPECT_EQ(u.model, "Eye");
+  EXPECT_DOUBLE_EQ(u.focalLengthMm, 4.74);   // the lens's, whatever the sensor mode
+  EXPECT_TRUE(std::isnan(u.sensorWidthMm));  // the crop's active area is unknown
+  EXPECT_TRUE(std::isnan(u.focalLength35mm()));
+  EXPECT_TRUE(u.distortion.empty());
+  EXPECT_FALSE(u.lensModel().active());
+}
+
 TEST(CameraModel, ReadsOpenCvCalibrationYaml) {
   const fs::path p = tempDir() / "calib.yaml";
   {
@@ -227,7 +252,13 @@ TEST(CameraModel, BadFilesGiveAOneLineErrorNotACrash) {
             "not a calibration OpenCV can read"},
            {"floatsize.json",
             R"({"width": 480.0, "height": 270, "fx": 228.5, "fy": 228.5, "cx": 240, "cy": 135})",
-            "width must be an integer"}}) {
+            "width must be an integer"},
+           // TOML's nan: named, with its line, not "fx, fy, cx, cy go together"
+           {"nan.toml",
+            "[camera]\nwidth = 960\nheight = 540\nfx = 600\nfy = 600\ncx = 479.5\ncy = nan\n",
+            ":7: camera.cy must be a finite number"},
+           {"partial-line.toml", "[camera]\nwidth = 640\nheight = 480\nfx = 500\n",
+            ":1: camera.fx, fy, cx, cy go together"}}) {
     EXPECT_FALSE(loadCameraModel(tempFile(name, text).string(), m, error)) << name;
     EXPECT_NE(error.find(words), std::string::npos) << name << ": " << error;
   }

@@ -348,6 +348,20 @@ TEST(Config, WrongTypes) {
                  "2: zenoh.vehicle: expected a string, got an integer");
 }
 
+TEST(Config, ControlCharactersInAStringAreRefused) {
+  // TOML's "\u0000" would cut a path short at the C library (a state directory that
+  // exists already, taken for the one named: a start that never ends).
+  TempDir dir;
+  expectOneError(dir, "[output]\nstate_dir = \"/tmp/x\\u0000y\"\n",
+                 "2: output.state_dir: must not contain control characters (a NUL, a newline, "
+                 "...)");
+  expectOneError(dir, "[camera]\npath = \"/data/a.avi\\njunk\"\n",
+                 "2: camera.path: must not contain control characters (a NUL, a newline, ...)");
+  const ConfigLoadResult r = loadDir(dir, {std::string("output.state_dir=/tmp/a\x01b")});
+  ASSERT_EQ(r.errors.size(), 1u) << joined(r.errors);
+  EXPECT_NE(r.errors[0].find("control characters"), std::string::npos) << r.errors[0];
+}
+
 TEST(Config, OutOfRangeAndBadValues) {
   TempDir dir;
   expectOneError(dir, "[camera]\n\n\nfps = 500\n",
@@ -585,7 +599,7 @@ TEST(Config, IntrinsicsInlineInTaggingCamera) {
 
   expectOneError(dir, "[tagging.camera]\nfz = 1.0\n", "2: unknown key 'tagging.camera.fz'");
   expectOneError(dir, "[tagging.camera]\nwidth = 640\nheight = 480\nfx = 500.0\n",
-                 " tagging.camera.fx, fy, cx, cy go together");
+                 "1: tagging.camera.fx, fy, cx, cy go together");
   // The checks every calibration passes name the table's line and the table.
   expectOneError(dir, "[tagging.camera]\nwidth = 640\nheight = 480\ndistortion = [1.0]\n",
                  "1: tagging.camera: distortion needs 4 or 5 terms");

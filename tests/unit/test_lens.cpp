@@ -90,6 +90,26 @@ TEST(Lens, PinholeAgreesWithOpenCvBothWays) {
   }
 }
 
+TEST(Lens, AStrongPincushionIsUndistortedWhereTheFixedPointWouldDiverge) {
+  // k1 = 20 (a calibration may give tens): cv::undistortPoints' fixed-point iteration
+  // overshoots further each step out here; every point of the image still comes back.
+  LensModel l = pinholeLens();
+  l.k = {20.0, 0.0, 0.001, -0.002, 0.0};
+  int checked = 0;
+  for (double u = 0.0; u <= l.width; u += l.width / 8.0) {
+    for (double v = 0.0; v <= l.height; v += l.height / 6.0) {
+      const cv::Point2d ideal(l.cx + (u - l.cx) * 0.3, l.cy + (v - l.cy) * 0.3);
+      const cv::Point2d d = l.distort(ideal);
+      cv::Point2d back;
+      ASSERT_TRUE(l.undistort(d, back)) << u << "," << v;
+      EXPECT_NEAR(back.x, ideal.x, 1e-3) << u << "," << v;
+      EXPECT_NEAR(back.y, ideal.y, 1e-3) << u << "," << v;
+      ++checked;
+    }
+  }
+  EXPECT_EQ(checked, 9 * 7);
+}
+
 TEST(Lens, MonotonicRadiusIsWhereTheDistortionFoldsBack) {
   // A strong barrel lens: r (1 + k1 r^2) turns back at r = 1 / sqrt(-3 k1).
   LensModel l = pinholeLens();

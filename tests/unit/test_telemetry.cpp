@@ -173,6 +173,10 @@ TEST(PoseStore, AQuaternionThatIsNoRotationIsNotStored) {
   PoseStore store;
   store.addAttitude(1000 * kMs, Quaternion{0, 0, 0, 0});
   store.addAttitude(1050 * kMs, Quaternion{NAN, 0, 0, 0});
+  // Nor one far from unit length: corrupt, not a rotation (a float's is within 1e-6).
+  EXPECT_FALSE(store.addAttitude(1020 * kMs, Quaternion{3e38, 3e38, 3e38, 3e38}));
+  EXPECT_FALSE(store.addAttitude(1030 * kMs, Quaternion{2, 0, 0, 0}));
+  EXPECT_TRUE(PoseStore().addAttitude(0, Quaternion{1.0001, 0, 0, 0}));  // rounding: taken
   store.addGimbal(1000 * kMs, Quaternion{0, 0, 0, 0}, true);
   Pose p = store.at(1000 * kMs);
   EXPECT_FALSE(p.attitude.has_value());

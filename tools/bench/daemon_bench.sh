@@ -43,13 +43,20 @@ if [ "$FULL" = 1 ]; then
   free_port() { .venv/bin/python -c "import socket,sys; s=socket.socket(socket.AF_INET, getattr(socket, sys.argv[1])); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])" "$1"; }
   ZPORT="$(free_port SOCK_STREAM)"
   MPORT="$(free_port SOCK_DGRAM)"
-  echo "{ mode: \"peer\", listen: { endpoints: [\"tcp/127.0.0.1:$ZPORT\"] }, scouting: { multicast: { enabled: false } } }" \
+  # The vehicle dials the station, as docs/deploy.md has it, once the station listens:
+  # a station that came up after the short flight's first keyframe could not fetch it
+  # from a daemon that has already stopped.
+  echo "{ mode: \"peer\", connect: { endpoints: [\"tcp/127.0.0.1:$ZPORT\"] }, scouting: { multicast: { enabled: false } } }" \
     > "$STATE/etc/zenoh.json5"
   ARGS+=(--set "telemetry.url=udpin:127.0.0.1:$MPORT" --set "zenoh.config=$STATE/etc/zenoh.json5"
          --set zenoh.vehicle=bench --set "tagging.calibration=$ROOT/$SAMPLE/calibration.yaml")
-  .venv/bin/python -m keyframed.ground --out "$STATE/dataset" --connect "tcp/127.0.0.1:$ZPORT" \
+  .venv/bin/python -m keyframed.ground --out "$STATE/dataset" --listen "tcp/127.0.0.1:$ZPORT" \
     --until-done --quiet > "$STATE/ground.json" &
   GROUND_PID=$!
+  for _ in $(seq 300); do
+    (exec 3<>"/dev/tcp/127.0.0.1/$ZPORT") 2>/dev/null && break
+    sleep 0.1
+  done
   .venv/bin/python tests/harness/fake_autopilot.py "$SAMPLE/flight.tlog" \
     --target "127.0.0.1:$MPORT" --start-delay 0.5 &
   AP_PID=$!

@@ -22,7 +22,8 @@ alone and listed in the summary. A flight that was followed by another without t
 station learning how many keyframes it ended with is listed in the summary's
 ``flights_end_unknown`` and makes the exit status 3, as missing keyframes do. The
 latest flight's end not heard (``last_flight_ended``: false) is said on stderr only:
-the station may be stopped while the vehicle flies.
+the station may be stopped while the vehicle flies. A station that heard no vehicle at
+all (the link, most likely) says so and exits with status 4.
 
 The files below other than the images are rewritten while the station runs (at most
 every 5 s when keyframes arrived) and at the end, so a station that is killed leaves a
@@ -1038,7 +1039,7 @@ class VehicleDataset:
         if sift_left:
             print(
                 f"keyframed-ground: {self.vehicle}: {sift_left} keyframes left without SIFT "
-                "features (stopped); a run on this folder computes them",
+                "features (stopped); a run on this folder computes them once it hears the vehicle",
                 file=sys.stderr,
             )
         return {
@@ -1529,6 +1530,17 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
     if station.hurry.is_set():
         print("keyframed-ground: stopped without waiting for missing keyframes", file=sys.stderr)
+    if not results:
+        # Nothing at all: most likely the link, not the vehicle (a vehicle in Zenoh's
+        # peer mode listens on a port of its own choosing, which --connect cannot guess).
+        print(
+            "keyframed-ground: heard no vehicle"
+            + (f" named {args.vehicle}" if args.vehicle != "*" else "")
+            + ": check the endpoints (a vehicle in peer mode needs a listen endpoint of its "
+            "own for --connect; a client vehicle dials the station's --listen or a router)",
+            file=sys.stderr,
+        )
+        return 4
     for r in results:
         print(json.dumps(r, sort_keys=True))
     for r in results:
