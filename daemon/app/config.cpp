@@ -175,14 +175,15 @@ Field text(std::string_view section, std::string_view key, Get get, Check check 
           [get, check](const toml::node& n, DaemonConfig& c) -> std::string {
             const auto* v = n.as_string();
             if (v == nullptr) return typeError("a string", n);
-            if (check) {
-              if (std::string e = check(v->get()); !e.empty()) return e;
-            }
             // TOML strings may hold "\u0000" and other control characters: a path (or
             // a name) the C library would cut at the NUL, or a log line broken in two.
+            // First: a check's message may quote the value.
             for (const char ch : v->get()) {
               if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f)
-                return "must not contain control characters (a NUL, a newline, ...)";
+                return "must not contain control characters (a NUL, a newline, a tab, ...)";
+            }
+            if (check) {
+              if (std::string e = check(v->get()); !e.empty()) return e;
             }
             get(c) = v->get();
             return {};

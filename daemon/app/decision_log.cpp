@@ -109,32 +109,49 @@ bool DecisionLog::open(const std::string& path, DecisionFormat format, std::stri
   return true;
 }
 
-bool DecisionLog::flushPending(std::string& error, std::size_t n) {
+bool DecisionLog::flushPending(std::string& error, std::size_t n, bool now) {
   n = std::min(n, pending_.size());
   if (n == 0) return true;
-  std::string text;
-  text.reserve(n * 200);
-  for (std::size_t i = 0; i < n; ++i) {
-    const Row& r = pending_[i];
-    text += format_ == DecisionFormat::Csv ? csvRow(r.decision, r.geotag)
-                                           : jsonRow(r.decision, r.geotag);
-    text += '\n';
-  }
-  if (!writeAll(fd_, text)) {
-    // A full disk can take part of the rows: cut back to the last whole one; the rows
-    // stay, to be written whole when there is room.
-    error = "cannot write " + path_ + ": " + std::strerror(errno);
-    if (::ftruncate(fd_, good_) != 0 || ::lseek(fd_, good_, SEEK_SET) < 0) {
-      error += "; cannot cut back a part-written row";
-    }
-    while (pending_.size() > kMaxUnwrittenRows) {
-      pending_.pop_front();
-      ++rowsLost_;
-    }
+  // After a write error, rows are tried again every kRetryEvery calls, not on every
+  // frame: a full disk would otherwise have the whole backlog formatted 30 times a
+  // second for nothing.
+  if (retryIn_ > 0 && !now) {
+    --retryIn_;
+    error = lastError_;
     return false;
   }
-  good_ += static_cast<off_t>(text.size());
-  pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(n));
+  // In chunks, each whole or not at all: a disk with room for part of the backlog
+  // takes that part.
+  std::string text;
+  while (n > 0) {
+    const std::size_t chunk = std::min<std::size_t>(n, 256);
+    text.clear();
+    for (std::size_t i = 0; i < chunk; ++i) {
+      const Row& r = pending_[i];
+      text += format_ == DecisionFormat::Csv ? csvRow(r.decision, r.geotag)
+                                             : jsonRow(r.decision, r.geotag);
+      text += '\n';
+    }
+    if (!writeAll(fd_, text)) {
+      // A full disk can take part of the rows: cut back to the last whole one; the
+      // rows stay, to be written whole when there is room.
+      error = "cannot write " + path_ + ": " + std::strerror(errno);
+      if (::ftruncate(fd_, good_) != 0 || ::lseek(fd_, good_, SEEK_SET) < 0) {
+        error += "; cannot cut back a part-written row";
+      }
+      while (pending_.size() > kMaxUnwrittenRows) {
+        pending_.pop_front();
+        ++rowsLost_;
+      }
+      lastError_ = error;
+      retryIn_ = kRetryEvery;
+      return false;
+    }
+    good_ += static_cast<off_t>(text.size());
+    pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(chunk));
+    n -= chunk;
+  }
+  retryIn_ = 0;
   return true;
 }
 
@@ -185,7 +202,7 @@ void DecisionLog::markGapFill(std::int64_t index) {
 
 bool DecisionLog::close(std::string& error) {
   if (fd_ < 0) return true;
-  bool ok = flushPending(error);
+  bool ok = flushPending(error, SIZE_MAX, true);
   if (!ok) rowsLost_ += static_cast<std::int64_t>(pending_.size());
   pending_.clear();
   if (ok && rowsLost_ > 0) {

@@ -39,6 +39,8 @@ class DecisionLog {
 
   static constexpr std::size_t kMaxHeldRows = 900;         // 30 s at 30 fps
   static constexpr std::size_t kMaxUnwrittenRows = 18000;  // 10 min at 30 fps, ~3 MB
+  // After a write error, rows are tried again every this many frames (about 1 s).
+  static constexpr int kRetryEvery = 30;
 
   // Rows let go unwritten (more than kMaxUnwrittenRows waited for the disk).
   [[nodiscard]] std::int64_t rowsLost() const { return rowsLost_; }
@@ -49,8 +51,9 @@ class DecisionLog {
 
  private:
   // Writes the first n pending rows (all by default); on an error they stay pending
-  // and the file is cut back to its last whole row.
-  bool flushPending(std::string& error, std::size_t n = SIZE_MAX);
+  // and the file is cut back to its last whole row. After an error, only every
+  // kRetryEvery-th call tries again unless `now`.
+  bool flushPending(std::string& error, std::size_t n = SIZE_MAX, bool now = false);
 
   int fd_ = -1;
   off_t good_ = 0;  // the file's length up to the last whole row
@@ -65,6 +68,8 @@ class DecisionLog {
   bool heldCandidate_ = false;  // a candidate's row is pending: it may be promoted
   std::size_t heldRows_ = 0;    // its row and those after it
   std::int64_t rowsLost_ = 0;
+  int retryIn_ = 0;        // calls until the next try after a write error
+  std::string lastError_;  // that error
   std::string path_;
 };
 

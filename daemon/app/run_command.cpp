@@ -331,6 +331,8 @@ class Daemon {
   void analysisLoop();
   void outputLoop();
   void outputOne(const KeyframeEvent& event, std::string& error, LogThrottle& errorLog);
+  // Says how many keyframes a full disk held back were saved since it last said so.
+  void logSavedLate();
   void reload();
   void publishPose();
   bool writeSummary(double seconds, const std::string& state, std::string& error);
@@ -349,7 +351,7 @@ class Daemon {
   bool ready_ = false;                // READY=1 sent (the first frame arrived); main thread
   bool reloadPending_ = false;        // SIGHUP before the outputs were open; main thread
   std::size_t leftAtStop_ = 0;        // frames still queued when the analysis stopped
-  std::int64_t savedLateLogged_ = 0;  // of writer_.savedLate(), on the output thread
+  std::int64_t savedLateLogged_ = 0;  // of writer_.savedLate() (output thread, then main)
   // Frames on a recorded flight's clock (a file with its tlog) instead of CLOCK_MONOTONIC:
   // "now" on that clock is CLOCK_MONOTONIC + the offset found at the first frame.
   bool videoClock_ = false;
@@ -528,6 +530,14 @@ void Daemon::outputLoop() {
   }
 }
 
+void Daemon::logSavedLate() {
+  if (const std::int64_t late = writer_.savedLate(); late > savedLateLogged_) {
+    KF_LOG(Output, Notice) << late - savedLateLogged_
+                           << " keyframes a full disk held back are saved now";
+    savedLateLogged_ = late;
+  }
+}
+
 void Daemon::outputOne(const KeyframeEvent& event, std::string& error, LogThrottle& errorLog) {
   const Decision& d = event.decision;
   if (d.kept) {
@@ -561,11 +571,7 @@ void Daemon::outputOne(const KeyframeEvent& event, std::string& error, LogThrott
                                           : std::string());
     }
   }
-  if (const std::int64_t late = writer_.savedLate(); late > savedLateLogged_) {
-    KF_LOG(Output, Notice) << late - savedLateLogged_
-                           << " keyframes a full disk held back are saved now";
-    savedLateLogged_ = late;
-  }
+  logSavedLate();
   stats_.written.store(writer_.count());
   outputs_.progress(stats_.analysed.load(), writer_.count());
 }
@@ -1253,6 +1259,7 @@ int Daemon::run() {
     KF_LOG(Output, Error) << error;
     ok = false;
   }
+  logSavedLate();
   if (telemetry_) {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));  // last capture reports
     telemetry_->stop();

@@ -29,6 +29,53 @@ cv::Point2d brown(cv::Point2d p, const std::array<double, 5>& k) {
           p.y * radial + k[2] * (r2 + 2 * p.y * p.y) + 2 * k[3] * p.x * p.y};
 }
 
+// The normalised point n that brown() takes to d, polished by Newton's method (on a
+// numeric Jacobian, each step halved until it gets closer) where the fixed point
+// crept (strong distortion near its limit, `miss` under 0.05 px) or overshot further
+// each step (a strong pincushion, k1 of tens): then from d itself, outside the answer,
+// where the radial curve rises ever faster. Only an answer on the lens's one-to-one
+// part counts: a pixel past a barrel lens's fold has none, yet Newton can land on a
+// point across the centre or past the fold that the polynomial maps there too. Kept
+// out of undistort() (noinline) so that its common path stays small.
+[[gnu::noinline]] bool polishUndistorted(cv::Point2d d, const std::array<double, 5>& k, double fx,
+                                         double fy, double miss, cv::Point2d& n) {
+  const auto missPx = [&](cv::Point2d p) {
+    const cv::Point2d b = brown(p, k);
+    return std::hypot((b.x - d.x) * fx, (b.y - d.y) * fy);
+  };
+  if (!(miss < 0.05)) {
+    n = d;
+    miss = missPx(n);
+  }
+  for (int i = 0; i < 30 && miss >= 1e-7; ++i) {
+    const cv::Point2d b = brown(n, k);
+    const double h = 1e-7;
+    const cv::Point2d bx = brown({n.x + h, n.y}, k), by = brown({n.x, n.y + h}, k);
+    const double a11 = (bx.x - b.x) / h, a12 = (by.x - b.x) / h;
+    const double a21 = (bx.y - b.y) / h, a22 = (by.y - b.y) / h;
+    const double det = a11 * a22 - a12 * a21;
+    if (!(std::fabs(det) > 1e-12)) return false;
+    const double ex = b.x - d.x, ey = b.y - d.y;
+    cv::Point2d step((a22 * ex - a12 * ey) / det, (a11 * ey - a21 * ex) / det);
+    double after = missPx(n - step);
+    for (int halve = 0; halve < 30 && !(after < miss); ++halve) {
+      step *= 0.5;
+      after = missPx(n - step);
+    }
+    if (!(after < miss)) break;  // no step gets closer: as close as it gets
+    n -= step;
+    miss = after;
+  }
+  if (!(miss < 0.05)) return false;
+  if (n.x * d.x + n.y * d.y <= 0.0 && std::hypot(d.x, d.y) > 1e-9) return false;
+  const double r2 = n.x * n.x + n.y * n.y;
+  for (int j = 1; j <= 16; ++j) {
+    const double s2 = r2 * j * j / 256.0;  // (r * j / 16)^2: the radial curve rises to n
+    if (!(1 + s2 * (3 * k[0] + s2 * (5 * k[1] + s2 * 7 * k[4])) > 0.0)) return false;
+  }
+  return true;
+}
+
 }  // namespace
 
 LensModel LensModel::scaledTo(int w, int h) const {
@@ -75,33 +122,9 @@ bool LensModel::undistort(cv::Point2d pixel, cv::Point2d& ideal) const {
       const cv::Point2d b = brown(n, k);
       n = {n.x + (d.x - b.x), n.y + (d.y - b.y)};
     }
-    const auto missPx = [&](cv::Point2d p) {
-      const cv::Point2d b = brown(p, k);
-      return std::hypot((b.x - d.x) * fx, (b.y - d.y) * fy);
-    };
-    if (!(missPx(n) < 1e-4)) {
-      // Polished by Newton's method (on a numeric Jacobian, each step halved until it
-      // gets closer) where the fixed point crept (strong distortion near its limit)
-      // or overshot further each step (a strong pincushion, k1 of tens): then from
-      // the distorted point, outside the answer, where the radial curve rises ever
-      // faster.
-      if (!(missPx(n) < 0.05)) n = d;
-      for (int i = 0; i < 50 && missPx(n) >= 1e-7; ++i) {
-        const cv::Point2d b = brown(n, k);
-        const double h = 1e-7;
-        const cv::Point2d bx = brown({n.x + h, n.y}, k), by = brown({n.x, n.y + h}, k);
-        const double a11 = (bx.x - b.x) / h, a12 = (by.x - b.x) / h;
-        const double a21 = (bx.y - b.y) / h, a22 = (by.y - b.y) / h;
-        const double det = a11 * a22 - a12 * a21;
-        if (!(std::fabs(det) > 1e-12)) return false;
-        const double ex = b.x - d.x, ey = b.y - d.y;
-        cv::Point2d step((a22 * ex - a12 * ey) / det, (a11 * ey - a21 * ex) / det);
-        const double before = missPx(n);
-        for (int halve = 0; halve < 30 && !(missPx(n - step) < before); ++halve) step *= 0.5;
-        n -= step;
-      }
-      if (!(missPx(n) < 0.05)) return false;
-    }
+    const cv::Point2d b = brown(n, k);
+    const double miss = std::hypot((b.x - d.x) * fx, (b.y - d.y) * fy);
+    if (!(miss < 1e-4) && !polishUndistorted(d, k, fx, fy, miss, n)) return false;
   }
   ideal = {n.x * fx + cx, n.y * fy + cy};
   return std::isfinite(ideal.x) && std::isfinite(ideal.y);

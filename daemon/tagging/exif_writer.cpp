@@ -244,6 +244,12 @@ void buildTags(Exiv2::Image& image, const TagSet& tags) {
       writeCamera(exif, xmp, c);
     }
   }
+  // The picture's size, which EXIF requires, also without a camera model.
+  if (exif.findKey(Exiv2::ExifKey("Exif.Photo.PixelXDimension")) == exif.end() &&
+      image.pixelWidth() > 0 && image.pixelHeight() > 0) {
+    exif["Exif.Photo.PixelXDimension"] = static_cast<std::uint32_t>(image.pixelWidth());
+    exif["Exif.Photo.PixelYDimension"] = static_cast<std::uint32_t>(image.pixelHeight());
+  }
   if (tags.utcUs) writeTime(exif, *tags.utcUs, tags.position.has_value());
   if (tags.position) writeGps(exif, xmp, *tags.position, tags.gps);
   if (tags.cameraToNed) {

@@ -748,7 +748,9 @@ def test_hostile_metadata_costs_only_itself(tagged: Path, tmp_path: Path) -> Non
     assert again.meta[("", 10)]["file"] == "seq000010.jpg"
 
 
-def test_sift_features_land_where_colmap_puts_them(tmp_path: Path) -> None:
+def test_sift_features_land_where_colmap_puts_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A blob centred on OpenCV's pixel (60, 50) is COLMAP's (60.5, 50.5): the feature
     file has it there (OpenCV's SIFT alone finds it 0.25 px off, its first octave's
     upscaling), with the descriptors as COLMAP's extractor normalises them by default
@@ -768,6 +770,27 @@ def test_sift_features_land_where_colmap_puts_them(tmp_path: Path) -> None:
     rows = [[float(v) for v in line.split()] for line in lines[1:]]
     x, y, *_ = min(rows, key=lambda r: math.hypot(r[0] - 60.5, r[1] - 50.5))
     assert (x, y) == pytest.approx((60.5, 50.5), abs=0.06)
+
+    # An OpenCV without precise upscaling (before 4.8: cv2.error for the keyword):
+    # its 0.25 px is taken out instead.
+    real = cv2.SIFT
+
+    class OldSift:
+        @staticmethod
+        def create(**kwargs: Any) -> Any:
+            if "enable_precise_upscale" in kwargs:
+                raise cv2.error("unknown keyword")
+            return real.create(**kwargs)
+
+    monkeypatch.setattr(cv2, "SIFT", OldSift)
+    sift_to_colmap(str(image), str(tmp_path / "old.txt"))
+    monkeypatch.undo()
+    old = [
+        [float(v) for v in ln.split()[:2]]
+        for ln in (tmp_path / "old.txt").read_text().splitlines()[1:]
+    ]
+    ox, oy = min(old, key=lambda r: math.hypot(r[0] - 60.5, r[1] - 50.5))
+    assert (ox, oy) == pytest.approx((60.5, 50.5), abs=0.06)
 
     # The descriptors: OpenCV's, L1-root normalised (not L2 as OpenCV leaves them).
     img = cv2.imread(str(image), cv2.IMREAD_GRAYSCALE)

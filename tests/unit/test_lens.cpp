@@ -110,6 +110,26 @@ TEST(Lens, AStrongPincushionIsUndistortedWhereTheFixedPointWouldDiverge) {
   EXPECT_EQ(checked, 9 * 7);
 }
 
+TEST(Lens, APixelPastABarrelLensFoldHasNoIdealPoint) {
+  // r (1 - 0.3 r^2) is at most 0.703 (at r = 1.054): a pixel further out is no
+  // point's image. Newton's method could land across the centre or past the fold
+  // on a point the polynomial maps there too: not an answer.
+  const LensModel l{LensModel::Kind::Pinhole,  640, 480, 400.0, 400.0, 320.0, 240.0,
+                    {-0.3, 0.0, 0.0, 0.0, 0.0}};
+  cv::Point2d back;
+  for (const double rd : {0.72, 0.75, 0.8}) {
+    const cv::Point2d px(320.0 + 400.0 * 0.8 * rd, 240.0 + 400.0 * 0.6 * rd);
+    EXPECT_FALSE(l.undistort(px, back)) << rd << ": " << back;
+  }
+  // Inside the fold every pixel comes back.
+  for (const double r : {0.2, 0.6, 1.0}) {
+    const cv::Point2d ideal(320.0 + 400.0 * 0.8 * r, 240.0 + 400.0 * 0.6 * r);
+    ASSERT_TRUE(l.undistort(l.distort(ideal), back)) << r;
+    EXPECT_NEAR(back.x, ideal.x, 1e-3) << r;
+    EXPECT_NEAR(back.y, ideal.y, 1e-3) << r;
+  }
+}
+
 TEST(Lens, MonotonicRadiusIsWhereTheDistortionFoldsBack) {
   // A strong barrel lens: r (1 + k1 r^2) turns back at r = 1 / sqrt(-3 k1).
   LensModel l = pinholeLens();

@@ -218,6 +218,8 @@ TEST_F(TaggingTest, SouthWestAndBelowSeaLevel) {
   // No receiver accuracy: HDOP x 5 m UERE for a standalone fix.
   EXPECT_NEAR(number(j, "XMP-Camera:GPSXYAccuracy"), 7.5, 1e-9);
   EXPECT_EQ(field(j, "XMP-Camera:GPSZAccuracy"), "");  // no VDOP either
+  // The tags EXIF requires are there without a camera model too.
+  EXPECT_EQ(field(j, "ExifTool:Validate"), "0 0 0") << j;
   // No camera, no time: none of their tags.
   EXPECT_EQ(field(j, "ExifIFD:DateTimeOriginal"), "");
   EXPECT_EQ(field(j, "IFD0:ModifyDate"), "");

@@ -605,7 +605,7 @@ def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> i
     try:
         sift = cv2.SIFT.create(nfeatures=max_features, enable_precise_upscale=True)
         shift = 0.5
-    except TypeError:
+    except (TypeError, cv2.error):  # OpenCV 4.5-4.7 say cv2.error for the keyword
         sift = cv2.SIFT.create(nfeatures=max_features)
         shift = 0.25
     # No mask: OpenCV takes None, which its stubs leave out.
