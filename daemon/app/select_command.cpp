@@ -217,7 +217,8 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       "  \"frames_read\": %lld,\n  \"kept\": %lld,\n  \"rejected_blur\": %lld,\n"
       "  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n  \"seconds\": %.3f,\n"
       "  \"frames_per_second\": %.2f,\n  \"analysis_ms_mean\": %.3f,\n  \"truncated\": %s,\n"
-      "  \"interrupted\": %s,\n  \"error\": \"%s\",\n  \"telemetry\": %s,\n"
+      "  \"interrupted\": %s,\n  \"error\": \"%s\",\n  \"record_error\": \"%s\",\n"
+      "  \"telemetry\": %s,\n"
       "  \"video_start\": %s,\n"
       "  \"settings\": {\n    \"mode\": \"%s\",\n"
       "    \"target\": %.3f,\n    \"band\": [%.3f, %.3f],\n    \"analysis_width\": %d,\n"
@@ -235,14 +236,15 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
       static_cast<long long>(s.rejectedBlur), static_cast<long long>(s.rejectedOverlap),
       static_cast<long long>(s.promoted), s.seconds, s.framesPerSecond, s.analysisMsMean,
       s.truncated ? "true" : "false", s.interrupted ? "true" : "false", jsonEscape(s.error).c_str(),
-      tel.c_str(), start.c_str(), toString(c.overlap.mode), c.target, c.bandLow, c.bandHigh,
-      c.analysisWidth, c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute",
-      c.blur.absoluteThreshold, c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window,
-      c.blur.rowStep, c.blur.colStep, c.blur.analysisWidth, c.overlap.orbFeatures,
-      c.overlap.paperThreshold, c.overlap.paperMinMatches, c.minOverlap, c.motionRatio,
-      c.motionMinFraction, c.motionWindow, c.captureWaitMs, c.overlap.maxTracks,
-      c.overlap.minTracks, c.overlap.minInliers, c.overlap.ransacPixels, c.overlap.fastThreshold,
-      c.overlap.lkWindow, c.overlap.lkLevels, c.blur.warmup);
+      jsonEscape(s.recordError).c_str(), tel.c_str(), start.c_str(), toString(c.overlap.mode),
+      c.target, c.bandLow, c.bandHigh, c.analysisWidth,
+      c.blur.mode == BlurMode::Adaptive ? "adaptive" : "absolute", c.blur.absoluteThreshold,
+      c.blur.floor, c.blur.ratio, c.blur.quantile, c.blur.window, c.blur.rowStep, c.blur.colStep,
+      c.blur.analysisWidth, c.overlap.orbFeatures, c.overlap.paperThreshold,
+      c.overlap.paperMinMatches, c.minOverlap, c.motionRatio, c.motionMinFraction, c.motionWindow,
+      c.captureWaitMs, c.overlap.maxTracks, c.overlap.minTracks, c.overlap.minInliers,
+      c.overlap.ransacPixels, c.overlap.fastThreshold, c.overlap.lkWindow, c.overlap.lkLevels,
+      c.blur.warmup);
   return writeFileAtomically(path, std::string_view(text), error);
 }
 
@@ -740,7 +742,9 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   if (!writer.close(error) && s.error.empty()) s.error = error;
   // A recorder that failed has said so; the keyframes are what must not be lost.
   if (telemetry) telemetry->setRawSink({});
-  outputs.close(!s.error.empty() ? "failed" : (s.interrupted ? "interrupted" : "done"), error);
+  if (std::string recordError; !outputs.close(
+          !s.error.empty() ? "failed" : (s.interrupted ? "interrupted" : "done"), recordError))
+    s.recordError = recordError;
   if (telemetry) {
     // Let the telemetry thread send the last CAMERA_IMAGE_CAPTURED reports.
     if (!telemetry->isReplay()) std::this_thread::sleep_for(std::chrono::milliseconds(200));

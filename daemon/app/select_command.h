@@ -21,7 +21,10 @@ struct SelectSummary {
   bool truncated = false;       // the video ended before its announced length
   bool interrupted = false;     // stopped by a signal or --max-frames
   std::string error;            // non-empty: the run failed (one line)
-  bool badOptions = false;      // ... because the options do not fit the flight record
+  // Non-empty: the --mcap record stopped (a full disk) or is incomplete; the run's
+  // keyframes and decisions are complete, so this is no failure of the run.
+  std::string recordError;
+  bool badOptions = false;  // ... because the options do not fit the flight record
   struct Telemetry {
     std::string source;  // empty: no telemetry
     std::int64_t geotagged = 0;

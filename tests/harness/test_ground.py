@@ -858,6 +858,14 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     assert "Traceback" not in r.stderr
     r = run("--out", "/proc/keyframed-cannot-write")
     assert r.returncode == 1 and "cannot create" in r.stderr
+    # Endpoints that cannot exist: said at once, not retried by Zenoh for ever.
+    for flag, endpoint in (
+        ("--connect", "tcp/127.0.0.1:74470"),
+        ("--connect", "tcp/127.0.0.1"),
+        ("--listen", "udp/0.0.0.0:port"),
+    ):
+        r = run("--out", str(tmp_path / "e"), flag, endpoint, "--duration", "1")
+        assert r.returncode == 2 and f"{flag} {endpoint}: not HOST:PORT" in r.stderr, r.stderr
 
 
 @pytest.mark.parametrize(

@@ -213,6 +213,11 @@ def test_write_error_stops_only_the_recorder(kf_bin: Path, pan_video: Path, tmp_
     assert "File too large" in lines[0], lines[0]  # the OS's reason, not only "I/O error"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["kept"] == len(keyframe_rows(out)) >= 2
+    # Not a failure of the run, but said in the summary a script reads.
+    assert summary["error"] == "" and "File too large" in summary["record_error"], summary
+    whole = select(kf_bin, pan_video, tmp_path / "whole", "--mcap", str(tmp_path / "ok.mcap"))
+    assert whole.returncode == 0, whole.stderr
+    assert json.loads((tmp_path / "whole" / "summary.json").read_text())["record_error"] == ""
 
 
 # ---- (c) Zenoh --------------------------------------------------------------------------

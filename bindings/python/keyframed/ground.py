@@ -1489,6 +1489,20 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    # Zenoh retries an endpoint it cannot reach without a word: one that cannot exist
+    # (a port past 65535, no port) is a typo, said now.
+    for flag, endpoints in (("--connect", args.connect), ("--listen", args.listen)):
+        for endpoint in endpoints:
+            proto, _, address = endpoint.partition("/")
+            if proto in ("tcp", "udp", "tls", "quic", "ws"):
+                port = address.rpartition(":")[2].split("#")[0]
+                if not (port.isdigit() and int(port) <= 65535 and address.rpartition(":")[0]):
+                    print(
+                        f"keyframed-ground: {flag} {endpoint}: not HOST:PORT with a port of "
+                        "0 to 65535",
+                        file=sys.stderr,
+                    )
+                    return 2
     for name in ("duration", "until_idle"):
         value = getattr(args, name)
         if value is not None and not (math.isfinite(value) and value > 0):
