@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <filesystem>
+#include <new>
 
 #include "app/text_io.h"
 #include "tagging/exif_writer.h"
@@ -179,15 +180,20 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
 
   // Those a full disk held back go first: files and index rows in sequence order.
   if (!saveHeld(error) || !writeFileAtomically(rec.file, jpeg_, error)) {
-    held_.push_back({rec.file, jpeg_, std::move(row)});
-    heldBytes_ += jpeg_.size();
+    rec.file.clear();
+    ++unsaved_;
+    try {
+      held_.push_back({config_.dir + "/" + fileName(frameIndex), jpeg_, std::move(row)});
+      heldBytes_ += jpeg_.size();
+    } catch (const std::bad_alloc&) {
+      ++letGo_;  // no memory to hold it either: unsaved, and counted as let go
+      return false;
+    }
     while (heldBytes_ > config_.maxHeldBytes && held_.size() > 1) {
       heldBytes_ -= held_.front().jpeg.size();
       held_.pop_front();
       ++letGo_;
     }
-    rec.file.clear();
-    ++unsaved_;
     return false;
   }
   if (!tagError.empty())
