@@ -170,8 +170,7 @@ void noEffectWarnings(const SelectOptions& o, const std::set<std::string>& given
     }
   };
   const bool record = isMcapFile(o.video);
-  const bool live = !o.telemetry.empty() && !o.telemetry.starts_with("tlog:") &&
-                    !(o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
+  const bool live = !o.telemetry.empty() && !isTlogUrl(o.telemetry);
   if (o.telemetry.empty() && !record)
     warn({"--mount", "--autopilot"}, "without --telemetry (no attitude to turn)");
   if (!live) {
@@ -513,9 +512,7 @@ ParseResult parseSelectOptions(const std::vector<std::string>& args, SelectOptio
   if (!o.telemetry.empty()) {
     std::string e;
     if (!parseMavlinkUrl(o.telemetry, e)) return fail("--telemetry: " + e);
-    const bool replay =
-        o.telemetry.starts_with("tlog:") ||
-        (o.telemetry.ends_with(".tlog") && o.telemetry.find(':') == std::string::npos);
+    const bool replay = isTlogUrl(o.telemetry);
     // A flight record replays its own telemetry, on its own clock.
     if (isMcapFile(o.video))
       return fail(

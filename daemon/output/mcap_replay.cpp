@@ -97,17 +97,15 @@ bool forEachField(std::span<const std::uint8_t> msg, F&& f) {
   return ok ? found : std::nullopt;
 }
 
-// A google.protobuf.Timestamp in field `number` (seconds 1, nanos 2) as ns.
 // Seconds a record's times stay under: 2096 in unix time, 126 years of uptime.
 constexpr std::int64_t kMaxRecordSeconds = 4'000'000'000;
+constexpr std::int64_t kMaxRecordNs = kMaxRecordSeconds * 1'000'000'000;
 
-[[maybe_unused]] std::optional<std::int64_t> timestampField(std::span<const std::uint8_t> msg,
-                                                            std::uint64_t number) {
-  const auto ts = bytesField(msg, number);
-  if (!ts) return std::nullopt;
+// A google.protobuf.Timestamp message (seconds 1, nanos 2) as ns.
+[[maybe_unused]] std::optional<std::int64_t> timestampOf(std::span<const std::uint8_t> ts) {
   std::int64_t seconds = 0, nanos = 0;
   bool varints = true;
-  const bool ok = forEachField(*ts, [&](const ProtoField& f) {
+  const bool ok = forEachField(ts, [&](const ProtoField& f) {
     varints = f.wire == 0;
     if (f.number == 1) seconds = static_cast<std::int64_t>(f.value);
     if (f.number == 2) nanos = static_cast<std::int64_t>(f.value);
@@ -126,9 +124,8 @@ constexpr std::int64_t kMaxRecordSeconds = 4'000'000'000;
 // overflows and the message is skipped.
 [[maybe_unused]] std::optional<std::int64_t> messageTime(std::span<const std::uint8_t> msg,
                                                          std::uint64_t logTimeNs) {
-  if (bytesField(msg, 1)) return timestampField(msg, 1);
-  if (logTimeNs >= static_cast<std::uint64_t>(kMaxRecordSeconds) * 1'000'000'000u)
-    return std::nullopt;
+  if (const auto ts = bytesField(msg, 1)) return timestampOf(*ts);
+  if (logTimeNs >= static_cast<std::uint64_t>(kMaxRecordNs)) return std::nullopt;
   return static_cast<std::int64_t>(logTimeNs);
 }
 
@@ -202,7 +199,7 @@ bool decisionIndex(std::span<const std::uint8_t> json, std::int64_t& index, std:
   long long i = 0, t = 0;
   if (std::sscanf(head.c_str(), "{\"index\":%lld,\"timestamp_ns\":%lld", &i, &t) != 2) return false;
   // A damaged row (sscanf saturates what does not fit): not a frame of this flight.
-  if (i < 0 || i > (1LL << 40) || t < 0 || t >= kMaxRecordSeconds * 1'000'000'000LL) return false;
+  if (i < 0 || i > (1LL << 40) || t < 0 || t >= kMaxRecordNs) return false;
   index = i;
   time = t;
   return true;
@@ -350,7 +347,7 @@ std::unique_ptr<McapReplaySource> McapReplaySource::open(const std::string& path
           impl.encoded.assign(field->begin(), field->end());
           firstNs = t;
           // The log time is unix time (a damaged one: taken as the frame's own).
-          const bool logOk = time < static_cast<std::uint64_t>(kMaxRecordSeconds) * 1'000'000'000u;
+          const bool logOk = time < static_cast<std::uint64_t>(kMaxRecordNs);
           s->unixOffsetNs_ = (logOk ? static_cast<std::int64_t>(time) : t) - t;
         } else if (video != impl.video) {
           continue;  // a record with both streams replays the one that starts first

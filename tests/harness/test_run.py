@@ -96,6 +96,19 @@ def rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def select(
+    kf_bin: Path, source: Path, out: Path, *args: str, timeout: float = 120
+) -> subprocess.CompletedProcess[str]:
+    """`keyframed select SOURCE --out OUT --quiet ARGS...`: the offline run the daemon's
+    outputs are held against."""
+    return subprocess.run(
+        [str(kf_bin), "select", str(source), "--out", str(out), "--quiet", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
 def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
 ) -> None:
@@ -120,12 +133,7 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     assert 28.0 < summary["frames_per_second"] < 31.0
 
     offline = tmp_path / "offline"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(video), "--out", str(offline), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    r = select(kf_bin, video, offline)
     assert r.returncode == 0, r.stderr
     live_rows, off_rows = rows(fd / "decisions.csv"), rows(offline / "decisions.csv")
     assert len(live_rows) == len(off_rows) == 240
@@ -241,13 +249,16 @@ def test_run_replays_a_tlog_with_its_video_as_select_does(
     assert summary["frames_read"] == 240 and summary["frames_dropped"] == 0
     live = rows(fd / "keyframes" / "keyframes.csv")
     offline = tmp_path / "offline"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(video), "--out", str(offline), "--quiet"]
-        + ["--telemetry", str(tlog), "--video-start", start_time]
-        + ["--calibration", str(calibration)],
-        capture_output=True,
-        text=True,
-        timeout=120,
+    r = select(
+        kf_bin,
+        video,
+        offline,
+        "--telemetry",
+        str(tlog),
+        "--video-start",
+        start_time,
+        "--calibration",
+        str(calibration),
     )
     assert r.returncode == 0, r.stderr
     off = rows(offline / "keyframes.csv")
@@ -912,12 +923,7 @@ def test_cut_video_ends_promptly_with_the_keyframes_before_the_cut(
         # picks from the same cut file.
         assert summary["frames_dropped"] == 0
         off = tmp_path / "offline"
-        r = subprocess.run(
-            [str(kf_bin), "select", str(cut), "--out", str(off), "--quiet"],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        r = select(kf_bin, cut, off, timeout=60)
         assert r.returncode == 3, r.stderr
         assert jpgs == sorted(p.name for p in off.glob("*.jpg"))
 
@@ -1322,17 +1328,14 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
     assert acks == [mav2.MAV_RESULT_ACCEPTED] * 2 and len(commanded) >= 1, (acks, commanded)
     out = tmp_path / "replay"
     t0 = time.monotonic()
-    r = subprocess.run(
-        [str(kf_bin), "select", str(fd / "flight.mcap"), "--out", str(out), "--quiet"]
-        + [
-            "--calibration",
-            str(short_nadir / "intrinsics.json"),
-            "--mcap",
-            str(tmp_path / "r.mcap"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
+    r = select(
+        kf_bin,
+        fd / "flight.mcap",
+        out,
+        "--calibration",
+        str(short_nadir / "intrinsics.json"),
+        "--mcap",
+        str(tmp_path / "r.mcap"),
     )
     took = time.monotonic() - t0
     assert r.returncode == 0, r.stderr
@@ -1370,13 +1373,7 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
 
     # An option on the replay: that setting changes, the flight's others stay.
     other = tmp_path / "other"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(fd / "flight.mcap"), "--out", str(other), "--quiet"]
-        + ["--target", "0.65"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    r = select(kf_bin, fd / "flight.mcap", other, "--target", "0.65")
     assert r.returncode == 0, r.stderr
     settings = json.loads((other / "summary.json").read_text())["settings"]
     assert settings["target"] == 0.65 and settings["band"] == [0.6, 0.9], settings
@@ -1446,12 +1443,7 @@ def test_replay_of_a_reduced_preview_and_of_a_cut_file(
     assert proc.returncode == 0, stderr
     mcap = flight_dir(tmp_path) / "flight.mcap"
     out = tmp_path / "replay"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(mcap), "--out", str(out), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    r = select(kf_bin, mcap, out, timeout=60)
     assert r.returncode == 0, r.stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["frames_read"] == 240 and s["width"] == 240 and s["kept"] >= 3
@@ -1459,12 +1451,7 @@ def test_replay_of_a_reduced_preview_and_of_a_cut_file(
     cut = tmp_path / "cut.mcap"
     data = mcap.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
-    r = subprocess.run(
-        [str(kf_bin), "select", str(cut), "--out", str(tmp_path / "cut"), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    r = select(kf_bin, cut, tmp_path / "cut", timeout=60)
     # said, and failed as a cut video is (exit 3), with everything before the break
     assert r.returncode == 3, r.stderr
     assert "the record ends early (cut short or corrupt): replayed the" in r.stderr, r.stderr
@@ -1478,12 +1465,7 @@ def test_replay_of_a_reduced_preview_and_of_a_cut_file(
     for k in range(len(data) // 2, len(data) // 2 + 64):
         damaged[k] ^= 0x5A
     flipped.write_bytes(bytes(damaged))
-    r = subprocess.run(
-        [str(kf_bin), "select", str(flipped), "--out", str(tmp_path / "flipped"), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    r = select(kf_bin, flipped, tmp_path / "flipped", timeout=60)
     assert r.returncode == 3 and "the record ends early" in r.stderr, r.stderr
     s = json.loads((tmp_path / "flipped" / "summary.json").read_text())
     assert 30 < s["frames_read"] < 240 and s["truncated"] is True, s
@@ -1748,12 +1730,7 @@ def test_keyframes_a_full_disk_held_back_are_saved_once_it_has_room(
     assert [int(r["sequence"]) for r in kfs] == list(range(summary["kept"])), kfs
     assert sorted(r["file"] for r in kfs) == sorted(saved), (kfs, sorted(saved))
     offline = tmp_path / "offline"
-    r = subprocess.run(
-        [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(offline), "--quiet"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    r = select(kf_bin, short_nadir / "video.avi", offline)
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in offline.glob("*.jpg")) == sorted(saved)
 
@@ -1808,13 +1785,7 @@ def test_full_disk_loses_no_keyframe_on_the_link(
         assert len(errors) < 10, f"{len(errors)} error lines: logged per frame"
 
         offline = tmp_path / "offline"
-        r = subprocess.run(
-            [str(kf_bin), "select", str(short_nadir / "video.avi"), "--out", str(offline)]
-            + ["--quiet"],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        r = select(kf_bin, short_nadir / "video.avi", offline)
         assert r.returncode == 0, r.stderr
         expected = json.loads((offline / "summary.json").read_text())["kept"]
         seqs = [m["sequence"] for _, m in received]

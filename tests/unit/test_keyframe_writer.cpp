@@ -90,6 +90,23 @@ class WriterTest : public testing::Test {
     return saved;
   }
 
+  [[nodiscard]] KeyframeWriterConfig configHere() const {
+    KeyframeWriterConfig config;
+    config.dir = dir_.string();
+    return config;
+  }
+
+  // Adds rows from d.index on, one a frame, until the log writes again (it tries
+  // about once a second of frames after a write error); d.index ends past the last.
+  static bool addUntilWritten(DecisionLog& log, Decision& d, std::string& err) {
+    for (int i = 0; i <= DecisionLog::kRetryEvery; ++i) {
+      const bool written = log.add(d, err);
+      ++d.index;
+      if (written) return true;
+    }
+    return false;
+  }
+
   // The index's sequence and file columns, checking every row is whole.
   std::vector<std::pair<int, std::string>> indexRows() const {
     const auto l = lines(dir_ / "keyframes.csv");
@@ -112,8 +129,7 @@ class WriterTest : public testing::Test {
 TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
   KeyframeWriter w;
   std::string error;
-  KeyframeWriterConfig config;
-  config.dir = dir_.string();
+  KeyframeWriterConfig config = configHere();
   ASSERT_TRUE(w.open(config, error)) << error;
   ASSERT_TRUE(write(w, 0, error)) << error;
   {
@@ -154,8 +170,7 @@ TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
 TEST_F(WriterTest, HeldKeyframesAreBoundedTheOldestLetGo) {
   KeyframeWriter w;
   std::string error;
-  KeyframeWriterConfig config;
-  config.dir = dir_.string();
+  KeyframeWriterConfig config = configHere();
   config.maxHeldBytes = 1;  // one keyframe held at most
   ASSERT_TRUE(w.open(config, error)) << error;
   {
@@ -174,8 +189,7 @@ TEST_F(WriterTest, HeldKeyframesAreBoundedTheOldestLetGo) {
 TEST_F(WriterTest, AKeyframeStillHeldAtTheCloseIsAnError) {
   KeyframeWriter w;
   std::string error;
-  KeyframeWriterConfig config;
-  config.dir = dir_.string();
+  KeyframeWriterConfig config = configHere();
   ASSERT_TRUE(w.open(config, error)) << error;
   FullDisk full(8000);
   EXPECT_FALSE(write(w, 0, error));
@@ -201,10 +215,7 @@ TEST_F(WriterTest, DecisionRowsAWriteErrorKeptOutAreWrittenWholeLater) {
     EXPECT_EQ(fs::file_size(path), before) << "a part-written row left in the file";
   }
   // Tried again about a second of frames later: then every held row goes.
-  bool written = false;
-  for (int i = 0; i <= DecisionLog::kRetryEvery && !written; ++i, ++d.index)
-    written = log.add(d, err);
-  ASSERT_TRUE(written) << err;
+  ASSERT_TRUE(addUntilWritten(log, d, err)) << err;
   ASSERT_TRUE(log.close(err)) << err;
   EXPECT_EQ(log.rowsLost(), 0);
   const auto l = lines(path);
@@ -236,10 +247,7 @@ TEST_F(WriterTest, ACandidatePromotedWhileItsRowWaitsForTheDiskIsWrittenAsKept) 
     EXPECT_FALSE(log.add(promoting, err));
     d.index = 7;
   }
-  bool written = false;
-  for (int i = 0; i <= DecisionLog::kRetryEvery && !written; ++i, ++d.index)
-    written = log.add(d, err);
-  ASSERT_TRUE(written) << err;
+  ASSERT_TRUE(addUntilWritten(log, d, err)) << err;
   ASSERT_TRUE(log.close(err)) << err;
   const auto l = lines(path);
   ASSERT_GE(l.size(), 1u + 8u);
