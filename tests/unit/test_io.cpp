@@ -479,8 +479,9 @@ TEST(McapRecorder, EveryMessageNotRecordedAfterAWriteErrorIsCounted) {
   ASSERT_EQ(setrlimit(RLIMIT_FSIZE, &small), 0);
   const std::vector<std::uint8_t> data(2000, 0x42);
   int sent = 0;
-  for (; sent < 100; ++sent) {
+  while (sent < 100) {
     rec.record(McapTopic::Decision, sent * 1'000'000LL, data);
+    ++sent;  // counted before the check: the message that saw the failure was sent too
     std::unique_lock lock(m);
     if (!failure.empty()) break;
   }
