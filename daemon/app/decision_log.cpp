@@ -1,12 +1,7 @@
 #include "app/decision_log.h"
 
-#include <fcntl.h>
-#include <unistd.h>
-
 #include <algorithm>
-#include <cerrno>
 #include <cmath>
-#include <cstring>
 
 #include "app/text_io.h"
 
@@ -91,22 +86,7 @@ std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
 bool DecisionLog::open(const std::string& path, DecisionFormat format, std::string& error) {
   path_ = path;
   format_ = format;
-  fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd_ < 0) {
-    error = "cannot create " + path + ": " + std::strerror(errno);
-    return false;
-  }
-  if (format_ == DecisionFormat::Csv) {
-    const std::string head = header() + "\n";
-    if (!writeAll(fd_, head)) {
-      error = "cannot write " + path + ": " + std::strerror(errno);
-      ::close(fd_);
-      fd_ = -1;
-      return false;
-    }
-    good_ = static_cast<off_t>(head.size());
-  }
-  return true;
+  return file_.open(path, format_ == DecisionFormat::Csv ? header() + "\n" : std::string(), error);
 }
 
 bool DecisionLog::flushPending(std::string& error, std::size_t n, bool now) {
@@ -132,13 +112,9 @@ bool DecisionLog::flushPending(std::string& error, std::size_t n, bool now) {
                                              : jsonRow(r.decision, r.geotag);
       text += '\n';
     }
-    if (!writeAll(fd_, text)) {
-      // A full disk can take part of the rows: cut back to the last whole one; the
-      // rows stay, to be written whole when there is room.
-      error = "cannot write " + path_ + ": " + std::strerror(errno);
-      if (::ftruncate(fd_, good_) != 0 || ::lseek(fd_, good_, SEEK_SET) < 0) {
-        error += "; cannot cut back a part-written row";
-      }
+    if (!file_.append(text, error)) {
+      // The file is cut back to its last whole row; the rows stay, to be written
+      // whole when there is room.
       while (pending_.size() > kMaxUnwrittenRows) {
         pending_.pop_front();
         ++rowsLost_;
@@ -147,7 +123,6 @@ bool DecisionLog::flushPending(std::string& error, std::size_t n, bool now) {
       retryIn_ = kRetryEvery;
       return false;
     }
-    good_ += static_cast<off_t>(text.size());
     pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(chunk));
     n -= chunk;
   }
@@ -156,7 +131,7 @@ bool DecisionLog::flushPending(std::string& error, std::size_t n, bool now) {
 }
 
 bool DecisionLog::add(const Decision& d, std::string& error, const std::string& geotag) {
-  if (fd_ < 0) return true;
+  if (!file_.isOpen()) return true;
   if (d.promotedIndex >= 0) {
     for (Row& r : pending_) {
       Decision& p = r.decision;
@@ -201,7 +176,7 @@ void DecisionLog::markGapFill(std::int64_t index) {
 }
 
 bool DecisionLog::close(std::string& error) {
-  if (fd_ < 0) return true;
+  if (!file_.isOpen()) return true;
   bool ok = flushPending(error, SIZE_MAX, true);
   if (!ok) rowsLost_ += static_cast<std::int64_t>(pending_.size());
   pending_.clear();
@@ -209,11 +184,11 @@ bool DecisionLog::close(std::string& error) {
     error = std::to_string(rowsLost_) + " rows of " + path_ + " lost to write errors";
     ok = false;
   }
-  if (::close(fd_) != 0 && ok) {
-    error = "cannot close " + path_ + ": " + std::strerror(errno);
+  std::string closeError;
+  if (!file_.close(closeError) && ok) {
+    error = closeError;
     ok = false;
   }
-  fd_ = -1;
   return ok;
 }
 

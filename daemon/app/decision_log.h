@@ -1,13 +1,12 @@
 #pragma once
 
-#include <sys/types.h>
-
 #include <cstddef>
 #include <cstdint>
 #include <deque>
 #include <string>
 
 #include "app/options.h"
+#include "app/text_io.h"
 #include "core/selector.h"
 
 namespace keyframed {
@@ -55,8 +54,7 @@ class DecisionLog {
   // kRetryEvery-th call tries again unless `now`.
   bool flushPending(std::string& error, std::size_t n = SIZE_MAX, bool now = false);
 
-  int fd_ = -1;
-  off_t good_ = 0;  // the file's length up to the last whole row
+  RowFile file_;
   DecisionFormat format_ = DecisionFormat::Csv;
   struct Row {
     Decision decision;

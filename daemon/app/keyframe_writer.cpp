@@ -1,11 +1,6 @@
 #include "app/keyframe_writer.h"
 
-#include <fcntl.h>
-#include <unistd.h>
-
-#include <cerrno>
 #include <cmath>
-#include <cstring>
 #include <filesystem>
 #include <new>
 
@@ -42,35 +37,22 @@ bool KeyframeWriter::open(KeyframeWriterConfig config, std::string& error) {
   }
   std::error_code ec;
   config_.dir = std::filesystem::absolute(config_.dir, ec).lexically_normal().string();
-  indexPath_ = config_.dir + "/keyframes.csv";
-  index_ = ::open(indexPath_.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  const std::string header = indexHeader() + "\n";
-  if (index_ < 0 || !writeAll(index_, header)) {
-    error = "cannot create " + indexPath_ + ": " + std::strerror(errno);
-    return false;
-  }
-  indexGood_ = static_cast<off_t>(header.size());
-  syncDirectoryOf(indexPath_);
+  const std::string indexPath = config_.dir + "/keyframes.csv";
+  if (!index_.open(indexPath, indexHeader() + "\n", error)) return false;
+  syncDirectoryOf(indexPath);
   return true;
 }
 
 bool KeyframeWriter::appendIndexRows(std::string& error) {
   while (!pendingRows_.empty()) {
     const std::string& row = pendingRows_.front();
-    if (!writeAll(index_, row)) {
-      // A full disk can take part of a row: cut back to the last whole one, so that
-      // the row (kept) is written whole once there is room, and the next one after it.
-      error = "cannot write " + indexPath_ + ": " + std::strerror(errno);
-      if (::ftruncate(index_, indexGood_) != 0 || ::lseek(index_, indexGood_, SEEK_SET) < 0) {
-        error += "; cannot cut back a part-written row";
-      }
-      return false;
-    }
-    indexGood_ += static_cast<off_t>(row.size());
+    // A row the disk does not take (whole) stays, to be written once there is room,
+    // and the next ones after it.
+    if (!index_.append(row, error)) return false;
     pendingRows_.erase(pendingRows_.begin());
   }
   // Like the keyframes themselves, the index survives a power cut as far as written.
-  ::fdatasync(index_);
+  index_.sync();
   return true;
 }
 
@@ -198,7 +180,7 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
   }
   if (!tagError.empty())
     error = "keyframe " + fileName(frameIndex) + " saved untagged: " + tagError;
-  if (index_ >= 0) {
+  if (index_.isOpen()) {
     pendingRows_.push_back(std::move(row));
     if (!appendIndexRows(error)) return false;
   }
@@ -215,7 +197,7 @@ bool KeyframeWriter::saveHeld(std::string& error) {
       ok = false;
       break;
     }
-    if (index_ >= 0) pendingRows_.push_back(std::move(h.row));
+    if (index_.isOpen()) pendingRows_.push_back(std::move(h.row));
     heldBytes_ -= h.jpeg.size();
     held_.pop_front();
     ++saved;
@@ -224,12 +206,12 @@ bool KeyframeWriter::saveHeld(std::string& error) {
   savedLate_ += static_cast<std::int64_t>(saved);
   // Their rows now (a row the disk does not take yet stays pending for the next).
   std::string rowError;
-  if (saved > 0 && index_ >= 0) appendIndexRows(rowError);
+  if (saved > 0 && index_.isOpen()) appendIndexRows(rowError);
   return ok;
 }
 
 bool KeyframeWriter::close(std::string& error) {
-  if (index_ < 0) return true;
+  if (!index_.isOpen()) return true;
   // Keyframes and rows a full disk held back, if there is room now.
   bool ok = saveHeld(error);
   std::string rowError;
@@ -237,11 +219,10 @@ bool KeyframeWriter::close(std::string& error) {
     error = rowError;
     ok = false;
   }
-  if (::close(index_) != 0 && ok) {
-    error = "cannot close " + indexPath_ + ": " + std::strerror(errno);
+  if (!index_.close(rowError) && ok) {
+    error = rowError;
     ok = false;
   }
-  index_ = -1;
   return ok;
 }
 

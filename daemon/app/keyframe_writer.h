@@ -1,7 +1,5 @@
 #pragma once
 
-#include <sys/types.h>
-
 #include <cstddef>
 #include <cstdint>
 #include <cstdio>
@@ -13,6 +11,7 @@
 
 #include <opencv2/core/mat.hpp>
 
+#include "app/text_io.h"
 #include "core/frame.h"
 #include "tagging/camera_model.h"
 #include "tagging/camera_mount.h"
@@ -112,9 +111,7 @@ class KeyframeWriter {
   // cannot be saved.
   bool saveHeld(std::string& error);
 
-  int index_ = -1;  // keyframes.csv
-  std::string indexPath_;
-  off_t indexGood_ = 0;                   // its length up to the last whole row
+  RowFile index_;                         // keyframes.csv
   std::vector<std::string> pendingRows_;  // rows not yet written (a full disk), in order
   // Keyframes a full disk did not take, in sequence order, and their bytes.
   struct Held {

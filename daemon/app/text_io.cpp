@@ -122,4 +122,52 @@ bool writeFileAtomically(const std::string& path, std::string_view text, std::st
       path, std::span(reinterpret_cast<const std::uint8_t*>(text.data()), text.size()), error);
 }
 
+RowFile::~RowFile() {
+  std::string ignored;
+  close(ignored);
+}
+
+bool RowFile::open(const std::string& path, std::string_view header, std::string& error) {
+  std::string ignored;
+  close(ignored);
+  path_ = path;
+  fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd_ < 0 || !writeAll(fd_, header)) {
+    error = "cannot create " + path + ": " + std::strerror(errno);
+    if (fd_ >= 0) ::close(fd_);
+    fd_ = -1;
+    return false;
+  }
+  good_ = static_cast<off_t>(header.size());
+  return true;
+}
+
+bool RowFile::append(std::string_view rows, std::string& error) {
+  if (fd_ < 0) {
+    error = "cannot write " + path_ + ": not open";
+    return false;
+  }
+  if (!writeAll(fd_, rows)) {
+    error = "cannot write " + path_ + ": " + std::strerror(errno);
+    if (::ftruncate(fd_, good_) != 0 || ::lseek(fd_, good_, SEEK_SET) < 0) {
+      error += "; cannot cut back a part-written row";
+    }
+    return false;
+  }
+  good_ += static_cast<off_t>(rows.size());
+  return true;
+}
+
+void RowFile::sync() const {
+  if (fd_ >= 0) ::fdatasync(fd_);
+}
+
+bool RowFile::close(std::string& error) {
+  if (fd_ < 0) return true;
+  const bool ok = ::close(fd_) == 0;
+  if (!ok) error = "cannot close " + path_ + ": " + std::strerror(errno);
+  fd_ = -1;
+  return ok;
+}
+
 }  // namespace keyframed

@@ -1,5 +1,7 @@
 #pragma once
 
+#include <sys/types.h>
+
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -57,5 +59,31 @@ bool writeFileAtomically(const std::string& path, std::string_view text, std::st
 void syncDirectoryOf(const std::string& path);
 // write() until all of bytes is written; false with errno on an error (EINTR retried).
 bool writeAll(int fd, std::string_view bytes);
+
+// A file written in whole rows (keyframes.csv, the decisions file). A write the disk
+// takes only part of (a full disk) is cut back, so the file always ends at the end of
+// a row and the caller can write the same rows again, whole, once there is room.
+class RowFile {
+ public:
+  RowFile() = default;
+  RowFile(const RowFile&) = delete;
+  RowFile& operator=(const RowFile&) = delete;
+  ~RowFile();
+
+  // Creates (or empties) path and writes header (may be empty); false with a line.
+  bool open(const std::string& path, std::string_view header, std::string& error);
+  // Appends rows whole or not at all; false with a line ("cannot write PATH: ...").
+  bool append(std::string_view rows, std::string& error);
+  // fdatasync: what is written survives a power cut.
+  void sync() const;
+  bool close(std::string& error);
+  [[nodiscard]] bool isOpen() const { return fd_ >= 0; }
+  [[nodiscard]] const std::string& path() const { return path_; }
+
+ private:
+  int fd_ = -1;
+  off_t good_ = 0;  // the file's length up to the last whole row
+  std::string path_;
+};
 
 }  // namespace keyframed

@@ -12,6 +12,7 @@
 
 #include "app/decision_log.h"
 #include "app/keyframe_writer.h"
+#include "app/text_io.h"
 
 namespace keyframed {
 namespace {
@@ -125,6 +126,33 @@ class WriterTest : public testing::Test {
   fs::path dir_;
   std::vector<std::vector<std::uint8_t>> jpegs_;  // by sequence
 };
+
+TEST_F(WriterTest, ARowFileEndsAtItsLastWholeRowWhenTheDiskTakesPartOfOne) {
+  RowFile f;
+  std::string error;
+  const fs::path path = dir_ / "rows.csv";
+  ASSERT_TRUE(f.open(path.string(), "a,b\n", error)) << error;
+  const std::string row(100, 'x');
+  {
+    FullDisk disk(1000);  // room for the header and 9 rows of 101 bytes, and a part
+    int written = 0;
+    while (f.append(row + "\n", error)) ++written;
+    EXPECT_EQ(written, 9);
+    EXPECT_NE(error.find("cannot write " + path.string()), std::string::npos) << error;
+    EXPECT_EQ(error.find("cannot cut back"), std::string::npos) << error;
+    EXPECT_EQ(fs::file_size(path), 4U + 9 * 101);  // not 1000: the part is gone
+    disk.roomAgain();
+  }
+  // The same row, again and whole, then on as before.
+  ASSERT_TRUE(f.append(row + "\n", error)) << error;
+  ASSERT_TRUE(f.append("last\n", error)) << error;
+  ASSERT_TRUE(f.close(error)) << error;
+  const auto l = lines(path);
+  ASSERT_EQ(l.size(), 12U);
+  for (std::size_t i = 1; i < 11; ++i) EXPECT_EQ(l[i], row) << i;
+  EXPECT_EQ(l[11], "last");
+  EXPECT_FALSE(f.append("after close\n", error));
+}
 
 TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
   KeyframeWriter w;
