@@ -75,6 +75,8 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
   // Published and recorded even when it could not be saved (disk full): a keyframe
   // the ground station receives is not lost.
   outputs_.keyframe(rec, writer_.lastJpeg());
+  // Those a full disk held back, saved now: the publisher's copies can go.
+  outputs_.keyframesIndexedLate(writer_.takeIndexedLate());
   note = rec.geotag;
   if (telemetry_ != nullptr && !telemetry_->isReplay()) {
     CaptureReport report;

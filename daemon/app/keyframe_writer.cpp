@@ -43,13 +43,14 @@ bool KeyframeWriter::open(KeyframeWriterConfig config, std::string& error) {
   return true;
 }
 
-bool KeyframeWriter::appendIndexRows(std::string& error) {
+bool KeyframeWriter::appendIndexRows(std::string& error, std::int64_t current) {
   while (!pendingRows_.empty()) {
-    const std::string& row = pendingRows_.front();
+    const Row& row = pendingRows_.front();
     // A row the disk does not take (whole) stays, to be written once there is room,
     // and the next ones after it.
-    if (!index_.append(row, error)) return false;
-    pendingRows_.erase(pendingRows_.begin());
+    if (!index_.append(row.text, error)) return false;
+    if (row.sequence != current) indexedLate_.push_back(row.sequence);
+    pendingRows_.pop_front();
   }
   // Like the keyframes themselves, the index survives a power cut as far as written.
   index_.sync();
@@ -165,7 +166,8 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     rec.file.clear();
     ++unsaved_;
     try {
-      held_.push_back({config_.dir + "/" + fileName(frameIndex), jpeg_, std::move(row)});
+      held_.push_back(
+          {config_.dir + "/" + fileName(frameIndex), jpeg_, Row{rec.sequence, std::move(row)}});
       heldBytes_ += jpeg_.size();
     } catch (const std::bad_alloc&) {
       ++letGo_;  // no memory to hold it either: unsaved, and counted as let go
@@ -181,8 +183,8 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
   if (!tagError.empty())
     error = "keyframe " + fileName(frameIndex) + " saved untagged: " + tagError;
   if (index_.isOpen()) {
-    pendingRows_.push_back(std::move(row));
-    if (!appendIndexRows(error)) return false;
+    pendingRows_.push_back(Row{rec.sequence, std::move(row)});
+    if (!appendIndexRows(error, rec.sequence)) return false;
   }
   rec.indexed = true;
   return tagError.empty();

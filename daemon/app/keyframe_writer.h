@@ -7,6 +7,7 @@
 #include <functional>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <opencv2/core/mat.hpp>
@@ -85,6 +86,12 @@ class KeyframeWriter {
   // Of the unsaved: those let go from memory (more than maxHeldBytes waited), lost
   // to the disk for good; the others are still held.
   [[nodiscard]] std::int64_t letGo() const { return letGo_; }
+  // The sequence numbers of keyframes whose write() said "not indexed" (a full disk)
+  // that are now saved and in keyframes.csv, in order, since the last call: a copy
+  // kept in memory for them can go.
+  [[nodiscard]] std::vector<std::int64_t> takeIndexedLate() {
+    return std::exchange(indexedLate_, {});
+  }
   // The tagged JPEG bytes of the last keyframe written.
   [[nodiscard]] const std::vector<std::uint8_t>& lastJpeg() const { return jpeg_; }
   [[nodiscard]] std::int64_t geotagged() const { return geotagged_; }
@@ -106,18 +113,25 @@ class KeyframeWriter {
   JpegEncoder encoder_;
   std::vector<std::uint8_t> jpeg_;
   std::optional<CameraModel> scaled_;
-  bool appendIndexRows(std::string& error);
+  // Writes the pending rows in order; `current`: the sequence of the keyframe being
+  // written (its row is not late), -1: none.
+  bool appendIndexRows(std::string& error, std::int64_t current = -1);
   // Saves the held keyframes, oldest first; false (with the error) when one still
   // cannot be saved.
   bool saveHeld(std::string& error);
 
-  RowFile index_;                         // keyframes.csv
-  std::vector<std::string> pendingRows_;  // rows not yet written (a full disk), in order
+  RowFile index_;  // keyframes.csv
+  struct Row {
+    std::int64_t sequence;
+    std::string text;  // its keyframes.csv row
+  };
+  std::deque<Row> pendingRows_;  // rows not yet written (a full disk), in order
+  std::vector<std::int64_t> indexedLate_;
   // Keyframes a full disk did not take, in sequence order, and their bytes.
   struct Held {
     std::string file;  // absolute path
     std::vector<std::uint8_t> jpeg;
-    std::string row;  // its keyframes.csv row
+    Row row;
   };
   std::deque<Held> held_;
   std::size_t heldBytes_ = 0;

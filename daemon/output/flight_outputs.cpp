@@ -533,6 +533,10 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
   }
 }
 
+void FlightOutputs::keyframesIndexedLate(std::span<const std::int64_t> sequences) {
+  if (impl_->publisher && !sequences.empty()) impl_->publisher->forgetUnsaved(sequences);
+}
+
 void FlightOutputs::log(int level, std::string_view category, std::string_view message) {
   std::lock_guard lock(impl_->logMutex);
   McapRecorder* recorder = impl_->recorder.get();
@@ -659,6 +663,7 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraMod
 void FlightOutputs::decision(const Decision&) {}
 void FlightOutputs::recordDecision(const Decision&, const std::string&) {}
 void FlightOutputs::keyframe(const KeyframeRecord&, std::span<const std::uint8_t>) {}
+void FlightOutputs::keyframesIndexedLate(std::span<const std::int64_t>) {}
 void FlightOutputs::preview(std::int64_t, std::span<const std::uint8_t>, const char*) {}
 bool FlightOutputs::previewStillDue() const {
   return false;

@@ -76,6 +76,9 @@ class FlightOutputs {
   void recordDecision(const Decision& d, const std::string& decisionJson);
   // Every keyframe written, with its tagged JPEG bytes.
   void keyframe(const KeyframeRecord& record, std::span<const std::uint8_t> jpeg);
+  // Keyframes that were not indexed when keyframe() had them (a full disk) and now
+  // are (KeyframeWriter::takeIndexedLate()): the queryable serves them from disk.
+  void keyframesIndexedLate(std::span<const std::int64_t> sequences);
   // A raw MAVLink packet as received (thread-safe; the telemetry thread calls it).
   void mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                std::uint32_t messageId, std::span<const std::uint8_t> packet);

@@ -577,6 +577,21 @@ void KeyframePublisher::keepUnsaved(std::int64_t sequence, std::span<const std::
   }
 }
 
+void KeyframePublisher::forgetUnsaved(std::span<const std::int64_t> sequences) {
+  std::lock_guard lock(publishedMutex_);
+  for (const std::int64_t seq : sequences) {
+    if (const auto it = unsaved_.find(seq); it != unsaved_.end()) {
+      unsavedBytes_ -= it->second.jpeg.size();
+      unsaved_.erase(it);
+    }
+  }
+}
+
+std::size_t KeyframePublisher::unsavedBytes() const {
+  std::lock_guard lock(publishedMutex_);
+  return unsavedBytes_;
+}
+
 std::int64_t KeyframePublisher::unsavedLetGo() const {
   std::lock_guard lock(publishedMutex_);
   return unsavedLetGo_;

@@ -77,6 +77,10 @@ class KeyframePublisher {
   void keepUnsaved(std::int64_t sequence, std::span<const std::uint8_t> jpeg,
                    const std::string& metadataJson);
   static constexpr std::size_t kUnsavedBytes = 64u << 20;
+  // Those of them now saved and indexed: served from disk from now on.
+  void forgetUnsaved(std::span<const std::int64_t> sequences);
+  // The bytes of JPEG kept by keepUnsaved() now.
+  [[nodiscard]] std::size_t unsavedBytes() const;
   [[nodiscard]] std::int64_t unsavedLetGo() const;
   // Best effort; `last` (the flight's final state, done or stopped): reliable and
   // waiting rather than dropped, so that a receiver learns the flight's keyframe

@@ -871,6 +871,26 @@ std::string isolatedZenohConfig() {
   return path;
 }
 
+TEST(KeyframePublisher, CopiesOfUnsavedKeyframesGoOnceTheyAreOnDisk) {
+  KeyframePublisherOptions o;
+  o.configFile = isolatedZenohConfig();
+  o.vehicle = "fulldisk";
+  std::string error;
+  auto publisher = KeyframePublisher::open(o, error);
+  ASSERT_TRUE(publisher) << error;
+  const std::vector<std::uint8_t> a(1000, 1);
+  const std::vector<std::uint8_t> b(300, 2);
+  publisher->keepUnsaved(4, a, "{}");
+  publisher->keepUnsaved(5, b, "{}");
+  EXPECT_EQ(publisher->unsavedBytes(), 1300U);
+  const std::int64_t saved[] = {4, 9};  // 9: never kept, nothing to forget
+  publisher->forgetUnsaved(saved);
+  EXPECT_EQ(publisher->unsavedBytes(), 300U);
+  publisher->forgetUnsaved(saved);  // twice: no change
+  EXPECT_EQ(publisher->unsavedBytes(), 300U);
+  EXPECT_EQ(publisher->unsavedLetGo(), 0);
+}
+
 TEST(FlightOutputs, AFailedKeyframePublishDoesNotStopTheNextOnes) {
   std::vector<std::string> warnings;
   FlightOutputOptions o;

@@ -160,6 +160,7 @@ TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
   KeyframeWriterConfig config = configHere();
   ASSERT_TRUE(w.open(config, error)) << error;
   ASSERT_TRUE(write(w, 0, error)) << error;
+  EXPECT_TRUE(w.takeIndexedLate().empty());  // indexed in time
   {
     FullDisk full(8000);  // the index fits, a keyframe does not
     EXPECT_FALSE(write(w, 5, error));
@@ -175,6 +176,9 @@ TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
   EXPECT_EQ(w.saved(), 4);
   EXPECT_EQ(w.savedLate(), 2);
   EXPECT_EQ(w.letGo(), 0);
+  // Sequences 1 and 2 are on disk now (not 3: its write() said so itself), once.
+  EXPECT_EQ(w.takeIndexedLate(), (std::vector<std::int64_t>{1, 2}));
+  EXPECT_TRUE(w.takeIndexedLate().empty());
   {
     FullDisk full(8000);
     EXPECT_FALSE(write(w, 20, error));
