@@ -39,7 +39,8 @@ std::string selectUsage() {
 
 Reads VIDEO, keeps sharp frames that overlap the previous keyframe by the
 target amount, writes them to DIR as NNNNNN.jpg (zero-based frame index),
-DIR/decisions.csv (one row per frame) and DIR/summary.json. VIDEO may also be
+DIR/keyframes.csv (one row per keyframe: its pose and tags), DIR/decisions.csv
+(one row per frame) and DIR/summary.json. VIDEO may also be
 a flight record (MCAP from `keyframed run`): its preview stream is replayed, with
 its recorded MAVLink as telemetry.
 
@@ -105,6 +106,8 @@ telemetry and tags:
   --realtime                 deliver frames at the video's own rate, stamped with the
                              monotonic clock, as a camera would
 output:
+  --out DIR                  where the keyframes go (created; an earlier run's
+                             output there is refused, see --overwrite)
   --decisions csv|jsonl      decisions file format (default csv)
   --jpeg-quality Q           1..100 (default 92)
   --max-frames N             stop after N frames

@@ -293,10 +293,9 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
       m.width = static_cast<std::uint32_t>(width);
       m.height = static_cast<std::uint32_t>(height);
       m.d = c.distortion;
+      // Otherwise plumb_bob: a camera model carries k1 k2 p1 p2 k3 at most.
       if (c.lens == CameraModel::Lens::Fisheye) {
         m.distortionModel = "kannala_brandt";  // OpenCV's fisheye k1..k4
-      } else if (m.d.size() > 5) {
-        m.distortionModel = "rational_polynomial";
       }
       m.k = {c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1};
       m.p = {c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0};

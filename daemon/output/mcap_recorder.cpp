@@ -81,7 +81,7 @@ constexpr const char* kSettingsSchema = R"json({
     "selection": {"type": "string",
                   "description": "one selection.KEY=VALUE per line, TOML values"},
     "tagging": {"type": "string",
-                "description": "one tagging.KEY=VALUE per line (make, model, mount, mount_roll, mount_pitch, mount_yaw), TOML values"},
+                "description": "one KEY=VALUE per line (tagging.make, model, mount, mount_roll, mount_pitch, mount_yaw and camera.time_offset_ms), TOML values"},
     "camera": {"type": "string",
                "description": "the camera model as a TOML [camera] table, as a calibration file holds it"}
   }
