@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include "app/decision_log.h"
+#include "temp_dir.h"
 
 namespace keyframed {
 namespace {
@@ -17,7 +18,7 @@ std::vector<std::string> lines(const std::string& path) {
 }
 
 TEST(DecisionLog, APromotedCandidateIsRewrittenAsKept) {
-  const std::string path = testing::TempDir() + "/decisions.csv";
+  const std::string path = (test::processTempDir("keyframed-unit") / "decisions.csv").string();
   DecisionLog log;
   std::string err;
   ASSERT_TRUE(log.open(path, DecisionFormat::Csv, err)) << err;
@@ -42,7 +43,8 @@ TEST(DecisionLog, APromotedCandidateIsRewrittenAsKept) {
 }
 
 TEST(DecisionLog, RowsAreWrittenWhenFinalAndAHeldCandidateIsBounded) {
-  const std::string path = testing::TempDir() + "/decisions-hover.csv";
+  const std::string path =
+      (test::processTempDir("keyframed-unit") / "decisions-hover.csv").string();
   DecisionLog log;
   std::string err;
   ASSERT_TRUE(log.open(path, DecisionFormat::Csv, err)) << err;
@@ -80,7 +82,7 @@ TEST(DecisionLog, RowsAreWrittenWhenFinalAndAHeldCandidateIsBounded) {
 }
 
 TEST(DecisionLog, JsonLinesHaveOneObjectPerFrame) {
-  const std::string path = testing::TempDir() + "/decisions.jsonl";
+  const std::string path = (test::processTempDir("keyframed-unit") / "decisions.jsonl").string();
   DecisionLog log;
   std::string err;
   ASSERT_TRUE(log.open(path, DecisionFormat::JsonLines, err));

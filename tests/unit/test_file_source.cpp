@@ -13,12 +13,13 @@
 #include "capture/file_source.h"
 #include "photos.h"
 #include "telemetry/link.h"
+#include "temp_dir.h"
 
 namespace keyframed {
 namespace {
 
 std::string writeVideo(const std::string& name, int frames) {
-  const std::string path = testing::TempDir() + "/" + name;
+  const std::string path = (test::processTempDir("keyframed-unit") / name).string();
   cv::VideoWriter w(path, cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), 30.0, cv::Size(320, 180));
   EXPECT_TRUE(w.isOpened());
   const cv::Mat strip = test::photoStrip();
@@ -53,7 +54,7 @@ TEST(FileSource, MissingFileAndNonVideoAreClearErrors) {
   std::string err;
   EXPECT_FALSE(FileSource::open("/no/such/video.avi", err));
   EXPECT_NE(err.find("no such file"), std::string::npos);
-  const std::string junk = testing::TempDir() + "/junk.avi";
+  const std::string junk = (test::processTempDir("keyframed-unit") / "junk.avi").string();
   std::ofstream(junk) << "this is not a video at all";
   err.clear();
   EXPECT_FALSE(FileSource::open(junk, err));
@@ -62,7 +63,7 @@ TEST(FileSource, MissingFileAndNonVideoAreClearErrors) {
 
 TEST(FileSource, TruncatedVideoEndsWithAnErrorAfterTheGoodFrames) {
   const std::string path = writeVideo("full.avi", 60);
-  const std::string cut = testing::TempDir() + "/cut.avi";
+  const std::string cut = (test::processTempDir("keyframed-unit") / "cut.avi").string();
   std::filesystem::copy_file(path, cut, std::filesystem::copy_options::overwrite_existing);
   std::filesystem::resize_file(cut, std::filesystem::file_size(path) / 2);
   std::string err;
@@ -87,7 +88,7 @@ TEST(FileSource, TruncatedVideoEndsWithAnErrorAfterTheGoodFrames) {
 
 // An MPEG-TS has no frame index; a cut is found by the last packet being partial.
 TEST(FileSource, TransportStreamCutMidPacketIsTruncated) {
-  const std::string whole = testing::TempDir() + "/whole.ts";
+  const std::string whole = (test::processTempDir("keyframed-unit") / "whole.ts").string();
   {
     cv::VideoWriter w(whole, cv::VideoWriter::fourcc('m', 'p', '4', 'v'), 30.0, cv::Size(320, 180));
     ASSERT_TRUE(w.isOpened());
@@ -116,7 +117,7 @@ TEST(FileSource, TransportStreamCutMidPacketIsTruncated) {
   EXPECT_EQ(wholeStatus, ReadStatus::End) << err;
   EXPECT_EQ(wholeFrames, 40);
 
-  const std::string cut = testing::TempDir() + "/cut.ts";
+  const std::string cut = (test::processTempDir("keyframed-unit") / "cut.ts").string();
   std::filesystem::copy_file(whole, cut, std::filesystem::copy_options::overwrite_existing);
   std::filesystem::resize_file(cut, (size / 2 / 188) * 188 + 77);
   err.clear();
@@ -141,7 +142,7 @@ TEST(FileSource, AWholeVideoHasNotFailed) {
 
 // A colour video of a real photo, `size`, three frames, lossless enough to compare.
 std::string writeColourVideo(const std::string& name, cv::Size size) {
-  const std::string path = testing::TempDir() + "/" + name;
+  const std::string path = (test::processTempDir("keyframed-unit") / name).string();
   cv::VideoWriter w(path, cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), 30.0, size);
   EXPECT_TRUE(w.isOpened());
   const cv::Mat fruits = test::photo("fruits.jpg", cv::IMREAD_COLOR);
@@ -193,7 +194,7 @@ TEST(FileSource, CameraFormatsAVideoCannotBeDeliveredInAreRefused) {
   EXPECT_FALSE(src->setOutputFormat(PixelFormat::YUYV, err));
   EXPECT_NE(err.find("YUYV"), std::string::npos) << err;
   // OpenCV's writer rounds sizes to even; a YUV4MPEG2 stream, written by hand, does not.
-  const std::string oddPath = testing::TempDir() + "/odd.y4m";
+  const std::string oddPath = (test::processTempDir("keyframed-unit") / "odd.y4m").string();
   {
     std::ofstream y4m(oddPath, std::ios::binary);
     y4m << "YUV4MPEG2 W161 H91 F30:1 Ip A1:1 C420jpeg\n";

@@ -465,13 +465,17 @@ TEST(CaptureThread, BacksOffInsteadOfSpinningOnASourceThatFailsAtOnce) {
   FrameQueue q(2);
   CaptureThread capture(src, pool, q);  // never gives up
   capture.start();
-  std::this_thread::sleep_for(std::chrono::milliseconds(700));
+  // 10, 20, 40, ... ms apart: the 7th call some 630 ms in, then a pause of 640 ms.
+  const auto start = std::chrono::steady_clock::now();
+  while (src.calls.load() < 7 && std::chrono::steady_clock::now() - start < std::chrono::seconds(5))
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  ASSERT_GE(src.calls.load(), 7);
+  std::this_thread::sleep_for(std::chrono::milliseconds(50));
   const auto t0 = std::chrono::steady_clock::now();
-  capture.stop();  // also while it backs off
-  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(100));
-  // 10, 20, 40, ... ms apart: 7 calls in 700 ms, not millions.
-  EXPECT_GE(src.calls.load(), 5);
-  EXPECT_LE(src.calls.load(), 9);
+  capture.stop();  // while it backs off: not after the ~590 ms left of the pause
+  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(400));
+  EXPECT_LE(src.calls.load(), 9) << "not backing off";
+  EXPECT_GE(std::chrono::steady_clock::now() - start, std::chrono::milliseconds(600));
   EXPECT_TRUE(capture.running() == false);
 }
 

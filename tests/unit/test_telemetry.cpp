@@ -21,6 +21,7 @@
 #include "telemetry/pose_store.h"
 #include "telemetry/telemetry_decoder.h"
 #include "telemetry/tlog.h"
+#include "temp_dir.h"
 
 namespace keyframed {
 namespace {
@@ -1493,7 +1494,7 @@ TEST(Tlog, RecordTimesOutOfLineAreMendedAndAStepIsKept) {
 
 TEST(Tlog, ReadsRecordsSkipsGarbageAndReportsATruncatedEnd) {
   MavlinkEncoder ap(1, 1);
-  const auto path = std::filesystem::temp_directory_path() / "keyframed_test.tlog";
+  const auto path = test::processTempDir("keyframed-unit") / "keyframed_test.tlog";
   std::vector<std::uint8_t> bytes;
   const std::uint64_t t0 = 1'780'000'000'000'000ULL;
   for (int i = 0; i < 20; ++i) {
