@@ -86,4 +86,9 @@ def zenoh_dialling(port: int) -> Any:
     conf = zenoh.Config()
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # Dialled before the daemon listens, Zenoh tries again after 1, 2, then 4 s: a
+    # daemon slow to start on a busy machine would be heard seconds late. Every 0.2 s.
+    conf.insert_json5(
+        "connect/retry", "{period_init_ms: 200, period_max_ms: 200, period_increase_factor: 1}"
+    )
     return conf

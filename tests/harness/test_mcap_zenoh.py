@@ -20,6 +20,7 @@ import pytest
 from fake_autopilot import read_tlog
 from flights import flight
 from keyframed import synth
+from ports import free_port
 
 mcap_reader = pytest.importorskip("mcap.reader")
 zenoh = pytest.importorskip("zenoh")
@@ -221,12 +222,6 @@ def test_write_error_stops_only_the_recorder(kf_bin: Path, pan_video: Path, tmp_
 
 
 # ---- (c) Zenoh --------------------------------------------------------------------------
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def peer_config(listen: list[str] | None = None, connect: list[str] | None = None) -> str:

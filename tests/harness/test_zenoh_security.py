@@ -145,7 +145,7 @@ def session_config(
     connect: str | None = None,
     tls: dict[str, Any] | None = None,
     usrpwd: dict[str, Any] | None = None,
-    timeout_ms: int = 10000,
+    timeout_ms: int = 60000,
 ) -> dict[str, Any]:
     """A Zenoh config: one endpoint, no multicast scouting; a session that connects
     gives up (zenoh.open raises) when the link is not up within `timeout_ms`."""
@@ -204,7 +204,7 @@ class Collector:
             s.undeclare()
 
 
-def wait_for_peer(session: Any, timeout: float = 10.0) -> None:
+def wait_for_peer(session: Any, timeout: float = 60.0) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if list(session.info.peers_zid()) or list(session.info.routers_zid()):
