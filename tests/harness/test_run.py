@@ -24,6 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from daemon_log import logged_stop_s
 from fake_autopilot import autopilot_fixture
 from flights import flight
 from ports import free_port, zenoh_connect_config, zenoh_dialling, zenoh_listener_config
@@ -71,21 +72,6 @@ def start(
     )
 
 
-def logged_stop_s(stderr: str) -> float | None:
-    """The daemon's own time from taking the signal ("SIGTERM: stopping") to its last
-    line ("stopped (": everything flushed and closed), from the stamps of its log."""
-
-    def stamp(line: str) -> float:
-        h, m, s = line[:12].split(":")
-        return int(h) * 3600 + int(m) * 60 + float(s)
-
-    took = re.search(r"^(\d\d:\d\d:\d\d\.\d{3}) .*SIG(?:TERM|INT): stopping", stderr, re.M)
-    done = re.findall(r"^(\d\d:\d\d:\d\d\.\d{3}) .*stopped \(", stderr, re.M)
-    if took is None or not done:
-        return None
-    return (stamp(done[-1]) - stamp(took.group(1))) % 86400
-
-
 def sigterm(proc: subprocess.Popen[str], sig: signal.Signals = signal.SIGTERM) -> tuple[str, float]:
     """SIGTERM (or `sig`) the daemon; its stderr and how long it took to stop, in s.
 
@@ -106,12 +92,14 @@ def sigterm(proc: subprocess.Popen[str], sig: signal.Signals = signal.SIGTERM) -
     return stderr, took
 
 
-def wait_ready(ns: NotifySocket, proc: subprocess.Popen[str], timeout: float = 30.0) -> None:
-    """Until the daemon says READY=1 (its first frame), or fails the test."""
+def wait_ready(
+    ns: NotifySocket, proc: subprocess.Popen[str], timeout: float = 30.0, message: str = "READY=1"
+) -> None:
+    """Until the daemon says READY=1 (its first frame), or `message`; or fails the test."""
     deadline = time.monotonic() + timeout
-    while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
+    while not ns.has(message) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert ns.has("READY=1"), "no first frame"
+    assert ns.has(message), f"no {message}: {ns.messages}"
 
 
 def flight_dir(tmp_path: Path) -> Path:
@@ -305,16 +293,26 @@ def test_run_replays_a_tlog_with_its_video_as_select_does(
     assert t0 - 60 * 10**9 <= times["/mavlink/raw"] <= t0 + 60 * 10**9, times
 
 
-def start_without_autopilot(kf_bin: Path, tmp_path: Path, flight: Path) -> subprocess.Popen[str]:
+def start_without_autopilot(
+    kf_bin: Path, tmp_path: Path, flight: Path, ns: NotifySocket
+) -> subprocess.Popen[str]:
     """The daemon on a flight's video, waiting up to 30 s for an autopilot that is
-    never heard (telemetry.start_wait_ms)."""
-    return start(
+    never heard (telemetry.start_wait_ms); back once it says it waits (on NS)."""
+    proc = start(
         kf_bin,
         tmp_path,
         f"camera.path={flight / 'video.avi'}",
         f"telemetry.url=udpin:127.0.0.1:{free_port()}",
         "telemetry.start_wait_ms=30000",
+        env={"NOTIFY_SOCKET": str(ns.path)},
     )
+    try:
+        wait_ready(ns, proc, message="STATUS=waiting for telemetry")
+    except BaseException:
+        proc.kill()
+        proc.communicate()
+        raise
+    return proc
 
 
 def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
@@ -322,10 +320,12 @@ def test_sigterm_while_waiting_for_telemetry_stops_cleanly(
 ) -> None:
     """Stopped before the autopilot was ever heard (telemetry.start_wait_ms): the same
     clean stop as later on, with a summary and a closed record, not a bare exit."""
-    proc = start_without_autopilot(kf_bin, tmp_path, short_nadir)
-    time.sleep(1.5)
+    ns = NotifySocket(tmp_path / "notify.sock")
+    proc = start_without_autopilot(kf_bin, tmp_path, short_nadir, ns)
+    time.sleep(0.5)
     assert proc.poll() is None
     stderr, took = sigterm(proc)
+    ns.close()
     assert proc.returncode == 0, stderr
     assert took < 1.0, f"SIGTERM took {took:.2f} s"
     assert "stopping before the camera started" in stderr, stderr
@@ -342,12 +342,13 @@ def test_sigpipe_does_not_kill_the_daemon(kf_bin: Path, short_nadir: Path, tmp_p
     """A peer that hangs up (a Zenoh TLS session refused mid-handshake) raises SIGPIPE
     where its stack writes with writev(): an EPIPE for that write, not the end of the
     flight. Sent outright, it must not end the daemon either."""
-    proc = start_without_autopilot(kf_bin, tmp_path, short_nadir)
-    time.sleep(1.0)
+    ns = NotifySocket(tmp_path / "notify.sock")
+    proc = start_without_autopilot(kf_bin, tmp_path, short_nadir, ns)
     proc.send_signal(signal.SIGPIPE)
     time.sleep(0.5)
     assert proc.poll() is None, proc.communicate()[1]
     stderr, _ = sigterm(proc)
+    ns.close()
     assert proc.returncode == 0, stderr
 
 
@@ -593,14 +594,23 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
         deadline = time.monotonic() + 20
         while not ns.has("READY=1") and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
+
+        def wait_reloaded(n: int) -> None:
+            """Until the n-th reload is done (RELOADING=1, then READY=1 again): the
+            next file is written after the daemon read this one."""
+            while len(ns.has("RELOADING=1")) < n or len(ns.has("READY=1")) < n + 1:
+                assert time.monotonic() < deadline + 20 and proc.poll() is None, ns.messages
+                time.sleep(0.02)
+
         time.sleep(2.0)  # keyframes kept for their overlap at the first target
         # a bad configuration on reload: refused, the daemon goes on
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 7\n")
         proc.send_signal(signal.SIGHUP)
-        time.sleep(0.5)
+        wait_reloaded(1)
         (tmp_path / "etc" / "keyframed.toml").write_text("[selection]\ntarget = 0.8\n")
         proc.send_signal(signal.SIGHUP)
-        time.sleep(1.5)
+        wait_reloaded(2)
+        time.sleep(1.0)
         # the same selection settings again, a reload for [log] (each keyframe said at
         # debug level from now on): the chain goes on; a changed key that only a restart
         # applies is named
@@ -608,7 +618,8 @@ def test_sd_notify_ready_watchdog_status_reload_and_stopping(
             '[selection]\ntarget = 0.8\n[log]\nselect = "debug"\n[output]\nmcap_rotate_s = 60\n'
         )
         proc.send_signal(signal.SIGHUP)
-        time.sleep(2.0)
+        wait_reloaded(3)
+        time.sleep(1.5)
         proc.send_signal(signal.SIGTERM)
         _, stderr = proc.communicate(timeout=20)
     finally:
