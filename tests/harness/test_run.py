@@ -145,7 +145,7 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     assert summary["frame_timestamps"] == "container time"
     assert summary["time_offset_ms"] == -40.0
     assert summary["frames_read"] == 240
-    assert 28.0 < summary["frames_per_second"] < 31.0
+    assert 26.0 < summary["frames_per_second"] < 31.0  # start and flush inside the 8 s
 
     offline = tmp_path / "offline"
     r = select(kf_bin, video, offline)
