@@ -49,8 +49,9 @@ bool KeyframeWriter::appendIndexRows(std::string& error, std::int64_t current) {
     // A row the disk does not take (whole) stays, to be written once there is room,
     // and the next ones after it.
     if (!index_.append(row.text, error)) return false;
-    if (row.sequence != current) indexedLate_.push_back(row.sequence);
-    pendingRows_.pop_front();
+    const std::int64_t sequence = row.sequence;
+    pendingRows_.pop_front();  // written: never again, whatever follows
+    if (sequence != current) indexedLate_.push_back(sequence);
   }
   // Like the keyframes themselves, the index survives a power cut as far as written.
   index_.sync();

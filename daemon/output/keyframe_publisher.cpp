@@ -485,8 +485,16 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     dir = flightsDir_ + "/" + flight + "/keyframes";
   }
   std::vector<StoredKeyframe> rows;
-  // The ones a full disk kept in memory (this flight's only), by sequence.
-  std::map<std::int64_t, std::vector<std::uint8_t>> inMemory;
+  // The ones a full disk kept in memory (this flight's only), by sequence. Copied
+  // before the index is read: one saved in between (its copy forgotten) is then in the
+  // index, not missing from both.
+  std::map<std::int64_t, Unsaved> inMemory;
+  if (own) {
+    std::lock_guard lock(publishedMutex_);
+    for (const auto& [seq, u] : unsaved_) {
+      if (seq >= first && seq <= final && (all || seq == wanted)) inMemory[seq] = u;
+    }
+  }
   const bool indexRead = readKeyframeIndex(dir, prefix_.substr(prefix_.find('/') + 1),
                                            own ? flight_ : flight, rows, error);
   if (own) {
@@ -499,11 +507,8 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     }
     std::set<std::int64_t> onDisk;
     for (const StoredKeyframe& r : rows) onDisk.insert(r.sequence);
-    for (const auto& [seq, u] : unsaved_) {
-      if (seq < first || seq > final || (!all && seq != wanted) || onDisk.contains(seq)) continue;
-      rows.push_back(StoredKeyframe{seq, {}, u.metadataJson});
-      inMemory[seq] = u.jpeg;
-    }
+    std::erase_if(inMemory, [&](const auto& kv) { return onDisk.contains(kv.first); });
+    for (const auto& [seq, u] : inMemory) rows.push_back(StoredKeyframe{seq, {}, u.metadataJson});
     std::sort(rows.begin(), rows.end(), [](const StoredKeyframe& a, const StoredKeyframe& b) {
       return a.sequence < b.sequence;
     });
@@ -540,7 +545,7 @@ void KeyframePublisher::answer(const std::string& key, const std::string& parame
     }
     found = true;
     if (const auto m = inMemory.find(r.sequence); m != inMemory.end()) {
-      jpeg = m->second;
+      jpeg = m->second.jpeg;
     } else if (!readFile(dir + "/" + r.file, jpeg, error)) {
       std::string ignored;
       reply.fail(error, ignored);

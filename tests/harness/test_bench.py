@@ -135,7 +135,7 @@ def test_daemon_benchmark_with_its_peers() -> None:
     # workers on 2 cores may drop a few frames here (docs/performance.md has the
     # numbers of a quiet machine: none); a daemon that cannot keep up drops far more.
     read, dropped = row(out, "frames_read")[0], row(out, "frames_dropped")[0]
-    assert read > 0 and dropped <= read // 10, out
+    assert read > 0 and dropped <= read // 20, out
     kept = row(out, "kept")[0]
     assert kept > 0 and row(out, "geotagged")[0] == kept, out
     assert row(out, "ground station received")[0] == kept, out

@@ -75,17 +75,18 @@ def start(
 def sigterm(proc: subprocess.Popen[str], sig: signal.Signals = signal.SIGTERM) -> tuple[str, float]:
     """SIGTERM (or `sig`) the daemon; its stderr and how long it took to stop, in s.
 
-    That is the daemon's own time, from its log, where it logged one: this 2-core
-    machine runs two other test workers, and the wall clock from here to the
-    process's end also counts how long their load kept the daemon, and then this
-    process, from being scheduled. The process's exit after its last line counts
-    past 2 s (a stop that flushes and then hangs in a library's teardown)."""
+    That is from the signal to the daemon's last line ("stopped (": everything flushed
+    and closed), by its log's stamps, where it logged one: this 2-core machine runs
+    two other test workers, and the wall clock until this process sees the exit also
+    counts how long their load kept this process from being scheduled. The exit after
+    that line counts past a second (a stop that flushes, then hangs in a teardown)."""
+    sent = time.time()
     t0 = time.monotonic()
     proc.send_signal(sig)
     _, stderr = proc.communicate(timeout=20)
     wall = time.monotonic() - t0
-    logged = logged_stop_s(stderr)
-    took = wall if logged is None else max(logged, wall - 2.0)
+    logged = logged_stop_s(stderr, since=sent)
+    took = wall if logged is None else max(logged, wall - 1.0)
     print(
         f"stop: {wall:.3f} s by the wall clock, {logged or float('nan'):.3f} s by the daemon's log"
     )

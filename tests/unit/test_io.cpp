@@ -10,6 +10,7 @@
 #include <condition_variable>
 #include <csignal>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -582,7 +583,12 @@ TEST(KeyframeIndex, FlightCatalogueListsTheFlightsOnDiskByName) {
   fs::last_write_time(root + "/20261202T101500Z/keyframes/keyframes.csv",
                       fs::file_time_type::clock::now() - std::chrono::minutes(5));
   const std::string json = flightCatalogue(root, "20261202T102000Z");
-  const auto a = json.find("{\"flight\":\"20261202T101500Z\",\"keyframes\":2,\"age_s\":30");
+  const auto a = json.find("{\"flight\":\"20261202T101500Z\",\"keyframes\":2,\"age_s\":");
+  ASSERT_NE(a, std::string::npos) << json;
+  // Five minutes old (and the second or so this test took).
+  const double age = std::strtod(json.c_str() + json.find("\"age_s\":", a) + 8, nullptr);
+  EXPECT_GE(age, 300.0) << json;
+  EXPECT_LT(age, 330.0) << json;
   const auto b = json.find("{\"flight\":\"20261202T101500Z-1\",\"keyframes\":0,");
   const auto c = json.find("{\"flight\":\"20261202T102000Z\",\"keyframes\":3,");
   ASSERT_NE(a, std::string::npos) << json;
