@@ -199,6 +199,41 @@ TEST_F(WriterTest, KeyframesAFullDiskDidNotTakeAreSavedInOrderOnceItHasRoom) {
   }
 }
 
+TEST_F(WriterTest, AKeyframeSavedWhoseRowTheDiskDidNotTakeIsIndexedLate) {
+  // Small keyframes (a few hundred bytes of JPEG) and a file size limit just past the
+  // index: the picture is saved, its row is not; the next keyframe writes it first.
+  KeyframeWriter w;
+  std::string error;
+  ASSERT_TRUE(w.open(configHere(), error)) << error;
+  cv::Mat small(16, 16, CV_8UC3);
+  KeyframeRecord rec;
+  constexpr int kBefore = 60;  // rows enough to make the index longer than a picture
+  for (int i = 0; i < kBefore; ++i) {
+    cv::randu(small, 0, 256);
+    ASSERT_TRUE(w.write(small, i, i * 1'000'000LL, nullptr, rec, error)) << error;
+  }
+  EXPECT_TRUE(w.takeIndexedLate().empty());
+  const auto indexSize = fs::file_size(dir_ / "keyframes.csv");
+  ASSERT_GT(indexSize, fs::file_size(dir_ / "000059.jpg") + 100);
+  {
+    FullDisk full(indexSize + 20);  // the picture fits, a row more does not
+    EXPECT_FALSE(w.write(small, kBefore, kBefore * 1'000'000LL, nullptr, rec, error));
+    EXPECT_FALSE(rec.indexed);
+    EXPECT_FALSE(rec.file.empty()) << "the picture is saved";
+    EXPECT_TRUE(fs::exists(dir_ / "000060.jpg"));
+    EXPECT_NE(error.find("keyframes.csv"), std::string::npos) << error;
+  }
+  ASSERT_TRUE(w.write(small, kBefore + 1, (kBefore + 1) * 1'000'000LL, nullptr, rec, error))
+      << error;
+  EXPECT_TRUE(rec.indexed);
+  EXPECT_EQ(w.takeIndexedLate(), (std::vector<std::int64_t>{kBefore}));  // not the next one
+  EXPECT_EQ(w.savedLate(), 0);  // the picture itself was saved in time
+  ASSERT_TRUE(w.close(error)) << error;
+  const auto rows = indexRows();
+  ASSERT_EQ(rows.size(), static_cast<std::size_t>(kBefore + 2));
+  for (int i = 0; i < kBefore + 2; ++i) EXPECT_EQ(rows[static_cast<std::size_t>(i)].first, i);
+}
+
 TEST_F(WriterTest, HeldKeyframesAreBoundedTheOldestLetGo) {
   KeyframeWriter w;
   std::string error;
