@@ -227,7 +227,8 @@ std::unique_ptr<FrameSource> openSource(const DaemonConfig::Camera& c, bool vide
       o.width = c.width;
       o.height = c.height;
       o.fps = c.fps;
-      o.autoReopen = true;  // an unplugged camera is waited for, not fatal
+      o.autoReopen = true;                // an unplugged camera is waited for, not fatal
+      o.followCamera = c.device.empty();  // picked: found again wherever it comes back
       return V4l2Source::open(o, error);
     }
     case DaemonConfig::Source::Libcamera: {

@@ -30,9 +30,13 @@ std::string kindOf(const std::string& message) {
 // every 10 s with the number left unsaid; and when frames come back.
 class ErrorLog {
  public:
-  void error(const std::string& message) {
+  // `source`: the source's description, to tell when it comes back as another.
+  void error(const std::string& message, const std::string& source) {
     const auto now = SteadyClock::now();
-    if (errors_ == 0) outageStart_ = now;
+    if (errors_ == 0) {
+      outageStart_ = now;
+      outageSource_ = source;
+    }
     ++errors_;
     const std::int64_t nowNs =
         std::chrono::duration_cast<std::chrono::nanoseconds>(now.time_since_epoch()).count();
@@ -43,13 +47,15 @@ class ErrorLog {
                                              : std::string());
     }
   }
-  void frame() {
+  void frame(const std::string& source) {
     if (errors_ == 0) return;
     char took[32];
     std::snprintf(took, sizeof took, "%.1f s",
                   std::chrono::duration<double>(SteadyClock::now() - outageStart_).count());
+    // A camera found again on another node (a USB camera re-enumerated) says where.
     KF_LOG(Capture, Notice) << "capture recovered after " << errors_ << " error"
-                            << (errors_ == 1 ? "" : "s") << " in " << took;
+                            << (errors_ == 1 ? "" : "s") << " in " << took
+                            << (source != outageSource_ ? "; now " + source : std::string());
     errors_ = 0;
     throttle_.reset();
   }
@@ -57,6 +63,7 @@ class ErrorLog {
  private:
   std::uint64_t errors_ = 0;  // in the current outage
   SteadyClock::time_point outageStart_{};
+  std::string outageSource_;
   LogThrottle throttle_{10'000'000'000, 1'000'000'000};
 };
 
@@ -175,7 +182,7 @@ void CaptureThread::loop() {
       // A permanent error is the owner's to report (lastError()): it ends the run.
       if (source_.failed()) break;
       if (maxConsecutiveErrors_ > 0 && consecutiveErrors >= maxConsecutiveErrors_) break;
-      log.error(error);
+      log.error(error, source_.info().description);
       // A read that failed slowly (a poll timeout) has waited already.
       const auto waited = SteadyClock::now() - called;
       if (waited < backoff && !pause(backoff - waited)) break;
@@ -184,7 +191,7 @@ void CaptureThread::loop() {
     }
     consecutiveErrors = 0;
     backoff = kFirstBackoff;
-    log.frame();
+    log.frame(source_.info().description);
     if (!fresh) {
       // Only until the first fresh frame: later timestamps are the stream's own.
       std::lock_guard lock(mutex_);

@@ -579,6 +579,30 @@ ReadStatus V4l2Source::lose(int err, const char* what, std::string& error) {
   return ReadStatus::Error;
 }
 
+bool V4l2Source::isCamera(const std::string& path, const std::string& card,
+                          const std::string& busInfo) const {
+  if (!io_->exists(path)) return false;
+  const int fd = io_->open(path);
+  if (fd < 0) return false;
+  v4l2_capability cap{};
+  const bool same = io_->ioctl(fd, VIDIOC_QUERYCAP, &cap) == 0 &&
+                    (deviceCaps(cap) & V4L2_CAP_VIDEO_CAPTURE) != 0 &&
+                    cString(cap.card, sizeof(cap.card)) == card &&
+                    cString(cap.bus_info, sizeof(cap.bus_info)) == busInfo;
+  io_->close(fd);
+  return same;
+}
+
+std::string V4l2Source::findCamera(const std::string& card, const std::string& busInfo) const {
+  // Where it was first: a UVC camera's metadata node shares its card and bus.
+  if (isCamera(options_.device, card, busInfo)) return options_.device;
+  for (int n = 0; n < 256; ++n) {
+    const std::string path = "/dev/video" + std::to_string(n);
+    if (path != options_.device && isCamera(path, card, busInfo)) return path;
+  }
+  return {};
+}
+
 bool V4l2Source::reopen(std::string& error) {
   // The frames after a reopen must be laid out as before: the pool's buffers and the
   // analysis were sized for them (another camera on the same node, a driver that
@@ -591,6 +615,9 @@ bool V4l2Source::reopen(std::string& error) {
   const std::string card = device_.card;
   const std::string busInfo = device_.busInfo;
   shutdown();
+  if (options_.followCamera) {
+    if (std::string at = findCamera(card, busInfo); !at.empty()) options_.device = std::move(at);
+  }
   if (!start(error)) {
     // start() may have got as far as a new format before failing: the next attempt
     // compares with the layout from before the loss, not with that one's.

@@ -59,6 +59,10 @@ struct V4l2Options {
   bool autoReopen = false;
   int reopenIntervalMs = 500;
   int maxReopenAttempts = 0;
+  // The node was picked, not named (camera.device ""): a camera that comes back on
+  // another node (a USB camera re-enumerated while its old node was still held) is
+  // found there by its card and bus (VIDIOC_QUERYCAP), /dev/video0-255.
+  bool followCamera = false;
   std::shared_ptr<V4l2Io> io;  // null: the kernel (tests pass a fake driver)
 };
 
@@ -101,6 +105,9 @@ class V4l2Source final : public FrameSource {
   // Closes and reopens the device with the same options (after it came back).
   // Frame indices continue. False and a one-line error while it is still gone.
   [[nodiscard]] bool reopen(std::string& error);
+  // With followCamera: the node the camera of this card and bus is on now, its old
+  // one first; "" when it is on none.
+  [[nodiscard]] std::string findCamera(const std::string& card, const std::string& busInfo) const;
 
   // True after the device went away (ENODEV/EIO/...) until a reopen succeeds.
   [[nodiscard]] bool lost() const { return fd_ < 0; }
@@ -165,6 +172,8 @@ class V4l2Source final : public FrameSource {
                               MjpegDecoder& mjpeg, Frame& frame, std::string* why = nullptr);
 
  private:
+  [[nodiscard]] bool isCamera(const std::string& path, const std::string& card,
+                              const std::string& busInfo) const;
   struct Buffer {
     void* start = nullptr;
     std::size_t length = 0;

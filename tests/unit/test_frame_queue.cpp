@@ -427,7 +427,7 @@ class FlakySource final : public FrameSource {
   ReadStatus next(Frame& f, std::string& error) override {
     ++calls;
     if (errors_ > 0 || permanent_) {
-      --errors_;
+      if (--errors_ == 0 && !backAs.empty()) info_.description = backAs;
       error = permanent_
                   ? "video ended early: test"
                   : "device lost: /dev/video9 (attempt " + std::to_string(calls.load()) + ")";
@@ -439,6 +439,7 @@ class FlakySource final : public FrameSource {
   }
   bool failed() const override { return permanent_; }
   std::atomic<int> calls{0};
+  std::string backAs;  // the description it comes back with, "" the same
 
  private:
   SourceInfo info_;
@@ -539,6 +540,24 @@ TEST(CaptureThread, LogsAnOutageOnceAndItsEnd) {
   EXPECT_EQ(log.lines[0].second, "device lost: /dev/video9 (attempt 1)");
   EXPECT_EQ(log.lines[1].first, LogLevel::Notice);
   EXPECT_NE(log.lines[1].second.find("capture recovered after 5 errors"), std::string::npos);
+  EXPECT_EQ(log.lines[1].second.find("now"), std::string::npos) << log.lines[1].second;
+}
+
+TEST(CaptureThread, SaysWhereACameraFoundOnAnotherNodeIsNow) {
+  LogCapture log;
+  FlakySource src(2, 1);
+  src.backAs = "v4l2:/dev/video3 (uvcvideo: cam) MJPG 64x48";
+  FramePool pool(4);
+  FrameQueue q(8);
+  CaptureThread capture(src, pool, q);
+  capture.start();
+  while (q.pop()) {
+  }
+  capture.stop();
+  ASSERT_EQ(log.lines.size(), 2u);
+  EXPECT_NE(log.lines[1].second.find("capture recovered after 2 errors"), std::string::npos);
+  EXPECT_NE(log.lines[1].second.find("; now v4l2:/dev/video3 (uvcvideo: cam)"), std::string::npos)
+      << log.lines[1].second;
 }
 
 // A camera that has stalled: next() waits for a frame that never comes, up to its

@@ -61,10 +61,11 @@ class FakeDriver final : public V4l2Io {
   std::vector<std::uint8_t> onStreamOn;  // a frame delivered when streaming starts
   std::string card = "fake camera";      // (under 32 characters)
   std::string busInfo = "usb-0000:01:00.0-1.2";
+  std::string path = "/dev/video-fake";  // the node it is on
 
-  bool exists(const std::string&) override { return present; }
-  int open(const std::string&) override {
-    if (!present) return fail(ENOENT);
+  bool exists(const std::string& p) override { return present && p == path; }
+  int open(const std::string& p) override {
+    if (!present || p != path) return fail(ENOENT);
     fd_ = ::eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
     ++opens;
     return fd_;
@@ -385,6 +386,37 @@ TEST(V4l2FakeDriver, AnotherCameraOnTheNodeIsNotTakenForTheLostOne) {
   driver->busInfo = "usb-0000:01:00.0-1.2";
   driver->onStreamOn = jpegOf(kWidth, kHeight, 90);
   ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+}
+
+TEST(V4l2FakeDriver, APickedCameraThatComesBackOnAnotherNodeIsFollowedANamedOneIsNot) {
+  for (const bool follow : {true, false}) {
+    auto driver = std::make_shared<FakeDriver>(V4L2_PIX_FMT_MJPEG);
+    driver->path = "/dev/video0";
+    V4l2Options o;
+    o.device = "/dev/video0";
+    o.io = driver;
+    o.autoReopen = true;
+    o.reopenIntervalMs = 10;
+    o.followCamera = follow;  // what run sets when camera.device is ""
+    std::string err;
+    auto src = V4l2Source::open(o, err);
+    ASSERT_NE(src, nullptr) << err;
+    Frame f;
+    loseAfterAFrame(*driver, *src, f, err);
+    // Back as /dev/video3 (its old node still held when it re-enumerated).
+    driver->present = true;
+    driver->path = "/dev/video3";
+    driver->onStreamOn = jpegOf(kWidth, kHeight, 90);
+    if (follow) {
+      ASSERT_EQ(src->next(f, err), ReadStatus::Frame) << err;
+      EXPECT_EQ(src->device().path, "/dev/video3");
+      EXPECT_NE(src->info().description.find("v4l2:/dev/video3"), std::string::npos)
+          << src->info().description;
+    } else {
+      EXPECT_EQ(src->next(f, err), ReadStatus::Error);
+      EXPECT_NE(err.find("no such device: /dev/video0"), std::string::npos) << err;
+    }
+  }
 }
 
 TEST(V4l2FakeDriver, ADeviceThatComesBackAtAnotherSizeIsNotUsed) {
