@@ -9,9 +9,10 @@ and inside the VM: captures each format vivid offers, checks driver timestamps
 exiv2, libcamera, ...), too much for an initramfs, so the host's root filesystem is
 shared read-only into the VM over virtio-9p (`-virtfs local,path=/,readonly=on`),
 mounted at /host with fresh devtmpfs, proc, sysfs and a scratch tmpfs on it, and the
-daemon runs in `chroot /host` against vivid's /dev/video0 for a few seconds until
-SIGTERM. Results come back on the serial console: JSON lines, and KF- marked
-lines (the daemon's log, summary.json, its keyframes and the first one base64).
+daemon runs in `chroot /host` on the camera it picks (vivid's /dev/video0) for a few
+seconds, follows it when vivid comes back as /dev/video3, and stops at SIGTERM.
+Results come back on the serial console: JSON lines, and KF- marked lines (the
+daemon's log, summary.json, its keyframes and the first one base64).
 
 Skipped only when qemu-system-x86_64, a kernel with vivid.ko, or busybox cannot
 be found or run (tools/setup.sh installs them); the daemon tests also when qemu has
@@ -149,7 +150,8 @@ if mount -t 9p -o trans=virtio,version=9p2000.L,ro,cache=loose,msize=512000 host
   grep -q '^vivid ' /proc/modules && echo "KF-RMMOD-FAIL" ||
     echo "KF-DAEMON-RMMOD $(cut -d' ' -f1 /proc/uptime)"
   sleep @GONE_S@
-  insmod $VIVID && echo "KF-DAEMON-RELOAD $(cut -d' ' -f1 /proc/uptime)" ||
+  # Back on another node (a USB camera re-enumerated), its output node on video0.
+  insmod $VIVID vid_cap_nr=3 && echo "KF-DAEMON-RELOAD $(cut -d' ' -f1 /proc/uptime)" ||
     echo "KF-INSMOD-FAIL vivid.ko"
   n=0; while ! grep -q 'capture recovered' $log && [ $n -lt 100 ]; do sleep 0.1; n=$((n+1)); done
   echo "KF-DAEMON-RECOVERED $(cut -d' ' -f1 /proc/uptime)"
@@ -157,7 +159,7 @@ if mount -t 9p -o trans=virtio,version=9p2000.L,ro,cache=loose,msize=512000 host
   # Then it stalls: open, streaming, but no frame comes (vivid drops every buffer).
   # Once the capture has given up waiting for one frame (2 s), SIGTERM arrives early
   # in its wait for the next: without an interruptible wait, 1.7 s to exit.
-  /probe --device /dev/video0 --set-ctrl "percentage of dropped buffers=100" || echo "KF-CTRL-FAIL"
+  /probe --device /dev/video3 --set-ctrl "percentage of dropped buffers=100" || echo "KF-CTRL-FAIL"
   echo "KF-DAEMON-STALL $(cut -d' ' -f1 /proc/uptime)"
   n=0; while ! grep -q 'timeout: no frame' $log && [ $n -lt 50 ]; do sleep 0.1; n=$((n+1)); done
   sleep 0.3
@@ -228,7 +230,7 @@ def vm_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
             "telemetry.url=",
             "zenoh.enabled=false",
             "camera.source=v4l2",
-            "camera.device=/dev/video0",
+            "camera.device=",  # picked, and followed to another node
             f"camera.width={WIDTH}",
             f"camera.height={HEIGHT}",
             f"camera.fps={FPS}",
@@ -444,10 +446,10 @@ def test_daemon_runs_on_vivid_and_stops_cleanly(vm_run: dict) -> None:
     # Warnings only from the capture, about the camera that went away and stalled
     # (test_daemon_rides_out_the_camera_vanishing); nothing else complains.
     complaints = [x for x in log if re.search(r"\d [EW] (capture|output|app):", x)]
-    assert all(re.search(r"\d W capture: .*/dev/video0", x) for x in complaints), text
+    assert all(re.search(r"\d W capture: .*/dev/video[03]", x) for x in complaints), text
     assert s is not None, d["text"]
     assert s["state"] == "stopped", s
-    assert s["source"] == "v4l2:/dev/video0 (vivid: vivid) NV12 640x360@30", s
+    assert s["source"] == "v4l2:/dev/video3 (vivid: vivid) NV12 640x360@30", s  # followed
     assert (s["width"], s["height"]) == (WIDTH, HEIGHT)
     # vivid stamps the end of each frame; the daemon says what that means for geotags.
     assert s["frame_timestamps"] == "end of frame", s
@@ -504,6 +506,8 @@ def test_daemon_rides_out_the_camera_vanishing(vm_run: dict) -> None:
     assert lost, text
     back = [x for x in log if "capture recovered after" in x]
     assert len(back) >= 1, text
+    # On another node: found by its card and bus, and said where.
+    assert "; now v4l2:/dev/video3 (vivid: vivid) NV12 640x360@30" in back[0], back
     assert recovered - reload_ < 5.0, marks
     assert s["capture_errors"] >= 1, s
     # systemd's view, through the notify socket: ready once, the watchdog fed while
@@ -533,7 +537,7 @@ def test_daemon_stops_at_once_on_sigterm_while_the_camera_stalls(vm_run: dict) -
     assert "KF-CTRL-FAIL" not in d["text"], d["text"]
     # The stall was real: the capture waited out one 2 s frame timeout, and SIGTERM
     # came while it waited for the next frame.
-    assert any("W capture: timeout: no frame from /dev/video0" in x for x in log), text
+    assert any("W capture: timeout: no frame from /dev/video3" in x for x in log), text
     assert marks["DAEMON-TERM"] - marks["DAEMON-STALL"] > 2.1, marks
     took = marks["DAEMON-EXIT"] - marks["DAEMON-TERM"]
     # The wait is interrupted: not the up to 2 s the frame timeout would hold it. By
