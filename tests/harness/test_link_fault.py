@@ -544,9 +544,7 @@ def test_a_congested_link_drops_previews_never_keyframes_or_frames(
         relay.close()
     assert proc.returncode == 0, stderr
     summary = json.loads(((tmp_path / "state" / "latest") / "summary.json").read_text())
-    # Selection never waited for the link: a put blocked on it holds seconds (8 s a
-    # keyframe at 12 kB/s), hundreds of frames; a busy machine may drop a few.
-    assert summary["frames_dropped"] <= summary["frames_read"] // 20, summary
+    assert summary["frames_dropped"] == 0, summary  # selection never waited for the link
     fast_n = len([t for t in fast_previews if start + 2 < t < lifted])
     slow_n = len([t for t in slow_previews if start + 2 < t < lifted])
     print(

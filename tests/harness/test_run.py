@@ -73,23 +73,14 @@ def start(
 
 
 def sigterm(proc: subprocess.Popen[str], sig: signal.Signals = signal.SIGTERM) -> tuple[str, float]:
-    """SIGTERM (or `sig`) the daemon; its stderr and how long it took to stop, in s.
-
-    That is from the signal to the daemon's last line ("stopped (": everything flushed
-    and closed), by its log's stamps, where it logged one: this 2-core machine runs
-    two other test workers, and the wall clock until this process sees the exit also
-    counts how long their load kept this process from being scheduled. The exit after
-    that line counts past a second (a stop that flushes, then hangs in a teardown)."""
-    sent = time.time()
+    """SIGTERM (or `sig`) the daemon; its stderr and how long it took to exit, in s
+    (the wall clock; the daemon's own stop time, from its log, is printed beside it)."""
     t0 = time.monotonic()
     proc.send_signal(sig)
     _, stderr = proc.communicate(timeout=20)
-    wall = time.monotonic() - t0
-    logged = logged_stop_s(stderr, since=sent)
-    took = wall if logged is None else max(logged, wall - 1.0)
-    print(
-        f"stop: {wall:.3f} s by the wall clock, {logged or float('nan'):.3f} s by the daemon's log"
-    )
+    took = time.monotonic() - t0
+    logged = logged_stop_s(stderr)
+    print(f"stop: {took:.3f} s by the wall clock, {logged or float('nan'):.3f} s by its log")
     return stderr, took
 
 
@@ -146,7 +137,7 @@ def test_file_source_in_real_time_keeps_up_and_matches_offline_selection(
     assert summary["frame_timestamps"] == "container time"
     assert summary["time_offset_ms"] == -40.0
     assert summary["frames_read"] == 240
-    assert 26.0 < summary["frames_per_second"] < 31.0  # start and flush inside the 8 s
+    assert 28.0 < summary["frames_per_second"] < 31.0
 
     offline = tmp_path / "offline"
     r = select(kf_bin, video, offline)
