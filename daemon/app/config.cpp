@@ -19,6 +19,7 @@
 #include <toml++/toml.h>
 
 #include "app/settings.h"
+#include "app/text_io.h"
 #include "output/flight_outputs.h"
 #include "output/h264.h"
 #include "tagging/camera_model.h"
@@ -1060,6 +1061,12 @@ std::string takeConfigArgs(std::vector<std::string>& args, ConfigSources& source
       if (value.empty()) return "--config-dir: empty directory";
       sources.configDir = value;
     } else {
+      // The form is a command-line matter (exit 2); the key and value are checked with
+      // the files' (exit 1 from check-config, 78 from run).
+      const auto eq = value.find('=');
+      const auto dot = value.find('.');
+      if (eq == std::string::npos || dot == std::string::npos || dot == 0 || dot > eq)
+        return "--set " + value + ": expected --set SECTION.KEY=VALUE";
       sources.overrides.push_back(value);
     }
   }
@@ -1202,7 +1209,7 @@ int checkConfigMain(const std::vector<std::string>& argsIn) {
   std::vector<std::string> args = argsIn;
   ConfigSources sources;
   if (std::string e = takeConfigArgs(args, sources); !e.empty()) {
-    std::fprintf(stderr, "keyframed: check-config: %s\n", e.c_str());
+    std::fprintf(stderr, "keyframed: check-config: %s\n", oneLine(e).c_str());
     return 2;
   }
   bool quiet = false;
@@ -1214,7 +1221,8 @@ int checkConfigMain(const std::vector<std::string>& argsIn) {
     if (a == "-q" || a == "--quiet") {
       quiet = true;
     } else if (a.starts_with("-")) {
-      std::fprintf(stderr, "keyframed: check-config: unknown option %s (see --help)\n", a.c_str());
+      std::fprintf(stderr, "keyframed: check-config: unknown option %s (see --help)\n",
+                   oneLine(a).c_str());
       return 2;
     } else {
       sources.files.push_back(a);
@@ -1226,7 +1234,8 @@ int checkConfigMain(const std::vector<std::string>& argsIn) {
   }
   const ConfigLoadResult r = loadConfig(sources);
   if (!r.ok()) {
-    for (const std::string& e : r.errors) std::fprintf(stderr, "keyframed: %s\n", e.c_str());
+    for (const std::string& e : r.errors)
+      std::fprintf(stderr, "keyframed: %s\n", oneLine(e).c_str());
     return 1;
   }
   if (!quiet) {

@@ -1,7 +1,9 @@
 #include <signal.h>
 
+#include <cerrno>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <exception>
 #include <string>
 #include <vector>
@@ -34,6 +36,8 @@ constexpr const char* kLibcameraUsage = "";
 #endif
 constexpr const char* kVersionUsage = "  version                  print the version\n";
 
+int dispatch(const std::string& command, const std::vector<std::string>& args);
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -56,6 +60,21 @@ int main(int argc, char** argv) {
   // FFmpeg (under OpenCV's video reader) would add its own lines to a bad video's one
   // error line ("moov atom not found"); ours say what failed. Set it to see FFmpeg's.
   setenv("OPENCV_FFMPEG_LOGLEVEL", "-8", /*overwrite=*/0);
+  const int status = dispatch(command, args);
+  // What a command printed (check-config's configuration, select's summary) must have
+  // reached its reader: `check-config > effective.toml` on a full disk is a failure.
+  errno = 0;
+  if (std::fflush(stdout) != 0 || std::ferror(stdout) != 0) {
+    std::fprintf(stderr, "keyframed: %s: cannot write standard output%s%s\n", command.c_str(),
+                 errno != 0 ? ": " : "", errno != 0 ? std::strerror(errno) : "");
+    return status == 0 ? 1 : status;
+  }
+  return status;
+}
+
+namespace {
+
+int dispatch(const std::string& command, const std::vector<std::string>& args) {
   try {
     if (command == "select") return keyframed::selectMain(args);
     if (command == "run") return keyframed::runMain(args);
@@ -77,3 +96,5 @@ int main(int argc, char** argv) {
   std::fprintf(stderr, "keyframed: unknown command '%s' (see keyframed --help)\n", command.c_str());
   return 2;
 }
+
+}  // namespace

@@ -174,8 +174,10 @@ void noEffectWarnings(const SelectOptions& o, const std::set<std::string>& given
   };
   const bool record = isMcapFile(o.video);
   const bool live = !o.telemetry.empty() && !isTlogUrl(o.telemetry);
-  if (o.telemetry.empty() && !record)
-    warn({"--mount", "--autopilot"}, "without --telemetry (no attitude to turn)");
+  if (o.telemetry.empty() && !record) {
+    warn({"--mount"}, "without --telemetry (no attitude to turn)");
+    warn({"--autopilot"}, "without --telemetry (no link to choose an autopilot on)");
+  }
   if (!live) {
     warn({"--telemetry-wait", "--telemetry-start-wait", "--mavlink-sysid"},
          "without a live --telemetry link");

@@ -1317,7 +1317,7 @@ int runMain(const std::vector<std::string>& argsIn) {
   std::vector<std::string> args = argsIn;
   ConfigSources sources;
   if (std::string e = takeConfigArgs(args, sources); !e.empty()) {
-    std::fprintf(stderr, "keyframed run: %s\n", e.c_str());
+    std::fprintf(stderr, "keyframed run: %s\n", oneLine(e).c_str());
     return 2;
   }
   for (const auto& a : args) {
@@ -1326,7 +1326,7 @@ int runMain(const std::vector<std::string>& argsIn) {
       return 0;
     }
     std::fprintf(stderr, "keyframed run: unknown argument '%s' (see keyframed run --help)\n",
-                 a.c_str());
+                 oneLine(a).c_str());
     return 2;
   }
   cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_ERROR);

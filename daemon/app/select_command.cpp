@@ -857,7 +857,7 @@ int selectMain(const std::vector<std::string>& args) {
   SelectOptions opts;
   const ParseResult pr = parseSelectOptions(args, opts);
   if (!pr.ok) {
-    std::fprintf(stderr, "keyframed select: %s\n", pr.error.c_str());
+    std::fprintf(stderr, "keyframed select: %s\n", oneLine(pr.error).c_str());
     return 2;
   }
   if (pr.help) {

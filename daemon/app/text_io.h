@@ -37,6 +37,31 @@ inline std::string jsonEscape(std::string_view s) {
   return out;
 }
 
+// s on one line: newline, carriage return and tab as \n, \r, \t, other control
+// characters as \xNN, so that an error echoing what was typed stays one line.
+inline std::string oneLine(std::string_view s) {
+  std::string out;
+  out.reserve(s.size());
+  for (const char ch : s) {
+    const auto u = static_cast<unsigned char>(ch);
+    if (u >= 0x20 && u != 0x7f) {
+      out += ch;
+    } else if (ch == '\n') {
+      out += "\\n";
+    } else if (ch == '\r') {
+      out += "\\r";
+    } else if (ch == '\t') {
+      out += "\\t";
+    } else {
+      constexpr const char* kHex = "0123456789abcdef";
+      out += "\\x";
+      out += kHex[u >> 4];
+      out += kHex[u & 0xf];
+    }
+  }
+  return out;
+}
+
 // printf into a std::string of whatever length it takes (no fixed buffer to cut a
 // long path short).
 std::string formatText(const char* format, ...) __attribute__((format(printf, 1, 2)));

@@ -617,9 +617,10 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
                   "rather than stall)");
     }
   }
-  // The publisher last: closing its queryable answers the queries already queued,
-  // which on a slow link can take long, and the record is complete by then. One a put
-  // left blocked still uses stays, as the process ends.
+  // The publisher last: closing its queryable finishes the query being answered,
+  // which on a slow link can take long, and drops those still queued (their queriers
+  // get no reply and ask again); the record is complete by then. One a put left
+  // blocked still uses stays, as the process ends.
   if (impl_->abandoned)
     static_cast<void>(impl_->publisher.release());
   else

@@ -132,8 +132,9 @@ class UdpLink final : public MavlinkLink {
       return false;
     }
     if (url_.scheme == "udpin") {
-      const int one = 1;
-      setsockopt(fd_, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
+      // No SO_REUSEADDR: on Linux a second socket bound to the same UDP port with it
+      // takes every datagram from the first, so a `select --telemetry` on the vehicle
+      // would silently starve the running service. UDP has no TIME_WAIT to wait out.
       if (::bind(fd_, reinterpret_cast<const sockaddr*>(&addr_), sizeof addr_) != 0) {
         error = errnoText("cannot listen on udp " + url_.host + ":" + port);
         closeFd();

@@ -114,6 +114,14 @@ def test_single_file_and_usage_errors(kf_bin: Path, tmp_path: Path):
     assert nodir.returncode == 1 and "no such directory" in nodir.stderr
     both = check(kf_bin, good, "--config-dir", tmp_path)
     assert both.returncode == 2
+    # --set's form is the command line's (2); its key and value, the configuration's (1)
+    for form in ("camera.fps", "fps=25", ".fps=25", "camera=fps.25", "a\nb"):
+        bad = check(kf_bin, "--set", form)
+        assert bad.returncode == 2, (form, bad.returncode, bad.stderr)
+        assert len(bad.stderr.splitlines()) == 1, bad.stderr
+        assert "expected --set SECTION.KEY=VALUE" in bad.stderr, bad.stderr
+    assert "--set a\\nb:" in bad.stderr, bad.stderr  # echoed on its one line
+    assert check(kf_bin, "--set", "camera.fsp=25").returncode == 1
     unknown = check(kf_bin, "--frobnicate")
     assert unknown.returncode == 2 and "unknown option --frobnicate" in unknown.stderr
     assert check(kf_bin, "--help").returncode == 0
@@ -130,6 +138,15 @@ def test_files_it_names_are_absolute_and_a_zenoh_config_is_read(
     p = check(kf_bin, "--config-dir", tmp_path, "--set", f"zenoh.config={bad}")
     assert p.returncode == 1 and f"zenoh.config: zenoh config {bad}" in p.stderr, p.stderr
     assert len(p.stderr.splitlines()) == 1, p.stderr
+    # Zenoh's nested error for an endpoint: where in the file, and no place in its sources
+    endpoint = tmp_path / "endpoint.json5"
+    endpoint.write_text('{ mode: "client", connect: { endpoints: ["garbage"] } }')
+    p = check(kf_bin, "--config-dir", tmp_path, "--set", f"zenoh.config={endpoint}")
+    assert p.returncode == 1, p.stderr
+    assert p.stderr.endswith(
+        f"zenoh config {endpoint}: line 1, column 42: Endpoints must be of the form "
+        "<protocol>/<address>[?<metadata>][#<config>]: garbage\n"
+    ), p.stderr
     r = subprocess.run(
         [str(kf_bin), "run", "--config-dir", str(tmp_path), "--set", f"zenoh.config={bad}",
          "--set", f"output.state_dir={tmp_path / 'state'}"],
@@ -153,3 +170,32 @@ def test_files_it_names_are_absolute_and_a_zenoh_config_is_read(
     )  # fmt: skip
     assert cwd.returncode == 0, cwd.stderr
     assert tomllib.loads(cwd.stdout)["zenoh"]["config"] == str(good)
+
+
+def test_a_configuration_printed_to_a_full_disk_is_a_failure(kf_bin: Path, tmp_path: Path):
+    """`check-config > effective.toml` with no room for it must not exit 0."""
+    env = {k: v for k, v in os.environ.items() if k != "KEYFRAMED_CONFIG_DIR"}
+    with open("/dev/full", "w") as full:
+        p = subprocess.run(
+            [str(kf_bin), "check-config", "--config-dir", str(tmp_path)],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=30,
+            env=env,
+        )
+    assert p.returncode == 1, (p.returncode, p.stderr)
+    assert p.stderr == (
+        "keyframed: check-config: cannot write standard output: No space left on device\n"
+    )
+    # --quiet prints nothing, so there is nothing to lose
+    with open("/dev/full", "w") as full:
+        quiet = subprocess.run(
+            [str(kf_bin), "check-config", "--config-dir", str(tmp_path), "--quiet"],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=30,
+            env=env,
+        )
+    assert (quiet.returncode, quiet.stderr) == (0, "")

@@ -285,6 +285,8 @@ def test_cut_transport_stream_is_truncated(any_bin: Path, tmp_path):
         (["--band", "0.9,0.2"], "band"),
         (["--jpeg-quality", "0"], "--jpeg-quality"),
         (["--blur-window"], "needs a value"),
+        # what was typed is echoed on the one line, its control characters escaped
+        (["--make", "Acme\nCam"], "(got 'Acme\\nCam')"),
         # cross-field and core rules name the options involved and their values
         (["--target", "0.5"], "--band LO (0.6) must not exceed --target (0.5)"),
         (["--analysis-width", "10"], "--analysis-width: must be 0 (full) or >= 64"),
@@ -492,7 +494,8 @@ def test_options_that_have_no_effect_are_said(kf_bin: Path, pan_video: Path, tmp
         (["--mode", "paper", "--max-tracks", "300"], "--max-tracks has no effect in the paper"),
         (["--blur-threshold", "50"], "--blur-threshold has no effect in the adaptive blur mode"),
         (["--blur-mode", "absolute", "--blur-ratio", "0.5"], "--blur-ratio has no effect"),
-        (["--mount", "0,-45,0"], "--mount has no effect without --telemetry"),
+        (["--mount", "0,-45,0"], "--mount has no effect without --telemetry (no attitude"),
+        (["--autopilot", "1"], "--autopilot has no effect without --telemetry (no link"),
         (["--telemetry-wait", "5"], "--telemetry-wait has no effect without a live"),
     ]
     for i, (args, needle) in enumerate(cases):

@@ -628,6 +628,76 @@ def test_a_damaged_index_line_costs_that_line_not_the_dataset(tmp_path: Path) ->
     ]
 
 
+def test_a_keyframe_the_disk_did_not_take_keeps_its_name_for_its_return(tmp_path: Path) -> None:
+    """A write that fails (a full disk; here a folder in the image's place) leaves no
+    partial copy behind, and the keyframe, fetched again, gets its own name, not a
+    name made up because the failed write had taken it."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav8", None)
+    meta = {"flight": "F1", "sequence": 0, "frame_index": 0}
+    (ds.images / "000000.jpg").mkdir()
+    with pytest.raises(OSError):
+        ds.add(meta, b"jpeg bytes")
+    assert sorted(p.name for p in ds.images.iterdir()) == ["000000.jpg"]  # no .tmp left
+    assert ds.missing() == [] and ds.count() == 0
+    (ds.images / "000000.jpg").rmdir()
+    assert ds.add(meta, b"jpeg bytes")
+    assert sorted(p.name for p in ds.images.iterdir()) == ["000000.jpg"]
+    assert (ds.images / "000000.jpg").read_bytes() == b"jpeg bytes"
+    assert ds.finish()["keyframes"] == 1
+
+
+def test_a_keyframe_whose_index_line_the_disk_did_not_take_is_kept(tmp_path: Path) -> None:
+    """The image is written but keyframes.jsonl's append fails (a full disk; here the
+    index is /dev/full): the keyframe counts as stored, is not asked for again, and
+    the index rewritten whole holds its line."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav8", None)
+    index = ds.dir / "keyframes.jsonl"
+    index.unlink(missing_ok=True)
+    index.symlink_to("/dev/full")
+    assert ds.add({"flight": "F1", "sequence": 0, "frame_index": 7}, b"jpeg bytes")
+    assert (ds.images / "000007.jpg").read_bytes() == b"jpeg bytes"
+    assert ds.missing() == [] and ds.count() == 1
+    assert ds.finish()["keyframes"] == 1
+    assert not index.is_symlink()
+    lines = [json.loads(line) for line in index.read_text().splitlines()]
+    assert [(m["flight"], m["sequence"], m["file"]) for m in lines] == [("F1", 0, "000007.jpg")]
+
+
+def test_a_vehicle_whose_folder_cannot_be_made_is_said_once(tagged: Path, tmp_path: Path) -> None:
+    """The vehicle is heard but its folder cannot be made (a file in its place, a
+    folder of another user's): one line that says so, the vehicle in the summary with
+    that error, exit 3, and --until-idle ends, rather than a line for each message
+    and "heard no vehicle" (exit 4) at the end."""
+    port = free_port()
+    vehicle = Vehicle("uav6", tagged, port)
+    out = tmp_path / "dataset"
+    out.mkdir()
+    (out / "uav6").write_text("a file where the vehicle's folder goes")
+    proc = ground(out, port)
+    try:
+        wait_connected(vehicle)
+        vehicle.status()
+        for seq in range(len(vehicle.rows)):
+            vehicle.publish(seq)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        vehicle.close()
+    assert proc.returncode == 3, (proc.returncode, stderr)
+    said = [ln for ln in stderr.splitlines() if "cannot make its dataset folder" in ln]
+    assert said == [f"keyframed-ground: uav6: cannot make its dataset folder {out}/uav6: "
+                    "Not a directory"], stderr  # fmt: skip
+    assert "bad keyframe message" not in stderr and "bad status message" not in stderr, stderr
+    assert "heard no vehicle" not in stderr, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary == {"vehicle": "uav6", "keyframes": 0, "error": said[0].split(": ", 2)[2]}
+
+
 def test_progress_shows_the_newest_keyframes_position(tmp_path: Path) -> None:
     """The progress line's position is the newest keyframe's that has one (the latest
     flight, its highest sequence), not that of the last one to arrive: a gap filled
@@ -841,6 +911,9 @@ def test_bad_command_lines(tmp_path: Path) -> None:
 
     r = run("--out", str(tmp_path), "--zenoh-config", str(tmp_path / "nope.json5"))
     assert r.returncode == 2 and "no such file" in r.stderr
+    for not_a_file in (str(tmp_path), "/dev/null"):
+        r = run("--out", str(tmp_path), "--zenoh-config", not_a_file)
+        assert r.returncode == 2 and f"{not_a_file}: not a file" in r.stderr, r.stderr
     # the daemon's rule for zenoh.vehicle; '*' and '?' would be Zenoh wildcards
     for name in ("a/b", "..", "a*b", "uav?x", "a b", "x" * 65):
         r = run("--out", str(tmp_path), "--vehicle", name)
@@ -856,8 +929,14 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     r = run("--out", str(tmp_path / "d"), "--zenoh-config", str(bad))
     assert r.returncode == 1 and "Zenoh" in r.stderr
     assert "Traceback" not in r.stderr
+    # One line, where in the file and what is wrong; not where in Zenoh's Rust sources.
+    assert r.stderr.startswith("keyframed-ground: cannot open the Zenoh session: line 1, ")
+    assert len(r.stderr.splitlines()) == 1 and ".rs:" not in r.stderr, r.stderr
     r = run("--out", "/proc/keyframed-cannot-write")
     assert r.returncode == 1 and "cannot create" in r.stderr
+    # A folder that exists but takes no file: said at start, not when a vehicle is heard
+    r = run("--out", "/proc/self", "--duration", "1")
+    assert r.returncode == 1 and "cannot write in /proc/self" in r.stderr, r.stderr
     # Endpoints that cannot exist: said at once, not retried by Zenoh for ever.
     for flag, endpoint in (
         ("--connect", "tcp/127.0.0.1:74470"),
@@ -866,6 +945,12 @@ def test_bad_command_lines(tmp_path: Path) -> None:
     ):
         r = run("--out", str(tmp_path / "e"), flag, endpoint, "--duration", "1")
         assert r.returncode == 2 and f"{flag} {endpoint}: not HOST:PORT" in r.stderr, r.stderr
+    for flag, endpoint in (("--connect", "garbage"), ("--listen", "tcp/"), ("--connect", "/x")):
+        r = run("--out", str(tmp_path / "e"), flag, endpoint, "--duration", "1")
+        assert r.returncode == 2, (endpoint, r.returncode, r.stderr)
+        assert r.stderr == f"keyframed-ground: {flag} {endpoint}: not PROTOCOL/ADDRESS " + (
+            "(e.g. tcp/192.168.1.10:7447)\n"
+        )
 
 
 @pytest.mark.parametrize(

@@ -1080,6 +1080,26 @@ sockaddr_in freeLoopbackPort() {
   return a;
 }
 
+TEST(MavlinkLink, AUdpPortAlreadyListenedOnIsRefusedNotShared) {
+  const sockaddr_in to = freeLoopbackPort();
+  ASSERT_NE(to.sin_port, 0);
+  const std::string url = "udpin:127.0.0.1:" + std::to_string(ntohs(to.sin_port));
+  std::string error;
+  auto first = openMavlinkLink(url, error);
+  ASSERT_NE(first, nullptr) << error;
+  // A second listener (say `keyframed select --telemetry` beside the service) would
+  // take every datagram from the first if the port were shared.
+  auto second = openMavlinkLink(url, error);
+  EXPECT_EQ(second, nullptr);
+  EXPECT_NE(error.find("cannot listen on udp 127.0.0.1:"), std::string::npos) << error;
+  EXPECT_NE(error.find("Address already in use"), std::string::npos) << error;
+  first.reset();
+  // Once the first is closed, the port is free again at once (UDP has no TIME_WAIT).
+  error.clear();
+  auto third = openMavlinkLink(url, error);
+  EXPECT_NE(third, nullptr) << error;
+}
+
 TEST(MavlinkLink, UdpinAnswersTheAutopilotNotTheLastSender) {
   sockaddr_in apAddr{}, gcsAddr{};
   const int apFd = udpSocket(apAddr);

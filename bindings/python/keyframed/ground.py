@@ -59,6 +59,7 @@ dataset whose files describe the images it held at their last writing.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import math
@@ -67,6 +68,7 @@ import os
 import re
 import signal
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Sequence
@@ -621,9 +623,7 @@ def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> i
                 f"{kp.pt[0] + shift:.3f} {kp.pt[1] + shift:.3f} {kp.size / 2.0:.3f} "
                 f"{math.radians(kp.angle):.5f} " + " ".join(str(int(v)) for v in row)
             )
-    tmp = out_path + ".tmp"
-    Path(tmp).write_text("\n".join(lines) + "\n")
-    os.replace(tmp, out_path)
+    _write_atomic(Path(out_path), ("\n".join(lines) + "\n").encode())
     return len(kps)
 
 
@@ -631,12 +631,43 @@ def sift_to_colmap(jpeg_path: str, out_path: str, max_features: int = 4000) -> i
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
+    """path holds data whole, or what it held before: written beside it, synced and
+    renamed over it. What a failed write left of the copy (a full disk) is removed."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def _append_line(path: Path, line: str) -> bool:
+    """Appends line whole or not at all: a disk that takes part of it is cut back to
+    the line before, so that the next line does not run into it. False when not
+    appended: the keyframe is stored all the same, and the index, rewritten whole
+    (refresh_files), gets its line then."""
+    data = (line + "\n").encode()
+    try:
+        with open(path, "ab", buffering=0) as f:
+            start = f.tell()
+            try:
+                if f.write(data) == len(data):
+                    return True
+            except OSError:
+                pass
+            f.truncate(start)
+    except OSError:
+        pass
+    return False
+
+
+class _Unwritable(OSError):
+    """A vehicle's dataset folder cannot be made (said once, when first heard)."""
 
 
 Key = tuple[str, int]  # (flight, sequence): each run of the daemon counts from 0 again
@@ -885,16 +916,17 @@ class VehicleDataset:
             if not self._flight(flight):
                 name = f"{flight}_{name}"
             name = self._unused_name(name, flight, seq)
-            self.names.add(name)
             # The flight as it is keyed: a resume reads the same one back.
             meta = dict(meta, file=name, flight=flight or None)
+            # A write that fails (a full disk) leaves the name free for the keyframe
+            # when a gap query brings it again.
             _write_atomic(self.images / name, jpeg)
+            self.names.add(name)
             self.meta[(flight, seq)] = meta
             if fetched:
                 self.fetched += 1
             self.changed = True
-            with open(self.dir / "keyframes.jsonl", "a") as f:
-                f.write(json.dumps(meta, sort_keys=True) + "\n")
+            _append_line(self.dir / "keyframes.jsonl", json.dumps(meta, sort_keys=True))
         self._queue_sift(name)
         return True
 
@@ -1142,6 +1174,9 @@ class GroundStation:
         self.vehicle = vehicle
         self.quiet = quiet
         self.datasets: dict[str, VehicleDataset] = {}
+        # Vehicles heard whose folder could not be made, with why: in the summary as
+        # their error (exit 3), said once, not once a message.
+        self.unwritable: dict[str, str] = {}
         self.lock = threading.Lock()
         self.last_arrival = 0.0
         self.wake = threading.Event()
@@ -1168,8 +1203,18 @@ class GroundStation:
         if vehicle in ("", ".", ".."):  # a folder of its own under --out, nowhere else
             raise ValueError(f"bad vehicle name {vehicle!r}")
         with self.lock:
+            if vehicle in self.unwritable:
+                raise _Unwritable(self.unwritable[vehicle])
             if vehicle not in self.datasets:
-                self.datasets[vehicle] = VehicleDataset(self.out, vehicle, self.pool)
+                try:
+                    self.datasets[vehicle] = VehicleDataset(self.out, vehicle, self.pool)
+                except OSError as err:
+                    why = f"cannot make its dataset folder {self.out / vehicle}: " + (
+                        err.strerror or str(err)
+                    )
+                    self.unwritable[vehicle] = why
+                    print(f"keyframed-ground: {vehicle}: {why}", file=sys.stderr)
+                    raise _Unwritable(why) from err
             return self.datasets[vehicle]
 
     @staticmethod
@@ -1185,10 +1230,20 @@ class GroundStation:
                 return
             ds = self.dataset(self._vehicle_of(str(sample.key_expr)))
             ds.note_running(os.path.basename(str(meta.get("flight") or "")))
-            ds.add(meta, sample.payload.to_bytes())
+            try:
+                ds.add(meta, sample.payload.to_bytes())
+            except OSError as err:  # a full disk: fetched again by query once there is room
+                print(
+                    f"keyframed-ground: {ds.vehicle}: cannot store keyframe "
+                    f"{meta['sequence']}: {err.strerror or err}",
+                    file=sys.stderr,
+                )
+                return
             self.last_arrival = time.monotonic()
             if ds.missing():
                 self.wake.set()
+        except _Unwritable:
+            pass  # said once, when the vehicle was first heard
         except Exception as err:  # a bad message must not stop the station
             print(f"keyframed-ground: bad keyframe message: {err}", file=sys.stderr)
 
@@ -1218,6 +1273,8 @@ class GroundStation:
                 ds.done = False  # the daemon started again: a new flight
             if ds.missing():
                 self.wake.set()
+        except _Unwritable:
+            pass
         except Exception as err:
             print(f"keyframed-ground: bad status message: {err}", file=sys.stderr)
 
@@ -1392,6 +1449,8 @@ class GroundStation:
                 last_print = now
             if duration is not None and now - start > duration:
                 break
+            if (until_done or until_idle is not None) and self.unwritable and not self.datasets:
+                break  # every vehicle heard has nowhere to go: nothing will arrive
             # Its last keyframes may still be in flight behind the final status.
             if (
                 until_done
@@ -1425,9 +1484,26 @@ class GroundStation:
             except Exception as err:  # one vehicle's failure must not cost the others'
                 print(f"keyframed-ground: {ds.vehicle}: {err}", file=sys.stderr)
                 results.append({"vehicle": ds.vehicle, "keyframes": ds.count(), "error": str(err)})
+        for vehicle, why in sorted(self.unwritable.items()):
+            results.append({"vehicle": vehicle, "keyframes": 0, "error": why})
         if self.pool is not None:
             self.pool.shutdown(wait=not self.hurry.is_set(), cancel_futures=True)
         return results
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """Zenoh's error as one line, without the places in its Rust sources it names
+    ("at /root/.cargo/.../endpoint.rs:615.") and with a JSON5 parser's position as
+    "line L, column C" (as the daemon says them)."""
+    text = re.sub(r" at /\S*?\.rs:\d+\.?(?=[\s\"]|$)", "", str(err))
+    if m := re.search(r'msg: "((?:[^"\\]|\\.)*)"', text):
+        where = re.search(r"line: (\d+), column: (\d+)", text)
+        text = (f"line {where[1]}, column {where[2]}: " if where else "") + m[1]
+    elif (pos := re.search(r"-->\s*(\d+):(\d+)", text)) and (
+        what := re.search(r"^\s*=\s*(.+)$", text, re.MULTILINE)
+    ):
+        text = f"line {pos[1]}, column {pos[2]}: {what[1]}"
+    return " ".join(text.split())
 
 
 def open_session(args: argparse.Namespace) -> Any:
@@ -1474,7 +1550,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress line")
     args = p.parse_args(argv)
     if args.zenoh_config and not args.zenoh_config.is_file():
-        print(f"keyframed-ground: no such file: {args.zenoh_config}", file=sys.stderr)
+        what = "not a file" if args.zenoh_config.exists() else "no such file"
+        print(f"keyframed-ground: --zenoh-config {args.zenoh_config}: {what}", file=sys.stderr)
         return 2
     if not args.earlier_flights >= 0:
         print("keyframed-ground: --earlier-flights must be 0 or more seconds", file=sys.stderr)
@@ -1494,6 +1571,13 @@ def main(argv: list[str] | None = None) -> int:
     for flag, endpoints in (("--connect", args.connect), ("--listen", args.listen)):
         for endpoint in endpoints:
             proto, _, address = endpoint.partition("/")
+            if not (re.fullmatch(r"[a-z][a-z0-9-]*", proto) and address):
+                print(
+                    f"keyframed-ground: {flag} {endpoint}: not PROTOCOL/ADDRESS "
+                    "(e.g. tcp/192.168.1.10:7447)",
+                    file=sys.stderr,
+                )
+                return 2
             if proto in ("tcp", "udp", "tls", "quic", "ws"):
                 port = address.rpartition(":")[2].split("#")[0]
                 if not (port.isdigit() and int(port) <= 65535 and address.rpartition(":")[0]):
@@ -1514,10 +1598,21 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as err:
         print(f"keyframed-ground: cannot create {args.out}: {err.strerror}", file=sys.stderr)
         return 1
+    # A folder that exists but takes no file (read-only, another user's) is said now,
+    # not once the first vehicle is heard.
+    try:
+        with tempfile.TemporaryFile(dir=args.out):
+            pass
+    except OSError as err:
+        print(f"keyframed-ground: cannot write in {args.out}: {err.strerror}", file=sys.stderr)
+        return 1
     try:
         session = open_session(args)
     except Exception as err:
-        print(f"keyframed-ground: cannot open the Zenoh session: {err}", file=sys.stderr)
+        print(
+            f"keyframed-ground: cannot open the Zenoh session: {zenoh_error_text(err)}",
+            file=sys.stderr,
+        )
         return 1
     stop = threading.Event()
     station = GroundStation(
@@ -1569,13 +1664,18 @@ def main(argv: list[str] | None = None) -> int:
                 "once the vehicle is in reach to fetch them",
                 file=sys.stderr,
             )
+    unwritten = [r["vehicle"] for r in results if r.get("error")]
     incomplete = [
         r["vehicle"]
         for r in results
-        if r.get("error") or r.get("missing") or r.get("flights_end_unknown")
+        if not r.get("error") and (r.get("missing") or r.get("flights_end_unknown"))
     ]
+    if unwritten:
+        print(f"keyframed-ground: datasets not written for {unwritten} (see their error)",
+              file=sys.stderr)  # fmt: skip
     if incomplete:
         print(f"keyframed-ground: keyframes still missing for {incomplete}", file=sys.stderr)
+    if unwritten or incomplete:
         return 3
     return 0
 

@@ -62,13 +62,34 @@ fn describe(e: &dyn std::error::Error) -> String {
 /// A zenoh configuration error on one line: a JSON5 syntax error comes as pest's
 /// multi-line report (" --> 1:9", the line, a caret, "= expected ..."), a wrong value
 /// as serde's Debug text, and both end with where in zenoh's source they were made.
-fn zenoh_config_error(e: &dyn std::fmt::Display) -> String {
-    let mut text = e.to_string();
-    if let Some(i) = text.rfind(" at /") {
-        if text[i..].contains(".rs:") {
-            text.truncate(i);
+/// `text` without the places in Zenoh's sources its errors name, wherever they are
+/// (" at /root/.cargo/…/endpoint.rs:615."; a nested error has one of its own).
+fn without_source_locations(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    while let Some(i) = rest.find(" at /") {
+        let tail = &rest[i + 4..];
+        let end = tail
+            .find(|c: char| c.is_whitespace() || c == '"')
+            .unwrap_or(tail.len());
+        let place = tail[..end].trim_end_matches('.');
+        let is_source = place
+            .rsplit_once(".rs:")
+            .is_some_and(|(_, n)| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
+        if is_source {
+            out.push_str(&rest[..i]);
+            rest = &tail[end..];
+        } else {
+            out.push_str(&rest[..i + 5]);
+            rest = &rest[i + 5..];
         }
     }
+    out.push_str(rest);
+    out
+}
+
+fn zenoh_config_error(e: &dyn std::fmt::Display) -> String {
+    let text = without_source_locations(&e.to_string());
     let (mut position, mut message) = (None, None);
     for line in text.lines().map(str::trim) {
         if let Some(p) = line.strip_prefix("--> ") {
@@ -1186,6 +1207,21 @@ pub extern "C" fn kfio_version() -> *const c_char {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn source_locations_leave_zenoh_errors() {
+        let nested = "Json5Err(Message { msg: \"Endpoints must be of the form x: garbage at \
+                      /r/.cargo/endpoint.rs:615.\", location: Some(Location { line: 1, \
+                      column: 2 }) }) at /r/.cargo/config.rs:86.";
+        assert_eq!(
+            zenoh_config_error(&nested),
+            "line 1, column 2: Endpoints must be of the form x: garbage"
+        );
+        assert_eq!(
+            without_source_locations("at /etc/x.json5 at /a/b.rs:1"),
+            "at /etc/x.json5"
+        );
+    }
 
     #[test]
     fn error_is_truncated_on_char_boundary() {
