@@ -1272,7 +1272,8 @@ int Daemon::run() {
     KF_LOG(Output, Error) << error;
     ok = false;
   }
-  if (!outputs_.close(state, error)) KF_LOG(Output, Warning) << error;
+  // A recorder that failed said so (its error line) when it happened: not again here.
+  static_cast<void>(outputs_.close(state, error));
   // A keyframe or decision row that could not be saved (a full disk, an I/O error):
   // the run's outputs are not complete, whatever else went well.
   if (const std::int64_t failed = stats_.writeErrors.load(); failed > 0) {

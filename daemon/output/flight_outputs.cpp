@@ -17,7 +17,9 @@
 #include <deque>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "output/foxglove_proto.h"
@@ -89,7 +91,9 @@ struct FlightOutputs::Impl {
   std::int64_t framesRead = 0;
   std::int64_t kept = 0;
   // Failed keyframe puts: every keyframe is still tried; the log gets one line at
-  // most every 10 s, with the count since the last line.
+  // most every 10 s, with the count since the last line. Under failMutex: a put thread
+  // left blocked at close() (abandoned) may still count one when its put ends.
+  std::mutex failMutex;
   std::int64_t publishFailures = 0;
   LogThrottle publishFailureLog;
   KeyframePut putForTesting;
@@ -147,11 +151,17 @@ struct FlightOutputs::Impl {
     const bool ok = putForTesting ? putForTesting(jpeg, meta, error)
                                   : publisher->publishKeyframe(sequence, jpeg, meta, error);
     if (!ok) {
-      ++publishFailures;
-      if (const auto held = publishFailureLog.pass("", wallNs())) {
+      std::optional<std::uint64_t> held;
+      std::int64_t failures = 0;
+      {
+        const std::lock_guard failLock(failMutex);
+        failures = ++publishFailures;
+        held = publishFailureLog.pass("", wallNs());
+      }
+      if (held) {
         warn("zenoh: keyframe " + std::to_string(sequence) + " not published: " + error + " (" +
              std::to_string(*held + 1) + " failed since the last report, " +
-             std::to_string(publishFailures) + " in all)");
+             std::to_string(failures) + " in all)");
       }
     }
   }
@@ -575,26 +585,37 @@ bool FlightOutputs::close(const std::string& state, std::string& error) {
         "zenoh: a keyframe put still blocked on the congested link after the stop's drain "
         "time was left behind (the keyframe is on disk: a later run's queryable serves it)");
   }
-  if (impl_->putsSkippedAtStop > 0) {
-    impl_->warn("zenoh: " + std::to_string(impl_->putsSkippedAtStop) +
+  std::int64_t skippedAtStop = 0;
+  {
+    // Under the lock: a put thread left blocked (abandoned) still counts these.
+    const std::lock_guard putLock(impl_->putMutex);
+    skippedAtStop = std::exchange(impl_->putsSkippedAtStop, 0);
+  }
+  if (skippedAtStop > 0) {
+    impl_->warn("zenoh: " + std::to_string(skippedAtStop) +
                 " keyframes still queued for the link at the stop left to the queryable "
                 "(on disk; the next run serves them with flight=ID)");
-    impl_->putsSkippedAtStop = 0;
   }
   if (impl_->putsSkipped > 0) {
     impl_->warn("zenoh: " + std::to_string(impl_->putsSkipped) +
                 " keyframes left to the queryable in this flight (the link was too slow)");
     impl_->putsSkipped = 0;
   }
+  std::uint64_t failuresHeldBack = 0;
+  std::int64_t failures = 0;
+  {
+    const std::lock_guard failLock(impl_->failMutex);
+    failuresHeldBack = impl_->publishFailureLog.heldBack();
+    failures = impl_->publishFailures;
+    impl_->publishFailureLog.reset();
+  }
   if (impl_->publisher && !impl_->publisher->live()) {
     impl_->warn("zenoh: no session opened in this flight: its " + std::to_string(impl_->kept) +
                 " keyframes were not published (they are on disk; a later run's queryable "
                 "serves them with flight=ID)");
-    impl_->publishFailureLog.reset();
-  } else if (impl_->publishFailureLog.heldBack() > 0) {
-    impl_->warn("zenoh: " + std::to_string(impl_->publishFailures) +
+  } else if (failuresHeldBack > 0) {
+    impl_->warn("zenoh: " + std::to_string(failures) +
                 " keyframe puts failed in this flight (the queryable serves them)");
-    impl_->publishFailureLog.reset();
   }
   if (impl_->publisher) {
     // Reliable, waiting, unless a put was left blocked: then it would wait behind it.

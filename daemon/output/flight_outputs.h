@@ -115,7 +115,8 @@ class FlightOutputs {
   // Thread-safe and never waits (the logger calls it under its lock); level is a
   // syslog priority (3 error ... 7 debug).
   void log(int level, std::string_view category, std::string_view message);
-  // Last status and close; false when the MCAP file is incomplete (error says why).
+  // Last status and close; false when the MCAP file is incomplete (error says why; the
+  // recorder said it through options.error when it failed).
   bool close(const std::string& state, std::string& error);
 
   // Tests: replaces the Zenoh put of keyframes (false with an error: a failed put).

@@ -1825,6 +1825,8 @@ def test_full_disk_loses_no_keyframe_on_the_link(
         assert "No space left on device" in stderr, stderr
         stopped = [ln for ln in stderr.splitlines() if "MCAP recorder stopped" in ln]
         assert stopped and "No space left on device" in stopped[0], stderr
+        why = stopped[0].split("the run goes on without it: ", 1)[1]
+        assert sum(why in ln for ln in stderr.splitlines()) == 1, stderr  # said once
         assert "keyframes not saved" in stderr, stderr  # said once more at the end
         assert re.search(r" keyframes \(\d+ saved\) in ", stderr), stderr  # the last line too
         errors = [ln for ln in stderr.splitlines() if "No space left" in ln]
