@@ -667,6 +667,24 @@ def test_a_keyframe_whose_index_line_the_disk_did_not_take_is_kept(tmp_path: Pat
     assert [(m["flight"], m["sequence"], m["file"]) for m in lines] == [("F1", 0, "000007.jpg")]
 
 
+def test_nothing_is_stored_once_the_datasets_files_are_written(tmp_path: Path) -> None:
+    """A gap query's reply that arrives after finish() wrote pairs.txt and geo.txt (a
+    second Ctrl-C stopped the waiting) is not stored where those files would not name
+    it: it stays missing for a later run on the folder."""
+    from keyframed.ground import VehicleDataset
+
+    ds = VehicleDataset(tmp_path, "uav8", None)
+    assert ds.add({"flight": "F1", "sequence": 0, "frame_index": 0}, b"a")
+    ds.note_end("F1")
+    with ds.lock:
+        ds.announced["F1"] = 1
+    summary = ds.finish()
+    assert summary["missing"] == [1], summary
+    assert not ds.add({"flight": "F1", "sequence": 1, "frame_index": 5}, b"b")
+    assert sorted(p.name for p in ds.images.iterdir()) == ["000000.jpg"]
+    assert len((ds.dir / "keyframes.jsonl").read_text().splitlines()) == 1
+
+
 def test_a_vehicle_whose_folder_cannot_be_made_is_said_once(tagged: Path, tmp_path: Path) -> None:
     """The vehicle is heard but its folder cannot be made (a file in its place, a
     folder of another user's): one line that says so, the vehicle in the summary with

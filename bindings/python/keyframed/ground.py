@@ -689,6 +689,7 @@ class VehicleDataset:
         self.names: set[str] = set()  # the images' names, one per keyframe
         self.flights: list[str] = []  # in the order first heard of
         self.duplicates = 0
+        self.closed = False  # finish() began: nothing more is stored
         self.fetched = 0
         self.queries = 0  # gap-filling queries sent (one per chunk of a gap)
         self.announced: dict[str, int] = {}  # highest sequence each flight says it wrote
@@ -910,6 +911,8 @@ class VehicleDataset:
         name = meta.get("file") or f"{int(meta.get('frame_index', seq)):06d}.jpg"
         name = os.path.basename(str(name))
         with self.lock:
+            if self.closed:
+                return False  # the dataset's files are written: it would be left out of them
             if (flight, seq) in self.meta:
                 self.duplicates += 1
                 return False
@@ -1047,6 +1050,11 @@ class VehicleDataset:
         """Writes the dataset's files, then waits for the SIFT worker (unless told to
         hurry: the features left are computed by the next run on this folder), and
         returns the summary."""
+        # A gap query's reply still arriving (a second signal stopped the waiting for
+        # it) is not stored after the files are written, where they would not name it:
+        # it stays missing, and a run on this folder again fetches it.
+        with self.lock:
+            self.closed = True
         # First: the files need no features, and a backlog of SIFT (a resumed dataset
         # of thousands) must not keep them from disk.
         camera, odm, pairs = self.write_files()
