@@ -43,6 +43,13 @@ const char* toString(DaemonConfig::Source source) {
 
 namespace {
 
+// SECTION.KEY=VALUE in form: an '=', and a '.' after a section name before it.
+bool isSetAssignment(std::string_view a) {
+  const auto eq = a.find('=');
+  const auto dot = a.find('.');
+  return eq != std::string_view::npos && dot != std::string_view::npos && dot != 0 && dot < eq;
+}
+
 namespace fs = std::filesystem;
 
 constexpr std::int64_t kNsPerMs = 1'000'000;
@@ -780,13 +787,13 @@ class Loader {
       fail(0, "--set " + tomlString(assignment) + ": one line, SECTION.KEY=VALUE");
       return;
     }
-    const auto eq = assignment.find('=');
-    const std::string name = assignment.substr(0, eq);
-    const auto dot = name.find('.');
-    if (eq == std::string::npos || dot == std::string::npos || dot == 0) {
+    if (!isSetAssignment(assignment)) {
       fail(0, where + ": expected --set SECTION.KEY=VALUE");
       return;
     }
+    const auto eq = assignment.find('=');
+    const std::string name = assignment.substr(0, eq);
+    const auto dot = name.find('.');
     const std::string section = name.substr(0, dot);
     const std::string key = name.substr(dot + 1);
     if (!isSection(section)) {
@@ -1063,10 +1070,7 @@ std::string takeConfigArgs(std::vector<std::string>& args, ConfigSources& source
     } else {
       // The form is a command-line matter (exit 2); the key and value are checked with
       // the files' (exit 1 from check-config, 78 from run).
-      const auto eq = value.find('=');
-      const auto dot = value.find('.');
-      if (eq == std::string::npos || dot == std::string::npos || dot == 0 || dot > eq)
-        return "--set " + value + ": expected --set SECTION.KEY=VALUE";
+      if (!isSetAssignment(value)) return "--set " + value + ": expected --set SECTION.KEY=VALUE";
       sources.overrides.push_back(value);
     }
   }

@@ -1679,8 +1679,10 @@ def main(argv: list[str] | None = None) -> int:
         if not r.get("error") and (r.get("missing") or r.get("flights_end_unknown"))
     ]
     if unwritten:
-        print(f"keyframed-ground: datasets not written for {unwritten} (see their error)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"keyframed-ground: datasets not written for {unwritten} (see their error)",
+            file=sys.stderr,
+        )
     if incomplete:
         print(f"keyframed-ground: keyframes still missing for {incomplete}", file=sys.stderr)
     if unwritten or incomplete:

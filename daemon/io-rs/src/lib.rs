@@ -59,9 +59,6 @@ fn describe(e: &dyn std::error::Error) -> String {
     text
 }
 
-/// A zenoh configuration error on one line: a JSON5 syntax error comes as pest's
-/// multi-line report (" --> 1:9", the line, a caret, "= expected ..."), a wrong value
-/// as serde's Debug text, and both end with where in zenoh's source they were made.
 /// `text` without the places in Zenoh's sources its errors name, wherever they are
 /// (" at /root/.cargo/…/endpoint.rs:615."; a nested error has one of its own).
 fn without_source_locations(text: &str) -> String {
@@ -88,6 +85,9 @@ fn without_source_locations(text: &str) -> String {
     out
 }
 
+/// A zenoh configuration error on one line: a JSON5 syntax error comes as pest's
+/// multi-line report (" --> 1:9", the line, a caret, "= expected ..."), a wrong value
+/// as serde's Debug text, and both end with where in zenoh's source they were made.
 fn zenoh_config_error(e: &dyn std::fmt::Display) -> String {
     let text = without_source_locations(&e.to_string());
     let (mut position, mut message) = (None, None);
