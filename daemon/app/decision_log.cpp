@@ -8,13 +8,37 @@
 namespace keyframed {
 namespace {
 
-std::string ms(std::int64_t ns) {
-  return formatFixed(static_cast<double>(ns) / 1e6, 3);
+void appendMs(std::string& s, std::int64_t ns) {
+  appendFixed(s, static_cast<double>(ns) / 1e6, 3);
 }
 
-std::string jnum(double v, int decimals) {
-  const std::string s = formatFixed(v, decimals);
-  return s.empty() ? "null" : s;
+// A JSON member: `,"name":` then the number, or null for NaN or infinity.
+void jsonNumber(std::string& s, std::string_view name, double v, int decimals) {
+  s += ",\"";
+  s += name;
+  s += "\":";
+  appendFixed(s, v, decimals, "null");
+}
+
+void jsonBool(std::string& s, std::string_view name, bool v) {
+  s += ",\"";
+  s += name;
+  s += "\":";
+  s += v ? "true" : "false";
+}
+
+void jsonInt(std::string& s, std::string_view name, std::int64_t v) {
+  s += ",\"";
+  s += name;
+  s += "\":";
+  appendInt(s, v);
+}
+
+void jsonMs(std::string& s, std::string_view name, std::int64_t ns) {
+  s += ",\"";
+  s += name;
+  s += "\":";
+  appendMs(s, ns);
 }
 
 }  // namespace
@@ -30,45 +54,83 @@ std::string DecisionLog::header() {
          "resize_ms,overlap_ms,total_ms,geotag";
 }
 
-std::string DecisionLog::csvRow(const Decision& d, const std::string& geotag) {
-  std::string s;
-  s.reserve(160);
-  s += std::to_string(d.index) + "," + std::to_string(d.timestampNs) + "," + (d.kept ? "1" : "0") +
-       "," + toString(d.reason) + "," + (d.candidate ? "1" : "0") + "," +
-       (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "") + "," +
-       formatFixed(d.sharpness, 3) + "," + formatFixed(d.threshold, 3) + "," +
-       (d.sharp ? "1" : "0") + "," + formatFixed(d.overlap, 4) + "," +
-       formatFixed(d.paperDistance, 3) + "," + (d.tracking ? "1" : "0") + "," +
-       formatFixed(d.motionPx, 2) + "," + (d.fastMotion ? "1" : "0") + "," +
-       std::to_string(d.features) + "," + std::to_string(d.matches) + "," +
-       std::to_string(d.inliers) + "," + ms(d.times.lumaNs) + "," + ms(d.times.blurNs) + "," +
-       ms(d.times.resizeNs) + "," + ms(d.times.overlapNs) + "," + ms(d.times.totalNs) + ",";
+void DecisionLog::appendCsvRow(std::string& s, const Decision& d, std::string_view geotag) {
+  const auto flag = [&](bool v) { s += v ? "1," : "0,"; };
+  const auto fixed = [&](double v, int decimals) {
+    appendFixed(s, v, decimals);
+    s += ',';
+  };
+  const auto integer = [&](std::int64_t v) {
+    appendInt(s, v);
+    s += ',';
+  };
+  integer(d.index);
+  integer(d.timestampNs);
+  flag(d.kept);
+  s += toString(d.reason);
+  s += ',';
+  flag(d.candidate);
+  if (d.promotedIndex >= 0) appendInt(s, d.promotedIndex);
+  s += ',';
+  fixed(d.sharpness, 3);
+  fixed(d.threshold, 3);
+  flag(d.sharp);
+  fixed(d.overlap, 4);
+  fixed(d.paperDistance, 3);
+  flag(d.tracking);
+  fixed(d.motionPx, 2);
+  flag(d.fastMotion);
+  integer(d.features);
+  integer(d.matches);
+  integer(d.inliers);
+  for (const std::int64_t ns :
+       {d.times.lumaNs, d.times.blurNs, d.times.resizeNs, d.times.overlapNs, d.times.totalNs}) {
+    appendMs(s, ns);
+    s += ',';
+  }
   // The note is free text: quote it, doubling quotes, as CSV does.
   if (!geotag.empty()) {
     s += '"';
-    for (char c : geotag) s += c == '"' ? std::string("\"\"") : std::string(1, c);
+    for (char c : geotag) {
+      if (c == '"') s += '"';
+      s += c;
+    }
     s += '"';
   }
-  return s;
 }
 
-std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
-  std::string s =
-      "{\"index\":" + std::to_string(d.index) +
-      ",\"timestamp_ns\":" + std::to_string(d.timestampNs) +
-      ",\"kept\":" + (d.kept ? "true" : "false") + ",\"reason\":\"" + toString(d.reason) +
-      "\",\"candidate\":" + (d.candidate ? "true" : "false") +
-      ",\"promoted\":" + (d.promotedIndex >= 0 ? std::to_string(d.promotedIndex) : "null") +
-      ",\"sharpness\":" + jnum(d.sharpness, 3) + ",\"threshold\":" + jnum(d.threshold, 3) +
-      ",\"sharp\":" + (d.sharp ? "true" : "false") + ",\"overlap\":" + jnum(d.overlap, 4) +
-      ",\"paper_distance\":" + jnum(d.paperDistance, 3) +
-      ",\"tracking\":" + (d.tracking ? "true" : "false") + ",\"motion_px\":" + jnum(d.motionPx, 2) +
-      ",\"fast_motion\":" + (d.fastMotion ? "true" : "false") +
-      ",\"features\":" + std::to_string(d.features) + ",\"matches\":" + std::to_string(d.matches) +
-      ",\"inliers\":" + std::to_string(d.inliers) + ",\"luma_ms\":" + ms(d.times.lumaNs) +
-      ",\"blur_ms\":" + ms(d.times.blurNs) + ",\"resize_ms\":" + ms(d.times.resizeNs) +
-      ",\"overlap_ms\":" + ms(d.times.overlapNs) + ",\"total_ms\":" + ms(d.times.totalNs) +
-      ",\"geotag\":";
+void DecisionLog::appendJsonRow(std::string& s, const Decision& d, std::string_view geotag) {
+  s += "{\"index\":";
+  appendInt(s, d.index);
+  jsonInt(s, "timestamp_ns", d.timestampNs);
+  jsonBool(s, "kept", d.kept);
+  s += ",\"reason\":\"";
+  s += toString(d.reason);
+  s += '"';
+  jsonBool(s, "candidate", d.candidate);
+  s += ",\"promoted\":";
+  if (d.promotedIndex >= 0) {
+    appendInt(s, d.promotedIndex);
+  } else {
+    s += "null";
+  }
+  jsonNumber(s, "sharpness", d.sharpness, 3);
+  jsonNumber(s, "threshold", d.threshold, 3);
+  jsonBool(s, "sharp", d.sharp);
+  jsonNumber(s, "overlap", d.overlap, 4);
+  jsonNumber(s, "paper_distance", d.paperDistance, 3);
+  jsonBool(s, "tracking", d.tracking);
+  jsonNumber(s, "motion_px", d.motionPx, 2);
+  jsonBool(s, "fast_motion", d.fastMotion);
+  jsonInt(s, "features", d.features);
+  jsonInt(s, "matches", d.matches);
+  jsonInt(s, "inliers", d.inliers);
+  jsonMs(s, "luma_ms", d.times.lumaNs);
+  jsonMs(s, "blur_ms", d.times.blurNs);
+  jsonMs(s, "resize_ms", d.times.resizeNs);
+  jsonMs(s, "overlap_ms", d.times.overlapNs);
+  jsonMs(s, "total_ms", d.times.totalNs);
+  s += ",\"geotag\":";
   if (geotag.empty()) {
     s += "null";
   } else {
@@ -79,7 +141,18 @@ std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
     }
     s += '"';
   }
-  s += "}";
+  s += '}';
+}
+
+std::string DecisionLog::csvRow(const Decision& d, const std::string& geotag) {
+  std::string s;
+  appendCsvRow(s, d, geotag);
+  return s;
+}
+
+std::string DecisionLog::jsonRow(const Decision& d, const std::string& geotag) {
+  std::string s;
+  appendJsonRow(s, d, geotag);
   return s;
 }
 
@@ -101,30 +174,40 @@ bool DecisionLog::flushPending(std::string& error, std::size_t n, bool now) {
     return false;
   }
   // In chunks, each whole or not at all: a disk with room for part of the backlog
-  // takes that part.
-  std::string text;
-  while (n > 0) {
-    const std::size_t chunk = std::min<std::size_t>(n, 256);
-    text.clear();
-    for (std::size_t i = 0; i < chunk; ++i) {
+  // takes that part. The rows written leave pending_ at once at the end (one move of
+  // those that stay, not one per chunk). text_ keeps its room: no allocation per row.
+  std::size_t written = 0;
+  bool ok = true;
+  while (written < n) {
+    const std::size_t chunk = std::min<std::size_t>(n - written, 256);
+    text_.clear();
+    for (std::size_t i = written; i < written + chunk; ++i) {
       const Row& r = pending_[i];
-      text += format_ == DecisionFormat::Csv ? csvRow(r.decision, r.geotag)
-                                             : jsonRow(r.decision, r.geotag);
-      text += '\n';
-    }
-    if (!file_.append(text, error)) {
-      // The file is cut back to its last whole row; the rows stay, to be written
-      // whole when there is room.
-      while (pending_.size() > kMaxUnwrittenRows) {
-        pending_.pop_front();
-        ++rowsLost_;
+      if (format_ == DecisionFormat::Csv) {
+        appendCsvRow(text_, r.decision, r.geotag);
+      } else {
+        appendJsonRow(text_, r.decision, r.geotag);
       }
-      lastError_ = error;
-      retryIn_ = kRetryEvery;
-      return false;
+      text_ += '\n';
     }
-    pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(chunk));
-    n -= chunk;
+    if (!file_.append(text_, error)) {
+      ok = false;
+      break;
+    }
+    written += chunk;
+  }
+  pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(written));
+  if (!ok) {
+    // The file is cut back to its last whole row; the rows stay, to be written
+    // whole when there is room.
+    if (pending_.size() > kMaxUnwrittenRows) {
+      const std::size_t lost = pending_.size() - kMaxUnwrittenRows;
+      pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(lost));
+      rowsLost_ += static_cast<std::int64_t>(lost);
+    }
+    lastError_ = error;
+    retryIn_ = kRetryEvery;
+    return false;
   }
   retryIn_ = 0;
   return true;

@@ -2,8 +2,9 @@
 
 #include <cstddef>
 #include <cstdint>
-#include <deque>
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include "app/options.h"
 #include "app/text_io.h"
@@ -47,6 +48,9 @@ class DecisionLog {
   static std::string header();
   static std::string csvRow(const Decision& d, const std::string& geotag = {});
   static std::string jsonRow(const Decision& d, const std::string& geotag = {});
+  // The same rows appended to s (no newline): nothing is allocated once s has room.
+  static void appendCsvRow(std::string& s, const Decision& d, std::string_view geotag = {});
+  static void appendJsonRow(std::string& s, const Decision& d, std::string_view geotag = {});
 
  private:
   // Writes the first n pending rows (all by default); on an error they stay pending
@@ -61,8 +65,10 @@ class DecisionLog {
     std::string geotag;
   };
   // Rows not yet written: a held candidate's and those after it, and any a write
-  // error kept out, in frame order.
-  std::deque<Row> pending_;
+  // error kept out, in frame order. A vector: its room stays once grown, where a
+  // deque of rows this size would take and free a block every other row.
+  std::vector<Row> pending_;
+  std::string text_;            // the rows being written
   bool heldCandidate_ = false;  // a candidate's row is pending: it may be promoted
   std::size_t heldRows_ = 0;    // its row and those after it
   std::int64_t rowsLost_ = 0;

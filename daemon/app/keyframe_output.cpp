@@ -124,7 +124,11 @@ bool KeyframeOutput::handle(const KeyframeEvent& ev, std::string& error) {
   note.clear();
   if (d.kept && ev.keyframe) write(ev.keyframe->frame);
   // The record's row as the decisions file's: a kept frame's with its geotag note.
-  if (outputs_.active()) outputs_.recordDecision(d, DecisionLog::jsonRow(d, note));
+  if (outputs_.active()) {
+    decisionJson_.clear();  // its room stays: no allocation per frame
+    DecisionLog::appendJsonRow(decisionJson_, d, note);
+    outputs_.recordDecision(d, decisionJson_);
+  }
   std::string e;
   if (!log_.add(d, e, note)) failed(e);
   return ok;

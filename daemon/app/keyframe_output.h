@@ -46,6 +46,7 @@ class KeyframeOutput {
   int telemetryWaitMs_;
   PoseStore::Config limits_;
   std::int64_t timeOffsetNs_;
+  std::string decisionJson_;  // the record's row of the frame at hand
 };
 
 }  // namespace keyframed

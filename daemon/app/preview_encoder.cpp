@@ -19,6 +19,11 @@ bool copyPlane(GrayView from, int cols, int rows, std::uint8_t* to) {
                 static_cast<std::size_t>(cols));
   return true;
 }
+// Scaled plane by plane (scaleYuv), never converted to colour at full size.
+bool planar(PixelFormat format) {
+  return format == PixelFormat::YUV420 || format == PixelFormat::NV12 ||
+         format == PixelFormat::YUYV;
+}
 }  // namespace
 
 PreviewEncoder::PreviewEncoder(int width, Format format, double fps)
@@ -58,8 +63,33 @@ bool PreviewEncoder::scaleYuv(const Frame& f) {
   const std::size_t stride = static_cast<std::size_t>(f.stride);
   const std::uint8_t* chroma = f.data + stride * static_cast<std::size_t>(f.height);
   const int srcCw = (f.width + 1) / 2, srcCh = (f.height + 1) / 2;
+  GrayView luma{f.data, f.width, f.height, f.stride};
   GrayView u, v;
-  if (f.format == PixelFormat::NV12) {
+  if (f.format == PixelFormat::YUYV) {
+    // Y0 U Y1 V: luma de-interleaved, chroma (4:2:2) from every other row as 4:2:0.
+    yuyvLuma_.create(f.height, f.width, CV_8UC1);
+    chromaUFull_.create(srcCh, srcCw, CV_8UC1);
+    chromaVFull_.create(srcCh, srcCw, CV_8UC1);
+    for (int r = 0; r < f.height; ++r) {
+      const std::uint8_t* in = f.data + stride * static_cast<std::size_t>(r);
+      std::uint8_t* lumaRow = yuyvLuma_.ptr(r);
+      for (int c = 0; c < f.width; ++c) lumaRow[c] = in[2 * c];
+      if (r % 2 != 0) continue;
+      std::uint8_t* cu = chromaUFull_.ptr(r / 2);
+      std::uint8_t* cv = chromaVFull_.ptr(r / 2);
+      for (int c = 0; c < f.width / 2; ++c) {
+        cu[c] = in[4 * c + 1];
+        cv[c] = in[4 * c + 3];
+      }
+      if (f.width % 2 != 0) {  // an odd last column has no chroma of its own
+        cu[srcCw - 1] = srcCw > 1 ? cu[srcCw - 2] : 128;
+        cv[srcCw - 1] = srcCw > 1 ? cv[srcCw - 2] : 128;
+      }
+    }
+    luma = GrayView::of(yuyvLuma_);
+    u = GrayView::of(chromaUFull_);
+    v = GrayView::of(chromaVFull_);
+  } else if (f.format == PixelFormat::NV12) {
     chromaUFull_.create(srcCh, srcCw, CV_8UC1);
     chromaVFull_.create(srcCh, srcCw, CV_8UC1);
     cv::Mat parts[] = {chromaUFull_, chromaVFull_};
@@ -75,7 +105,6 @@ bool PreviewEncoder::scaleYuv(const Frame& f) {
     v = GrayView{chroma + static_cast<std::size_t>(cstride) * static_cast<std::size_t>(srcCh), cols,
                  srcCh, cstride};
   }
-  const GrayView luma{f.data, f.width, f.height, f.stride};
   return copyPlane(luma_.scale(luma, size.width, size.height), size.width, size.height, y) &&
          copyPlane(chromaU_.scale(u, cw, ch), cw, ch, y + lumaBytes) &&
          copyPlane(chromaV_.scale(v, cw, ch), cw, ch, y + lumaBytes + chromaBytes);
@@ -122,7 +151,7 @@ void toBgr(const Frame& f, cv::Mat& bgr) {
 }  // namespace
 
 bool PreviewEncoder::scaleToI420(const Frame& f) {
-  if (f.format == PixelFormat::YUV420 || f.format == PixelFormat::NV12) return scaleYuv(f);
+  if (planar(f.format)) return scaleYuv(f);
   toBgr(f, bgr_);
   const cv::Size size = sizeFor(f.width, f.height);
   scaleBgr(size);
@@ -145,7 +174,7 @@ bool PreviewEncoder::encode(const Frame& f, std::vector<std::uint8_t>& out) {
   }
   const bool full = width_ >= f.width;
   format_ = full ? "png" : "jpeg";
-  if (!full && (f.format == PixelFormat::YUV420 || f.format == PixelFormat::NV12)) {
+  if (!full && planar(f.format)) {
     if (!scaleYuv(f)) {
       error_ = "the frame cannot be scaled";
       return false;

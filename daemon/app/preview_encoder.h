@@ -19,10 +19,12 @@ namespace keyframed {
 // the same pictures as one video stream (an IDR picture every second; full size at
 // or above the frame's width, lossy): a quarter of the JPEGs' bytes.
 //
-// A camera's YUV420 or NV12 frame is scaled plane by plane (core/resize, as the
-// analysis image) and encoded from YUV: only the small picture is ever touched in
-// colour (converting 1080p to BGR first cost more than the rest of the preview).
-// BGR24, grey and YUYV go through BGR. Buffers are reused.
+// A camera's YUV420, NV12 or YUYV frame is scaled plane by plane (core/resize, as the
+// analysis image; YUYV's planes de-interleaved first) and encoded from YUV: only the
+// small picture is ever touched in colour (converting 1080p to BGR first cost more
+// than the rest of the preview), and nothing is allocated but libjpeg-turbo's own
+// work memory. BGR24 and grey go through BGR (OpenCV's resize, which takes a few
+// buffers from the heap for each frame). Buffers are reused.
 class PreviewEncoder {
  public:
   enum class Format : std::uint8_t { Jpeg, H264 };
@@ -62,7 +64,8 @@ class PreviewEncoder {
   cv::Size planesSize_;
   cv::Mat bgr_, small_, half_, halfSpare_;  // BGR path
   DownScaler luma_, chromaU_, chromaV_;     // YUV path: one per plane, sizes fixed
-  cv::Mat chromaUFull_, chromaVFull_;       // NV12: its chroma de-interleaved
+  cv::Mat chromaUFull_, chromaVFull_;       // NV12, YUYV: its chroma de-interleaved
+  cv::Mat yuyvLuma_;                        // YUYV: its luma de-interleaved
   std::vector<std::uint8_t> planes_;        // YUV path: the scaled picture, I420
   cv::Mat i420_;                            // BGR path: small_ as I420
   const std::uint8_t* picture_ = nullptr;   // the last scaled picture: planes_ or i420_

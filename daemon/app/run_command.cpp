@@ -52,6 +52,7 @@
 #include "capture/capture_thread.h"
 #include "capture/file_source.h"
 #include "capture/v4l2_source.h"
+#include "core/thread_name.h"
 #include "output/flight_outputs.h"
 #if KEYFRAMED_HAVE_IO
 #include "output/mcap_repair.h"
@@ -291,6 +292,7 @@ class RecordRepair {
   void start(const std::string& flightsDir, const std::string& currentFlight) {
 #if KEYFRAMED_HAVE_IO
     thread_ = std::thread([this, flightsDir, currentFlight] {
+      nameThisThread("kf-repair");
       setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), 19);
       for (const McapRepair& r : repairFlightRecords(flightsDir, currentFlight, stop_)) {
         if (r.removed) {
@@ -889,6 +891,8 @@ int Daemon::run() {
     };
     auto opening = std::make_shared<Opening>();
     std::thread([opening, camera = config_.camera, clock = videoClock_, placedStartNs] {
+      // A decoder's worker threads (FFmpeg's, a file source's) take this name.
+      nameThisThread("kf-camera-open");
       try {
         opening->source = openSource(camera, clock, placedStartNs, opening->error);
       } catch (const std::exception& e) {  // never std::terminate from a worker
@@ -1144,8 +1148,14 @@ int Daemon::run() {
     }
   }
   const auto start = std::chrono::steady_clock::now();
-  std::thread output([this] { outputLoop(); });
-  std::thread analysis([this] { analysisLoop(); });
+  std::thread output([this] {
+    nameThisThread("kf-output");
+    outputLoop();
+  });
+  std::thread analysis([this] {
+    nameThisThread("kf-analysis");
+    analysisLoop();
+  });
   std::string state = "done";
   if (stopNow) {
     state = "stopped";

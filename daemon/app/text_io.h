@@ -2,6 +2,8 @@
 
 #include <sys/types.h>
 
+#include <algorithm>
+#include <charconv>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -18,6 +20,26 @@ inline std::string formatFixed(double v, int decimals) {
   char buf[64];
   std::snprintf(buf, sizeof buf, "%.*f", decimals, v);
   return buf;
+}
+
+// formatFixed() appended to out, or `otherwise` for NaN or infinity: no allocation
+// where out has the room (the per-frame rows are built this way).
+inline void appendFixed(std::string& out, double v, int decimals, std::string_view otherwise = {}) {
+  if (!std::isfinite(v)) {
+    out += otherwise;
+    return;
+  }
+  char buf[64];
+  const int n = std::snprintf(buf, sizeof buf, "%.*f", decimals, v);
+  if (n > 0)
+    out.append(buf, static_cast<std::size_t>(std::min(n, static_cast<int>(sizeof buf) - 1)));
+}
+
+// The decimal text of v appended to out.
+inline void appendInt(std::string& out, std::int64_t v) {
+  char buf[24];
+  const auto r = std::to_chars(buf, buf + sizeof buf, v);
+  out.append(buf, r.ptr);
 }
 
 // s for the inside of a JSON string: quotes and backslashes escaped, newlines as

@@ -8,6 +8,7 @@
 
 #include "app/log.h"
 #include "app/log_throttle.h"
+#include "core/thread_name.h"
 
 namespace keyframed {
 
@@ -86,7 +87,10 @@ void CaptureThread::start(std::int64_t discardBeforeNs) {
     finished_ = false;
   }
   running_ = true;
-  thread_ = std::thread([this] { run(); });
+  thread_ = std::thread([this] {
+    nameThisThread("kf-capture");
+    run();
+  });
 }
 
 void CaptureThread::requestStop() {

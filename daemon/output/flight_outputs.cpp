@@ -15,13 +15,13 @@
 #include <atomic>
 #include <condition_variable>
 #include <deque>
-#include <map>
 #include <mutex>
 #include <optional>
 #include <thread>
 #include <utility>
 #include <vector>
 
+#include "core/thread_name.h"
 #include "output/foxglove_proto.h"
 #include "output/h264.h"
 #include "output/keyframe_publisher.h"
@@ -71,19 +71,26 @@ std::string jnum(double v, int decimals) {
 
 struct FlightOutputs::Impl {
   struct Scores {
-    double sharpness, threshold, overlap;
-    int features;
-    std::string reason;
+    std::int64_t index = -1;  // the frame's; -1: none
+    double sharpness = 0, threshold = 0, overlap = 0;
+    int features = 0;
+    const char* reason = "";
   };
   FlightOutputOptions options;
   std::unique_ptr<McapRecorder> recorder;
   std::unique_ptr<KeyframePublisher> publisher;
-  // Frames since the last keyframe, for the keyframe's metadata: at most
-  // kMaxScores of the newest, and the fallback candidate, however long no keyframe
-  // comes (a vehicle standing on the ground for an hour).
-  std::map<std::int64_t, Scores> scores;
-  std::int64_t candidate = -1;
+  // The newest frames' scores, for a keyframe's metadata: the last kMaxScores by
+  // frame index, and the fallback candidate's, however long no keyframe comes (a
+  // vehicle standing on the ground for an hour). A ring made once: nothing is
+  // allocated per frame.
   static constexpr std::size_t kMaxScores = 1800;
+  std::vector<Scores> scores = std::vector<Scores>(kMaxScores);
+  Scores candidate;
+  [[nodiscard]] const Scores* scoresOf(std::int64_t index) const {
+    const Scores& s = scores[static_cast<std::size_t>(index) % kMaxScores];
+    if (s.index == index) return &s;
+    return candidate.index == index ? &candidate : nullptr;
+  }
   std::int64_t lastStatusNs = 0;
   std::string taggingLines;  // tagging(): for every settings message
   std::string cameraToml;
@@ -342,7 +349,11 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
     std::string ignored;
     impl_->publisher->publishStatus(
         "{\"state\":\"running\",\"frames\":0,\"kept\":0" + impl_->flightField() + "}", ignored);
-    if (!o.offline) impl_->putThread = std::thread([impl = impl_.get()] { impl->runPuts(); });
+    if (!o.offline)
+      impl_->putThread = std::thread([impl = impl_.get()] {
+        nameThisThread("kf-zenoh-put");
+        impl->runPuts();
+      });
   }
   return true;
 }
@@ -350,13 +361,11 @@ bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
 void FlightOutputs::decision(const Decision& d) {
   if (!impl_->options.liveClock) impl_->frameNs.store(d.timestampNs);
   if (active()) {
-    auto& scores = impl_->scores;
-    scores[d.index] = {d.sharpness, d.threshold, d.overlap, d.features, toString(d.reason)};
-    if (d.candidate) impl_->candidate = d.index;
-    while (scores.size() > Impl::kMaxScores) {
-      auto oldest = scores.begin();
-      if (oldest->first == impl_->candidate) ++oldest;
-      scores.erase(oldest);
+    if (d.index >= 0) {
+      const Impl::Scores s{d.index,   d.sharpness, d.threshold,
+                           d.overlap, d.features,  toString(d.reason)};
+      impl_->scores[static_cast<std::size_t>(d.index) % Impl::kMaxScores] = s;
+      if (d.candidate) impl_->candidate = s;
     }
   }
 }
@@ -368,9 +377,10 @@ void FlightOutputs::recordDecision(const Decision& d, const std::string& decisio
 
 void FlightOutputs::mavlink(std::int64_t timeNs, std::uint32_t systemId, std::uint32_t componentId,
                             std::uint32_t messageId, std::span<const std::uint8_t> packet) {
-  if (impl_->recorder)
-    impl_->recorder->record(McapTopic::Mavlink, timeNs,
-                            proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet));
+  if (McapRecorder* r = impl_->recorder.get())
+    r->record(McapTopic::Mavlink, timeNs,
+              proto::mavlinkPacket(timeNs, systemId, componentId, messageId, packet,
+                                   r->buffer(packet.size() + 32)));
 }
 
 void FlightOutputs::vehicleLocation(std::int64_t timeNs, double latDeg, double lonDeg,
@@ -382,13 +392,14 @@ void FlightOutputs::vehicleLocation(std::int64_t timeNs, double latDeg, double l
   f.latitude = latDeg;
   f.longitude = lonDeg;
   f.altitude = altAmslM;
-  impl_->recorder->record(McapTopic::VehicleLocation, timeNs, proto::locationFix(f));
+  impl_->recorder->record(McapTopic::VehicleLocation, timeNs,
+                          proto::locationFix(f, impl_->recorder->buffer(160)));
 }
 
 void FlightOutputs::vehicleAttitude(std::int64_t timeNs, const Quaternion& q) {
-  if (impl_->recorder)
-    impl_->recorder->record(McapTopic::VehiclePose, timeNs,
-                            proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}));
+  if (McapRecorder* r = impl_->recorder.get())
+    r->record(McapTopic::VehiclePose, timeNs,
+              proto::poseInFrame(timeNs, "ned", {0, 0, 0}, {q.x, q.y, q.z, q.w}, r->buffer(128)));
 }
 
 void FlightOutputs::settings(std::int64_t timeNs, const std::string& selectionLines) {
@@ -408,14 +419,15 @@ void FlightOutputs::tagging(const std::string& taggingLines, const CameraModel* 
 void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> image,
                             const char* format) {
   const std::string_view kind(format);
-  if (impl_->recorder) {
+  if (McapRecorder* r = impl_->recorder.get()) {
+    std::vector<std::uint8_t> into = r->buffer(image.size() + 64);
     if (kind == "h264")
-      impl_->recorder->record(McapTopic::Video, timeNs,
-                              proto::compressedVideo(timeNs, kCameraFrame, image, format), 0,
-                              h264HasIdr(image));
+      r->record(McapTopic::Video, timeNs,
+                proto::compressedVideo(timeNs, kCameraFrame, image, format, std::move(into)), 0,
+                h264HasIdr(image));
     else
-      impl_->recorder->record(McapTopic::Preview, timeNs,
-                              proto::compressedImage(timeNs, kCameraFrame, image, format));
+      r->record(McapTopic::Preview, timeNs,
+                proto::compressedImage(timeNs, kCameraFrame, image, format, std::move(into)));
   }
   // PNG (lossless, full size) and H.264 pictures reach Zenoh as a previewStill().
   if (kind == "jpeg") previewStill(image);
@@ -475,15 +487,13 @@ void FlightOutputs::keyframe(const KeyframeRecord& rec, std::span<const std::uin
   m.hdop = num(p.gps.hdop, 2);
   if (p.position) m.fixType = std::to_string(p.gps.fixType);
   m.geotag = rec.geotag;
-  if (const auto it = impl_->scores.find(rec.frameIndex); it != impl_->scores.end()) {
-    const Impl::Scores& s = it->second;
+  if (const Impl::Scores* found = impl_->scoresOf(rec.frameIndex)) {
+    const Impl::Scores& s = *found;
     m.scoresJson = "{\"sharpness\":" + jnum(s.sharpness, 3) +
                    ",\"threshold\":" + jnum(s.threshold, 3) + ",\"overlap\":" + jnum(s.overlap, 4) +
                    ",\"features\":" + std::to_string(s.features) + ",\"reason\":\"" + s.reason +
                    "\"}";
   }
-  // Frames before this keyframe can no longer become keyframes.
-  impl_->scores.erase(impl_->scores.begin(), impl_->scores.upper_bound(rec.frameIndex));
   const std::string meta = toJson(m);
 
   if (impl_->recorder) {

@@ -1,4 +1,5 @@
 #include "output/keyframe_publisher.h"
+#include "core/thread_name.h"
 
 #include <algorithm>
 #include <cerrno>
@@ -250,6 +251,7 @@ void KeyframePublisher::retryLoop(const std::shared_ptr<Retry>& retry,
                                   ZenohSession::Options options, int retryMs,
                                   const std::function<void(const std::string&)>& onLate,
                                   KeyframePublisher* self) {
+  nameThisThread("kf-zenoh-open");
   std::unique_lock lock(retry->m);
   for (int attempt = 1;; ++attempt) {
     if (attempt > 1 && retry->cv.wait_for(lock, std::chrono::milliseconds(retryMs),

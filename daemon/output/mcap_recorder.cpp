@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "core/thread_name.h"
 #include "output/foxglove_proto.h"
 
 namespace keyframed {
@@ -133,8 +134,12 @@ McapRecorder::~McapRecorder() {
 
 bool McapRecorder::open(const McapRecorderOptions& options, std::string& error) {
   options_ = options;
+  spare_.reserve(kSpareBuffers);
   if (!openFile(options.path, error)) return false;
-  thread_ = std::thread([this] { run(); });
+  thread_ = std::thread([this] {
+    nameThisThread("kf-mcap");
+    run();
+  });
   return true;
 }
 
@@ -256,7 +261,28 @@ void McapRecorder::enqueue(McapTopic topic, std::int64_t timeNs, std::vector<std
 }
 
 void McapRecorder::recordText(McapTopic topic, std::int64_t timeNs, const std::string& json) {
-  record(topic, timeNs, std::vector<std::uint8_t>(json.begin(), json.end()));
+  std::vector<std::uint8_t> message = buffer(json.size());
+  message.assign(json.begin(), json.end());
+  record(topic, timeNs, std::move(message));
+}
+
+std::vector<std::uint8_t> McapRecorder::buffer(std::size_t bytes) {
+  std::lock_guard lock(mutex_);
+  if (spare_.empty()) return {};
+  // The smallest with room enough (the large stay for large messages), or else the
+  // largest (it grows the least).
+  auto pick = spare_.begin();
+  for (auto it = spare_.begin(); it != spare_.end(); ++it) {
+    const bool fits = it->capacity() >= bytes, pickFits = pick->capacity() >= bytes;
+    if (fits ? !pickFits || it->capacity() < pick->capacity()
+             : !pickFits && it->capacity() > pick->capacity())
+      pick = it;
+  }
+  std::vector<std::uint8_t> b = std::move(*pick);
+  if (pick != spare_.end() - 1) *pick = std::move(spare_.back());
+  spare_.pop_back();
+  spareBytes_ -= b.capacity();
+  return b;
 }
 
 void McapRecorder::fail(const std::string& error) {
@@ -282,7 +308,7 @@ void McapRecorder::run() {
   const auto interval = std::chrono::milliseconds(std::max(options_.flushIntervalMs, 10));
   auto nextFlush = SteadyClock::now() + interval;
   bool dirty = false;
-  std::deque<Item> batch;
+  std::vector<Item> batch;
   std::string error;
   while (true) {
     bool closing = false;
@@ -328,6 +354,18 @@ void McapRecorder::run() {
       if ((full || old) && !rotationDue_) rotationDue_ = SteadyClock::now();
     }
     const std::size_t leftover = failed_.load() ? batch.size() - written : 0;
+    {
+      // The buffers go back for buffer(), as many as the spare bounds allow.
+      std::lock_guard lock(mutex_);
+      for (Item& it : batch) {
+        const std::size_t room = it.data.capacity();
+        if (room == 0 || spare_.size() >= kSpareBuffers || spareBytes_ + room > kSpareBytes)
+          continue;
+        it.data.clear();
+        spareBytes_ += room;
+        spare_.push_back(std::move(it.data));
+      }
+    }
     batch.clear();
     // One reading of the clock for both: a deadline passing between two readings
     // would re-arm the timer without the flush, leaving two intervals unsynced.

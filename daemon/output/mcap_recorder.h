@@ -4,7 +4,6 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
-#include <deque>
 #include <functional>
 #include <memory>
 #include <mutex>
@@ -96,6 +95,10 @@ class McapRecorder {
   // lock the writer thread may need, such as the logger's.
   void tryRecord(McapTopic topic, std::int64_t timeNs, std::vector<std::uint8_t> message);
   void recordText(McapTopic topic, std::int64_t timeNs, const std::string& json);
+  // An empty buffer for a message, with room for `bytes` where a written message's
+  // buffer had it (the writer thread hands them back): messages made in these, and
+  // queued with record(), cost no allocation in steady state.
+  [[nodiscard]] std::vector<std::uint8_t> buffer(std::size_t bytes = 0);
   // Drains the queue, writes the summary and closes. False when the recorder failed
   // at any point (error says why).
   bool close(std::string& error);
@@ -143,8 +146,14 @@ class McapRecorder {
   mutable std::mutex mutex_;
   std::condition_variable wake_;   // writer: work or closing
   std::condition_variable space_;  // producers: queue has room
-  std::deque<Item> queue_;
+  std::vector<Item> queue_;        // swapped with the writer's batch: both keep their room
   std::size_t queuedBytes_ = 0;
+  // Written messages' buffers, emptied, for buffer(): at most kSpareBuffers holding
+  // at most kSpareBytes in all.
+  static constexpr std::size_t kSpareBuffers = 64;
+  static constexpr std::size_t kSpareBytes = 8u << 20;
+  std::vector<std::vector<std::uint8_t>> spare_;
+  std::size_t spareBytes_ = 0;
   bool closing_ = false;
   McapRecorderStats stats_;
   std::string error_;

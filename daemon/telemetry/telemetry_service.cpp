@@ -7,6 +7,7 @@
 #include <limits>
 #include <vector>
 
+#include "core/thread_name.h"
 #include "telemetry/tlog.h"
 
 namespace keyframed {
@@ -102,7 +103,10 @@ bool TelemetryService::start(std::unique_ptr<MavlinkLink> link, std::string& err
     return true;
   }
   stop_ = false;
-  thread_ = std::thread([this] { run(); });
+  thread_ = std::thread([this] {
+    nameThisThread("kf-telemetry");
+    run();
+  });
   return true;
 }
 

@@ -33,6 +33,20 @@ CameraFrame cameraFrame(const cv::Mat& bgr, PixelFormat format, int stride) {
   const std::uint8_t* u = y + static_cast<std::size_t>(w) * h;
   const std::uint8_t* v = u + static_cast<std::size_t>(cw) * ch;
   CameraFrame c;
+  if (format == PixelFormat::YUYV) {  // 4:2:2, `stride` bytes a row: each chroma row twice
+    c.bytes.assign(static_cast<std::size_t>(stride) * h, 255);
+    for (int r = 0; r < h; ++r) {
+      std::uint8_t* row = &c.bytes[std::size_t(r) * stride];
+      for (int x = 0; x < cw; ++x) {
+        row[4 * x] = y[r * w + 2 * x];
+        row[4 * x + 1] = u[(r / 2) * cw + x];
+        row[4 * x + 2] = y[r * w + 2 * x + 1];
+        row[4 * x + 3] = v[(r / 2) * cw + x];
+      }
+    }
+    c.frame = Frame{format, c.bytes.data(), w, h, stride, 0, 0};
+    return c;
+  }
   // Exactly as long as the frame's planes (frameBytes): reading past them shows under
   // AddressSanitizer.
   const std::size_t chromaBytes = format == PixelFormat::NV12
@@ -104,6 +118,14 @@ TEST_F(PreviewEncoderTest, CameraYuvIsScaledPlaneByPlaneToTheSamePicture) {
       EXPECT_STREQ(preview.format(), "jpeg");
       EXPECT_GT(psnr(out, size), fromBgr - 2.0);
     }
+  }
+  // YUYV (a USB camera's 4:2:2): de-interleaved, then scaled like the planes above.
+  for (int stride : {1000, 1064}) {
+    SCOPED_TRACE("YUYV stride " + std::to_string(stride));
+    const CameraFrame cam = cameraFrame(bgr_, PixelFormat::YUYV, stride);
+    ASSERT_TRUE(preview.encode(cam.frame, out));
+    EXPECT_STREQ(preview.format(), "jpeg");
+    EXPECT_GT(psnr(out, size), fromBgr - 2.0);
   }
 }
 

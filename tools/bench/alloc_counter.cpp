@@ -14,9 +14,11 @@ void __libc_free(void*);
 
 namespace {
 std::atomic<bool> counting{false};
+thread_local bool countingThisThread = false;  // initial-exec TLS: no allocation to reach
 std::atomic<std::uint64_t> count{0};
 inline void note() {
-  if (counting.load(std::memory_order_relaxed)) count.fetch_add(1, std::memory_order_relaxed);
+  if (counting.load(std::memory_order_relaxed) || countingThisThread)
+    count.fetch_add(1, std::memory_order_relaxed);
 }
 }  // namespace
 
@@ -26,6 +28,9 @@ void setCounting(bool on) {
 }
 std::uint64_t allocations() {
   return count.load();
+}
+void setCountingThisThread(bool on) {
+  countingThisThread = on;
 }
 }  // namespace keyframed::bench
 

@@ -9,5 +9,8 @@ namespace keyframed::bench {
 // is measured, not assumed.
 void setCounting(bool on);
 std::uint64_t allocations();
+// Counts only this thread's allocations while on (with setCounting(false)): a test of
+// one stage that other threads (a writer thread, a library's worker) run beside.
+void setCountingThisThread(bool on);
 
 }  // namespace keyframed::bench

@@ -3,8 +3,11 @@
 # source paced at the video's own rate (as a camera), MCAP recording on. Prints the
 # summary's frame rate, drops, CPU (total, and without the video decoding a camera
 # would do in hardware) and peak RSS.
-#   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12] [--set KEY=VALUE]...
+#   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12] [--allocs]
+#                               [--set KEY=VALUE]...
 #   (default 12 s; --set as `keyframed run --set`, e.g. output.preview_format=h264)
+# --allocs: heap allocations per frame by thread, counted from 3 s to 1 s before the
+# end (tools/bench/alloc_preload.cpp, preloaded; it slows allocation a little).
 # Without --full: no telemetry or Zenoh peers (the selection, recording and preview
 # cost alone). With --full: the daemon as shipped, telemetry and Zenoh on, a fake
 # autopilot replaying the flight's tlog over UDP and a ground station (keyframed-ground)
@@ -18,11 +21,13 @@ cd "$ROOT"
 SECS=12
 FULL=0
 FORMAT=auto
+ALLOCS=0
 EXTRA=()
 while [ "$#" -gt 0 ]; do
   case "$1" in
     --full) FULL=1 ;;
     --format) FORMAT="$2"; shift ;;
+    --allocs) ALLOCS=1 ;;
     --set) EXTRA+=(--set "$2"); shift ;;
     *) SECS="$1" ;;
   esac
@@ -63,10 +68,17 @@ if [ "$FULL" = 1 ]; then
 else
   ARGS+=(--set telemetry.url= --set zenoh.enabled=false)
 fi
-build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" 2>/dev/null
+PRELOAD=()
+if [ "$ALLOCS" = 1 ]; then
+  PRELOAD=(env "LD_PRELOAD=$ROOT/build/release/tools/bench/libkeyframed-alloc-count.so"
+           KEYFRAMED_ALLOC_FROM_S=3 "KEYFRAMED_ALLOC_TO_S=$((SECS - 1))"
+           "KEYFRAMED_ALLOC_REPORT=$STATE/allocs.txt")
+fi
+"${PRELOAD[@]}" build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" 2>/dev/null
 if [ "$FULL" = 1 ]; then wait "$GROUND_PID" || true; fi
-.venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" "$FORMAT" <<'PY'
-import json, sys
+.venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" "$FORMAT" \
+  "$STATE/allocs.txt" "$SECS" <<'PY'
+import json, os, sys
 s = json.load(open(sys.argv[1]))
 full = sys.argv[2] == "1"
 what = "telemetry, tagging, MCAP, Zenoh to a ground station" if full else "MCAP, no peers"
@@ -80,4 +92,10 @@ if full:
     for line in open(sys.argv[3]):
         g = json.loads(line)
         print(f"  {'ground station received':28s} {g['keyframes']}")
+if os.path.exists(sys.argv[5]):
+    frames = s["frames_per_second"] * (int(sys.argv[6]) - 1 - 3)
+    print(f"  heap allocations per frame, {frames:.0f} frames from 3 s to {int(sys.argv[6]) - 1} s, by thread:")
+    for line in open(sys.argv[5]):
+        name, count = line.split()
+        print(f"    {name:26s} {int(count) / frames:8.2f}")
 PY
