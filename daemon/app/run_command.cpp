@@ -978,8 +978,8 @@ int Daemon::run() {
     cd.width = info.width;
     cd.height = info.height;
     if (camera_) {
-      cd.vendor = camera_->make;
-      cd.model = camera_->model;
+      if (!camera_->make.empty()) cd.vendor = camera_->make;  // else the component's own
+      if (!camera_->model.empty()) cd.model = camera_->model;
       cd.focalLengthMm = static_cast<float>(camera_->focalLengthMm);
       cd.sensorWidthMm = static_cast<float>(camera_->sensorWidthMm);
       cd.sensorHeightMm = static_cast<float>(camera_->sensorHeightMm);

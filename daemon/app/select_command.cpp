@@ -536,8 +536,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     cd.width = source->info().width;
     cd.height = source->info().height;
     if (camera) {
-      cd.vendor = camera->make;
-      cd.model = camera->model;
+      if (!camera->make.empty()) cd.vendor = camera->make;  // else the component's own
+      if (!camera->model.empty()) cd.model = camera->model;
       cd.focalLengthMm = static_cast<float>(camera->focalLengthMm);
       cd.sensorWidthMm = static_cast<float>(camera->sensorWidthMm);
       cd.sensorHeightMm = static_cast<float>(camera->sensorHeightMm);

@@ -19,8 +19,10 @@ struct CameraModel {
   // k4 theta^8)). The same fx, fy, cx, cy in both.
   enum class Lens { Pinhole, Fisheye };
 
-  std::string make = "keyframed";
-  std::string model = "camera";
+  // EXIF Make and Model: "" when the calibration does not name the camera (then
+  // neither is tagged: nothing is made up).
+  std::string make;
+  std::string model;
   int width = 0;  // pixels the intrinsics refer to
   int height = 0;
   double fx = NAN;

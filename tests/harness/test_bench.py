@@ -94,8 +94,8 @@ def test_mcap_benchmark_writes_a_readable_file(tmp_path: Path, compression: str)
 
 
 def test_latency_benchmark_receives_every_keyframe() -> None:
-    """One short flight through the daemon to a Zenoh subscriber: every keyframe
-    written is received, and the latency lines are printed."""
+    """One short flight through the daemon to a Zenoh subscriber and a ground station:
+    every keyframe written is received and stored, and the latency lines are printed."""
     p = subprocess.run(
         [sys.executable, str(ROOT / "tools" / "bench" / "latency_bench.py")]
         + ["--width", "480", "--height", "270", "--seconds", "6", "--runs", "1"]
@@ -110,6 +110,16 @@ def test_latency_benchmark_receives_every_keyframe() -> None:
     assert got == written > 0, p.stdout
     m = re.search(
         r"decision to receipt\s+median ([\d.]+) ms, p99 ([\d.]+), max ([\d.]+) over (\d+)",
+        p.stdout,
+    )
+    assert m, p.stdout
+    median, p99, worst, count = (float(v) for v in m.groups())
+    assert 0 < median <= p99 <= worst and count == written, p.stdout
+    # and at the ground station, every keyframe stored in its dataset
+    got, written = row(p.stdout, "in the station's dataset")
+    assert got == written, p.stdout
+    m = re.search(
+        r"decision to stored\s+median ([\d.]+) ms, p99 ([\d.]+), max ([\d.]+) over (\d+)",
         p.stdout,
     )
     assert m, p.stdout

@@ -151,7 +151,8 @@ def test_tlog_tags_match_ground_truth(kf_bin: Path, short_nadir: Path, tmp_path:
         errs = tag_errors(t, truth.at(idx / fps))
         worst = [max(a, b) for a, b in zip(worst, errs, strict=True)]
         assert abs(utc_us_of(t) - (truth.epoch_us + idx / fps * 1e6)) <= 1000
-        assert t["IFD0:Make"] and t["IFD0:Model"]
+        # intrinsics.json names no camera: no Make or Model is made up
+        assert "IFD0:Make" not in t and "IFD0:Model" not in t, t
         assert t["ExifIFD:FocalLength"] == pytest.approx(intr["focal_length_mm"], abs=1e-3)
         assert t["ExifIFD:FocalLengthIn35mmFormat"] == round(intr["fx"] * 36 / intr["width"])
         assert t["XMP-Camera:PerspectiveFocalLength"] == pytest.approx(
@@ -1355,9 +1356,10 @@ def test_make_and_model_are_tagged_with_or_without_a_calibration(
 ) -> None:
     """EXIF Make/Model group images into cameras in COLMAP and ODM: the user's values
     win over the calibration file's; without a calibration they are all that is
-    tagged of the camera (no invented focal length); unset and uncalibrated, none."""
+    tagged of the camera (no invented focal length); unset, none, calibrated or not."""
     cases = {
         "bare": [],
+        "calibrated, unnamed": ["--calibration", str(short_nadir / "intrinsics.json")],
         "named": ["--make", "Acme Aero", "--model", "PiCam HQ 6mm"],
         "calibrated": [
             "--calibration",
@@ -1373,8 +1375,9 @@ def test_make_and_model_are_tagged_with_or_without_a_calibration(
         r = run_select(kf_bin, short_nadir, out, "--max-frames", "30", *extra)
         assert r.returncode == 0, r.stderr
         (t,) = [exif([p])[p.name] for p in sorted(out.glob("*.jpg"))[:1]]
-        if name == "bare":
+        if name in ("bare", "calibrated, unnamed"):
             assert "IFD0:Make" not in t and "IFD0:Model" not in t, t
+            assert ("ExifIFD:FocalLengthIn35mmFormat" in t) == (name != "bare"), t
             continue
         assert t["IFD0:Make"] == "Acme Aero" and t["IFD0:Model"] == "PiCam HQ 6mm", t
         assert t["ExifIFD:ExifImageWidth"] == 480 and t["ExifIFD:ExifImageHeight"] == 270

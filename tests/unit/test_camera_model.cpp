@@ -93,7 +93,7 @@ TEST(CameraModel, ReadsOpenCvCalibrationYaml) {
   EXPECT_DOUBLE_EQ(m.distortion[3], -0.002);
   EXPECT_NEAR(m.focalLengthMm, 1000 * 6.4 / 1280, 1e-12);                // derived
   EXPECT_NEAR(m.sensorHeightMm, 6.4 * 720 / 1280 * 1000 / 1002, 1e-12);  // fy kept in it
-  EXPECT_EQ(m.make, "keyframed");                                        // default kept
+  EXPECT_EQ(m.make, "");  // the file names no camera: none is made up
 }
 
 TEST(CameraModel, CalibrateCameraOutputGetsItsSensorFromTheFocalLengthInMm) {
@@ -159,7 +159,7 @@ TEST(CameraModel, ReadsSynthIntrinsicsJson) {
   EXPECT_TRUE(m.calibrated());
   EXPECT_EQ(m.width, 960);
   EXPECT_DOUBLE_EQ(m.cy, 269.5);
-  EXPECT_EQ(m.model, "camera");  // "model" there is the projection, not the camera name
+  EXPECT_EQ(m.model, "");  // "model" there is the projection, not the camera name
   EXPECT_DOUBLE_EQ(m.focalLengthMm, 4.405);
   EXPECT_NEAR(m.focalLength35mm(), 685.5 * 36 / 960, 1e-12);
 }

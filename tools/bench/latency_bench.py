@@ -1,7 +1,9 @@
 """Keyframe latency on loopback, for `keyframed run` on a sample flight played in
-real time, publishing to a Zenoh subscriber (what a ground station sees). Both ends
-are on this machine's CLOCK_MONOTONIC; the subscriber stamps receipt, and the
-keyframe's metadata carries two stamps of the daemon's:
+real time, publishing to two Zenoh peers: a bare subscriber, which stamps receipt
+in its callback, and a ground station (keyframed-ground's GroundStation, in this
+process on a session of its own), stamped once it has stored the keyframe (the JPEG
+written into its dataset, its metadata appended). All on this machine's
+CLOCK_MONOTONIC; the keyframe's metadata carries two stamps of the daemon's:
 
 - ``decided_ns``, when the selector kept the frame: decision to receipt is the
   issue's measure (JPEG encoding, tagging, the file write, Zenoh), for every
@@ -42,8 +44,8 @@ import zenoh
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def fly(fl: Path, port: int, telemetry: bool, daemon: Path) -> tuple[dict, float]:
-    """One `keyframed run` of the flight, publishing to the subscriber on ``port``."""
+def fly(fl: Path, ports: list[int], telemetry: bool, daemon: Path) -> tuple[dict, float]:
+    """One `keyframed run` of the flight, publishing to the peers on ``ports``."""
     from fake_autopilot import FakeAutopilot  # the tests' (tests/harness)
 
     autopilot = FakeAutopilot(fl / "flight.tlog", boot_offset_ms=1_234_567) if telemetry else None
@@ -53,7 +55,7 @@ def fly(fl: Path, port: int, telemetry: bool, daemon: Path) -> tuple[dict, float
             json.dumps(
                 {
                     "mode": "peer",
-                    "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                    "connect": {"endpoints": [f"tcp/127.0.0.1:{p}" for p in ports]},
                     "scouting": {"multicast": {"enabled": False}},
                 }
             )
@@ -112,34 +114,53 @@ def main() -> int:
     args = p.parse_args()
     sys.path.insert(0, str(ROOT / "tests" / "harness"))
     from flights import flight  # the tests' cached sample flights
+    from keyframed.ground import GroundStation
 
     fl = flight(args.flight, width=args.width, height=args.height, seconds=args.seconds)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
     arrivals: list[tuple[int, dict, int]] = []
+    stored: list[tuple[int, dict]] = []
 
     def on_keyframe(sample: zenoh.Sample) -> None:
         now = time.monotonic_ns()
         meta = json.loads(sample.attachment.to_bytes())
         arrivals.append((now, meta, len(sample.payload.to_bytes())))
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    class TimedStation(GroundStation):
+        """keyframed-ground's station, each keyframe stamped once it is stored."""
+
+        def _on_keyframe(self, sample: zenoh.Sample) -> None:
+            super()._on_keyframe(sample)
+            stored.append((time.monotonic_ns(), json.loads(sample.attachment.to_bytes())))
+
+    def listener(port: int) -> zenoh.Session:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        return zenoh.open(conf)
+
+    session, ground_session = listener(ports[0]), listener(ports[1])
     sub = session.declare_subscriber("keyframed/*/keyframe", on_keyframe)
     written = frames = geotagged = 0
     mcap_mb = 0.0
-    for _ in range(args.runs):
-        summary, size = fly(fl, port, args.telemetry, args.bin)
-        written += summary["written"]
-        geotagged += (summary.get("telemetry") or {}).get("geotagged", 0)
-        frames += summary["frames_read"]
-        mcap_mb = size
-    sub.undeclare()
+    with tempfile.TemporaryDirectory() as dataset:
+        station = TimedStation(ground_session, Path(dataset), "*", sift=False, quiet=True)
+        for _ in range(args.runs):
+            summary, size = fly(fl, ports, args.telemetry, args.bin)
+            written += summary["written"]
+            geotagged += (summary.get("telemetry") or {}).get("geotagged", 0)
+            frames += summary["frames_read"]
+            mcap_mb = size
+        sub.undeclare()
+        results = station.close()
     session.close()
+    ground_session.close()
+    in_dataset = sum(int(r.get("keyframes", 0)) for r in results)
     own = sorted(
         (now - int(m["time_ns"])) / 1e6
         for now, m, _ in arrivals
@@ -148,7 +169,8 @@ def main() -> int:
         if (m.get("scores") or {}).get("reason") in ("first", "overlap_target", "paper_distance")
     )
     decided = sorted((now - int(m["decided_ns"])) / 1e6 for now, m, _ in arrivals)
-    if not own or not decided:
+    to_station = sorted((now - int(m["decided_ns"])) / 1e6 for now, m in stored)
+    if not own or not decided or not to_station:
         print("no keyframes received", file=sys.stderr)
         return 1
     print(
@@ -156,9 +178,11 @@ def main() -> int:
         f"{args.runs} runs" + (", telemetry from the fake autopilot" if args.telemetry else "")
     )
     print(f"  keyframes received      {len(arrivals)} of {written} written")
+    print(f"  in the station's dataset {in_dataset} of {written} written")
     if args.telemetry:
         print(f"  geotagged               {geotagged} of {written}")
     print(f"  decision to receipt     {stats(decided)}, every keyframe")
+    print(f"  decision to stored      {stats(to_station)}, at keyframed-ground")
     print(f"  capture to receipt      {stats(own)}, gap fills excluded")
     print(f"  keyframe size           {statistics.mean(n for _, _, n in arrivals) / 1e3:.0f} KB")
     print(f"  MCAP file               {mcap_mb:.1f} MB a run ({frames // args.runs} frames)")
