@@ -275,6 +275,10 @@ bool FlightOutputs::recording() const {
   return impl_->recorder != nullptr && !impl_->recorder->failed();
 }
 
+std::uint64_t FlightOutputs::recordedMessages() const {
+  return impl_->recorder != nullptr ? impl_->recorder->stats().written : 0;
+}
+
 bool FlightOutputs::open(const FlightOutputOptions& o, int width, int height,
                          const CameraModel* camera, std::string& error) {
   impl_->options = o;
@@ -393,7 +397,7 @@ void FlightOutputs::vehicleLocation(std::int64_t timeNs, double latDeg, double l
   f.longitude = lonDeg;
   f.altitude = altAmslM;
   impl_->recorder->record(McapTopic::VehicleLocation, timeNs,
-                          proto::locationFix(f, impl_->recorder->buffer(160)));
+                          proto::locationFix(f, impl_->recorder->buffer(160 + f.frameId.size())));
 }
 
 void FlightOutputs::vehicleAttitude(std::int64_t timeNs, const Quaternion& q) {
@@ -420,7 +424,8 @@ void FlightOutputs::preview(std::int64_t timeNs, std::span<const std::uint8_t> i
                             const char* format) {
   const std::string_view kind(format);
   if (McapRecorder* r = impl_->recorder.get()) {
-    std::vector<std::uint8_t> into = r->buffer(image.size() + 64);
+    // As much as the message builders reserve: a buffer that fits is not grown.
+    std::vector<std::uint8_t> into = r->buffer(image.size() + 64 + std::strlen(kCameraFrame));
     if (kind == "h264")
       r->record(McapTopic::Video, timeNs,
                 proto::compressedVideo(timeNs, kCameraFrame, image, format, std::move(into)), 0,
@@ -681,6 +686,10 @@ bool FlightOutputs::active() const {
 }
 bool FlightOutputs::recording() const {
   return false;
+}
+
+std::uint64_t FlightOutputs::recordedMessages() const {
+  return 0;
 }
 
 bool FlightOutputs::open(const FlightOutputOptions& o, int, int, const CameraModel*,

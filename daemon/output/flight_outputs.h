@@ -68,6 +68,8 @@ class FlightOutputs {
   [[nodiscard]] bool active() const;
   // An MCAP file is being written (false once a write error, a full disk, stopped it).
   [[nodiscard]] bool recording() const;
+  // Messages the MCAP writer has written so far (0 without a record).
+  [[nodiscard]] std::uint64_t recordedMessages() const;
 
   // Every analysed frame, before its keyframe (the scores a keyframe is published
   // with); then its row, decisionJson as DecisionLog::jsonRow writes it, for the

@@ -113,19 +113,29 @@ TEST(OutputAllocations, NonePerFrameForTheDecisionRowsAndTheRecord) {
     for (std::size_t i = 0; i < preview.size(); ++i) preview[i] = static_cast<std::uint8_t>(i * 7);
 
     constexpr int kWarmup = 400, kCounted = 400;
-    std::uint64_t counted = 0;
+    std::uint64_t counted = 0, base = 0;
     for (int i = 0; i < kWarmup + kCounted; ++i) {
       KeyframeEvent ev;
       ev.decision = decisionAt(i);
       const bool count = i >= kWarmup;
+      if (i == kWarmup) base = outputs.recordedMessages();
+      if (count) {
+        // The writer keeps up, as it does with a camera (a stalled writer would leave
+        // the frame no spare buffer: not what is counted here). Two messages a frame.
+        const auto wanted = base + 2 * static_cast<std::uint64_t>(i - kWarmup);
+        const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+        while (outputs.recordedMessages() < wanted && std::chrono::steady_clock::now() < deadline)
+          std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        ASSERT_GE(outputs.recordedMessages(), wanted) << "the MCAP writer stalled for 10 s";
+      }
       if (count) bench::setCountingThisThread(true);
       const std::uint64_t before = bench::allocations();
       ASSERT_TRUE(output.handle(ev, error)) << error;
       outputs.preview(ev.decision.timestampNs, preview, "jpeg");
       counted += bench::allocations() - before;
       bench::setCountingThisThread(false);
-      // A camera's pace, as the writer thread sees it: a burst while warming up (so
-      // that the recorder holds spare buffers), then a frame every 2 ms.
+      // A burst while warming up (so that the recorder holds spare buffers), then a
+      // frame every 2 ms.
       if (i >= kWarmup / 2) std::this_thread::sleep_for(std::chrono::milliseconds(2));
     }
     EXPECT_EQ(counted, 0u) << "allocations in " << kCounted << " frames";

@@ -69,6 +69,10 @@ else
   ARGS+=(--set telemetry.url= --set zenoh.enabled=false)
 fi
 PRELOAD=()
+if [ "$ALLOCS" = 1 ] && [ "$SECS" -lt 6 ]; then
+  echo "daemon_bench.sh: --allocs counts from 3 s to 1 s before the end: fly 6 s or more" >&2
+  exit 2
+fi
 if [ "$ALLOCS" = 1 ]; then
   PRELOAD=(env "LD_PRELOAD=$ROOT/build/release/tools/bench/libkeyframed-alloc-count.so"
            KEYFRAMED_ALLOC_FROM_S=3 "KEYFRAMED_ALLOC_TO_S=$((SECS - 1))"
@@ -96,6 +100,6 @@ if os.path.exists(sys.argv[5]):
     frames = s["frames_per_second"] * (int(sys.argv[6]) - 1 - 3)
     print(f"  heap allocations per frame, {frames:.0f} frames from 3 s to {int(sys.argv[6]) - 1} s, by thread:")
     for line in open(sys.argv[5]):
-        name, count = line.split()
+        name, count = line.rsplit(None, 1)
         print(f"    {name:26s} {int(count) / frames:8.2f}")
 PY

@@ -2,8 +2,10 @@
 real time, publishing to two Zenoh peers: a bare subscriber, which stamps receipt
 in its callback, and a ground station (keyframed-ground's GroundStation, in this
 process on a session of its own), stamped once it has stored the keyframe (the JPEG
-written into its dataset, its metadata appended). All on this machine's
-CLOCK_MONOTONIC; the keyframe's metadata carries two stamps of the daemon's:
+written into its dataset, its metadata appended). Both share this process (and
+Python's lock): the station's storing can delay the bare subscriber's stamp by a
+little. All on this machine's CLOCK_MONOTONIC; the keyframe's metadata carries two
+stamps of the daemon's:
 
 - ``decided_ns``, when the selector kept the frame: decision to receipt is the
   issue's measure (JPEG encoding, tagging, the file write, Zenoh), for every
@@ -117,11 +119,10 @@ def main() -> int:
     from keyframed.ground import GroundStation
 
     fl = flight(args.flight, width=args.width, height=args.height, seconds=args.seconds)
-    ports = []
-    for _ in range(2):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            ports.append(s.getsockname()[1])
+    with socket.socket() as s1, socket.socket() as s2:  # two ports, both free at once
+        s1.bind(("127.0.0.1", 0))
+        s2.bind(("127.0.0.1", 0))
+        ports = [s1.getsockname()[1], s2.getsockname()[1]]
     arrivals: list[tuple[int, dict, int]] = []
     stored: list[tuple[int, dict]] = []
 
@@ -131,11 +132,17 @@ def main() -> int:
         arrivals.append((now, meta, len(sample.payload.to_bytes())))
 
     class TimedStation(GroundStation):
-        """keyframed-ground's station, each keyframe stamped once it is stored."""
+        """keyframed-ground's station, each keyframe stamped once it is stored (one
+        that was not, a duplicate or a failed write, is not stamped)."""
+
+        def _stored(self) -> int:
+            return sum(d.count() for d in list(self.datasets.values()))
 
         def _on_keyframe(self, sample: zenoh.Sample) -> None:
+            before = self._stored()
             super()._on_keyframe(sample)
-            stored.append((time.monotonic_ns(), json.loads(sample.attachment.to_bytes())))
+            if self._stored() > before:
+                stored.append((time.monotonic_ns(), json.loads(sample.attachment.to_bytes())))
 
     def listener(port: int) -> zenoh.Session:
         conf = zenoh.Config()
