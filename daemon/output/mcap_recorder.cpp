@@ -6,6 +6,7 @@
 #include <filesystem>
 
 #include "core/thread_name.h"
+#include "output/dir_sync.h"
 #include "output/foxglove_proto.h"
 
 namespace keyframed {
@@ -215,8 +216,10 @@ bool McapRecorder::openFile(const std::string& path, std::string& error) {
       return failed();
     }
   }
-  // Schemas and channels reach the disk now: a file cut short later still reads.
+  // Schemas and channels reach the disk now: a file cut short later still reads. With
+  // fsync on (power cuts), so does the new file's name.
   if (!writer_->flush(options.fsync, error)) return failed();
+  if (options.fsync) syncParentDirectory(path);
   std::lock_guard lock(mutex_);
   ++stats_.files;
   return true;

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "output/dir_sync.h"
 #include "output/io_ffi.h"
 
 namespace keyframed {
@@ -116,7 +117,11 @@ std::vector<McapRepair> repairFlightRecords(const std::string& flightsDir,
     if (recoverMcap(r.path, tmp, r.messages, r.error, &stop)) {
       std::error_code e2;
       fs::rename(tmp, p, e2);
-      if (e2) r.error = "cannot replace " + r.path + ": " + e2.message();
+      if (e2) {
+        r.error = "cannot replace " + r.path + ": " + e2.message();
+      } else {
+        syncParentDirectory(r.path);  // the repaired file under its name, through a power cut
+      }
     }
     out.push_back(std::move(r));
   }

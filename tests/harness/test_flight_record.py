@@ -7,6 +7,7 @@ import csv
 import itertools
 import json
 import math
+import re
 import shutil
 import signal
 import socket
@@ -626,6 +627,15 @@ def test_mcap_fsync_syncs_the_record_at_each_timed_flush(
     print(f"mcap_fsync={fsync}: {len(syncs)} syncs of flight.mcap in a 6 s run")
     if fsync:
         assert len(syncs) >= 4, syncs
+        # and the file's name: the directory is synced by the same thread right after
+        # the file's first sync (its schemas and channels), before any other sync
+        lines = trace.read_text().splitlines()
+        first = next(i for i, ln in enumerate(lines) if "flight.mcap>" in ln)
+        tid = lines[first].split()[0]
+        after = [ln for ln in lines[first + 1 :] if ln.split()[0] == tid]
+        flight_dir = re.search(r"<([^>]*)/flight\.mcap>", lines[first])
+        assert flight_dir and after, lines[first:]
+        assert f"<{flight_dir.group(1)}>)" in after[0], after[:2]
     else:
         assert len(syncs) <= 2, syncs
 
