@@ -56,7 +56,7 @@ class ClockMapper {
   [[nodiscard]] Source source() const;
   [[nodiscard]] std::optional<std::int64_t> offsetNs() const;  // local - autopilot
   // True once the estimate is worth tagging with: three TIMESYNC answers, or arrivals
-  // over half a second. One answer, or the first few arrivals, can be late by a
+  // over a second. One answer, or the first few arrivals, can be late by a
   // scheduler's hiccup (tens of ms at start-up) that only more of them expose.
   [[nodiscard]] bool settled() const;
   [[nodiscard]] double bestRoundTripMs() const;  // in the window; NaN without TIMESYNC
