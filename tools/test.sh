@@ -153,7 +153,7 @@ step "fuzz the MAVLink parser (libFuzzer, 15 s in $JOBS processes)"
 tools/fuzz.sh 15
 
 step "style and types (clang-format, ruff, mypy)"
-git ls-files -co --exclude-standard -- '*.cpp' '*.h' | xargs clang-format --dry-run --Werror
+git ls-files -co --exclude-standard -- '*.cpp' '*.h' '*.inc' | xargs clang-format --dry-run --Werror
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
 # The package and the test harness, as [tool.mypy] in pyproject.toml lists them.
