@@ -1389,17 +1389,20 @@ def test_replay_of_a_flight_record_reproduces_live_decisions_and_geotags(
     time.sleep(0.3)
     ap.start()
     # The ground station asks for two photographs on top of selection (single
-    # captures): the live run keeps them as "commanded", and so must the replay.
-    ap.wait_for("HEARTBEAT", timeout=10)
+    # captures): the live run keeps them as "commanded", and so must the replay. Timed
+    # from the first keyframe's CAMERA_IMAGE_CAPTURED (the camera is running), so that
+    # both land inside the 8 s video however slowly a loaded machine starts it.
+    ap.wait_for("CAMERA_IMAGE_CAPTURED", timeout=30)
     for sequence in (1, 2):
-        time.sleep(2.0)
+        time.sleep(1.5)
         ap.command(mav2.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, sequence)
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
     fd = flight_dir(live)
     acks = [m.result for m in ap.received("COMMAND_ACK") if m.command == 2000]
-    commanded = [r["index"] for r in rows(fd / "decisions.csv") if r["reason"] == "commanded"]
-    assert acks == [mav2.MAV_RESULT_ACCEPTED] * 2 and len(commanded) >= 1, (acks, commanded)
+    kept = [(r["index"], r["reason"]) for r in rows(fd / "decisions.csv") if r["kept"] == "1"]
+    commanded = [i for i, reason in kept if reason == "commanded"]
+    assert acks == [mav2.MAV_RESULT_ACCEPTED] * 2 and len(commanded) >= 1, (acks, kept, stderr)
     out = tmp_path / "replay"
     t0 = time.monotonic()
     r = select(
