@@ -85,7 +85,7 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
     report.pose = rec.pose;
     report.cameraAttitude = rec.cameraToNed;
     report.fileUrl = "file://" + rec.file;
-    report.saved = saved;
+    report.saved = !rec.file.empty();  // on disk (untagged, or its row unsynced, too)
     telemetry_->reportCapture(report);
   }
   return saved;

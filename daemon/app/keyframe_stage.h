@@ -6,6 +6,7 @@
 #include <string>
 
 #include "capture/frame_queue.h"
+#include "core/capture_answer.h"
 #include "core/selector.h"
 
 namespace keyframed {
@@ -76,31 +77,46 @@ class KeyframeStage {
 // (TEMPORARILY_REJECTED) rather than acknowledged and then dropped.
 class CaptureRequests {
  public:
-  // One more; false when KeyframeSelector::kMaxCaptureRequests wait already or, with
-  // onlyIfIdle (an interval capture's tick), when any waits: a source that yields no
-  // usable frame for a while must not make a burst of near-identical ones after.
-  bool add(bool onlyIfIdle = false) {
+  // One more: Busy when KeyframeSelector::kMaxCaptureRequests wait already or, with
+  // onlyIfIdle (an interval capture's tick), when any waits (a source that yields no
+  // usable frame for a while must not make a burst of near-identical ones after);
+  // Ended once close() was called.
+  CaptureAnswer add(bool onlyIfIdle = false) {
     int n = n_.load();
     do {
+      if (n < 0) return CaptureAnswer::Ended;
       const int waiting = n + staged_.load();
       if (waiting >= KeyframeSelector::kMaxCaptureRequests || (onlyIfIdle && waiting > 0))
-        return false;
+        return CaptureAnswer::Busy;
     } while (!n_.compare_exchange_weak(n, n + 1));
-    return true;
+    return CaptureAnswer::Taken;
   }
   // Hands the waiting ones to the stage, before its next frame; returns how many it
   // refused (only in the moment between the two counts; logged by the caller).
   int drainInto(KeyframeStage& stage) {
+    int n = n_.load();
+    do {
+      if (n <= 0) break;
+    } while (!n_.compare_exchange_weak(n, 0));
     int refused = 0;
-    for (int n = n_.exchange(0); n > 0; --n) refused += stage.requestCapture() ? 0 : 1;
+    for (; n > 0; --n) refused += stage.requestCapture() ? 0 : 1;
     noteServed(stage);
     return refused;
   }
   // After each frame: how many still wait in the selector.
   void noteServed(const KeyframeStage& stage) { staged_.store(stage.pendingCaptures()); }
+  // The source has ended (after the stage's finish()): every capture asked for from
+  // now on is Ended, and those taken but never served (no usable frame came after
+  // them) are returned, for the caller to say so.
+  int close(const KeyframeStage& stage) {
+    const int onTheirWay = n_.exchange(kClosed);
+    staged_.store(0);
+    return (onTheirWay > 0 ? onTheirWay : 0) + stage.pendingCaptures();
+  }
 
  private:
-  std::atomic<int> n_{0};       // asked for, not yet handed to the stage
+  static constexpr int kClosed = -1;
+  std::atomic<int> n_{0};       // asked for, not yet handed to the stage; kClosed: ended
   std::atomic<int> staged_{0};  // waiting in the selector
 };
 

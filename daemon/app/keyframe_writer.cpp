@@ -54,7 +54,10 @@ bool KeyframeWriter::appendIndexRows(std::string& error, std::int64_t current) {
     if (sequence != current) indexedLate_.push_back(sequence);
   }
   // Like the keyframes themselves, the index survives a power cut as far as written.
-  index_.sync();
+  if (!index_.sync(error)) {
+    ++syncErrors_;
+    return false;
+  }
   return true;
 }
 
@@ -185,7 +188,11 @@ bool KeyframeWriter::finishWrite(int width, int height, std::int64_t frameIndex,
     error = "keyframe " + fileName(frameIndex) + " saved untagged: " + tagError;
   if (index_.isOpen()) {
     pendingRows_.push_back(Row{rec.sequence, std::move(row)});
-    if (!appendIndexRows(error, rec.sequence)) return false;
+    if (!appendIndexRows(error, rec.sequence)) {
+      // Written, only not synced (the disk's error is the caller's): indexed all the same.
+      rec.indexed = pendingRows_.empty();
+      return false;
+    }
   }
   rec.indexed = true;
   return tagError.empty();

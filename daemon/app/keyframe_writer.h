@@ -86,6 +86,9 @@ class KeyframeWriter {
   // Of the unsaved: those let go from memory (more than maxHeldBytes waited), lost
   // to the disk for good; the others are still held.
   [[nodiscard]] std::int64_t letGo() const { return letGo_; }
+  // Times the disk said keyframes.csv could not be synced (EIO): its rows read back,
+  // but those since the last good sync may not survive a power cut.
+  [[nodiscard]] std::int64_t syncErrors() const { return syncErrors_; }
   // The sequence numbers of keyframes whose write() said "not indexed" (a full disk)
   // that are now saved and in keyframes.csv, in order, since the last call: a copy
   // kept in memory for them can go.
@@ -138,6 +141,7 @@ class KeyframeWriter {
   std::int64_t count_ = 0;
   std::int64_t unsaved_ = 0;
   std::int64_t savedLate_ = 0;
+  std::int64_t syncErrors_ = 0;
   std::int64_t letGo_ = 0;
   std::int64_t geotagged_ = 0;
 };

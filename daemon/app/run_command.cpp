@@ -405,7 +405,8 @@ class Daemon {
     if (camera_) selection.overlap.lens = camera_->lensModel();
     return selection;
   }
-  CaptureRequests captureRequests_;  // MAVLink (telemetry thread) -> analysis
+  CaptureRequests captureRequests_;       // MAVLink (telemetry thread) -> analysis
+  std::atomic<int> capturesUnserved_{0};  // taken, but the source ended first
   StageCounts finalCounts_;
   std::unique_ptr<PreviewEncoder> preview_;  // made once the source's frame rate is known
   std::vector<std::uint8_t> previewData_, previewStill_;
@@ -427,6 +428,14 @@ void Daemon::analysisLoop() {
   } catch (const std::exception& e) {
     KF_LOG(Select, Error) << "analysis failed at the end: " << e.what();
     analysisFailed_.store(true);
+  }
+  // Captures asked for from now on are denied; those taken that no usable frame
+  // answered are said, not left as if served.
+  if (const int unserved = captureRequests_.close(*stage_); unserved > 0) {
+    capturesUnserved_.store(unserved);
+    KF_LOG(Select, Warning) << unserved
+                            << " capture(s) asked for over MAVLink not taken: the source ended "
+                               "before a usable frame came";
   }
   finalCounts_ = stage_->counts();
   stats_.kept.store(finalCounts_.kept);
@@ -679,6 +688,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
         "\"captures_pending\": %llu, "
         "\"captures_dropped\": %llu, \"captures_resent\": %llu, "
         "\"captures_requested\": %llu, \"captures_refused\": %llu, "
+        "\"captures_unserved\": %d, "
         "\"link_errors\": %llu, "
         "\"reconnects\": %llu, \"gimbal_messages\": %llu, \"bad_samples\": %llu, "
         "\"autopilot_reboots\": %llu}",
@@ -694,7 +704,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
         static_cast<unsigned long long>(ts.capturesDropped),
         static_cast<unsigned long long>(ts.capturesResent),
         static_cast<unsigned long long>(ts.captureRequests),
-        static_cast<unsigned long long>(ts.captureRefused),
+        static_cast<unsigned long long>(ts.captureRefused), capturesUnserved_.load(),
         static_cast<unsigned long long>(ts.linkErrors),
         static_cast<unsigned long long>(ts.reconnects),
         static_cast<unsigned long long>(ts.decoder.gimbal),
@@ -713,7 +723,7 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       "  \"frames_left_at_stop\": %llu,\n"
       "  \"frames_read\": %lld,\n"
       "  \"kept\": %lld,\n  \"written\": %lld,\n  \"unsaved\": %lld,\n  \"saved_late\": %lld,\n"
-      "  \"write_errors\": %lld,\n"
+      "  \"write_errors\": %lld,\n  \"index_sync_errors\": %lld,\n"
       "  \"rejected_blur\": %lld,\n  \"rejected_overlap\": %lld,\n  \"gap_fills\": %lld,\n"
       "  \"capture_errors\": %llu,\n  \"seconds\": %.3f,\n  \"frames_per_second\": %.2f,\n"
       "  \"analysis_ms_mean\": %.3f,\n  \"cpu_seconds\": %.3f,\n  \"cpu_percent\": %.1f,\n"
@@ -726,7 +736,8 @@ bool Daemon::writeSummary(double seconds, const std::string& state, std::string&
       static_cast<long long>(writer_.saved()),
       static_cast<long long>(writer_.count() - writer_.saved()),
       static_cast<long long>(writer_.savedLate()),
-      static_cast<long long>(stats_.writeErrors.load()), static_cast<long long>(c.rejectedBlur),
+      static_cast<long long>(stats_.writeErrors.load()),
+      static_cast<long long>(writer_.syncErrors()), static_cast<long long>(c.rejectedBlur),
       static_cast<long long>(c.rejectedOverlap), static_cast<long long>(c.promoted),
       static_cast<unsigned long long>(cs.errors), seconds,
       seconds > 0 ? static_cast<double>(c.framesRead) / seconds : 0.0,

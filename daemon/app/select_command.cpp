@@ -174,6 +174,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
         "    \"captures_sent\": %llu,\n    \"captures_pending\": %llu,\n"
         "    \"captures_dropped\": %llu,\n    \"captures_resent\": %llu,\n"
         "    \"captures_requested\": %llu,\n    \"captures_refused\": %llu,\n"
+        "    \"captures_unserved\": %llu,\n"
         "    \"link_errors\": %llu,\n    \"reconnects\": %llu,\n"
         "    \"truncated\": %s\n  }",
         jsonEscape(s.telemetry.source).c_str(), static_cast<long long>(s.telemetry.geotagged),
@@ -193,6 +194,7 @@ bool writeSummary(const std::string& path, const SelectOptions& o, const SourceI
         static_cast<unsigned long long>(s.telemetry.capturesResent),
         static_cast<unsigned long long>(s.telemetry.capturesRequested),
         static_cast<unsigned long long>(s.telemetry.capturesRefused),
+        static_cast<unsigned long long>(s.telemetry.capturesUnserved),
         static_cast<unsigned long long>(s.telemetry.linkErrors),
         static_cast<unsigned long long>(s.telemetry.reconnects),
         s.telemetry.truncated ? "true" : "false");
@@ -729,6 +731,13 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
   // (also after a read error: the video up to the break is covered; not after
   // an output error, which is already the run's failure)
   if (!outputFailed) stage.finish();
+  if (const int unserved = captureRequests.close(stage); unserved > 0) {
+    s.telemetry.capturesUnserved = static_cast<std::uint64_t>(unserved);
+    std::fprintf(stderr,
+                 "keyframed select: warning: %d capture(s) asked for over MAVLink not taken: the "
+                 "video ended before a usable frame came\n",
+                 unserved);
+  }
   rerecordMavlink(INT64_MAX);
   {
     const StageCounts& c = stage.counts();

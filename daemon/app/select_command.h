@@ -46,6 +46,7 @@ struct SelectSummary {
     std::uint64_t capturesResent = 0;     // sent again on MAV_CMD_REQUEST_MESSAGE
     std::uint64_t capturesRequested = 0;  // MAV_CMD_IMAGE_START_CAPTURE images asked for
     std::uint64_t capturesRefused = 0;    // ... refused, or interval ticks skipped
+    std::uint64_t capturesUnserved = 0;   // ... taken, but the video ended first
     std::uint64_t linkErrors = 0;
     std::uint64_t reconnects = 0;
     bool truncated = false;

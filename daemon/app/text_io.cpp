@@ -158,8 +158,10 @@ bool RowFile::append(std::string_view rows, std::string& error) {
   return true;
 }
 
-void RowFile::sync() const {
-  if (fd_ >= 0) ::fdatasync(fd_);
+bool RowFile::sync(std::string& error) const {
+  if (fd_ < 0 || ::fdatasync(fd_) == 0 || errno == EINVAL) return true;
+  error = "cannot sync " + path_ + " to the disk: " + std::strerror(errno);
+  return false;
 }
 
 bool RowFile::close(std::string& error) {

@@ -121,8 +121,10 @@ class RowFile {
   bool open(const std::string& path, std::string_view header, std::string& error);
   // Appends rows whole or not at all; false with a line ("cannot write PATH: ...").
   bool append(std::string_view rows, std::string& error);
-  // fdatasync: what is written survives a power cut.
-  void sync() const;
+  // fdatasync: what is written survives a power cut. False with a line when the disk
+  // says it could not (EIO): the rows may then be lost in a power cut, though they
+  // read back now (a file system that cannot sync a file, EINVAL, is not an error).
+  bool sync(std::string& error) const;
   bool close(std::string& error);
   [[nodiscard]] bool isOpen() const { return fd_ >= 0; }
   [[nodiscard]] const std::string& path() const { return path_; }

@@ -480,11 +480,11 @@ void TelemetryService::resendCaptures(const mavlink_command_long_t& c,
   stats_.capturesResent += sent;
 }
 
-bool TelemetryService::requestCapture(bool intervalTick) {
-  const bool taken = captureSink_ && captureSink_(intervalTick);
+CaptureAnswer TelemetryService::requestCapture(bool intervalTick) {
+  const CaptureAnswer answer = captureSink_ ? captureSink_(intervalTick) : CaptureAnswer::Ended;
   std::lock_guard lock(mutex_);
-  ++(taken ? stats_.captureRequests : stats_.captureRefused);
-  return taken;
+  ++(answer == CaptureAnswer::Taken ? stats_.captureRequests : stats_.captureRefused);
+  return answer;
 }
 
 bool TelemetryService::forOurCamera(const mavlink_command_long_t& c, const mavlink_message_t& msg) {
@@ -527,32 +527,57 @@ void TelemetryService::startCapture(const mavlink_command_long_t& c, const mavli
       sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
       return;
     }
-    const bool taken = requestCapture(false);
+    const CaptureAnswer answer = requestCapture(false);
+    const bool taken = answer == CaptureAnswer::Taken;
     if (taken && sequence > 0) lastCapture_ = {sequence, sender, now};
-    sendCommandAck(c.command, taken ? MAV_RESULT_ACCEPTED : MAV_RESULT_TEMPORARILY_REJECTED,
-                   msg.sysid, msg.compid);
+    sendCommandAck(c.command, ackFor(answer), msg.sysid, msg.compid);
     log(TelemetryLogLevel::Notice,
-        std::string(taken ? "capture requested by " : "capture refused (too many waiting) for ") +
-            who);
+        taken ? "capture requested by " + who
+              : "capture refused for " + who +
+                    (answer == CaptureAnswer::Busy ? " (too many waiting)"
+                                                   : " (the video source has ended)"));
+    return;
+  }
+  // The first at once: the answer to it is the command's.
+  const std::int64_t now = monotonicNowNs();
+  const CaptureAnswer first = requestCapture(true);
+  sendCommandAck(c.command, ackFor(first == CaptureAnswer::Busy ? CaptureAnswer::Taken : first),
+                 msg.sysid, msg.compid);
+  if (first == CaptureAnswer::Ended) {
+    captureIntervalNs_ = 0;
+    log(TelemetryLogLevel::Notice,
+        "interval capture refused for " + who + " (the video source has ended)");
     return;
   }
   captureIntervalNs_ = static_cast<std::int64_t>(interval * 1e9);
   capturesLeft_ = images;
-  nextCaptureNs_ = monotonicNowNs();  // the first at once
-  sendCommandAck(c.command, MAV_RESULT_ACCEPTED, msg.sysid, msg.compid);
+  nextCaptureNs_ = now + captureIntervalNs_;
+  if (capturesLeft_ > 0 && --capturesLeft_ == 0) captureIntervalNs_ = 0;
   char text[160];
   std::snprintf(text, sizeof text, "interval capture requested by %s: every %.3f s, %s",
                 who.c_str(), interval,
                 images == 0 ? "until stopped" : (std::to_string(images) + " images").c_str());
   log(TelemetryLogLevel::Notice, text);
-  runCaptureInterval(nextCaptureNs_);
+}
+
+std::uint8_t TelemetryService::ackFor(CaptureAnswer answer) {
+  switch (answer) {
+    case CaptureAnswer::Taken: return MAV_RESULT_ACCEPTED;
+    case CaptureAnswer::Busy: return MAV_RESULT_TEMPORARILY_REJECTED;
+    case CaptureAnswer::Ended: break;
+  }
+  return MAV_RESULT_DENIED;
 }
 
 void TelemetryService::runCaptureInterval(std::int64_t nowNs) {
   if (captureIntervalNs_ <= 0 || nowNs < nextCaptureNs_) return;
   // Skipped while an earlier one still waits for a usable frame, as a busy camera
   // would: a stretch of blurred frames must not end in a burst of identical images.
-  requestCapture(true);
+  if (requestCapture(true) == CaptureAnswer::Ended) {
+    captureIntervalNs_ = 0;
+    log(TelemetryLogLevel::Notice, "interval capture stopped: the video source has ended");
+    return;
+  }
   // On schedule without drift; after a stall, the next a whole interval later.
   nextCaptureNs_ += captureIntervalNs_;
   if (nextCaptureNs_ <= nowNs) nextCaptureNs_ = nowNs + captureIntervalNs_;

@@ -12,6 +12,7 @@
 #include <utility>
 #include <vector>
 
+#include "core/capture_answer.h"
 #include "telemetry/link.h"
 #include "telemetry/mavlink_codec.h"
 #include "telemetry/telemetry_decoder.h"
@@ -134,11 +135,13 @@ class TelemetryService {
   void reportCapture(const CaptureReport& report);
   // Where a capture asked for over MAVLink goes (MAV_CMD_IMAGE_START_CAPTURE: one
   // image, or one every interval until a count or MAV_CMD_IMAGE_STOP_CAPTURE): the
-  // selector's requestCapture(); false when it cannot take one more. Without a sink
+  // selector's requestCapture(); Busy when it cannot take one more now, Ended when
+  // the source has ended (the command is then denied, and an interval capture
+  // stops). Without a sink
   // the camera does not advertise CAMERA_CAP_FLAGS_CAPTURE_IMAGE and refuses the
   // command. Set before start(); called on the telemetry thread.
   // intervalTick: an interval capture's tick, to be skipped while any request waits.
-  using CaptureRequestSink = std::function<bool(bool intervalTick)>;
+  using CaptureRequestSink = std::function<CaptureAnswer(bool intervalTick)>;
   static constexpr double kMinCaptureIntervalS = 0.05;
   void setCaptureRequestSink(CaptureRequestSink sink) { captureSink_ = std::move(sink); }
   // The camera is on a gimbal whose attitude tags it (tagging.mount = "gimbal"):
@@ -174,7 +177,9 @@ class TelemetryService {
   void requestMessageRates(std::int64_t nowNs);
   void resendCaptures(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   void startCapture(const mavlink_command_long_t& c, const mavlink_message_t& msg);
-  bool requestCapture(bool intervalTick);
+  CaptureAnswer requestCapture(bool intervalTick);
+  // The COMMAND_ACK result (MAV_RESULT) for an answer.
+  static std::uint8_t ackFor(CaptureAnswer answer);
   bool forOurCamera(const mavlink_command_long_t& c, const mavlink_message_t& msg);
   void runCaptureInterval(std::int64_t nowNs);
   void sendCaptureStatus();

@@ -984,6 +984,7 @@ def test_live_udp_autopilot_without_timesync(
     assert [a.result for a in acks] == [mav2.MAV_RESULT_ACCEPTED]
     assert tel["captures_requested"] + tel["captures_refused"] == 3, tel
     assert tel["captures_requested"] >= 2, tel
+    assert tel["captures_unserved"] == 0, tel  # each served within the flight
     (status,) = ap.wait_for("CAMERA_CAPTURE_STATUS", timeout=5)
     assert status.image_count >= 4 and status.image_status in (0, 3), status
     asked_ns = [

@@ -1,10 +1,16 @@
 #include <sys/resource.h>
+#include <sys/syscall.h>
 #include <unistd.h>
 
+#include <atomic>
+#include <cerrno>
+#include <climits>
 #include <csignal>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -58,6 +64,17 @@ std::vector<std::string> lines(const fs::path& p) {
   std::vector<std::string> out;
   for (std::string l; std::getline(f, l);) out.push_back(l);
   return out;
+}
+
+// A disk that reports an I/O error on syncing keyframes.csv: this executable's
+// fdatasync (below) comes before the C library's, for the writer's calls too.
+std::atomic<bool> g_failIndexSync{false};
+
+bool isIndexFile(int fd) {
+  char link[PATH_MAX];
+  const std::string proc = "/proc/self/fd/" + std::to_string(fd);
+  const ssize_t n = ::readlink(proc.c_str(), link, sizeof link - 1);
+  return n > 0 && std::string_view(link, static_cast<std::size_t>(n)).ends_with("/keyframes.csv");
 }
 
 class WriterTest : public testing::Test {
@@ -234,6 +251,33 @@ TEST_F(WriterTest, AKeyframeSavedWhoseRowTheDiskDidNotTakeIsIndexedLate) {
   for (int i = 0; i < kBefore + 2; ++i) EXPECT_EQ(rows[static_cast<std::size_t>(i)].first, i);
 }
 
+TEST_F(WriterTest, AnIndexTheDiskCannotSyncIsAnErrorThoughItsRowsAreWritten) {
+  KeyframeWriter w;
+  std::string error;
+  ASSERT_TRUE(w.open(configHere(), error)) << error;
+  cv::Mat small(16, 16, CV_8UC3);
+  cv::randu(small, 0, 256);
+  KeyframeRecord rec;
+  ASSERT_TRUE(w.write(small, 0, 0, nullptr, rec, error)) << error;
+  g_failIndexSync = true;
+  const bool saved = w.write(small, 1, 1'000'000, nullptr, rec, error);
+  g_failIndexSync = false;
+  EXPECT_FALSE(saved) << "an error the run must report";
+  EXPECT_NE(error.find("cannot sync " + (dir_ / "keyframes.csv").string()), std::string::npos)
+      << error;
+  EXPECT_NE(error.find(std::strerror(EIO)), std::string::npos) << error;
+  EXPECT_EQ(w.syncErrors(), 1);
+  // The keyframe is on disk and in the index (it reads back): served, not held.
+  EXPECT_TRUE(rec.indexed);
+  EXPECT_FALSE(rec.file.empty());
+  EXPECT_EQ(w.saved(), 2);
+  ASSERT_TRUE(w.write(small, 2, 2'000'000, nullptr, rec, error)) << error;
+  EXPECT_TRUE(w.takeIndexedLate().empty()) << "no row was late";
+  ASSERT_TRUE(w.close(error)) << error;
+  EXPECT_EQ(indexRows(), (std::vector<std::pair<int, std::string>>{
+                             {0, "000000.jpg"}, {1, "000001.jpg"}, {2, "000002.jpg"}}));
+}
+
 TEST_F(WriterTest, HeldKeyframesAreBoundedTheOldestLetGo) {
   KeyframeWriter w;
   std::string error;
@@ -341,3 +385,11 @@ TEST_F(WriterTest, DecisionRowsStillUnwrittenAtTheCloseAreCountedAndAnError) {
 
 }  // namespace
 }  // namespace keyframed
+
+extern "C" int fdatasync(int fd) {
+  if (keyframed::g_failIndexSync.load() && keyframed::isIndexFile(fd)) {
+    errno = EIO;
+    return -1;
+  }
+  return static_cast<int>(::syscall(SYS_fdatasync, fd));
+}

@@ -308,13 +308,16 @@ TEST(CaptureRequests, OneLimitForThoseOnTheirWayAndThoseWaitingAndIntervalTicksW
     if (ev.decision.kept) kept.push_back(ev.decision.index);
   });
   CaptureRequests requests;
-  EXPECT_TRUE(requests.add(/*onlyIfIdle=*/true));   // nothing waits: an interval tick goes
-  EXPECT_FALSE(requests.add(/*onlyIfIdle=*/true));  // one waits: the next tick is skipped
-  for (int i = 1; i < KeyframeSelector::kMaxCaptureRequests; ++i) EXPECT_TRUE(requests.add());
-  EXPECT_FALSE(requests.add());  // 16 on their way
+  // Nothing waits: an interval tick goes; one waits: the next tick is skipped.
+  EXPECT_EQ(requests.add(/*onlyIfIdle=*/true), CaptureAnswer::Taken);
+  EXPECT_EQ(requests.add(/*onlyIfIdle=*/true), CaptureAnswer::Busy);
+  for (int i = 1; i < KeyframeSelector::kMaxCaptureRequests; ++i)
+    EXPECT_EQ(requests.add(), CaptureAnswer::Taken);
+  EXPECT_EQ(requests.add(), CaptureAnswer::Busy);  // 16 on their way
   EXPECT_EQ(requests.drainInto(stage), 0);
   EXPECT_EQ(stage.pendingCaptures(), KeyframeSelector::kMaxCaptureRequests);
-  EXPECT_FALSE(requests.add());  // 16 waiting in the selector: still refused, not dropped
+  // 16 waiting in the selector: still refused, not dropped.
+  EXPECT_EQ(requests.add(), CaptureAnswer::Busy);
   // Frames serve them, one a frame; the room comes back as they are served.
   const cv::Mat view = test::viewAt(test::photoStrip(), 100);
   for (int i = 0; i < 3; ++i) {
@@ -323,8 +326,26 @@ TEST(CaptureRequests, OneLimitForThoseOnTheirWayAndThoseWaitingAndIntervalTicksW
   }
   EXPECT_EQ(kept, (std::vector<std::int64_t>{0, 1, 2}));
   EXPECT_EQ(stage.pendingCaptures(), KeyframeSelector::kMaxCaptureRequests - 3);
-  EXPECT_TRUE(requests.add());
-  EXPECT_FALSE(requests.add(/*onlyIfIdle=*/true));
+  EXPECT_EQ(requests.add(), CaptureAnswer::Taken);
+  EXPECT_EQ(requests.add(/*onlyIfIdle=*/true), CaptureAnswer::Busy);
+}
+
+TEST(CaptureRequests, OnceTheSourceHasEndedCapturesAreDeniedAndThoseNotServedAreCounted) {
+  KeyframeStage stage({}, nullptr, [](KeyframeEvent&&) {});
+  CaptureRequests requests;
+  // Two handed to the stage, one more still on its way, and no frame after them.
+  EXPECT_EQ(requests.add(), CaptureAnswer::Taken);
+  EXPECT_EQ(requests.add(), CaptureAnswer::Taken);
+  EXPECT_EQ(requests.drainInto(stage), 0);
+  EXPECT_EQ(requests.add(), CaptureAnswer::Taken);
+  stage.finish();
+  EXPECT_EQ(requests.close(stage), 3);
+  EXPECT_EQ(requests.add(), CaptureAnswer::Ended);
+  EXPECT_EQ(requests.add(/*onlyIfIdle=*/true), CaptureAnswer::Ended);
+  // Draining a closed one hands nothing over and does not open it again.
+  EXPECT_EQ(requests.drainInto(stage), 0);
+  EXPECT_EQ(stage.pendingCaptures(), 2);
+  EXPECT_EQ(requests.add(), CaptureAnswer::Ended);
 }
 
 TEST(KeyframeStage, SharpFramesDroppedWhileTrackingIsLostAreNotCountedAsBlurred) {

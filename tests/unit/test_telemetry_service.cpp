@@ -393,7 +393,7 @@ TEST(TelemetryService, CameraInformationSaysNaNForWhatItDoesNotKnow) {
   cam.width = 1920;
   cam.height = 1080;
   TelemetryService svc(serviceConfig(), cam);
-  svc.setCaptureRequestSink([](bool) { return true; });
+  svc.setCaptureRequestSink([](bool) { return CaptureAnswer::Taken; });
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
   MavlinkEncoder ap(1, 1);
@@ -700,10 +700,10 @@ TEST(TelemetryService, ImageStartCaptureAsksTheSelectorOnceOrAtAnInterval) {
   std::atomic<int> requests{0}, ticks{0};
   std::atomic<bool> full{false};
   svc.setCaptureRequestSink([&](bool intervalTick) {
-    if (full) return false;
+    if (full) return CaptureAnswer::Busy;
     ++requests;
     ticks += intervalTick ? 1 : 0;
-    return true;
+    return CaptureAnswer::Taken;
   });
   std::string error;
   ASSERT_TRUE(svc.start(peer.link(), error)) << error;
@@ -766,6 +766,45 @@ TEST(TelemetryService, ImageStartCaptureAsksTheSelectorOnceOrAtAnInterval) {
   EXPECT_EQ(acks(peer).back().second, MAV_RESULT_ACCEPTED);
   EXPECT_EQ(svc.stats().captureRequests, static_cast<std::uint64_t>(requests.load()));
   EXPECT_EQ(svc.stats().captureRefused, 1U);
+}
+
+TEST(TelemetryService, OnceTheSourceHasEndedCapturesAreDeniedAndAnIntervalStops) {
+  Peer peer;
+  TelemetryService svc(serviceConfig(), CameraDescription{});
+  std::atomic<int> requests{0};
+  std::atomic<bool> ended{false};
+  svc.setCaptureRequestSink([&](bool) {
+    if (ended) return CaptureAnswer::Ended;
+    ++requests;
+    return CaptureAnswer::Taken;
+  });
+  std::string error;
+  ASSERT_TRUE(svc.start(peer.link(), error)) << error;
+  MavlinkEncoder gcs(255, 190);
+  constexpr int kStart = MAV_CMD_IMAGE_START_CAPTURE;
+  // An interval capture runs until the source ends, then stops by itself.
+  peer.push(command(gcs, kStart, 0, 0.05F, 0, 0));
+  ASSERT_TRUE(eventually([&] { return requests.load() >= 3; }));
+  ended = true;
+  std::this_thread::sleep_for(std::chrono::milliseconds(150));
+  peer.push(requestMessage(gcs, 1, 100, MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS, 0));
+  const auto status = peer.waitFor(MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS);
+  ASSERT_EQ(status.size(), 1U);
+  mavlink_camera_capture_status_t cs;
+  mavlink_msg_camera_capture_status_decode(&status[0], &cs);
+  EXPECT_EQ(cs.image_status, 0);  // idle
+  // A single image and a new interval capture are denied, not accepted and dropped.
+  peer.push(command(gcs, kStart, 0, 0, 1, 5));
+  peer.push(command(gcs, kStart, 0, 1, 0, 0));
+  ASSERT_TRUE(eventually([&] { return acks(peer).size() == 4; }));
+  svc.stop();
+  const auto a = acks(peer);
+  EXPECT_EQ(a[0].second, MAV_RESULT_ACCEPTED);
+  EXPECT_EQ(a[1].first, MAV_CMD_REQUEST_MESSAGE);
+  EXPECT_EQ(a[2], std::make_pair(kStart, static_cast<int>(MAV_RESULT_DENIED)));
+  EXPECT_EQ(a[3], std::make_pair(kStart, static_cast<int>(MAV_RESULT_DENIED)));
+  EXPECT_EQ(svc.stats().captureRequests, static_cast<std::uint64_t>(requests.load()));
+  EXPECT_EQ(svc.stats().captureRefused, 3U);  // the interval's last tick and the two commands
 }
 
 TEST(TelemetryService, WithoutASelectorTheCameraRefusesToCapture) {
