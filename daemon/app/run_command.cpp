@@ -58,6 +58,7 @@
 #include "output/mcap_repair.h"
 #endif
 #include "tagging/camera_model.h"
+#include "tagging/pix4d_fisheye.h"
 #include "telemetry/telemetry_service.h"
 #ifdef KEYFRAMED_WITH_LIBCAMERA
 #include "capture/libcamera_source.h"
@@ -976,6 +977,8 @@ int Daemon::run() {
     if (const std::string w = camera_->physicalSizeWarning(); !w.empty())
       KF_LOG(Tagging, Warning) << w;
     if (const std::string w = camera_->lensWarning(); !w.empty()) KF_LOG(Tagging, Warning) << w;
+    if (const std::string w = pix4dFisheyeWarning(*camera_); !w.empty())
+      KF_LOG(Tagging, Warning) << w;
   }
   if (!makeFlightDir(config_.output.stateDir, flightDir_, error)) {
     KF_LOG(Output, Error) << error;

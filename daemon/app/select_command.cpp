@@ -31,6 +31,7 @@
 #include "output/flight_outputs.h"
 #include "output/mcap_replay.h"
 #include "tagging/camera_model.h"
+#include "tagging/pix4d_fisheye.h"
 #include "telemetry/telemetry_service.h"
 
 namespace keyframed {
@@ -485,6 +486,8 @@ SelectSummary runSelection(const SelectOptions& given, const ProgressFn& progres
     }
     const std::string lens = camera->lensWarning();
     if (!lens.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", lens.c_str());
+    const std::string pix4d = pix4dFisheyeWarning(*camera);
+    if (!pix4d.empty()) std::fprintf(stderr, "keyframed select: warning: %s\n", pix4d.c_str());
   }
   // Too small to analyse (a strip of a few rows, a thumbnail): said before any output,
   // not an OpenCV exception part-way.

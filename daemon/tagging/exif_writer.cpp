@@ -14,6 +14,7 @@
 #include <exiv2/exiv2.hpp>
 
 #include "tagging/camera_mount.h"
+#include "tagging/pix4d_fisheye.h"
 
 namespace keyframed {
 namespace {
@@ -165,6 +166,20 @@ void writeCamera(Exiv2::ExifData& exif, Exiv2::XmpData& xmp, const CameraModel& 
     dist += format("%.9g", v);
   }
   xmp[fisheye ? "Xmp.Keyframed.FisheyeDistortion" : "Xmp.Camera.PerspectiveDistortion"] = dist;
+  // Pix4D's own fisheye model, fitted to the lens (pix4d_fisheye.h): what Pix4D reads.
+  if (const auto p = fisheye ? pix4dFisheye(cam) : std::nullopt) {
+    std::string affine, poly;
+    for (std::size_t i = 0; i < 4; ++i) {
+      if (i > 0) {
+        affine += ',';
+        poly += ',';
+      }
+      affine += format("%.6f", p->affine[i] + 0.0);
+      poly += format("%.9g", p->polynomial[i] + 0.0);
+    }
+    xmp["Xmp.Camera.FisheyeAffineMatrix"] = affine;
+    xmp["Xmp.Camera.FisheyePolynomial"] = poly;
+  }
 }
 
 void writeTime(Exiv2::ExifData& exif, std::int64_t utcUs, bool gps) {

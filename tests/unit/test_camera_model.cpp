@@ -9,11 +9,13 @@
 #include <sys/stat.h>
 
 #include <gtest/gtest.h>
+#include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 
 #include "tagging/camera_model.h"
 #include "tagging/camera_model_toml.h"
 #include "tagging/camera_mount.h"
+#include "tagging/pix4d_fisheye.h"
 #include "telemetry/pose_store.h"
 #include "temp_dir.h"
 
@@ -594,6 +596,108 @@ TEST(CameraMount, CameraAxesFollowTheMountConvention) {
   const Pix4dAngles a = pix4dAngles(cameraToNed({std::cos(r), std::sin(r), 0, 0}, CameraMount{}));
   EXPECT_NEAR(a.rollDeg, 10, 1e-9);
   EXPECT_NEAR(a.pitchDeg, 0, 1e-9);
+}
+
+// A fisheye camera as cv::fisheye::calibrate leaves it.
+CameraModel fisheyeCamera(int w, int h, double fx, double fy, std::vector<double> k) {
+  CameraModel c;
+  c.lens = CameraModel::Lens::Fisheye;
+  c.width = w;
+  c.height = h;
+  c.fx = fx;
+  c.fy = fy;
+  c.cx = (w - 1) / 2.0 + 1.75;
+  c.cy = (h - 1) / 2.0 - 0.75;
+  c.distortion = std::move(k);
+  return c;
+}
+
+// The largest distance, over rays spread across the image, between where OpenCV's
+// fisheye model projects a ray (cv::fisheye::projectPoints) and where Pix4D's published
+// model does with the tags' values. The corners' directions are among them.
+double pix4dProjectionError(const CameraModel& cam, const Pix4dFisheye& p) {
+  std::vector<double> phis;
+  for (int i = 0; i < 72; ++i) phis.push_back(2.0 * std::numbers::pi * i / 72.0);
+  for (const double u : {-0.5, cam.width - 0.5}) {
+    for (const double v : {-0.5, cam.height - 0.5})
+      phis.push_back(std::atan2((v - cam.cy) / cam.fy, (u - cam.cx) / cam.fx));
+  }
+  std::vector<cv::Point3d> rays;
+  std::vector<std::pair<double, double>> angles;  // theta, phi
+  const double maxTheta = std::min(p.maxAngleDeg, 89.9) * std::numbers::pi / 180.0;
+  for (int i = 1; i <= 100; ++i) {
+    const double theta = maxTheta * i / 100.0;
+    for (const double phi : phis) {
+      rays.emplace_back(std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi),
+                        std::cos(theta));
+      angles.emplace_back(theta, phi);
+    }
+  }
+  const cv::Matx33d k(cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
+  const cv::Vec4d d(cam.distortion[0], cam.distortion[1], cam.distortion[2], cam.distortion[3]);
+  std::vector<cv::Point2d> px;
+  cv::fisheye::projectPoints(rays, px, cv::Vec3d(), cv::Vec3d(), k, d);
+  double worst = 0.0;
+  for (std::size_t i = 0; i < px.size(); ++i) {
+    if (px[i].x < -0.5 - 1e-6 || px[i].y < -0.5 - 1e-6 || px[i].x > cam.width - 0.5 + 1e-6 ||
+        px[i].y > cam.height - 0.5 + 1e-6)
+      continue;  // outside the image
+    const auto [theta, phi] = angles[i];
+    const double t = 2.0 / std::numbers::pi * theta;
+    const auto& q = p.polynomial;
+    const double rho = q[0] + t * (q[1] + t * (q[2] + t * q[3]));
+    const double xh = rho * std::cos(phi), yh = rho * std::sin(phi);
+    const cv::Point2d back(p.affine[0] * xh + p.affine[1] * yh + cam.cx,
+                           p.affine[2] * xh + p.affine[3] * yh + cam.cy);
+    worst = std::max(worst, cv::norm(back - px[i]));
+  }
+  return worst;
+}
+
+TEST(Pix4dFisheye, TheFittedModelProjectsAsOpenCvsWithinItsStatedError) {
+  // 120 degrees across a 16:9 frame with fx != fy, a 4:3 one, a 1080p one reaching 89
+  // degrees in its corners.
+  for (const CameraModel& cam :
+       {fisheyeCamera(480, 270, 220.0, 221.0, {0.032, -0.0081, 0.0017, -0.0003}),
+        fisheyeCamera(320, 240, 120.0, 120.0, {0.031, -0.0072, 0.0011, -0.00019}),
+        fisheyeCamera(1920, 1080, 700.0, 700.0, {0.012, -0.004, 0.0009, -0.0001})}) {
+    const auto p = pix4dFisheye(cam);
+    ASSERT_TRUE(p) << cam.width;
+    EXPECT_EQ(p->polynomial[0], 0.0);
+    EXPECT_EQ(p->polynomial[1], 1.0);
+    EXPECT_EQ(p->affine[1], 0.0);
+    EXPECT_EQ(p->affine[2], 0.0);
+    // C ~ the image circle's radius at 90 degrees: fx * pi / 2 for an equidistant lens.
+    EXPECT_NEAR(p->affine[0] / (cam.fx * std::numbers::pi / 2), 1.0, 0.1) << cam.width;
+    EXPECT_NEAR(p->affine[3] / p->affine[0], cam.fy / cam.fx, 1e-12);
+    const double measured = pix4dProjectionError(cam, *p);
+    EXPECT_LT(measured, 0.5) << cam.width;
+    // The error the fit states is what the projection shows.
+    EXPECT_NEAR(measured, p->maxErrorPx, 0.02 + 0.1 * p->maxErrorPx) << cam.width;
+    EXPECT_EQ(pix4dFisheyeWarning(cam), "") << cam.width;
+  }
+}
+
+TEST(Pix4dFisheye, ALensTheCubicCannotFollowIsSaidAndOthersGetNone) {
+  // Strong higher-order terms out to 90 degrees: the cubic is pixels out, and said.
+  const CameraModel wide = fisheyeCamera(1920, 1080, 500.0, 500.0, {0.1, -0.05, 0.02, -0.004});
+  const auto p = pix4dFisheye(wide);
+  ASSERT_TRUE(p);
+  EXPECT_GT(p->maxErrorPx, 2.0);
+  EXPECT_NEAR(pix4dProjectionError(wide, *p), p->maxErrorPx, 0.1 * p->maxErrorPx);
+  const std::string w = pix4dFisheyeWarning(wide);
+  EXPECT_NE(w.find("Pix4D's fisheye model"), std::string::npos) << w;
+  EXPECT_NE(w.find("px only"), std::string::npos) << w;
+  // A pinhole, an uncalibrated fisheye, one whose polynomial folds back before the
+  // corners: no Pix4D fisheye model.
+  CameraModel pinhole = wide;
+  pinhole.lens = CameraModel::Lens::Pinhole;
+  EXPECT_FALSE(pix4dFisheye(pinhole));
+  CameraModel bare = wide;
+  bare.fx = NAN;
+  EXPECT_FALSE(pix4dFisheye(bare));
+  EXPECT_FALSE(pix4dFisheye(fisheyeCamera(1920, 1080, 300.0, 300.0, {-0.3, 0.0, 0.0, 0.0})));
+  EXPECT_EQ(pix4dFisheyeWarning(pinhole), "");
 }
 
 }  // namespace

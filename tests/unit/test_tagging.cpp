@@ -14,6 +14,7 @@
 #include "tagging/camera_mount.h"
 #include "tagging/exif_writer.h"
 #include "tagging/jpeg_encoder.h"
+#include "tagging/pix4d_fisheye.h"
 #include "telemetry/pose_store.h"
 #include "temp_dir.h"
 
@@ -193,6 +194,18 @@ TEST_F(TaggingTest, FisheyeLensReadByExiftool) {
   EXPECT_EQ(field(j, "XMP-Camera:PerspectiveFocalLength"), "");
   EXPECT_EQ(field(j, "XMP-Camera:PerspectiveFocalLengthUnits"), "");
   EXPECT_EQ(field(j, "XMP-Camera:PerspectiveDistortion"), "");
+  // Pix4D's fisheye model, fitted (Pix4dFisheye tests the fit itself).
+  const auto p = pix4dFisheye(cam);
+  ASSERT_TRUE(p);
+  char affine[96];
+  std::snprintf(affine, sizeof affine, "%.6f,0.000000,0.000000,%.6f", p->affine[0], p->affine[3]);
+  EXPECT_EQ(field(j, "XMP-Camera:FisheyeAffineMatrix"), affine) << j;
+  const std::string poly = field(j, "XMP-Camera:FisheyePolynomial");
+  ASSERT_EQ(poly.rfind("0,1,", 0), 0U) << poly;
+  double p2 = NAN, p3 = NAN;
+  ASSERT_EQ(std::sscanf(poly.c_str() + 4, "%lf,%lf", &p2, &p3), 2) << poly;
+  EXPECT_NEAR(p2, p->polynomial[2], 1e-8);
+  EXPECT_NEAR(p3, p->polynomial[3], 1e-8);
   const std::string bytes(jpeg_.begin(), jpeg_.end());
   EXPECT_NE(bytes.find("xmlns:Keyframed=\"https://github.com/keyframed/keyframed/xmp/1.0/\""),
             std::string::npos);
