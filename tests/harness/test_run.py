@@ -1812,6 +1812,42 @@ def test_keyframes_a_full_disk_held_back_are_saved_once_it_has_room(
     assert sorted(p.name for p in offline.glob("*.jpg")) == sorted(saved)
 
 
+def test_an_index_the_disk_cannot_sync_is_reported_and_loses_no_keyframe(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path
+) -> None:
+    """The disk says EIO each time keyframes.csv is synced (a failing SD card; an
+    LD_PRELOAD shim): every keyframe and its row is still written (they read back), the
+    failed syncs are logged and counted, and the run exits 1, since what it wrote may
+    not survive a power cut."""
+    shim = kf_bin.resolve().parent.parent / "tests" / "libkeyframed-fault-sync.so"
+    assert shim.exists(), f"{shim} not built: tools/test.sh builds it with the tests"
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        "output.mcap=false",
+        env={"LD_PRELOAD": str(shim), "KEYFRAMED_FAULT_FDATASYNC": "keyframes.csv"},
+    )
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1, stderr
+    index = flight_dir(tmp_path) / "keyframes" / "keyframes.csv"
+    assert f"cannot sync {index} to the disk: Input/output error" in stderr, stderr
+    assert "every keyframe saved in the end" in stderr, stderr
+    summary = json.loads((flight_dir(tmp_path) / "summary.json").read_text())
+    kfs = rows(index)
+    saved = sorted(p.name for p in index.parent.glob("*.jpg"))
+    print(f"{summary['index_sync_errors']} failed syncs, {summary['kept']} keyframes")
+    assert summary["kept"] >= 2 and summary["index_sync_errors"] >= summary["kept"], summary
+    assert summary["unsaved"] == 0 and summary["written"] == summary["kept"], summary
+    assert [int(r["sequence"]) for r in kfs] == list(range(summary["kept"])), kfs
+    assert sorted(r["file"] for r in kfs) == saved, (kfs, saved)
+    # The same keyframes as offline selection keeps.
+    offline = tmp_path / "offline"
+    r = select(kf_bin, short_nadir / "video.avi", offline)
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in offline.glob("*.jpg")) == saved
+
+
 @mounts_tmpfs
 def test_full_disk_loses_no_keyframe_on_the_link(
     kf_bin: Path, short_nadir: Path, tmp_path: Path
