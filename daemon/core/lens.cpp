@@ -11,16 +11,6 @@ namespace {
 // grows without bound towards 90 degrees, and so would the homography's leverage.
 constexpr double kMaxFisheyeTheta = 80.0 * std::numbers::pi / 180.0;
 
-// theta * (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8) and its derivative.
-double fisheyeTheta(double theta, const std::array<double, 5>& k, double* slope) {
-  const double t2 = theta * theta;
-  const double poly = 1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])));
-  if (slope != nullptr) {
-    *slope = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])));
-  }
-  return theta * poly;
-}
-
 // Brown-Conrady on normalised coordinates.
 cv::Point2d brown(cv::Point2d p, const std::array<double, 5>& k) {
   const double r2 = p.x * p.x + p.y * p.y;
@@ -78,6 +68,15 @@ cv::Point2d brown(cv::Point2d p, const std::array<double, 5>& k) {
 
 }  // namespace
 
+double fisheyeDistortedAngle(double theta, const std::array<double, 5>& k, double* slope) {
+  const double t2 = theta * theta;
+  const double poly = 1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])));
+  if (slope != nullptr) {
+    *slope = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])));
+  }
+  return theta * poly;
+}
+
 LensModel LensModel::scaledTo(int w, int h) const {
   LensModel out = *this;
   if (width <= 0 || height <= 0 || (w == width && h == height)) return out;
@@ -106,12 +105,12 @@ bool LensModel::undistort(cv::Point2d pixel, cv::Point2d& ideal) const {
       double err = 1.0;
       for (int i = 0; i < 20 && std::fabs(err) > 1e-12; ++i) {
         double slope = 0;
-        err = fisheyeTheta(theta, k, &slope) - thetaD;
+        err = fisheyeDistortedAngle(theta, k, &slope) - thetaD;
         if (!(slope > 1e-6)) return false;  // the polynomial turns back: no inverse
         theta -= err / slope;
       }
       // Not converged (a far-off start on a strong polynomial), or out of reach.
-      if (!(std::fabs(fisheyeTheta(theta, k, nullptr) - thetaD) < 1e-9)) return false;
+      if (!(std::fabs(fisheyeDistortedAngle(theta, k, nullptr) - thetaD) < 1e-9)) return false;
       if (!(theta >= 0.0 && theta < kMaxFisheyeTheta)) return false;
       const double s = std::tan(theta) / thetaD;
       n = {d.x * s, d.y * s};
@@ -137,7 +136,7 @@ cv::Point2d LensModel::distort(cv::Point2d ideal) const {
   if (kind == Kind::Fisheye) {
     const double r = std::hypot(n.x, n.y);
     if (r > 1e-12) {
-      const double s = fisheyeTheta(std::atan(r), k, nullptr) / r;
+      const double s = fisheyeDistortedAngle(std::atan(r), k, nullptr) / r;
       d = {n.x * s, n.y * s};
     }
   } else {
@@ -153,7 +152,7 @@ double LensModel::monotonicRadius() const {
     double limit = kMaxFisheyeTheta;
     for (double theta = 0.0; theta < kMaxFisheyeTheta; theta += 0.001) {
       double slope = 0;
-      fisheyeTheta(theta, k, &slope);
+      fisheyeDistortedAngle(theta, k, &slope);
       if (!(slope > 0.0)) {
         limit = theta;
         break;

@@ -39,4 +39,9 @@ struct LensModel {
   [[nodiscard]] const char* invalidReason() const;
 };
 
+// OpenCV's fisheye polynomial: the distorted angle theta_d = theta (1 + k1 theta^2 +
+// k2 theta^4 + k3 theta^6 + k4 theta^8) of a ray theta off the axis (k = k1..k4), and
+// its derivative in *slope when asked.
+double fisheyeDistortedAngle(double theta, const std::array<double, 5>& k, double* slope = nullptr);
+
 }  // namespace keyframed

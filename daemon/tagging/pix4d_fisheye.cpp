@@ -1,29 +1,24 @@
 #include "tagging/pix4d_fisheye.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <numbers>
 
 #include <opencv2/core.hpp>
 
+#include "core/lens.h"
+
 namespace keyframed {
-
-namespace {
-
-// OpenCV's distorted angle theta_d for theta (its fisheye polynomial).
-double distortedAngle(const CameraModel& cam, double theta) {
-  const auto k = [&](std::size_t i) { return i < cam.distortion.size() ? cam.distortion[i] : 0.0; };
-  const double t2 = theta * theta;
-  return theta * (1.0 + t2 * (k(0) + t2 * (k(1) + t2 * (k(2) + t2 * k(3)))));
-}
-
-}  // namespace
 
 std::optional<Pix4dFisheye> pix4dFisheye(const CameraModel& cam) {
   if (cam.lens != CameraModel::Lens::Fisheye || !cam.calibrated() || !(cam.fx > 0.0) ||
       !(cam.fy > 0.0))
     return std::nullopt;
+  std::array<double, 5> k{};  // k1..k4
+  std::copy_n(cam.distortion.begin(), std::min(cam.distortion.size(), std::size_t{4}), k.begin());
+  const auto distortedAngle = [&](double theta) { return fisheyeDistortedAngle(theta, k); };
   // The farthest corner, as OpenCV's distorted angle (the normalised image radius).
   double reach = 0.0;
   for (const double u : {-0.5, cam.width - 0.5}) {
@@ -37,7 +32,7 @@ std::optional<Pix4dFisheye> pix4dFisheye(const CameraModel& cam) {
   constexpr double kRightAngle = std::numbers::pi / 2;
   double lo = 0.0, drawn = 0.0;
   while (lo < kRightAngle) {
-    const double next = distortedAngle(cam, std::min(lo + kStep, kRightAngle));
+    const double next = distortedAngle(std::min(lo + kStep, kRightAngle));
     if (!(next > drawn)) return std::nullopt;  // folds back: lensWarning() says so
     if (next >= reach) break;
     lo = std::min(lo + kStep, kRightAngle);
@@ -46,7 +41,7 @@ std::optional<Pix4dFisheye> pix4dFisheye(const CameraModel& cam) {
   double hi = std::min(lo + kStep, kRightAngle);
   for (int i = 0; i < 40 && lo < kRightAngle; ++i) {
     const double mid = 0.5 * (lo + hi);
-    (distortedAngle(cam, mid) < reach ? lo : hi) = mid;
+    (distortedAngle(mid) < reach ? lo : hi) = mid;
   }
   const double theta = std::min(hi, kRightAngle);
   if (!(theta > 0.0)) return std::nullopt;
@@ -60,7 +55,7 @@ std::optional<Pix4dFisheye> pix4dFisheye(const CameraModel& cam) {
     a.at<double>(i, 0) = t;
     a.at<double>(i, 1) = t * t;
     a.at<double>(i, 2) = t * t * t;
-    b.at<double>(i, 0) = cam.fx * distortedAngle(cam, th);
+    b.at<double>(i, 0) = cam.fx * distortedAngle(th);
   }
   cv::Mat x;
   if (!cv::solve(a, b, x, cv::DECOMP_QR) || !(x.at<double>(0) > 0.0)) return std::nullopt;
