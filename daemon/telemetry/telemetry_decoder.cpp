@@ -82,6 +82,12 @@ bool TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
   // or a stream that stalled: those are followed by newer messages at once, so a
   // reboot is believed only once the clock has stayed behind, and gone on consistently
   // from where it went back, for kRebootConfirmNs with at least three messages.
+  // A reboot first heard after a silence longer than the old boot had run (the link
+  // down while the autopilot restarted) finds its clock ahead of the last time heard,
+  // yet seconds behind the time that passed here: the same lag, and the same test.
+  // (Kept on the old boot's clock, its history would be moved onto the silence.) A
+  // backlog that a stalled link releases lags too, but catches up: such a clock is
+  // believed only once it has kept the pace of ours closely for kRebootAheadConfirmNs.
   const auto boot = static_cast<std::int64_t>(bootMs);
   // A reboot's messages come after the silence of the reboot: a candidate from before
   // a silence (the link, or this thread, stalled) starts afresh.
@@ -89,12 +95,14 @@ bool TelemetryDecoder::observeBootTime(std::uint32_t bootMs, std::int64_t localN
   lastMessageLocalNs_ = localNs;
   const std::int64_t back = lastBootMs_ - boot;
   const std::int64_t expected = lastBootMs_ + (localNs - lastBootLocalNs_) / kMs;
-  if (lastBootMs_ >= 0 && back > 0 && (back > 5000 || expected - boot > 2000)) {
-    const bool goesOn =
-        reboot_ && boot >= reboot_->bootMs - 100 &&
-        std::llabs((boot - reboot_->bootMs) - (localNs - reboot_->localNs) / kMs) <= 1000;
+  if (lastBootMs_ >= 0 && (back > 5000 || (back != 0 && expected - boot > 2000))) {
+    const bool ahead = back < 0;
+    const bool goesOn = reboot_ && boot >= reboot_->bootMs - 100 &&
+                        std::llabs((boot - reboot_->bootMs) - (localNs - reboot_->localNs) / kMs) <=
+                            (ahead ? 250 : 1000);
     if (!goesOn) reboot_ = RebootCandidate{boot, localNs, 0};
-    if (++reboot_->count < 3 || localNs - reboot_->localNs < kRebootConfirmNs) {
+    if (++reboot_->count < 3 ||
+        localNs - reboot_->localNs < (ahead ? kRebootAheadConfirmNs : kRebootConfirmNs)) {
       ++stats_.staleBootTimes;
       return false;
     }

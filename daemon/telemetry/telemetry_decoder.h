@@ -101,9 +101,12 @@ class TelemetryDecoder {
   // False when the message's samples are not to be used: it lies seconds behind the
   // boot clock (a copy over a slower path, a stalled stream) and may be the first of a
   // reboot, which is believed once such messages have gone on for kRebootConfirmNs
-  // with nothing newer in between.
+  // with nothing newer in between; or, after a silence, it is ahead of the last boot
+  // time but seconds behind the time that passed (a reboot heard late, or a backlog),
+  // believed a reboot once it has kept our clock's pace for kRebootAheadConfirmNs.
   [[nodiscard]] bool observeBootTime(std::uint32_t bootMs, std::int64_t localNs);
   static constexpr std::int64_t kRebootConfirmNs = 500'000'000;
+  static constexpr std::int64_t kRebootAheadConfirmNs = 2'000'000'000;
   [[nodiscard]] bool quaternionsStandFor(std::int64_t attitudeMs) const;
   // The boot whose history answers for localNs (the previous one before a reboot),
   // its clock's offset and UTC there. Takes mutex_.

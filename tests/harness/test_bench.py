@@ -134,9 +134,9 @@ def test_latency_benchmark_receives_every_keyframe() -> None:
 def test_daemon_benchmark_with_its_peers() -> None:
     """tools/bench/daemon_bench.sh --full on a 2 s 1080p flight: the daemon with a fake
     autopilot and a ground station; its rows printed, every keyframe geotagged and
-    received."""
+    received, and (--rss) the daemon's memory sampled while it ran."""
     p = subprocess.run(
-        [str(ROOT / "tools" / "bench" / "daemon_bench.sh"), "2", "--full"],
+        [str(ROOT / "tools" / "bench" / "daemon_bench.sh"), "2", "--full", "--rss"],
         capture_output=True,
         text=True,
         timeout=300,
@@ -150,3 +150,14 @@ def test_daemon_benchmark_with_its_peers() -> None:
     assert kept > 0 and row(out, "geotagged")[0] == kept, out
     assert row(out, "ground station received")[0] == kept, out
     assert row(out, "cpu_percent")[0] > 0 and row(out, "max_rss_mb")[0] > 0, out
+    rss = re.search(
+        r"VmRSS from \d+ s to (\d+) s \((\d+) samples\): ([\d.]+) MB then, ([\d.]+) MB at the end, "
+        r"([\d.]+)-([\d.]+) MB, growth ([-+][\d.]+) MB a minute",
+        out,
+    )
+    assert rss is not None, out
+    low, high = float(rss[5]), float(rss[6])
+    assert int(rss[2]) >= 3 and 0 < low <= float(rss[3]) <= high and low <= float(rss[4]) <= high
+    # the samples are the daemon's: near its peak (VmHWM, read as it wrote its summary;
+    # the teardown after that may add a little), not a shell's few MB
+    assert row(out, "max_rss_mb")[0] / 2 < high <= row(out, "max_rss_mb")[0] + 5, out

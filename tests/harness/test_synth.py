@@ -395,3 +395,42 @@ def test_cli_generates(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert len(r.stdout.strip().splitlines()) == 1 and "15 frames" in r.stdout
     assert len(synth.load_flight(out)) == 15
+
+
+def test_a_video_too_large_for_the_avi_writer_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """OpenCV's AVI writer aborts the process when it closes a file past 4 GiB (after
+    half an hour of rendering a 10-minute 1080p flight): the generator says so
+    instead, from the first second's size when the whole would be well over, or
+    once the file is, and the file it leaves closes and reads (no abort)."""
+    # a second that fits, for the size of a frame of this flight
+    fl = synth.generate("orbit", tmp_path / "fits", width=320, height=180, seconds=1.0)
+    assert fl.frames == 30
+    per_frame = (tmp_path / "fits" / "video.avi").stat().st_size / 30
+
+    def frames_in(video: Path) -> int:
+        cap = cv2.VideoCapture(str(video))
+        try:
+            assert cap.isOpened() and cap.read()[0]
+            return int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        finally:
+            cap.release()
+
+    # 4 s (120 frames) against room for 48: the first second says so
+    monkeypatch.setattr(synth, "AVI_MAX_BYTES", int(48 * per_frame))
+    with pytest.raises(ValueError, match="OpenCV's AVI writer can hold: fly fewer seconds"):
+        synth.generate("orbit", tmp_path / "early", width=320, height=180, seconds=4.0)
+    assert 30 <= frames_in(tmp_path / "early" / "video.avi") < 48
+    # room for 108: within the first second's guess, so found when the file outgrows it
+    monkeypatch.setattr(synth, "AVI_MAX_BYTES", int(108 * per_frame))
+    with pytest.raises(ValueError, match=r"about 0\.0 GB, more than"):
+        synth.generate("orbit", tmp_path / "late", width=320, height=180, seconds=4.0)
+    assert 90 <= frames_in(tmp_path / "late" / "video.avi") < 120
+    # the CLI: one line, exit 2
+    with pytest.raises(SystemExit) as exited:
+        synth.main(["--flight", "orbit", "--out", str(tmp_path / "cli"), "--width", "320",
+                    "--height", "180", "--seconds", "4"])  # fmt: skip
+    assert exited.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "s fit at 320x180) or a smaller image" in err[-1], err

@@ -413,6 +413,88 @@ TEST(TelemetryDecoder, FramesFromBeforeARebootAreTaggedFromTheBootBefore) {
   EXPECT_NEAR(now.position->latDeg, 11.0, 1e-9);
 }
 
+// The link is down for 20 s while the autopilot restarts (a battery swap on the bench):
+// when it is heard again its clock reads 15 s, ahead of the 10 s last heard, so it
+// never goes back; but it is 17 s behind the time that passed here. A reboot: frames
+// from before the silence keep the old boot's poses, frames from the silence get
+// none (the old history is not moved onto it), frames after it the new boot's.
+TEST(TelemetryDecoder, AnAutopilotRebootedDuringALongerSilenceIsSeen) {
+  TelemetryDecoder dec;
+  MavlinkEncoder ap(1, 1);
+  Feeder push{dec};
+  push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+  const Quaternion before = quaternionFromEuler(0, 0, 30 * kDeg);
+  const Quaternion after = quaternionFromEuler(0, 0, 120 * kDeg);
+  // `seconds` at 10 Hz from `localMs` here, `bootMs` on the autopilot's clock.
+  const auto fly = [&](std::int64_t localMs, std::uint32_t bootMs, int seconds, const Quaternion& q,
+                       double lat) {
+    for (std::uint32_t i = 0; i <= static_cast<std::uint32_t>(seconds * 10); ++i) {
+      push.now = (localMs + i * 100) * kMs;
+      push(gpsRaw(ap, 3));
+      push(attitudeQ(ap, bootMs + i * 100, q));
+      push(position(ap, bootMs + i * 100, lat, 20.0, 50.0));
+    }
+  };
+  fly(10'000, 8'000, 2, before, 10.0);  // boot 8 .. 10 s
+  fly(32'000, 15'000, 5, after, 11.0);  // boot 15 .. 20 s, from 32 s here
+  EXPECT_EQ(dec.stats().reboots, 1U);
+  const Pose old = dec.poseAt(11'000 * kMs);
+  ASSERT_TRUE(old.attitude && old.position) << old.staleReason;
+  EXPECT_NEAR(angleBetween(*old.attitude, before), 0.0, 1e-6);
+  EXPECT_NEAR(old.position->latDeg, 10.0, 1e-9);
+  for (const std::int64_t silent : {13'000, 25'500, 26'000, 31'000}) {
+    const Pose p = dec.poseAt(silent * kMs);
+    EXPECT_FALSE(p.attitude || p.position) << silent << " ms: " << p.staleReason;
+  }
+  const Pose now = dec.poseAt(36'000 * kMs);
+  ASSERT_TRUE(now.attitude && now.position) << now.staleReason;
+  EXPECT_NEAR(angleBetween(*now.attitude, after), 0.0, 1e-6);
+  EXPECT_NEAR(now.position->latDeg, 11.0, 1e-9);
+}
+
+// A link that stalls for 6 s and then releases what it held (a TCP stream over a
+// cellular link): the backlog lags the time that passed here as a late-heard reboot
+// would, but catches up, at once or half again faster than real time. No reboot: the
+// history goes on, and poses after it are the stream's.
+TEST(TelemetryDecoder, ABacklogAfterAStallIsNoReboot) {
+  for (const double drain : {0.0, 1.5}) {  // 0: all at once; else this many times real time
+    SCOPED_TRACE(drain);
+    TelemetryDecoder dec;
+    MavlinkEncoder ap(1, 1);
+    Feeder push{dec};
+    push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
+    const Quaternion q = quaternionFromEuler(0, 0, 30 * kDeg);
+    constexpr std::uint32_t kBootMs = 600'000;
+    const auto send = [&](std::int64_t i) {  // the sample of 50 * i ms
+      push(gpsRaw(ap, 3));
+      push(attitudeQ(ap, static_cast<std::uint32_t>(kBootMs + i * 50), q));
+      push(position(ap, static_cast<std::uint32_t>(kBootMs + i * 50), 10.0, 20.0, 50.0));
+    };
+    for (std::int64_t i = 0; i <= 100; ++i) {  // 5 s at 20 Hz, then the stall
+      push.now = (10'000 + i * 50) * kMs;
+      send(i);
+    }
+    // at 21 s the link comes back with the 6 s it held (samples 101..220), then live
+    std::int64_t t = 21'000;
+    std::int64_t i = 101;
+    for (; 10'000 + i * 50 < t; ++i) {
+      push.now = t * kMs;
+      send(i);
+      t += drain > 0 ? static_cast<std::int64_t>(50 / drain) : 0;
+    }
+    for (const std::int64_t end = i + 60; i <= end; ++i) {  // 3 s live
+      push.now = (10'000 + i * 50) * kMs;
+      send(i);
+    }
+    EXPECT_EQ(dec.stats().reboots, 0U);
+    const Pose p = dec.poseAt((10'000 + (i - 20) * 50) * kMs);
+    ASSERT_TRUE(p.attitude && p.position) << p.staleReason;
+    EXPECT_NEAR(p.position->latDeg, 10.0, 1e-9);
+    const Pose early = dec.poseAt(12'000 * kMs);  // before the stall: still there
+    EXPECT_TRUE(early.attitude && early.position) << early.staleReason;
+  }
+}
+
 // An autopilot rebooted two seconds after it started (a power glitch on the bench, a
 // parameter reboot): its boot clock goes back by less than the 5 s that marks a reboot
 // on its own, but it lags the time that passed here. Datagrams that overtook each

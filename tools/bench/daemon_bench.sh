@@ -4,14 +4,19 @@
 # summary's frame rate, drops, CPU (total, and without the video decoding a camera
 # would do in hardware) and peak RSS.
 #   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12] [--allocs]
+#                               [--rss] [--flight nadir|orbit] [--size WxH]
 #                               [--set KEY=VALUE]...
-#   (default 12 s; --set as `keyframed run --set`, e.g. output.preview_format=h264)
+#   (default 12 s of the nadir survey, which ends at ~37 s; --flight orbit goes on for
+#   any length; --size: other than 1920x1080; --set as `keyframed run --set`, e.g. output.preview_format=h264)
 # --allocs: heap allocations per frame by thread, counted from 3 s to 1 s before the
 # end (tools/bench/alloc_preload.cpp, preloaded; it slows allocation a little).
 # Without --full: no telemetry or Zenoh peers (the selection, recording and preview
 # cost alone). With --full: the daemon as shipped, telemetry and Zenoh on, a fake
 # autopilot replaying the flight's tlog over UDP and a ground station (keyframed-ground)
 # receiving the keyframes over loopback; their own CPU is not counted.
+# --rss: the daemon's resident memory (VmRSS) sampled five times a second: its growth
+# after the first tenth of the run (at least 1 s), as a straight line fitted in MB a minute
+# and the range, for a soak (a whole flight's length) rather than a peak.
 # --format: the file source delivers frames as a camera would (converted from the
 # decoded BGR on the capture thread, counted with the decoding), so that the
 # daemon's own work is what it does behind a YUV camera; default: BGR as decoded.
@@ -22,20 +27,33 @@ SECS=12
 FULL=0
 FORMAT=auto
 ALLOCS=0
+RSS=0
+FLIGHT=nadir
+SIZE=1920x1080
 EXTRA=()
 while [ "$#" -gt 0 ]; do
   case "$1" in
     --full) FULL=1 ;;
     --format) FORMAT="$2"; shift ;;
     --allocs) ALLOCS=1 ;;
+    --rss) RSS=1 ;;
+    --flight) FLIGHT="$2"; shift ;;
+    --size) SIZE="$2"; shift ;;
     --set) EXTRA+=(--set "$2"); shift ;;
     *) SECS="$1" ;;
   esac
   shift
 done
-SAMPLE="data/sample/nadir1080-${SECS}s"
+if [[ ! "$SIZE" =~ ^([0-9]+)x([0-9]+)$ ]]; then
+  echo "daemon_bench.sh: --size wants WIDTHxHEIGHT, not '$SIZE'" >&2
+  exit 2
+fi
+WIDTH="${BASH_REMATCH[1]}"
+HEIGHT="${BASH_REMATCH[2]}"
+SAMPLE="data/sample/${FLIGHT}${HEIGHT}-${SECS}s"
+[ "$WIDTH" = $((HEIGHT * 16 / 9)) ] || SAMPLE="data/sample/${FLIGHT}${WIDTH}x${HEIGHT}-${SECS}s"
 if [ ! -f "$SAMPLE/meta.json" ]; then
-  .venv/bin/python -m keyframed.synth --flight nadir --out "$SAMPLE" --width 1920 --height 1080 \
+  .venv/bin/python -m keyframed.synth --flight "$FLIGHT" --out "$SAMPLE" --width "$WIDTH" --height "$HEIGHT" \
     --seconds "$SECS" >/dev/null
 fi
 STATE="$(mktemp -d)"
@@ -78,10 +96,20 @@ if [ "$ALLOCS" = 1 ]; then
            KEYFRAMED_ALLOC_FROM_S=3 "KEYFRAMED_ALLOC_TO_S=$((SECS - 1))"
            "KEYFRAMED_ALLOC_REPORT=$STATE/allocs.txt")
 fi
-"${PRELOAD[@]}" build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" 2>/dev/null
+"${PRELOAD[@]}" build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" \
+  2>/dev/null &
+DAEMON_PID=$!
+if [ "$RSS" = 1 ]; then
+  # the time and VmRSS in kB, until the daemon has gone
+  while rss=$(awk '/^VmRSS:/ { print $2 }' "/proc/$DAEMON_PID/status" 2>/dev/null) && [ -n "$rss" ]; do
+    echo "$EPOCHREALTIME $rss" >> "$STATE/rss.txt"
+    sleep 0.2
+  done
+fi
+wait "$DAEMON_PID"
 if [ "$FULL" = 1 ]; then wait "$GROUND_PID" || true; fi
 .venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" "$FORMAT" \
-  "$STATE/allocs.txt" "$SECS" <<'PY'
+  "$STATE/allocs.txt" "$SECS" "$STATE/rss.txt" <<'PY'
 import json, os, sys
 s = json.load(open(sys.argv[1]))
 full = sys.argv[2] == "1"
@@ -102,4 +130,20 @@ if os.path.exists(sys.argv[5]):
     for line in open(sys.argv[5]):
         name, count = line.rsplit(None, 1)
         print(f"    {name:26s} {int(count) / frames:8.2f}")
+if os.path.exists(sys.argv[7]):
+    samples = [tuple(map(float, line.split())) for line in open(sys.argv[7]) if line.strip()]
+    samples = [(t - samples[0][0], kb) for t, kb in samples]
+    settle = max(1.0, 0.1 * samples[-1][0]) if samples else 0.0
+    late = [(t, kb / 1024) for t, kb in samples if t >= settle]
+    if len(late) >= 3:
+        n = len(late)
+        mt = sum(t for t, _ in late) / n
+        mr = sum(r for _, r in late) / n
+        slope = sum((t - mt) * (r - mr) for t, r in late) / sum((t - mt) ** 2 for t, _ in late)
+        rs = [r for _, r in late]
+        print(f"  VmRSS from {settle:.0f} s to {late[-1][0]:.0f} s ({n} samples): {rs[0]:.1f} MB then, "
+              f"{rs[-1]:.1f} MB at the end, {min(rs):.1f}-{max(rs):.1f} MB, "
+              f"growth {slope * 60:+.3f} MB a minute (least squares)")
+    else:
+        print("  VmRSS: the run was too short to sample after it settled")
 PY

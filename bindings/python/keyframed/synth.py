@@ -76,7 +76,9 @@ Blur ground truth
     Gaussian, sigma 2 DN.
 
 Outputs of :func:`generate` (all in one directory)
-    video.avi          MJPG (quality 90), BGR, one frame per ground-truth row.
+    video.avi          MJPG (quality 90), BGR, one frame per ground-truth row. Under
+                       AVI_MAX_BYTES (OpenCV's AVI writer holds 4 GiB): about 3.5
+                       minutes at 1920x1080, 11 at 960x540; longer is refused.
     groundtruth.csv    one row per frame, columns ``GT_COLUMNS``.
     intrinsics.json    width, height, fx, fy, cx, cy, distortion, sensor and focal
                        length in mm, fps, exposure_s, mount_pitch_deg.
@@ -161,6 +163,9 @@ DEFOCUS_SIGMA_THRESHOLD = 1.0
 DEFOCUS_SIGMA_AT_960 = 3.2
 NOISE_SIGMA_DN = 2.0
 MJPG_QUALITY = 90
+# OpenCV's own AVI writer keeps the file's sizes in 32 bits: past 4 GiB it aborts the
+# process as it closes the file. A flight whose video would pass this is refused.
+AVI_MAX_BYTES = 3_800_000_000
 
 TEXEL_M = 0.05
 WORLD_HALF_M = 125.0
@@ -1184,9 +1189,11 @@ def _frame_truth(
 
 
 class _Writer:
-    """MJPG writer on a background thread (encoding overlaps rendering)."""
+    """MJPG writer on a background thread (encoding overlaps rendering). Refuses (a
+    ValueError from write) a video that would outgrow AVI_MAX_BYTES: as soon as its
+    first second says the whole would, or once it does."""
 
-    def __init__(self, path: Path, fps: float, size: tuple[int, int]) -> None:
+    def __init__(self, path: Path, fps: float, size: tuple[int, int], frames: int) -> None:
         self._vw = cv2.VideoWriter(
             str(path),
             cv2.CAP_OPENCV_MJPEG,
@@ -1197,24 +1204,52 @@ class _Writer:
         )
         if not self._vw.isOpened():
             raise RuntimeError(f"cannot open {path} for writing")
+        self._path, self._fps, self._size, self._frames = path, fps, size, frames
+        self._written = 0
+        self._too_large: str | None = None
         self._q: queue.Queue[U8 | None] = queue.Queue(maxsize=6)
         self._err: BaseException | None = None
         self._th = threading.Thread(target=self._run, name="synth-writer", daemon=True)
         self._th.start()
 
     def _run(self) -> None:
+        check_at = max(1, int(round(self._fps)))  # the first second, then every 16 frames
         while True:
             f = self._q.get()
             if f is None:
                 break
+            if self._too_large is not None or self._err is not None:
+                continue  # drained, not written: write() says why
             try:
                 self._vw.write(f)
+                self._written += 1
+                if self._written == check_at or (
+                    self._written > check_at and self._written % 16 == 0
+                ):
+                    self._check_size()
             except BaseException as e:  # re-raised in the caller's thread
                 self._err = e
+
+    def _check_size(self) -> None:
+        size = self._path.stat().st_size
+        estimate = size * self._frames / self._written
+        # the first second's rate is a guess (blur and texture change a frame's size):
+        # refused early only when well over
+        early = self._written <= self._fps and estimate > 1.25 * AVI_MAX_BYTES
+        if early or size > AVI_MAX_BYTES:
+            fit = AVI_MAX_BYTES / (size / self._written) / self._fps
+            w, h = self._size
+            self._too_large = (
+                f"the video would be about {estimate / 1e9:.1f} GB, more than the "
+                f"{AVI_MAX_BYTES / 1e9:.1f} GB OpenCV's AVI writer can hold: fly fewer "
+                f"seconds (about {fit:.0f} s fit at {w}x{h}) or a smaller image"
+            )
 
     def write(self, frame: U8) -> None:
         if self._err is not None:
             raise RuntimeError("video writer failed") from self._err
+        if self._too_large is not None:
+            raise ValueError(self._too_large)
         self._q.put(frame)
 
     def close(self) -> None:
@@ -1244,7 +1279,7 @@ def _render_video(
     for _ in range(3):
         nz = np.rint(rng.standard_normal((height + pad, width + pad, 3)) * NOISE_SIGMA_DN)
         bank.append((np.clip(nz, 0, 255).astype(np.uint8), np.clip(-nz, 0, 255).astype(np.uint8)))
-    writer = _Writer(path, fps, (width, height))
+    writer = _Writer(path, fps, (width, height), len(truth.t))
     try:
         for i in range(len(truth.t)):
             nsub = int(truth.nsub[i])
