@@ -417,10 +417,11 @@ def test_a_video_too_large_for_the_avi_writer_is_refused(
         finally:
             cap.release()
 
-    # 4 s (120 frames) against room for 48: the first second says so
+    # 4 s (120 frames) against room for 48: the first second says so (at NTSC's 29.97
+    # frames a second too, whose first second ends on no whole frame)
     monkeypatch.setattr(synth, "AVI_MAX_BYTES", int(48 * per_frame))
     with pytest.raises(ValueError, match="OpenCV's AVI writer can hold: fly fewer seconds"):
-        synth.generate("orbit", tmp_path / "early", width=320, height=180, seconds=4.0)
+        synth.generate("orbit", tmp_path / "early", width=320, height=180, seconds=4.0, fps=29.97)
     assert 30 <= frames_in(tmp_path / "early" / "video.avi") < 48
     # room for 108: within the first second's guess, so found when the file outgrows it
     monkeypatch.setattr(synth, "AVI_MAX_BYTES", int(108 * per_frame))

@@ -378,6 +378,19 @@ TEST(TelemetryDecoder, AGpsReportBeforeAnyBootTimeIsStampedWithTheFirst) {
   EXPECT_NE(lost.staleReason.find("no GPS fix"), std::string::npos) << lost.staleReason;
 }
 
+// `seconds` of an autopilot at 10 Hz (GPS_RAW_INT, ATTITUDE_QUATERNION q,
+// GLOBAL_POSITION_INT at latitude lat) from localMs on the companion's clock, bootMs
+// on the autopilot's.
+void fly10Hz(Feeder& push, MavlinkEncoder& ap, std::int64_t localMs, std::uint32_t bootMs,
+             int seconds, const Quaternion& q, double lat) {
+  for (std::uint32_t i = 0; i <= static_cast<std::uint32_t>(seconds * 10); ++i) {
+    push.now = (localMs + i * 100) * kMs;
+    push(gpsRaw(ap, 3));
+    push(attitudeQ(ap, bootMs + i * 100, q));
+    push(position(ap, bootMs + i * 100, lat, 20.0, 50.0));
+  }
+}
+
 // The autopilot reboots (time_boot_ms from 600 s back to 1 s). A frame from before the
 // reboot that is looked up after it (a replay feeds telemetry 2 s ahead of its
 // frames; a live keyframe may wait across it) is tagged from the old boot's history
@@ -389,18 +402,8 @@ TEST(TelemetryDecoder, FramesFromBeforeARebootAreTaggedFromTheBootBefore) {
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   const Quaternion before = quaternionFromEuler(0, 0, 30 * kDeg);
   const Quaternion after = quaternionFromEuler(0, 0, 120 * kDeg);
-  // Two seconds at 10 Hz from `localMs` on the companion clock, `bootMs` on the autopilot's.
-  const auto fly = [&](std::int64_t localMs, std::uint32_t bootMs, const Quaternion& q,
-                       double lat) {
-    for (std::uint32_t i = 0; i <= 20; ++i) {
-      push.now = (localMs + i * 100) * kMs;
-      push(gpsRaw(ap, 3));
-      push(attitudeQ(ap, bootMs + i * 100, q));
-      push(position(ap, bootMs + i * 100, lat, 20.0, 50.0));
-    }
-  };
-  fly(10'000, 600'000, before, 10.0);
-  fly(12'500, 1'000, after, 11.0);  // rebooted: the boot clock starts again
+  fly10Hz(push, ap, 10'000, 600'000, 2, before, 10.0);
+  fly10Hz(push, ap, 12'500, 1'000, 2, after, 11.0);  // rebooted: the boot clock starts again
   EXPECT_EQ(dec.stats().reboots, 1U);
   const Pose old = dec.poseAt(11'500 * kMs);
   ASSERT_TRUE(old.attitude && old.position) << old.staleReason;
@@ -425,18 +428,8 @@ TEST(TelemetryDecoder, AnAutopilotRebootedDuringALongerSilenceIsSeen) {
   push(heartbeat(ap, MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA));
   const Quaternion before = quaternionFromEuler(0, 0, 30 * kDeg);
   const Quaternion after = quaternionFromEuler(0, 0, 120 * kDeg);
-  // `seconds` at 10 Hz from `localMs` here, `bootMs` on the autopilot's clock.
-  const auto fly = [&](std::int64_t localMs, std::uint32_t bootMs, int seconds, const Quaternion& q,
-                       double lat) {
-    for (std::uint32_t i = 0; i <= static_cast<std::uint32_t>(seconds * 10); ++i) {
-      push.now = (localMs + i * 100) * kMs;
-      push(gpsRaw(ap, 3));
-      push(attitudeQ(ap, bootMs + i * 100, q));
-      push(position(ap, bootMs + i * 100, lat, 20.0, 50.0));
-    }
-  };
-  fly(10'000, 8'000, 2, before, 10.0);  // boot 8 .. 10 s
-  fly(32'000, 15'000, 5, after, 11.0);  // boot 15 .. 20 s, from 32 s here
+  fly10Hz(push, ap, 10'000, 8'000, 2, before, 10.0);  // boot 8 .. 10 s
+  fly10Hz(push, ap, 32'000, 15'000, 5, after, 11.0);  // boot 15 .. 20 s, from 32 s here
   EXPECT_EQ(dec.stats().reboots, 1U);
   const Pose old = dec.poseAt(11'000 * kMs);
   ASSERT_TRUE(old.attitude && old.position) << old.staleReason;

@@ -7,7 +7,8 @@
 #                               [--rss] [--flight nadir|orbit] [--size WxH]
 #                               [--set KEY=VALUE]...
 #   (default 12 s of the nadir survey, which ends at ~37 s; --flight orbit goes on for
-#   any length; --size: other than 1920x1080; --set as `keyframed run --set`, e.g. output.preview_format=h264)
+#   any length; --size: other than 1920x1080; --set as `keyframed run --set`, e.g.
+#   output.preview_format=h264)
 # --allocs: heap allocations per frame by thread, counted from 3 s to 1 s before the
 # end (tools/bench/alloc_preload.cpp, preloaded; it slows allocation a little).
 # Without --full: no telemetry or Zenoh peers (the selection, recording and preview
@@ -57,7 +58,7 @@ if [ ! -f "$SAMPLE/meta.json" ]; then
     --seconds "$SECS" >/dev/null
 fi
 STATE="$(mktemp -d)"
-cleanup() { kill "${GROUND_PID:-}" "${AP_PID:-}" 2>/dev/null || true; rm -rf "$STATE"; }
+cleanup() { kill "${DAEMON_PID:-}" "${GROUND_PID:-}" "${AP_PID:-}" 2>/dev/null || true; rm -rf "$STATE"; }
 trap cleanup EXIT
 mkdir -p "$STATE/etc"
 ARGS=(--set camera.source=file --set "camera.path=$ROOT/$SAMPLE/video.avi"
@@ -107,6 +108,7 @@ if [ "$RSS" = 1 ]; then
   done
 fi
 wait "$DAEMON_PID"
+DAEMON_PID=  # gone: nothing for cleanup to stop
 if [ "$FULL" = 1 ]; then wait "$GROUND_PID" || true; fi
 .venv/bin/python - "$STATE/latest/summary.json" "$FULL" "$STATE/ground.json" "$FORMAT" \
   "$STATE/allocs.txt" "$SECS" "$STATE/rss.txt" <<'PY'

@@ -1226,17 +1226,16 @@ class _Writer:
                 if self._written == check_at or (
                     self._written > check_at and self._written % 16 == 0
                 ):
-                    self._check_size()
+                    self._check_size(first=self._written == check_at)
             except BaseException as e:  # re-raised in the caller's thread
                 self._err = e
 
-    def _check_size(self) -> None:
+    def _check_size(self, first: bool) -> None:
         size = self._path.stat().st_size
         estimate = size * self._frames / self._written
         # the first second's rate is a guess (blur and texture change a frame's size):
-        # refused early only when well over
-        early = self._written <= self._fps and estimate > 1.25 * AVI_MAX_BYTES
-        if early or size > AVI_MAX_BYTES:
+        # refused then only when well over
+        if (first and estimate > 1.25 * AVI_MAX_BYTES) or size > AVI_MAX_BYTES:
             fit = AVI_MAX_BYTES / (size / self._written) / self._fps
             w, h = self._size
             self._too_large = (
