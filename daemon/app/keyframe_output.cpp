@@ -40,9 +40,13 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
   std::optional<Pose> pose;
   if (telemetry_ != nullptr) {
     if (!telemetry_->isReplay()) {
-      // Telemetry for this instant may still be on its way: wait a little, but only
-      // while the link delivers. Waiting on a silent one (no autopilot, link lost)
-      // would hold every keyframe, and so the analysis and the capture, for wait_ms.
+      // Telemetry for this instant may still be on its way: wait a little, up to
+      // wait_ms. Through a silence too, when the link was heard delivering: a radio
+      // that stalls or an autopilot busy for half a second sends what it held back in
+      // a burst when it moves on (given up at attitude_gap + stale, 0.4 s, such a pause
+      // left the keyframe in it untagged). A link silent through a whole wait is lost:
+      // the keyframes after it do not wait until it delivers again (waiting on every
+      // one would hold each, and so the analysis and the capture, for wait_ms).
       const std::int64_t deadline = monotonicNowNs() + telemetryWaitMs_ * 1'000'000LL;
       // A gimbal only when its attitude is used: a dead gimbal on the link must not
       // hold up a fixed-mount camera's keyframes.
@@ -59,9 +63,16 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
       // autopilot's first messages, a few ms away.
       const TelemetryDecoder& d = telemetry_->decoder();
       const std::int64_t young = telemetry_->startedNs() + telemetryWaitMs_ * 1'000'000LL;
+      if (linkDelivers(monotonicNowNs(), gimbal)) linkLost_ = false;  // heard again
       while (!d.covers(frame.timestampNs, gimbal, limits_.maxHoldNs) || !d.clockSettled()) {
         const std::int64_t now = monotonicNowNs();
-        if (now >= deadline || (now >= young && !linkDelivers(now, gimbal))) break;
+        const bool delivers = now < young || linkDelivers(now, gimbal);
+        if (delivers) linkLost_ = false;
+        if (now >= deadline) {
+          if (!delivers) linkLost_ = true;
+          break;
+        }
+        if (!delivers && linkLost_) break;
         std::this_thread::sleep_for(std::chrono::milliseconds(2));
       }
     }

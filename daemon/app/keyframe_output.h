@@ -46,6 +46,9 @@ class KeyframeOutput {
   int telemetryWaitMs_;
   PoseStore::Config limits_;
   std::int64_t timeOffsetNs_;
+  // The link fell silent and stayed so through a keyframe's whole wait (or was never
+  // heard): keyframes do not wait for it until it delivers again.
+  bool linkLost_ = true;
   std::string decisionJson_;  // the record's row of the frame at hand
 };
 

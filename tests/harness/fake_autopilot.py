@@ -28,7 +28,9 @@ would stream it to a companion computer:
   another; the send times recorded (``sent``) stay those of the replay.
 * Link faults: ``inject_garbage`` and ``pause``/``resume`` (a dropped radio link:
   nothing is sent or heard, the messages due meanwhile are lost but still use up
-  sequence numbers, so the receiver sees the gap a real link drop leaves).
+  sequence numbers, so the receiver sees the gap a real link drop leaves);
+  ``stall``/``unstall`` (a radio retrying, an autopilot busy: the messages due
+  meanwhile wait and go out in a burst when it moves on, late but none lost).
 
 Addressing: by default the daemon connects with ``udpout:127.0.0.1:PORT`` and sends
 first; the autopilot sends to the address it last heard from (nothing goes out before
@@ -372,6 +374,7 @@ class FakeAutopilot:
         self._peer: tuple[str, int] | None = target
         self._peer_ids: tuple[int, int] | None = None
         self._paused = threading.Event()
+        self._stalled = threading.Event()
         self._stop = threading.Event()
         self.finished = threading.Event()
         self._thread: threading.Thread | None = None
@@ -517,6 +520,14 @@ class FakeAutopilot:
     @property
     def paused(self) -> bool:
         return self._paused.is_set()
+
+    def stall(self) -> None:
+        """Hold the replay: the messages that fall due wait, until unstall() sends
+        them at once."""
+        self._stalled.set()
+
+    def unstall(self) -> None:
+        self._stalled.clear()
 
     def inject_garbage(self, n_bytes: int, *, with_magic: bool = False) -> bytes:
         """Send ``n_bytes`` of noise to the peer, in datagrams of up to 512 bytes.
@@ -806,7 +817,12 @@ class FakeAutopilot:
             if readable:
                 self._drain()
             now = time.monotonic_ns()
-            while nxt < len(due) and due[nxt] <= now and not self._stop.is_set():
+            while (
+                nxt < len(due)
+                and due[nxt] <= now
+                and not self._stalled.is_set()
+                and not self._stop.is_set()
+            ):
                 rec = self._planned[nxt]
                 component = self._components[nxt]
                 if not self.send(rec.msg, unix_us=rec.unix_us, component=component):

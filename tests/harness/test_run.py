@@ -1076,6 +1076,52 @@ def test_telemetry_lost_mid_flight_holds_up_nothing(
     assert len(after) >= 2 and all("stale" in g for g in after), kfs
 
 
+def test_a_link_that_stalls_for_half_a_second_loses_no_geotag(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The link stalls for 0.7 s in every second of the flight (a radio retrying, an
+    autopilot busy) and then delivers what it held back in a burst: the keyframes
+    taken in a stall wait for it (telemetry.wait_ms) and are all tagged. Given up once
+    the link had been silent for attitude_gap + stale (0.4 s), they went untagged."""
+    port = free_port(socket.SOCK_DGRAM)
+    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
+    ns = NotifySocket(tmp_path / "notify.sock")
+    proc = start(
+        kf_bin,
+        tmp_path,
+        f"camera.path={short_nadir / 'video.avi'}",
+        f"telemetry.url=udpin:127.0.0.1:{port}",
+        "output.mcap=false",
+        env={"NOTIFY_SOCKET": str(ns.path)},
+    )
+    try:
+        time.sleep(0.3)
+        ap.start()
+        wait_ready(ns, proc)
+        stalls = 0
+        while proc.poll() is None and stalls < 30:
+            time.sleep(0.3)
+            ap.stall()
+            stalls += 1
+            time.sleep(0.7)
+            ap.unstall()
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        ap.unstall()
+        if proc.poll() is None:
+            proc.kill()
+        ns.close()
+    assert proc.returncode == 0, stderr
+    assert stalls >= 5
+    fd = flight_dir(tmp_path)
+    summary = json.loads((fd / "summary.json").read_text())
+    assert summary["frames_dropped"] == 0, summary
+    assert summary["frames_read"] == 240
+    kfs = {int(k["index"]): k["geotag"] for k in rows(fd / "keyframes" / "keyframes.csv")}
+    assert len(kfs) >= 5 and all(g == "ok" for g in kfs.values()), kfs
+    assert summary["telemetry"]["geotagged"] == len(kfs), summary
+
+
 def test_bad_config_file_names_file_and_line(kf_bin: Path, tmp_path: Path) -> None:
     proc = start(kf_bin, tmp_path, config="[camera]\nsource = \"file\"\nfps = 'fast'\n")
     _, stderr = proc.communicate(timeout=30)

@@ -5,7 +5,7 @@
 # would do in hardware) and peak RSS.
 #   tools/bench/daemon_bench.sh [SECONDS] [--full] [--format YUV420|NV12] [--allocs]
 #                               [--rss] [--flight nadir|orbit] [--size WxH]
-#                               [--set KEY=VALUE]...
+#                               [--set KEY=VALUE]... [--wrap 'COMMAND']
 #   (default 12 s of the nadir survey, which ends at ~37 s; --flight orbit goes on for
 #   any length; --size: other than 1920x1080; --set as `keyframed run --set`, e.g.
 #   output.preview_format=h264)
@@ -18,6 +18,9 @@
 # --rss: the daemon's resident memory (VmRSS) sampled five times a second: its growth
 # after the first tenth of the run (at least 1 s), as a straight line fitted in MB a minute
 # and the range, for a soak (a whole flight's length) rather than a peak.
+# --wrap: the daemon runs under COMMAND, split at spaces: 'env MALLOC_ARENA_MAX=1', or
+# 'heaptrack -o /tmp/kf' for the heap by allocation site (heaptrack_print; --rss then
+# samples heaptrack's own shell, not the daemon: env execs, heaptrack does not).
 # --format: the file source delivers frames as a camera would (converted from the
 # decoded BGR on the capture thread, counted with the decoding), so that the
 # daemon's own work is what it does behind a YUV camera; default: BGR as decoded.
@@ -32,6 +35,7 @@ RSS=0
 FLIGHT=nadir
 SIZE=1920x1080
 EXTRA=()
+WRAP=()
 while [ "$#" -gt 0 ]; do
   case "$1" in
     --full) FULL=1 ;;
@@ -41,6 +45,7 @@ while [ "$#" -gt 0 ]; do
     --flight) FLIGHT="$2"; shift ;;
     --size) SIZE="$2"; shift ;;
     --set) EXTRA+=(--set "$2"); shift ;;
+    --wrap) read -r -a WRAP <<< "$2"; shift ;;
     *) SECS="$1" ;;
   esac
   shift
@@ -97,7 +102,7 @@ if [ "$ALLOCS" = 1 ]; then
            KEYFRAMED_ALLOC_FROM_S=3 "KEYFRAMED_ALLOC_TO_S=$((SECS - 1))"
            "KEYFRAMED_ALLOC_REPORT=$STATE/allocs.txt")
 fi
-"${PRELOAD[@]}" build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" \
+"${PRELOAD[@]}" "${WRAP[@]}" build/release/daemon/keyframed run --config-dir "$STATE/etc" "${ARGS[@]}" "${EXTRA[@]}" \
   2>/dev/null &
 DAEMON_PID=$!
 if [ "$RSS" = 1 ]; then
