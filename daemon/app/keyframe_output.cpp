@@ -67,7 +67,6 @@ bool KeyframeOutput::writeKeyframe(const Frame& captured, std::int64_t decidedNs
       while (!d.covers(frame.timestampNs, gimbal, limits_.maxHoldNs) || !d.clockSettled()) {
         const std::int64_t now = monotonicNowNs();
         const bool delivers = now < young || linkDelivers(now, gimbal);
-        if (delivers) linkLost_ = false;
         if (now >= deadline) {
           if (!delivers) linkLost_ = true;
           break;

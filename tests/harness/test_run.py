@@ -17,7 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -1035,19 +1035,23 @@ def test_silent_telemetry_link_holds_up_nothing(
     assert summary["telemetry"]["geotagged"] == 0
 
 
-def test_telemetry_lost_mid_flight_holds_up_nothing(
-    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
-) -> None:
-    """The autopilot falls silent mid-flight: the keyframes right after must not wait
-    wait_ms each for it (frames would be dropped); those before are tagged, those
-    after are written untagged with the reason."""
+def fly_with_autopilot(
+    kf_bin: Path,
+    flight: Path,
+    tmp_path: Path,
+    fake_autopilot: Any,
+    during: Callable[[Any, subprocess.Popen[str]], None],
+) -> tuple[dict[str, Any], dict[int, str]]:
+    """The daemon on `flight` with a fake autopilot replaying its tlog over UDP, `during`
+    run once the daemon is ready; the flight played to its end, every frame read and
+    none dropped. Returns the summary and each keyframe's geotag by frame index."""
     port = free_port(socket.SOCK_DGRAM)
-    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
+    ap = fake_autopilot(flight / "flight.tlog", target=("127.0.0.1", port))
     ns = NotifySocket(tmp_path / "notify.sock")
     proc = start(
         kf_bin,
         tmp_path,
-        f"camera.path={short_nadir / 'video.avi'}",
+        f"camera.path={flight / 'video.avi'}",
         f"telemetry.url=udpin:127.0.0.1:{port}",
         "output.mcap=false",
         env={"NOTIFY_SOCKET": str(ns.path)},
@@ -1056,9 +1060,7 @@ def test_telemetry_lost_mid_flight_holds_up_nothing(
         time.sleep(0.3)
         ap.start()
         wait_ready(ns, proc)
-        # Silent from about frame 96 on, just before the keyframes at 106 and 122.
-        time.sleep(3.2)
-        ap.stop()
+        during(ap, proc)
         _, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -1070,6 +1072,24 @@ def test_telemetry_lost_mid_flight_holds_up_nothing(
     assert summary["frames_dropped"] == 0, summary
     assert summary["frames_read"] == 240
     kfs = {int(k["index"]): k["geotag"] for k in rows(fd / "keyframes" / "keyframes.csv")}
+    return summary, kfs
+
+
+def test_telemetry_lost_mid_flight_holds_up_nothing(
+    kf_bin: Path, short_nadir: Path, tmp_path: Path, fake_autopilot: Any
+) -> None:
+    """The autopilot falls silent mid-flight: the keyframes right after must not wait
+    wait_ms each for it (frames would be dropped); those before are tagged, those
+    after are written untagged with the reason."""
+
+    def silent_from_frame_96(ap: Any, proc: subprocess.Popen[str]) -> None:
+        # Silent from about frame 96 on, just before the keyframes at 106 and 122.
+        time.sleep(3.2)
+        ap.stop()
+
+    summary, kfs = fly_with_autopilot(
+        kf_bin, short_nadir, tmp_path, fake_autopilot, silent_from_frame_96
+    )
     before = [g for i, g in kfs.items() if i <= 85]
     after = [g for i, g in kfs.items() if i >= 122]
     assert len(before) >= 2 and all(g == "ok" for g in before), kfs
@@ -1083,41 +1103,24 @@ def test_a_link_that_stalls_for_half_a_second_loses_no_geotag(
     autopilot busy) and then delivers what it held back in a burst: the keyframes
     taken in a stall wait for it (telemetry.wait_ms) and are all tagged. Given up once
     the link had been silent for attitude_gap + stale (0.4 s), they went untagged."""
-    port = free_port(socket.SOCK_DGRAM)
-    ap = fake_autopilot(short_nadir / "flight.tlog", target=("127.0.0.1", port))
-    ns = NotifySocket(tmp_path / "notify.sock")
-    proc = start(
-        kf_bin,
-        tmp_path,
-        f"camera.path={short_nadir / 'video.avi'}",
-        f"telemetry.url=udpin:127.0.0.1:{port}",
-        "output.mcap=false",
-        env={"NOTIFY_SOCKET": str(ns.path)},
-    )
-    try:
-        time.sleep(0.3)
-        ap.start()
-        wait_ready(ns, proc)
-        stalls = 0
-        while proc.poll() is None and stalls < 30:
-            time.sleep(0.3)
-            ap.stall()
-            stalls += 1
-            time.sleep(0.7)
+    stalls = 0
+
+    def stall_each_second(ap: Any, proc: subprocess.Popen[str]) -> None:
+        nonlocal stalls
+        try:
+            while proc.poll() is None and stalls < 30:
+                time.sleep(0.3)
+                ap.stall()
+                stalls += 1
+                time.sleep(0.7)
+                ap.unstall()
+        finally:
             ap.unstall()
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        ap.unstall()
-        if proc.poll() is None:
-            proc.kill()
-        ns.close()
-    assert proc.returncode == 0, stderr
+
+    summary, kfs = fly_with_autopilot(
+        kf_bin, short_nadir, tmp_path, fake_autopilot, stall_each_second
+    )
     assert stalls >= 5
-    fd = flight_dir(tmp_path)
-    summary = json.loads((fd / "summary.json").read_text())
-    assert summary["frames_dropped"] == 0, summary
-    assert summary["frames_read"] == 240
-    kfs = {int(k["index"]): k["geotag"] for k in rows(fd / "keyframes" / "keyframes.csv")}
     assert len(kfs) >= 5 and all(g == "ok" for g in kfs.values()), kfs
     assert summary["telemetry"]["geotagged"] == len(kfs), summary
 
